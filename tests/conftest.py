@@ -1,0 +1,30 @@
+"""Shared test fixtures."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def shared_data_dir() -> Path | None:
+    """Location of ``../shared/data`` (or ``$TORCHGARMENT_SHARED_DATA``); None when absent."""
+    env = os.environ.get("TORCHGARMENT_SHARED_DATA")
+    candidates = [Path(env)] if env else []
+    candidates.append(REPO_ROOT.parent / "shared" / "data")
+    for c in candidates:
+        if (c / "garmentcode").is_dir():
+            return c
+    return None
+
+
+@pytest.fixture(scope="session")
+def garmentcode_dir() -> Path:
+    """GarmentCode bodies and patterns from ``../shared/data``; skips the test when absent."""
+    d = shared_data_dir()
+    if d is None:
+        pytest.skip("../shared/data/garmentcode is absent")
+    return d / "garmentcode"
