@@ -18,25 +18,33 @@ Landmark heuristics (all found from horizontal section loops, never from vertex 
   separate loops. Refined by bisection to 0.5 mm.
 * **armpit**: scanning up from the hips, the first height where the straddling (torso) loop abruptly widens by
   more than 0.02 ``h`` between two neighbouring sections: the arms join the torso. Refined by bisection.
-* **bust**: horizontal plane of maximum torso girth between ``armpit - 0.12 h`` and ``armpit - 0.02 h``.
-* **underbust**: below the bust, the front profile (the most frontal point of the torso loop as a function of
-  height) drops with the breast and then flattens out on the rib cage: the underbust is the height, between the
-  bust and ``bust - 0.07 h``, where the front profile has its largest convex bend (the breast fold; maximum
-  second difference). On a flat-chested body this is the top of the rib-cage line just below the bust.
-* **waist**: horizontal plane of minimum torso girth between the hips and the underbust.
-* **hips**: horizontal plane of maximum torso girth around the buttocks, between
-  ``crotch + 0.25 (waist_guess - crotch)`` and the waist guess (``waist_guess`` = the minimum torso girth between
-  ``crotch + 0.1 h`` and the underbust). The lower bound excludes the sections through the tops of both thighs.
-* **thigh**: horizontal plane ``0.01 h`` below the crotch, the body's left leg (GarmentCode's ``leg_circ``).
-* **upper_arm**: the left arm's vertices (laterally outside the chest) give the arm axis by PCA; the upper arm
-  is the part within 45 % of the arm length from the shoulder end. Planes perpendicular to the upper-arm axis
-  are swept from the elbow towards the shoulder until the section loop merges with the torso; the maximum girth
-  is the upper-arm girth.
-* **neck**: the *minimum* neck girth: horizontal sections between the shoulders and the head give the level of
-  minimum girth; the plane there is tilted perpendicular to the neck axis (the line through the centroids of
-  neck sections 2 cm above and below), and the minimum over a few heights of that tilted plane is taken.
-* **wrist**: planes perpendicular to the forearm axis (PCA of the left-arm vertices between 45 % and 85 % of
-  the arm length) swept over the distal part of the forearm; the minimum girth is the wrist.
+* **bust**: the nipple level is the highest local maximum (over +-0.01 ``h``) of the front profile (the most
+  frontal point of the torso loop as a function of height) between ``armpit - 0.15 h`` and ``armpit - 0.01 h``;
+  the bust is the maximum torso girth within +-0.0075 ``h`` of it (the tape slid to the fullest part). Without
+  such a maximum (flat chest) the nipple level is the level of maximum torso girth in that band.
+* **underbust**: below the nipple the front profile drops with the breast to a local minimum on the rib cage
+  (the breast fold, searched within ``0.06 h`` below the nipple, at least ``0.005 h`` deeper than the nipple);
+  the tape sits just under it, at ``fold - 0.005 h``. Without a fold (flat chest) the underbust is at
+  ``nipple - 0.035 h`` (the fold distance of the GarmentCode mean bodies).
+* **waist**: horizontal plane of minimum torso girth between ``crotch + 0.1 h`` and ``underbust - 0.01 h``.
+* **hips**: the buttocks level is the most posterior point of the torso between crotch and waist; the hips are
+  the maximum torso girth within +-0.01 ``h`` of it.
+* **thigh**: horizontal plane ``0.01 h`` below the crotch, the body's right leg (as GarmentCode's ``leg_circ``).
+* **arm** (the body's right arm, as GarmentCode's ``wrist``): a centreline is traced by cutting with planes
+  normal to the lateral axis from the side of the chest outwards (the arm loop is the highest loop in each
+  cut); it runs from the shoulder to the fingertips, parametrised by arc-length fraction. Girths are taken
+  perpendicular to the local centreline direction (a chord over +-3 samples, about +-2.5 cm), at the loop
+  around the centreline point; loops reaching within half a chest width of the mid-sagittal plane have merged
+  with the torso and are skipped.
+* **wrist**: the hand is the maximum girth at fractions 0.65-0.9; the wrist is the minimum girth between
+  fraction 0.5 and the hand (refined in steps of 0.004).
+* **upper_arm**: with ``first`` the first isolated arm section and the elbow at ``first + 0.55 (wrist -
+  first)``, the maximum girth between ``first + 0.25 (elbow - first)`` and the elbow (the top quarter is left
+  out: there the perpendicular plane slices obliquely through the deltoid and armpit fold).
+* **neck**: the *minimum* neck girth: the minimum horizontal torso girth between ``armpit + 0.03 h`` and 90 %
+  of the height gives its level; the plane is then tilted perpendicular to the neck axis (the line through the
+  torso-loop centroids 0.015 ``h`` above and below) and the minimum over nine offsets of +-0.008 ``h`` along
+  the axis is taken.
 
 Comparison with GarmentCode's body YAML (``bodies/*.yaml``, cm; measured with the GarmentMeasurements tool of
 Botsch et al. on a fixed mesh topology):
@@ -219,12 +227,12 @@ def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.nd
     Returns:
         The loops, each with its edge ids, points and segments; empty when the plane misses the mesh.
     """
-    d = (vertices - point) @ normal
+    d = vertices @ normal - float(point @ normal)
     pos = d > 0
     e = topo.edges
     crossing = pos[e[:, 0]] != pos[e[:, 1]]
     fc = crossing[topo.face_edges]
-    cut_faces = np.flatnonzero(fc.sum(axis=1) == 2)
+    cut_faces = np.flatnonzero(fc[:, 0] | fc[:, 1])  # 0 or 2 crossing edges per face
     if cut_faces.size == 0:
         return []
     edge_ids = np.flatnonzero(crossing)
@@ -343,9 +351,11 @@ def section_girths(
     if topo.num_vertices > vertices.shape[0]:
         raise MeshError("faces index more vertices than given")
     vd = vertices.detach().cpu().numpy().astype(np.float64, copy=False)
-    edges_t = torch.as_tensor(topo.edges, device=vertices.device)
-    out: dict[str, torch.Tensor] = {}
-    for name, plane in planes.items():
+    names = list(planes)
+    hull_edges, owner, nxt, pts, nrms = [], [], [], [], []
+    count = 0
+    for k, name in enumerate(names):
+        plane = planes[name]
         p = plane.point.detach().cpu().numpy().astype(np.float64)
         n = plane.normal.detach().cpu().numpy().astype(np.float64)
         n = n / np.linalg.norm(n)
@@ -357,11 +367,469 @@ def section_girths(
         if not loop.closed:
             raise MeshError(f"the {name!r} section is not a closed loop: the mesh is open or non-manifold there")
         hull = loop.hull_indices(basis)
-        e = edges_t[torch.as_tensor(loop.edge_ids[hull], device=vertices.device)]
-        pt = torch.as_tensor(p, dtype=vertices.dtype, device=vertices.device)
-        nt = torch.as_tensor(n, dtype=vertices.dtype, device=vertices.device)
-        a, b = vertices[e[:, 0]], vertices[e[:, 1]]
-        da, db = (a - pt) @ nt, (b - pt) @ nt
-        q = a + (da / (da - db)).unsqueeze(1) * (b - a)
-        out[name] = torch.linalg.vector_norm(q - torch.roll(q, 1, dims=0), dim=1).sum()
+        m = len(hull)
+        hull_edges.append(loop.edge_ids[hull])
+        owner.append(np.full(m, k))
+        nxt.append(count + (np.arange(m) + 1) % m)
+        pts.append(np.broadcast_to(p, (m, 3)))
+        nrms.append(np.broadcast_to(n, (m, 3)))
+        count += m
+    if not names:
+        return {}
+    # one batched, differentiable evaluation of all hull corners: q = a + da / (da - db) (b - a)
+    dev, dt = vertices.device, vertices.dtype
+    e = torch.as_tensor(topo.edges[np.concatenate(hull_edges)], device=dev)
+    pt = torch.as_tensor(np.concatenate(pts), dtype=dt, device=dev)
+    nt = torch.as_tensor(np.concatenate(nrms), dtype=dt, device=dev)
+    a, b = vertices[e[:, 0]], vertices[e[:, 1]]
+    da, db = ((a - pt) * nt).sum(dim=1), ((b - pt) * nt).sum(dim=1)
+    q = a + (da / (da - db)).unsqueeze(1) * (b - a)
+    seg = torch.linalg.vector_norm(q[torch.as_tensor(np.concatenate(nxt), device=dev)] - q, dim=1)
+    total = torch.zeros(len(names), dtype=dt, device=dev).index_add(
+        0, torch.as_tensor(np.concatenate(owner), device=dev), seg
+    )
+    return {name: total[k] for k, name in enumerate(names)}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Landmarks
+# ----------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Frame:
+    """Body frame (detached): heights, horizontal axes and the lateral centre.
+
+    Attributes:
+        y0: lowest y, metres.
+        height: vertical extent, metres.
+        left: (3,) horizontal unit vector towards the body's left.
+        front: (3,) horizontal unit vector towards the body's front.
+    """
+
+    y0: float
+    height: float
+    left: np.ndarray
+    front: np.ndarray
+
+
+class _Slicer:
+    """Horizontal and oblique cuts of one (detached) mesh, with the body frame."""
+
+    def __init__(self, vertices: np.ndarray, topo: _Topology):
+        self.v = vertices
+        self.topo = topo
+        y = vertices[:, 1]
+        y0, h = float(y.min()), float(np.ptp(y))
+        if h <= 0:
+            raise MeshError("the mesh is flat (zero height)")
+        # lateral axis: horizontal direction of largest spread (arm span)
+        xz = vertices[:, [0, 2]] - vertices[:, [0, 2]].mean(axis=0)
+        _, vecs = np.linalg.eigh(xz.T @ xz)
+        lat = np.array([vecs[0, 1], 0.0, vecs[1, 1]])
+        depth = np.cross(lat, _UP)
+        # front: the toes point forward, so the feet reach further front than the ankles do
+        feet = vertices[y < y0 + 0.03 * h]
+        shins = vertices[(y > y0 + 0.08 * h) & (y < y0 + 0.12 * h)]
+        if len(feet) == 0 or len(shins) == 0:
+            raise MeshError("cannot find the feet of the body (is +Y up?)")
+        df = feet @ depth
+        ds = shins @ depth
+        toe_front = df.max() - ds.max()
+        toe_back = ds.min() - df.min()
+        front = depth if toe_front >= toe_back else -depth
+        left = np.cross(_UP, front)
+        self.frame = _Frame(y0=y0, height=h, left=left, front=front)
+        self.basis = np.stack([left, front])  # 2D coordinates of horizontal sections: (lateral, depth)
+
+    def horizontal(self, y: float) -> list[_Loop]:
+        return _cut(self.v, self.topo, np.array([0.0, y, 0.0]), _UP)
+
+    def lateral_range(self, loop: _Loop) -> tuple[float, float]:
+        s = loop.points @ self.frame.left
+        return float(s.min()), float(s.max())
+
+
+def _overlaps(a: tuple[float, float], b: tuple[float, float]) -> bool:
+    return a[0] <= b[1] and b[0] <= a[1]
+
+
+def _find_crotch(sl: _Slicer) -> tuple[float, float, list[tuple[float, float]]]:
+    """Crotch height: where the two leg loops (tracked up from 25 % of the height) merge into one.
+
+    Returns:
+        (crotch y, lateral centre of the body, lateral ranges of the two legs just below the crotch)
+    """
+    f = sl.frame
+    y = f.y0 + 0.25 * f.height
+    loops = sl.horizontal(y)
+    if len(loops) != 2:
+        raise InputError(
+            f"expected two legs at 25% of the body height, found {len(loops)} section loops: "
+            "the mesh is not a standing human body"
+        )
+    legs = [sl.lateral_range(lp) for lp in loops]
+
+    def step(legs_now, yq):
+        """(merged?, new leg ranges)"""
+        ranges = [sl.lateral_range(lp) for lp in sl.horizontal(yq)]
+        new = []
+        for r in ranges:
+            if _overlaps(r, legs_now[0]) and _overlaps(r, legs_now[1]):
+                return True, legs_now
+        for leg in legs_now:
+            cands = [r for r in ranges if _overlaps(r, leg)]
+            if not cands:
+                return None, legs_now
+            new.append(max(cands, key=lambda r: r[1] - r[0]))
+        return False, new
+
+    dy = 0.005 * f.height
+    lo = y
+    while True:
+        hi = lo + dy
+        if hi > f.y0 + 0.7 * f.height:
+            raise InputError("the legs never join: cannot find the crotch")
+        merged, new = step(legs, hi)
+        if merged is None:
+            raise InputError(f"lost track of a leg at height {hi - f.y0:.3f} m above the feet")
+        if merged:
+            break
+        legs, lo = new, hi
+    for _ in range(8):  # bisection to dy / 256
+        mid = 0.5 * (lo + hi)
+        merged, new = step(legs, mid)
+        if merged:
+            hi = mid
+        elif merged is False:
+            legs, lo = new, mid
+        else:
+            hi = mid
+    centre = 0.5 * (max(legs[0][0], legs[1][0]) + min(legs[0][1], legs[1][1]))
+    return 0.5 * (lo + hi), centre, legs
+
+
+def _torso_loop(sl: _Slicer, loops: list[_Loop], centre: float) -> _Loop | None:
+    """The loop whose lateral range contains the body's lateral centre (the largest if several)."""
+    cands = [lp for lp in loops if (lambda r: r[0] < centre < r[1])(sl.lateral_range(lp))]
+    if not cands:
+        return None
+    return max(cands, key=lambda lp: len(lp.points))
+
+
+def _torso_profile(sl: _Slicer, centre: float, ys: np.ndarray) -> dict[str, np.ndarray]:
+    """Torso loop girth, lateral width, front-most and back-most depth at heights ``ys``."""
+    out = {k: np.full(len(ys), np.nan) for k in ("girth", "width", "front", "back", "lo", "hi")}
+    for i, yq in enumerate(ys):
+        lp = _torso_loop(sl, sl.horizontal(float(yq)), centre)
+        if lp is None or not lp.closed:
+            continue
+        lat = lp.points @ sl.frame.left
+        dep = lp.points @ sl.frame.front
+        out["girth"][i] = lp.hull_perimeter(sl.basis)
+        out["lo"][i], out["hi"][i] = lat.min(), lat.max()
+        out["width"][i] = np.ptp(lat)
+        out["front"][i], out["back"][i] = dep.max(), dep.min()
     return out
+
+
+def _find_armpit(sl: _Slicer, crotch: float, centre: float) -> float:
+    """Armpit height: the first height above the hips where the torso loop abruptly widens (arms join)."""
+    f = sl.frame
+    dy = 0.005 * f.height
+    jump = 0.02 * f.height
+
+    def width(yq):
+        lp = _torso_loop(sl, sl.horizontal(yq), centre)
+        if lp is None:
+            raise InputError(f"no torso section at height {yq - f.y0:.3f} m above the feet")
+        r = sl.lateral_range(lp)
+        return r[1] - r[0]
+
+    lo = crotch + 0.1 * f.height
+    w_lo = width(lo)
+    while True:
+        hi = lo + dy
+        if hi > f.y0 + 0.95 * f.height:
+            raise InputError("the arms never join the torso: cannot find the armpits")
+        w_hi = width(hi)
+        if w_hi - w_lo > jump:
+            break
+        lo, w_lo = hi, w_hi
+    for _ in range(8):
+        mid = 0.5 * (lo + hi)
+        w_mid = width(mid)
+        if w_mid - w_lo > jump:
+            hi = mid
+        else:
+            lo, w_lo = mid, w_mid
+    return lo
+
+
+def _local_maxima(values: np.ndarray, half_window: int) -> np.ndarray:
+    """Indices i whose value is the strict maximum of values[i-hw : i+hw+1] (windows inside the array)."""
+    idx = []
+    for i in range(half_window, len(values) - half_window):
+        win = values[i - half_window : i + half_window + 1]
+        if np.all(np.isfinite(win)) and values[i] == win.max() and win[0] < values[i] and win[-1] < values[i]:
+            idx.append(i)
+    return np.asarray(idx, dtype=np.int64)
+
+
+def _arm_centreline(sl: _Slicer, chest_lo: float, crotch: float) -> np.ndarray:
+    """(K, 3) centroids of the right arm's sections by planes normal to the lateral axis, shoulder to fingertip.
+
+    The planes run from the right side of the chest outwards; at each, the arm is the section loop with the
+    highest centroid (in A- and T-pose the arm is above the hip).
+    """
+    f = sl.frame
+    lat = sl.v @ f.left
+    step = 0.004 * f.height
+    positions = np.arange(chest_lo - step, lat.min() + 0.5 * step, -step)
+    cents = []
+    for s in positions:
+        loops = _cut(sl.v, sl.topo, s * f.left, f.left)
+        if not loops:
+            break
+        c = [lp.points.mean(axis=0) for lp in loops]
+        best = int(np.argmax([p[1] for p in c]))
+        if c[best][1] <= crotch:
+            break
+        cents.append(c[best])
+    if len(cents) < 10:
+        raise InputError("cannot find the right arm: too few arm sections outside the chest")
+    return np.asarray(cents)
+
+
+def _arc_fraction(line: np.ndarray) -> np.ndarray:
+    seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    return s / s[-1]
+
+
+def _perp_girths(sl: _Slicer, line: np.ndarray, normal: np.ndarray, fractions: np.ndarray, arc: np.ndarray,
+                 centre: float, half_chest: float) -> tuple[np.ndarray, np.ndarray]:
+    """Hull girths of the loops around centreline points (at arc ``fractions``) cut perpendicular to ``normal``.
+
+    A loop reaching within ``half_chest / 2`` of the body's lateral centre has merged with the torso: NaN.
+
+    Returns:
+        (girths (N,), centreline points (N, 3))
+    """
+    pts = np.stack([np.interp(fractions, arc, line[:, k]) for k in range(3)], axis=1)
+    basis = _plane_basis(normal)
+    g = np.full(len(fractions), np.nan)
+    for i, p in enumerate(pts):
+        lp = _pick_loop(_cut(sl.v, sl.topo, p, normal), p, basis)
+        if lp is None or not lp.closed:
+            continue
+        if np.min(np.abs(lp.points @ sl.frame.left - centre)) < 0.5 * half_chest:
+            continue
+        g[i] = lp.hull_perimeter(basis)
+    return g, pts
+
+
+def _local_direction(line: np.ndarray, arc: np.ndarray, fraction: float, half: int = 3) -> np.ndarray:
+    j = min(int(np.searchsorted(arc, fraction)), len(line) - 1)
+    d = line[min(j + half, len(line) - 1)] - line[max(j - half, 0)]
+    return d / np.linalg.norm(d)
+
+
+def _arm_planes(sl: _Slicer, chest: tuple[float, float], crotch: float, centre: float) -> dict[str, SectionPlane]:
+    """Upper-arm and wrist planes on the right arm (see the module doc)."""
+    line = _arm_centreline(sl, chest[0], crotch)
+    arc = _arc_fraction(line)
+    half_chest = 0.5 * (chest[1] - chest[0])
+
+    def girths(fracs):
+        g = np.full(len(fracs), np.nan)
+        normals = []
+        pts = []
+        for i, x in enumerate(fracs):
+            n = _local_direction(line, arc, float(x))
+            gi, p = _perp_girths(sl, line, n, np.array([x]), arc, centre, half_chest)
+            g[i] = gi[0]
+            normals.append(n)
+            pts.append(p[0])
+        return g, np.asarray(pts), np.asarray(normals)
+
+    fr = np.linspace(0.0, 1.0, 41)
+    g, _, _ = girths(fr)
+    valid = np.flatnonzero(np.isfinite(g))
+    if valid.size < 10:
+        raise InputError("cannot measure the right arm: too few isolated arm sections")
+    first = fr[valid[0]]
+    hand_band = (fr >= 0.65) & (fr <= 0.9) & np.isfinite(g)
+    if not hand_band.any():
+        raise InputError("cannot find the right hand")
+    hand = fr[hand_band][int(np.argmax(g[hand_band]))]
+    fore_band = (fr >= 0.5) & (fr <= hand) & np.isfinite(g)
+    if not fore_band.any():
+        raise InputError("cannot find the right wrist")
+    wrist0 = fr[fore_band][int(np.argmin(g[fore_band]))]
+    fine = np.clip(np.arange(wrist0 - 0.02, wrist0 + 0.0201, 0.004), 0.0, 1.0)
+    gw, pw, nw = girths(fine)
+    if not np.isfinite(gw).any():
+        raise InputError("cannot measure the right wrist")
+    iw = int(np.nanargmin(gw))
+    wrist_frac = fine[iw]
+    elbow = first + 0.55 * (wrist_frac - first)
+    up = np.arange(first + 0.25 * (elbow - first), elbow + 1e-9, 0.01)
+    gu, pu, nu = girths(up)
+    if not np.isfinite(gu).any():
+        raise InputError("cannot measure the right upper arm")
+    iu = int(np.nanargmax(gu))
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+    return {
+        "upper_arm": SectionPlane("upper_arm", t(pu[iu]), t(nu[iu]), t(pu[iu])),
+        "wrist": SectionPlane("wrist", t(pw[iw]), t(nw[iw]), t(pw[iw])),
+    }
+
+
+def _refine_extreme(sl: _Slicer, centre: float, lo: float, hi: float, maximum: bool, n: int = 17) -> float:
+    """Height of the max (or min) torso girth sampled at ``n`` heights in [lo, hi]."""
+    ys = np.linspace(lo, hi, n)
+    g = _torso_profile(sl, centre, ys)["girth"]
+    if not np.isfinite(g).any():
+        raise InputError(f"no closed torso section between heights {lo:.3f} and {hi:.3f} m")
+    return float(ys[int(np.nanargmax(g) if maximum else np.nanargmin(g))])
+
+
+def find_section_planes(vertices: torch.Tensor, faces: torch.Tensor) -> dict[str, SectionPlane]:
+    """Find where to put the tape measure for every girth of :data:`GIRTH_NAMES` (not differentiable).
+
+    See the module docstring for the landmark heuristics.
+
+    Args:
+        vertices: (V, 3) positions of a closed human body mesh, metres, +Y up, A- or T-pose, any placement.
+        faces: (F, 3) long vertex indices.
+
+    Returns:
+        Planes by girth name; tensors are float64 on the CPU.
+
+    Raises:
+        MeshError: the mesh is empty, open or malformed.
+        InputError: a landmark cannot be found (the mesh does not look like a standing human body).
+    """
+    _check_mesh(vertices, faces)
+    topo = _topology(faces)
+    _check_closed(topo)
+    v = vertices.detach().cpu().numpy().astype(np.float64)
+    sl = _Slicer(v, topo)
+    f = sl.frame
+    h = f.height
+    crotch, centre, legs = _find_crotch(sl)
+    armpit = _find_armpit(sl, crotch, centre)
+    up = torch.as_tensor(_UP, dtype=torch.float64)
+
+    def horizontal_plane(name: str, y: float, seed: np.ndarray) -> SectionPlane:
+        return SectionPlane(name, up * y, up.clone(), torch.as_tensor(seed, dtype=torch.float64))
+
+    def torso_seed(y: float) -> np.ndarray:
+        lp = _torso_loop(sl, sl.horizontal(y), centre)
+        if lp is None:
+            raise InputError(f"no torso section at height {y - f.y0:.3f} m above the feet")
+        c = lp.points.mean(axis=0)
+        return np.array([c[0], y, c[2]])
+
+    g = 0.0025 * h
+    ys = np.arange(crotch + g, armpit - 0.005 * h, g)
+    prof = _torso_profile(sl, centre, ys)
+    chest = (float(prof["lo"][-1]), float(prof["hi"][-1]))
+
+    # bust: the nipple level is the highest local maximum of the front profile in the chest band
+    band = np.flatnonzero((ys >= armpit - 0.15 * h) & (ys <= armpit - 0.01 * h))
+    hw = max(1, int(round(0.01 * h / g)))
+    peaks = band[0] + _local_maxima(prof["front"][band], hw)
+    if peaks.size:
+        nipple = float(ys[peaks.max()])
+    else:  # flat chest: no breast point; use the level of largest torso girth in the band
+        nipple = float(ys[band][int(np.nanargmax(prof["girth"][band]))])
+    bust = _refine_extreme(sl, centre, nipple - 0.0075 * h, nipple + 0.0075 * h, maximum=True, n=9)
+
+    # underbust: the breast fold (front profile local minimum below the nipple), else nipple - 0.035 h
+    below = np.flatnonzero((ys >= nipple - 0.06 * h) & (ys < nipple))
+    folds = below[0] + _local_maxima(-prof["front"][below], hw) if below.size > 2 * hw else np.array([], int)
+    i_nip = int(np.argmin(np.abs(ys - nipple)))
+    folds = [i for i in folds if prof["front"][i_nip] - prof["front"][i] > 0.005 * h]
+    underbust = float(ys[max(folds)]) - 0.005 * h if folds else nipple - 0.035 * h
+
+    # waist: minimum torso girth between crotch + 0.1 h and just below the underbust
+    wb = np.flatnonzero((ys >= crotch + 0.1 * h) & (ys <= underbust - 0.01 * h))
+    if wb.size == 0:
+        raise InputError("the torso is too short to find the waist")
+    waist0 = float(ys[wb][int(np.nanargmin(prof["girth"][wb]))])
+    waist = _refine_extreme(sl, centre, waist0 - g, waist0 + g, maximum=False, n=9)
+
+    # hips: level of the buttocks (most posterior torso point below the waist), then the max girth nearby
+    hb = np.flatnonzero((ys > crotch) & (ys < waist))
+    buttocks = float(ys[hb][int(np.nanargmin(prof["back"][hb]))])
+    hips = _refine_extreme(sl, centre, buttocks - 0.01 * h, buttocks + 0.01 * h, maximum=True, n=17)
+
+    # thigh: right leg, 0.01 h below the crotch
+    y_thigh = crotch - 0.01 * h
+    right = [lp for lp in sl.horizontal(y_thigh) if float(lp.points.mean(axis=0) @ f.left) < centre]
+    if not right:
+        raise InputError("cannot find the right thigh below the crotch")
+    thigh_loop = max(right, key=lambda lp: len(lp.points))
+    thigh_seed = thigh_loop.points.mean(axis=0)
+
+    # neck: minimum horizontal torso girth between the armpits and 90 % of the height, then tilted
+    nys = np.arange(armpit + 0.03 * h, f.y0 + 0.9 * h, g)
+    nprof = _torso_profile(sl, centre, nys)
+    if not np.isfinite(nprof["girth"]).any():
+        raise InputError("cannot find the neck")
+    neck_y = float(nys[int(np.nanargmin(nprof["girth"]))])
+    c_lo, c_hi = torso_seed(neck_y - 0.015 * h), torso_seed(neck_y + 0.015 * h)
+    axis = (c_hi - c_lo) / np.linalg.norm(c_hi - c_lo)
+    c_mid = 0.5 * (c_lo + c_hi)
+    best = None
+    basis = _plane_basis(axis)
+    for off in np.linspace(-0.008 * h, 0.008 * h, 9):
+        p = c_mid + off * axis
+        lp = _pick_loop(_cut(v, topo, p, axis), p, basis)
+        if lp is None or not lp.closed:
+            continue
+        gn = lp.hull_perimeter(basis)
+        if best is None or gn < best[0]:
+            best = (gn, p)
+    if best is None:
+        raise InputError("cannot measure the neck")
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+
+    planes = {
+        "bust": horizontal_plane("bust", bust, torso_seed(bust)),
+        "underbust": horizontal_plane("underbust", underbust, torso_seed(underbust)),
+        "waist": horizontal_plane("waist", waist, torso_seed(waist)),
+        "hips": horizontal_plane("hips", hips, torso_seed(hips)),
+        "thigh": horizontal_plane("thigh", y_thigh, thigh_seed),
+        "neck": SectionPlane("neck", t(best[1]), t(axis), t(best[1])),
+    }
+    planes.update(_arm_planes(sl, chest, crotch, centre))
+    return {name: planes[name] for name in GIRTH_NAMES}
+
+
+def _check_closed(topo: _Topology) -> None:
+    """Raise MeshError unless every edge is shared by exactly two faces."""
+    counts = np.bincount(topo.face_edges.ravel(), minlength=len(topo.edges))
+    if np.any(counts == 1):
+        raise MeshError(f"the mesh is open: {int(np.sum(counts == 1))} boundary edges; measuring needs a closed body")
+    if np.any(counts > 2):
+        raise MeshError(f"the mesh is non-manifold: {int(np.sum(counts > 2))} edges shared by more than two faces")
+
+
+def measure_body(vertices: torch.Tensor, faces: torch.Tensor) -> BodyMeasurements:
+    """Measure height and all girths of a closed human body mesh.
+
+    Args:
+        vertices: (V, 3) positions, metres, +Y up, A- or T-pose, any placement.
+        faces: (F, 3) long vertex indices of a closed mesh.
+
+    Returns:
+        The measurements (metres) and the planes where the girths were taken.
+    """
+    planes = find_section_planes(vertices, faces)
+    with torch.no_grad():
+        girths = section_girths(vertices.detach(), faces, planes)
+        height = float(body_height(vertices.detach()))
+    return BodyMeasurements(height=height, **{k: float(g) for k, g in girths.items()}, planes=planes)
