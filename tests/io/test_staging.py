@@ -45,3 +45,15 @@ def test_atomic_path_keeps_suffix(tmp_path: Path):
         assert tmp.suffix == ".png"
         tmp.write_bytes(b"1")
     assert (tmp_path / "x.png").read_bytes() == b"1"
+
+
+def test_atomic_files_get_ordinary_permissions(tmp_path: Path):
+    import os
+
+    umask = os.umask(0o022)
+    try:
+        with atomic_open(tmp_path / "p.txt") as f:
+            f.write("x")
+    finally:
+        os.umask(umask)
+    assert (tmp_path / "p.txt").stat().st_mode & 0o777 == 0o644
