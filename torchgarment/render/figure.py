@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 from torchgarment.errors import InputError
 from torchgarment.io.atomic import atomic_path
 from torchgarment.render.colormap import ScalarColors
-from torchgarment.render.image import RenderStyle, _check_size, _all_points, render_prepared
+from torchgarment.render.image import RenderStyle, check_size, scene_points, render_prepared
 from torchgarment.render.layers import MeshLayer, prepare_layers
 from torchgarment.render.views import View, fit_camera
 
@@ -91,8 +91,8 @@ def render_views(
     if len(views) == 0:
         raise InputError("render_views needs at least one view")
     prepared = prepare_layers(layers)
-    width, height = _check_size(size)
-    points = _all_points(prepared)
+    width, height = check_size(size)
+    points = scene_points(prepared)
     images = []
     for v in views:
         cam = fit_camera(points, v, (width, height), style.margin, views_for_scale=views)

@@ -74,11 +74,15 @@ def render_image(
         InputError: empty scene, malformed meshes (NaN vertices, bad faces), bad colours or sizes.
     """
     prepared = prepare_layers(layers)
-    width, height = _check_size(size)
+    width, height = check_size(size)
     if camera is None:
-        camera = fit_camera(_all_points(prepared), View(view), (width, height), style.margin)
+        camera = fit_camera(scene_points(prepared), View(view), (width, height), style.margin)
+    elif camera.view is not View(view):
+        raise InputError(f"camera looks {camera.view.value}, but view {View(view).value} was asked for")
     elif (camera.width, camera.height) != (width, height):
-        raise InputError(f"camera size {(camera.width, camera.height)} differs from image size {(width, height)}")
+        raise InputError(
+            f"camera size {(camera.width, camera.height)} differs from image size {(width, height)}"
+        )
     return render_prepared(prepared, camera, style)
 
 
@@ -99,41 +103,48 @@ def render_prepared(prepared: list[PreparedLayer], camera: OrthoCamera, style: R
     xy, depth = cam.project(verts)
     frags = rasterize(xy, depth, faces, cam.width, cam.height)
 
-    rgb = np.empty((cam.height, cam.width, 3))
-    rgb[:] = np.asarray(style.background, dtype=np.float64)
-    mask = frags.mask
-    if mask.any():
-        fid = frags.face[mask]
-        bary = frags.bary[mask]
+    npix = cam.width * cam.height
+    rgb = np.empty((npix, 3), dtype=np.float32)
+    rgb[:] = np.asarray(style.background, dtype=np.float32)
+    covered = np.flatnonzero(frags.face.reshape(-1) >= 0)
+    if covered.size:
+        fid = frags.face.reshape(-1)[covered]
+        bary = frags.bary.reshape(-1, 3)[covered]
         base = _base_colors(prepared, faces, face_layer, face_start, fid, bary)
-        rot = cam.view.rotation
-        cam_verts = verts @ rot.T
+        cam_verts = verts @ cam.view.rotation.T
         fn = _face_normals(cam_verts, faces)
-        front = fn[fid, 2] >= 0.0
+        back = fn[fid, 2] < 0.0
         normal = _pixel_normals(prepared, cam_verts, faces, fn, face_layer, fid, bary)
-        normal[~front] *= -1.0
+        normal[back] *= -1.0
         light = _lighting(normal, style)
-        base[~front] *= style.back_face
+        base[back] *= style.back_face
         color = base * light[:, None]
         if style.wireframe:
             t = _wire_weight(xy, faces, fid, bary, style.wire_width * ss)
             color = color * (1 - t[:, None]) + np.asarray(style.wire_color) * t[:, None]
-        rgb[mask] = color
+        rgb[covered] = color
+    rgb = rgb.reshape(cam.height, cam.width, 3)
     if style.outline:
-        edge = _discontinuities(frags, style.outline_depth)
-        rgb[edge] *= 0.35
+        rgb[_discontinuities(frags, style.outline_depth)] *= 0.35
     if ss > 1:
-        rgb = rgb.reshape(camera.height, ss, camera.width, ss, 3).mean(axis=(1, 3))
+        # Box filter: average the ss x ss samples of each output pixel.
+        acc = np.zeros((camera.height, camera.width, 3), dtype=np.float32)
+        for i in range(ss):
+            for j in range(ss):
+                acc += rgb[i::ss, j::ss]
+        rgb = acc * (1.0 / (ss * ss))
     return np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
 
 
-def _check_size(size: tuple[int, int]) -> tuple[int, int]:
+def check_size(size: tuple[int, int]) -> tuple[int, int]:
+    """Validate an image size ``(width, height)`` in pixels and return it as ints."""
     if len(size) != 2 or int(size[0]) < 1 or int(size[1]) < 1:
         raise InputError(f"size must be (width, height) with positive entries, got {size}")
     return int(size[0]), int(size[1])
 
 
-def _all_points(prepared: list[PreparedLayer]) -> np.ndarray:
+def scene_points(prepared: list[PreparedLayer]) -> np.ndarray:
+    """(N, 3) all vertices of the scene, metres."""
     return np.concatenate([p.vertices for p in prepared])
 
 
@@ -143,8 +154,13 @@ def _face_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.cross(v1 - v0, v2 - v0)
 
 
+def _norm(x: np.ndarray) -> np.ndarray:
+    """Euclidean norm over the last axis (of size 3)."""
+    return np.sqrt(x[..., 0] ** 2 + x[..., 1] ** 2 + x[..., 2] ** 2)
+
+
 def _normalize(x: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(x, axis=-1, keepdims=True)
+    n = _norm(x)[..., None]
     return x / np.where(n > 0, n, 1.0)
 
 
@@ -157,7 +173,7 @@ def _pixel_normals(
     fid: np.ndarray,
     bary: np.ndarray,
 ) -> np.ndarray:
-    """(M, 3) unit camera-space normals per covered pixel: interpolated vertex normals or flat face normals."""
+    """(M, 3) unit camera-space normals per covered pixel: interpolated vertex normals or face normals."""
     vn = np.zeros_like(cam_verts)
     for k in range(3):
         np.add.at(vn, faces[:, k], face_normals)
@@ -170,11 +186,11 @@ def _pixel_normals(
         f = faces[fid[smooth]]
         b = bary[smooth]
         interp = b[:, 0:1] * vn[f[:, 0]] + b[:, 1:2] * vn[f[:, 1]] + b[:, 2:3] * vn[f[:, 2]]
-        out[smooth] = _normalize(interp)
-        # Where neighbouring faces have opposite windings the vertex normals cancel; use the face normal.
-        weak = np.linalg.norm(interp, axis=1) < 0.3
-        idx = np.nonzero(smooth)[0][weak]
-        out[idx] = fn_unit[fid[idx]]
+        length = _norm(interp)
+        # Where neighbouring faces have opposite windings the vertex normals cancel; keep the face normal.
+        strong = length >= 0.3
+        idx = np.flatnonzero(smooth)[strong]
+        out[idx] = interp[strong] / length[strong, None]
     return out
 
 
@@ -216,7 +232,9 @@ def _base_colors(
     return out
 
 
-def _wire_weight(xy: np.ndarray, faces: np.ndarray, fid: np.ndarray, bary: np.ndarray, width: float) -> np.ndarray:
+def _wire_weight(
+    xy: np.ndarray, faces: np.ndarray, fid: np.ndarray, bary: np.ndarray, width: float
+) -> np.ndarray:
     """(M,) in [0, 1]: how much of the edge colour to use (1 on an edge, fading over one pixel)."""
     p = xy[faces[fid]]  # (M, 3, 2)
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]

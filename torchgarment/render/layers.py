@@ -130,7 +130,9 @@ def prepare_layer(layer: MeshLayer, index: int = 0) -> PreparedLayer:
         s = _to_numpy(layer.scalars)
         expected = v.shape[0] if location is ScalarLocation.VERTEX else f.shape[0]
         if s.shape != (expected,):
-            raise InputError(f"{name}: per-{location.value} scalars must have shape ({expected},), got {s.shape}")
+            raise InputError(
+                f"{name}: per-{location.value} scalars must have shape ({expected},), got {s.shape}"
+            )
         s = s.astype(np.float64)
         if not np.isfinite(s).all():
             raise InputError(f"{name}: {int((~np.isfinite(s)).sum())} scalars are NaN or infinite")

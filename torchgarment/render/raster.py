@@ -2,7 +2,7 @@
 
 Triangles are processed in chunks. For each chunk the pixels of every triangle's bounding box are generated
 with ``np.repeat``/``np.arange``, tested against the triangle with barycentric coordinates, and the nearest
-fragment per pixel is found with a lexsort on (pixel, depth) and merged into the z-buffer.
+fragment per pixel is found with a scatter-min (``np.minimum.at``) into the z-buffer.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ def rasterize(
     faces: np.ndarray,
     width: int,
     height: int,
-    chunk_pixels: int = 2_000_000,
+    chunk_pixels: int = 1_000_000,
 ) -> Fragments:
     """Rasterize triangles with a z-buffer; both windings are drawn.
 
@@ -53,7 +53,8 @@ def rasterize(
         faces: (F, 3) integer vertex indices.
         width: image width in pixels.
         height: image height in pixels.
-        chunk_pixels: approximate number of candidate pixels handled at once (bounds memory use).
+        chunk_pixels: approximate number of candidate pixels handled at once (bounds memory use, about
+            100 bytes per candidate).
 
     Returns:
         The nearest fragment per pixel.
@@ -65,6 +66,7 @@ def rasterize(
     zbuf = np.full(npix, np.inf)
     fbuf = np.full(npix, -1, dtype=np.int64)
     bbuf = np.zeros((npix, 3))
+    slot = np.zeros(npix, dtype=np.int64)
 
     p0, p1, p2 = xy[faces[:, 0]], xy[faces[:, 1]], xy[faces[:, 2]]
     area = (p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1]) - (p1[:, 1] - p0[:, 1]) * (p2[:, 0] - p0[:, 0])
@@ -79,56 +81,76 @@ def rasterize(
     tri_ids = np.nonzero(ok)[0]
     if tri_ids.size == 0:
         return _fragments(fbuf, bbuf, zbuf, width, height)
-    counts = nx[tri_ids] * ny[tri_ids]
 
-    # Split the triangles into chunks of about chunk_pixels candidates each.
-    cum = np.cumsum(counts)
-    bounds = np.searchsorted(cum, np.arange(chunk_pixels, cum[-1], chunk_pixels), side="left")
-    bounds = np.unique(np.concatenate([[0], bounds + 1, [tri_ids.size]]))
-    bounds = bounds[bounds <= tri_ids.size]
+    # Barycentrics and depth are affine in the pixel centre: value = c + a * col + d * row, where (col, row)
+    # counts pixels from the corner (cmin) of the triangle's bounding box.
+    inv_area = 1.0 / np.where(ok, area, 1.0)
+    ox = cmin[:, 0] + 0.5
+    oy = cmin[:, 1] + 0.5
 
-    inv_area = 1.0 / area
+    def edge(pa: np.ndarray, pb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # Signed area of (pa, pb, p) divided by the triangle's: the barycentric of the third corner.
+        ax = (pa[:, 1] - pb[:, 1]) * inv_area
+        ay = (pb[:, 0] - pa[:, 0]) * inv_area
+        c = ((pa[:, 0] - ox) * (pb[:, 1] - oy) - (pa[:, 1] - oy) * (pb[:, 0] - ox)) * inv_area
+        return c, ax, ay
+
+    c0, a0, d0 = edge(p1, p2)
+    c1, a1, d1 = edge(p2, p0)
     z0, z1, z2 = depth[faces[:, 0]], depth[faces[:, 1]], depth[faces[:, 2]]
+    c2, a2, d2 = 1.0 - c0 - c1, -a0 - a1, -d0 - d1
+    cz = c0 * z0 + c1 * z1 + c2 * z2
+    az = a0 * z0 + a1 * z1 + a2 * z2
+    dz = d0 * z0 + d1 * z1 + d2 * z2
+
+    # Tiles: each bounding box, cut into bands of rows when it alone exceeds chunk_pixels candidates.
+    rows_per_band = np.maximum(1, chunk_pixels // nx[tri_ids])
+    num_bands = -(-ny[tri_ids] // rows_per_band)
+    tile_tri = np.repeat(tri_ids, num_bands)
+    band = np.arange(tile_tri.size) - np.repeat(np.cumsum(num_bands) - num_bands, num_bands)
+    row0 = band * np.repeat(rows_per_band, num_bands)  # first row of the tile inside its bounding box
+    tile_w = nx[tile_tri]
+    tile_h = np.minimum(np.repeat(rows_per_band, num_bands), ny[tile_tri] - row0)
+    tile_x0 = cmin[tile_tri, 0]
+    tile_y0 = cmin[tile_tri, 1] + row0
+    # One contiguous array per coefficient and tile, with the constant term moved to the tile's corner.
+    c0, c1, cz = (c[tile_tri] + d[tile_tri] * row0 for c, d in ((c0, d0), (c1, d1), (cz, dz)))
+    a0, d0, a1, d1, az, dz = (np.ascontiguousarray(c[tile_tri]) for c in (a0, d0, a1, d1, az, dz))
+    counts = tile_w * tile_h
+
+    # Group the tiles into chunks of about chunk_pixels candidates each.
+    cum = np.cumsum(counts)
+    bounds = np.searchsorted(cum, np.arange(chunk_pixels, cum[-1], chunk_pixels), side="left") + 1
+    bounds = np.unique(np.concatenate([[0], np.minimum(bounds, tile_tri.size), [tile_tri.size]]))
+
     for a, b in zip(bounds[:-1], bounds[1:]):
-        ids = tri_ids[a:b]
         cnt = counts[a:b]
         total = int(cnt.sum())
-        if total == 0:
+        t = np.repeat(np.arange(a, b), cnt)
+        local = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        ly = local // tile_w[t]
+        lx = local - ly * tile_w[t]
+        fx = lx.astype(np.float64)
+        fy = ly.astype(np.float64)
+        b0 = c0[t] + a0[t] * fx + d0[t] * fy
+        b1 = c1[t] + a1[t] * fx + d1[t] * fy
+        inside = np.nonzero((b0 >= -_BARY_EPS) & (b1 >= -_BARY_EPS) & (b0 + b1 <= 1.0 + _BARY_EPS))[0]
+        t, b0, b1, fx, fy = t[inside], b0[inside], b1[inside], fx[inside], fy[inside]
+        z = cz[t] + az[t] * fx + dz[t] * fy
+        pix = (tile_y0[t] + ly[inside]) * width + tile_x0[t] + lx[inside]
+        # Nearest fragment per pixel: scatter-min the depths, keep the fragments that reached the minimum.
+        np.minimum.at(zbuf, pix, z)
+        win = np.nonzero(z == zbuf[pix])[0]
+        if win.size == 0:
             continue
-        tri = np.repeat(ids, cnt)
-        starts = np.repeat(np.cumsum(cnt) - cnt, cnt)
-        local = np.arange(total, dtype=np.int64) - starts
-        w = nx[tri]
-        px = cmin[tri, 0] + local % w
-        py = cmin[tri, 1] + local // w
-        cx = px + 0.5
-        cy = py + 0.5
-        # Barycentric coordinates from edge functions.
-        q1, q2 = p1[tri], p2[tri]
-        inv = inv_area[tri]
-        b0 = ((q1[:, 0] - cx) * (q2[:, 1] - cy) - (q1[:, 1] - cy) * (q2[:, 0] - cx)) * inv
-        q0 = p0[tri]
-        b1 = ((q2[:, 0] - cx) * (q0[:, 1] - cy) - (q2[:, 1] - cy) * (q0[:, 0] - cx)) * inv
-        b2 = 1.0 - b0 - b1
-        inside = (b0 >= -_BARY_EPS) & (b1 >= -_BARY_EPS) & (b2 >= -_BARY_EPS)
-        tri, b0, b1, b2 = tri[inside], b0[inside], b1[inside], b2[inside]
-        pix = py[inside] * width + px[inside]
-        z = b0 * z0[tri] + b1 * z1[tri] + b2 * z2[tri]
-        closer = z < zbuf[pix]
-        if not closer.any():
-            continue
-        tri, b0, b1, b2, pix, z = tri[closer], b0[closer], b1[closer], b2[closer], pix[closer], z[closer]
-        order = np.lexsort((z, pix))
-        ps = pix[order]
-        first = np.ones(ps.size, dtype=bool)
-        first[1:] = ps[1:] != ps[:-1]
-        sel = order[first]
-        tgt = pix[sel]
-        zbuf[tgt] = z[sel]
-        fbuf[tgt] = tri[sel]
+        tgt = pix[win]
+        # Exact depth ties leave several winners per pixel; take whichever the scatter kept, for all buffers.
+        slot[tgt] = win
+        sel = slot[tgt]
+        fbuf[tgt] = tile_tri[t[sel]]
         bbuf[tgt, 0] = b0[sel]
         bbuf[tgt, 1] = b1[sel]
-        bbuf[tgt, 2] = b2[sel]
+        bbuf[tgt, 2] = 1.0 - b0[sel] - b1[sel]
     return _fragments(fbuf, bbuf, zbuf, width, height)
 
 
