@@ -296,7 +296,7 @@ class SewingPattern:
         """Arc length (metres) of a referenced edge."""
         return self.panels[ref.panel].edge_length(ref.edge)
 
-    def validate(self, *, max_stitch_length_ratio: float = 1.25) -> None:
+    def validate(self, *, max_stitch_length_ratio: float = 1.5) -> None:
         """Raise :class:`PatternError` with a one-line reason if the pattern is unusable.
 
         Checks: at least one panel; every panel has >= 3 vertices, finite coordinates, edges with valid

@@ -70,8 +70,17 @@ def _undirected_edge_counts(faces: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     f = faces.long()
     directed = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], dim=0)
     undirected = torch.sort(directed, dim=1).values
-    edges, inverse, counts = torch.unique(undirected, dim=0, return_inverse=True, return_counts=True)
+    edges, inverse, counts = _unique_pairs(undirected)
     return edges, counts, inverse
+
+
+def _unique_pairs(pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Like ``torch.unique(pairs, dim=0, return_inverse=True, return_counts=True)`` for (N, 2) non-negative
+    integer pairs, via one 1D unique on the key ``a * (max + 1) + b`` (much faster than ``dim=0``)."""
+    base = int(pairs.max()) + 1 if pairs.numel() else 1
+    keys = pairs[:, 0] * base + pairs[:, 1]
+    ukeys, inverse, counts = torch.unique(keys, return_inverse=True, return_counts=True)
+    return torch.stack([ukeys // base, ukeys % base], dim=1), inverse, counts
 
 
 def find_nonmanifold_edges(faces: torch.Tensor) -> torch.Tensor:
@@ -117,7 +126,7 @@ def find_misoriented_edges(faces: torch.Tensor) -> torch.Tensor:
         return torch.zeros(0, 2, dtype=torch.long, device=faces.device)
     f = faces.long()
     directed = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], dim=0)
-    edges, counts = torch.unique(directed, dim=0, return_counts=True)
+    edges, _, counts = _unique_pairs(directed)
     return edges[counts > 1]
 
 
