@@ -1,0 +1,527 @@
+"""Human bodies from the ``anny`` parametric model, fitted to tape measurements.
+
+The anny model (NAVER, Apache-2.0; MakeHuman topology) is loaded with the ``anny-noeyes-notongue`` topology:
+without eyes and tongue the triangulated body is one closed, consistently wound genus-0 surface (checked
+with trimesh: watertight, winding-consistent, Euler number 2), as measuring and collision code need. Anny is
+Z-up with the front (toes) towards -Y and the body's left at +X (Blender's convention); bodies here are +Y up
+with the front towards +Z and the left at +X (``(x, y, z) -> (x, z, -y)``, a proper rotation, so face winding
+stays outward), metres, feet at ``y = 0`` and centred on the bounding box
+in x and z. The pose is anny's rest pose (an A-pose).
+
+Fitting (:func:`fit_anny`): the phenotype ``age`` is fixed to the "young adult" anchor (2/3), ``muscle`` and
+``proportions`` to 0.5, and ``gender`` to a guess from the shape of the request (the bust-underbust and
+hips-waist drops). The free parameters are the phenotype ``height`` and ``weight`` and, for every requested
+girth, the matching MakeHuman local change ``measure-<girth>-circ-incr`` in [-1, 1]. The residuals are the
+body's *own* measurements (:mod:`torchgarment.body.measure`: ``body_height`` and ``section_girths``, both
+differentiable) minus the request. They are minimised by projected Levenberg-Marquardt with Jacobians from
+torch autograd (the problem has at most 12 unknowns and is close to linear, so this converges in a handful
+of steps, far fewer than Adam or L-BFGS need). A weak prior pulls the local changes to 0 (the one direction
+the residuals leave free is weight vs. local changes). The tape positions (section planes) depend on the
+shape, so they are re-found (:func:`~torchgarment.body.measure.find_section_planes`) between rounds of steps;
+the fit stops when the measurements with freshly found planes, i.e. exactly what
+:func:`~torchgarment.body.measure.measure_body` reports, are within ``FitSettings.tolerance``.
+
+Loading: anny builds its model data from the MakeHuman target files on first use and caches it under
+``~/.cache/anny`` (``$ANNY_CACHE_DIR``). Measured on this project's machine: about 220 s cold (no anny cache),
+0.6 s warm; the loaded model is also kept in memory for the process (:func:`load_anny_model`).
+Fitted bodies are cached on disk (:mod:`torchgarment.body.cache`).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from torchgarment.body import cache as body_cache
+from torchgarment.body.body import Body
+from torchgarment.body.measure import body_height, find_section_planes, measure_body, section_girths
+from torchgarment.body.skeleton import Skeleton
+from torchgarment.errors import InputError
+
+FIT_VERSION = "3"
+"""Version of the fitting code; part of the cache key. Bump it whenever fitted bodies would change."""
+
+TOPOLOGY = "anny-noeyes-notongue"
+"""Anny topology: triangulated MakeHuman body without eyes and tongue (a closed manifold)."""
+
+LOCAL_CHANGES: dict[str, str] = {
+    "bust": "measure-bust-circ-incr",
+    "underbust": "measure-underbust-circ-incr",
+    "waist": "measure-waist-circ-incr",
+    "hips": "measure-hips-circ-incr",
+    "thigh": "measure-thigh-circ-incr",
+    "upper_arm": "measure-upperarm-circ-incr",
+    "neck": "measure-neck-circ-incr",
+    "wrist": "measure-wrist-circ-incr",
+}
+"""Girth name -> the anny (MakeHuman) local change fitted for it."""
+
+REQUIRED = ("height", "bust", "waist", "hips")
+"""Measurements every request must give."""
+
+RANGES: dict[str, tuple[float, float]] = {
+    "height": (1.30, 2.10),
+    "bust": (0.65, 1.60),
+    "underbust": (0.55, 1.45),
+    "waist": (0.50, 1.60),
+    "hips": (0.70, 1.70),
+    "thigh": (0.38, 0.95),
+    "upper_arm": (0.20, 0.55),
+    "neck": (0.27, 0.50),
+    "wrist": (0.13, 0.22),
+}
+"""Accepted range of every measurement, metres (adult humans; wider than the 1st-99th percentiles)."""
+
+ADULT_AGE = 2.0 / 3.0
+"""Anny ``age`` of the MakeHuman "young" (25 years) targets."""
+
+_PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
+NUM_PHENO_FREE = 4  # height, weight, muscle, proportions
+
+MAX_WEIGHT = 0.8
+"""Upper bound of the fitted ``weight`` phenotype: heavier anny women have sagging breasts whose nipple falls
+below the band where :func:`~torchgarment.body.measure.find_section_planes` looks for the bust; larger girths
+come from the local changes instead."""
+
+LOCAL_CHANGE_RANGE = (-1.5, 1.5)
+"""Bounds of the fitted local changes (MakeHuman's sliders span [-1, 1]; the targets are linear offsets, and a
+mild extrapolation to +-1.5 reaches the whole size chart, e.g. its small underbusts)."""
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Settings of :func:`fit_anny`.
+
+    Attributes:
+        tolerance: stop when every measurement (height and girths, re-measured with fresh planes) is within this
+            many metres of the request.
+        max_rounds: maximum number of plane searches (each followed by up to ``steps_per_round`` steps).
+        steps_per_round: Levenberg-Marquardt steps with fixed planes.
+        prior: weight (metres per unit) of the prior pulling local changes to 0.
+        accept: a fit whose final error exceeds this many metres raises InputError.
+        max_step: largest change of any parameter in one step (a trust region: the tape planes move with the
+            shape, so long steps computed with fixed planes overshoot).
+    """
+
+    tolerance: float = 3e-4
+    max_rounds: int = 20
+    steps_per_round: int = 2
+    prior: float = 2e-4
+    accept: float = 3e-3
+    max_step: float = 0.15
+
+
+@dataclass
+class AnnyFit:
+    """Result of :func:`fit_anny`.
+
+    Attributes:
+        phenotype: anny phenotype values by name.
+        local_changes: anny local change values by label.
+        measured: the fitted body's measurements (``measure_body``), metres.
+        max_error: largest absolute difference between ``measured`` and the request, metres.
+        rounds: plane searches done; steps: LM steps taken; seconds: wall time of the fit.
+        history: largest error (metres) measured with fresh planes at the start of every round.
+    """
+
+    phenotype: dict[str, float]
+    local_changes: dict[str, float]
+    measured: dict[str, float]
+    max_error: float
+    rounds: int
+    steps: int
+    seconds: float
+    history: list[float]
+
+
+@functools.lru_cache(maxsize=1)
+def load_anny_model():
+    """The anny model used for bodies (loaded once per process; anny caches its data on disk).
+
+    Returns:
+        ``anny.Anny`` in float64 on the CPU, topology :data:`TOPOLOGY`, local changes :data:`LOCAL_CHANGES`.
+    """
+    import anny
+
+    return anny.Anny(topology=TOPOLOGY, local_changes=list(LOCAL_CHANGES.values()))
+
+
+def anny_version() -> str:
+    """Installed anny version (part of the cache key)."""
+    import anny
+
+    return str(anny.__version__)
+
+
+def validate_measurements(measurements: dict) -> dict[str, float]:
+    """Check a measurement request.
+
+    Args:
+        measurements: name -> metres; names from :data:`RANGES`, those of :data:`REQUIRED` mandatory.
+
+    Returns:
+        The request as plain floats, in the canonical order.
+
+    Raises:
+        InputError: unknown or missing names, non-finite or out-of-range values, or underbust >= bust.
+    """
+    unknown = sorted(set(measurements) - set(RANGES))
+    if unknown:
+        raise InputError(f"unknown body measurement(s) {unknown}; accepted: {', '.join(RANGES)}")
+    missing = [k for k in REQUIRED if k not in measurements]
+    if missing:
+        raise InputError(f"missing body measurement(s) {missing}; required: {', '.join(REQUIRED)}")
+    out: dict[str, float] = {}
+    for name, (lo, hi) in RANGES.items():
+        if name not in measurements:
+            continue
+        try:
+            value = float(measurements[name])
+        except (TypeError, ValueError):
+            raise InputError(f"body measurement {name!r} must be a number (metres), got {measurements[name]!r}")
+        if not math.isfinite(value) or not lo <= value <= hi:
+            raise InputError(f"body measurement {name}={value!r} m is outside the realistic range [{lo}, {hi}] m")
+        out[name] = value
+    if "underbust" in out and out["underbust"] >= out["bust"]:
+        raise InputError(f"underbust ({out['underbust']:.3f} m) must be smaller than bust ({out['bust']:.3f} m)")
+    return out
+
+
+def guess_gender(measurements: dict[str, float]) -> float:
+    """Anny ``gender`` (0 male, 1 female) guessed from the relative hips-waist and bust-underbust drops.
+
+    Typical women have ``(hips - waist) / hips`` about 0.2-0.3 and ``(bust - underbust) / bust`` about 0.12-0.18;
+    typical men about 0.05-0.1 and 0.05-0.08. Each drop is mapped linearly onto [0, 1] between those values and
+    the available ones are averaged.
+    """
+    m = measurements
+    scores = [((m["hips"] - m["waist"]) / m["hips"] - 0.08) / 0.12]
+    if "underbust" in m:
+        scores.append(((m["bust"] - m["underbust"]) / m["bust"] - 0.06) / 0.06)
+    return float(np.clip(np.mean(scores), 0.0, 1.0))
+
+
+def _to_y_up(v: torch.Tensor) -> torch.Tensor:
+    """Anny (Z up, front -Y) to ours (Y up, front +Z): (x, y, z) -> (x, z, -y), a rotation. Shape (..., 3)."""
+    return torch.stack([v[..., 0], v[..., 2], -v[..., 1]], dim=-1)
+
+
+class _Shape:
+    """Differentiable map from the free parameters to Y-up rest vertices (V, 3), float64 CPU."""
+
+    def __init__(self, model, phenotype: dict[str, float], girths: list[str]):
+        self.model = model
+        self.base_pheno = torch.tensor([phenotype[k] for k in _PHENOTYPES], dtype=torch.float64)
+        labels = list(model.local_change_labels)
+        self.lc_index = torch.tensor([labels.index(LOCAL_CHANGES[g]) for g in girths], dtype=torch.long)
+        self.num_lc = len(labels)
+        self.girths = girths
+        # free parameters: [height, weight, muscle, proportions, local changes of the requested girths]
+        self.lower = torch.tensor([0.0] * NUM_PHENO_FREE + [LOCAL_CHANGE_RANGE[0]] * len(girths), dtype=torch.float64)
+        self.upper = torch.tensor([1.0, MAX_WEIGHT, 1.0, 1.0] + [LOCAL_CHANGE_RANGE[1]] * len(girths), dtype=torch.float64)
+
+    def initial(self) -> torch.Tensor:
+        """Start point: the base phenotype's free values, no local changes."""
+        p = self.base_pheno
+        return torch.cat([torch.stack([p[4], p[3], p[2], p[5]]), p.new_zeros(len(self.girths))])
+
+    def split(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        # phenotype order: gender, age, muscle, weight, height, proportions
+        pheno = torch.cat([self.base_pheno[:2], x[2:3], x[1:2], x[0:1], x[3:4]])
+        lc = torch.zeros(self.num_lc, dtype=x.dtype).index_put((self.lc_index,), x[NUM_PHENO_FREE:])
+        return pheno, lc
+
+    def coefficients(self, x: torch.Tensor) -> torch.Tensor:
+        pheno, lc = self.split(x)
+        return self.model._get_phenotype_blendshape_coefficients(pheno[None], lc[None], pheno.new_zeros(1, 0))
+
+    def vertices(self, x: torch.Tensor) -> torch.Tensor:
+        return _to_y_up(self.model.get_rest_vertices(self.coefficients(x))[0])
+
+
+def _solve_height(shape: _Shape, x: torch.Tensor, target: float) -> torch.Tensor:
+    """Secant iterations on the phenotype height so that the body height matches ``target`` (in place on x)."""
+    with torch.no_grad():
+
+        def h(t: float) -> float:
+            y = x.clone()
+            y[0] = t
+            return float(body_height(shape.vertices(y)))
+
+        t0, t1 = 0.3, 0.7
+        h0, h1 = h(t0), h(t1)
+        for _ in range(6):
+            if abs(h1 - target) < 1e-5 or h1 == h0:
+                break
+            t0, t1, h0 = t1, t1 + (target - h1) * (t1 - t0) / (h1 - h0), h1
+            h1 = h(t1)
+        x[0] = float(np.clip(t1, 0.0, 1.0))
+    return x
+
+
+def _bounded_step(
+    jtj: torch.Tensor, jtr: torch.Tensor, mu: float, x: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor
+) -> torch.Tensor:
+    """Damped Gauss-Newton step (P,) with an active set: parameters at a bound that the step would push
+    outwards are frozen and the step is solved again for the others."""
+    free = torch.ones_like(x, dtype=torch.bool)
+    step = torch.zeros_like(x)
+    for _ in range(x.numel()):
+        idx = free.nonzero().squeeze(1)
+        a = jtj[idx][:, idx]
+        a = a + torch.diag(mu * (torch.diag(a) + 1e-12))
+        step = torch.zeros_like(x)
+        step[idx] = -torch.linalg.solve(a, jtr[idx])
+        blocked = free & (((x <= lower) & (step < 0)) | ((x >= upper) & (step > 0)))
+        if not bool(blocked.any()):
+            break
+        free &= ~blocked
+        if not bool(free.any()):
+            return torch.zeros_like(x)
+    return step
+
+
+def fit_anny(measurements: dict[str, float], settings: FitSettings = FitSettings()) -> tuple[AnnyFit, torch.Tensor]:
+    """Fit anny's phenotype and local changes to tape measurements.
+
+    Args:
+        measurements: validated request (see :func:`validate_measurements`), metres.
+        settings: tolerances and iteration limits.
+
+    Returns:
+        The fit and the fitted Y-up rest vertices (V, 3), float64, not yet recentred.
+
+    Raises:
+        InputError: the model cannot reach the request within ``settings.accept``.
+    """
+    t_start = time.perf_counter()
+    model = load_anny_model()
+    faces = model.faces
+    girths = [g for g in LOCAL_CHANGES if g in measurements]
+    phenotype = {
+        "gender": guess_gender(measurements),
+        "age": ADULT_AGE,
+        "muscle": 0.5,
+        "weight": 0.5,
+        "height": 0.5,
+        "proportions": 0.5,
+    }
+    shape = _Shape(model, phenotype, girths)
+    target = torch.tensor([measurements["height"]] + [measurements[g] for g in girths], dtype=torch.float64)
+    x = _solve_height(shape, shape.initial(), measurements["height"])
+    # prior weights (metres of residual per unit of parameter): none on height, weak on the body-wide
+    # phenotypes, the full prior on local changes
+    prior_w = torch.tensor(
+        [0.0, 0.1 * settings.prior, 0.5 * settings.prior, 0.5 * settings.prior] + [settings.prior] * len(girths),
+        dtype=torch.float64,
+    )
+    x_prior = x.clone()
+
+    def residual(xv: torch.Tensor, planes) -> torch.Tensor:
+        v = shape.vertices(xv)
+        g = section_girths(v, faces, planes)
+        meas = torch.stack([body_height(v)] + [g[n] for n in girths])
+        return torch.cat([meas - target, prior_w * (xv - x_prior)])
+
+    n_meas = 1 + len(girths)
+    steps = 0
+    rounds = 0
+    max_err = math.inf
+    history: list[float] = []
+    best = (math.inf, x.clone())  # the landmarks can jump between rounds: keep the best body measured
+    mu = 1e-3
+    while rounds < settings.max_rounds:
+        rounds += 1
+        with torch.no_grad():
+            v = shape.vertices(x)
+        planes = find_section_planes(v, faces)
+        planes = {n: planes[n] for n in girths}
+        with torch.no_grad():
+            r = residual(x, planes)
+        max_err = float(r[:n_meas].abs().max())
+        history.append(max_err)
+        if max_err < best[0]:
+            best = (max_err, x.clone())
+        if max_err <= settings.tolerance:
+            break
+        mu = 1e-3
+        for _ in range(settings.steps_per_round):
+            jac = torch.autograd.functional.jacobian(lambda xv: residual(xv, planes), x)
+            jtj = jac.T @ jac
+            jtr = jac.T @ r
+            cost = float(r @ r)
+            improved = False
+            for _ in range(8):
+                step = _bounded_step(jtj, jtr, mu, x, shape.lower, shape.upper)
+                step = step * min(1.0, settings.max_step / max(float(step.abs().max()), 1e-30))
+                x_new = torch.minimum(torch.maximum(x + step, shape.lower), shape.upper)
+                with torch.no_grad():
+                    r_new = residual(x_new, planes)
+                if float(r_new @ r_new) < cost:
+                    x, r = x_new, r_new
+                    mu = max(mu / 3.0, 1e-7)
+                    improved = True
+                    break
+                mu *= 4.0
+            steps += 1
+            if not improved or float(r[:n_meas].abs().max()) < 0.3 * settings.tolerance:
+                break
+    x = best[1]
+    with torch.no_grad():
+        v = shape.vertices(x)
+    measured = measure_body(v, faces).to_dict()
+    max_err = max(abs(measured[k] - val) for k, val in measurements.items())
+    if max_err > settings.accept:
+        errs = {k: round(1000 * (measured[k] - val), 1) for k, val in measurements.items()}
+        raise InputError(
+            f"anny cannot reach these measurements within {1000 * settings.accept:.0f} mm "
+            f"(errors in mm: {errs}; largest error per round in mm: {[round(1e3 * h, 1) for h in history]}); "
+            "they may be an unusual combination"
+        )
+    pheno, lc = shape.split(x)
+    fit = AnnyFit(
+        phenotype={k: float(pheno[i]) for i, k in enumerate(_PHENOTYPES)},
+        local_changes={label: float(lc[i]) for i, label in enumerate(model.local_change_labels)},
+        measured=measured,
+        max_error=max_err,
+        rounds=rounds,
+        steps=steps,
+        seconds=time.perf_counter() - t_start,
+        history=history,
+    )
+    return fit, v
+
+
+def _rig(model, x_coeffs: torch.Tensor, offset: torch.Tensor) -> tuple[Skeleton, torch.Tensor]:
+    """Skeleton (joints = bone heads, bones = parent links) and (J, V) skin weights of a fitted body.
+
+    Joints carrying no skin weight and having no weighted descendant (the eye bones of the eyeless topology)
+    are dropped; their weight (zero) is not redistributed.
+    """
+    with torch.no_grad():
+        heads = _to_y_up(model.get_rest_model(x_coeffs)["rest_bone_heads"][0]) - offset
+    labels = list(model.bone_labels)
+    parents = list(model.bone_parents)
+    num_v = model.template_vertices.shape[0]
+    dense = torch.zeros(num_v, len(labels), dtype=torch.float64)
+    dense.scatter_add_(1, model.vertex_bone_indices.long(), model.vertex_bone_weights.to(torch.float64))
+    keep = (dense.sum(dim=0) > 0).tolist()
+    for j in reversed(range(len(labels))):  # bones are topologically ordered: children after parents
+        if keep[j] and parents[j] >= 0:
+            keep[parents[j]] = True
+    kept = [j for j in range(len(labels)) if keep[j]]
+    new_index = {old: new for new, old in enumerate(kept)}
+    bones = [(new_index[parents[j]], new_index[j]) for j in kept if parents[j] >= 0]
+    skeleton = Skeleton(
+        joints=heads[kept].clone(),
+        bones=torch.tensor(bones, dtype=torch.long).reshape(-1, 2),
+        names=[labels[j] for j in kept],
+    )
+    weights = dense[:, kept].T.contiguous()
+    return skeleton, weights / weights.sum(dim=0, keepdim=True)
+
+
+def _generate(measurements: dict[str, float], settings: FitSettings) -> dict:
+    """Fit and assemble a body as a cache payload (float64 CPU tensors and plain data)."""
+    model = load_anny_model()
+    fit, v = fit_anny(measurements, settings)
+    lo, hi = v.min(dim=0).values, v.max(dim=0).values
+    offset = torch.stack([(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2])
+    vertices = v - offset
+    shape = _Shape(model, fit.phenotype, list(LOCAL_CHANGES))
+    x = shape.initial()
+    x[NUM_PHENO_FREE:] = torch.tensor([fit.local_changes[LOCAL_CHANGES[g]] for g in LOCAL_CHANGES])
+    skeleton, weights = _rig(model, shape.coefficients(x).detach(), offset)
+    planes = find_section_planes(vertices, model.faces)
+    landmarks = {name: p.seed.to(torch.float64) for name, p in planes.items()}
+    landmarks["crown"] = vertices[int(torch.argmax(vertices[:, 1]))].clone()
+    return {
+        "vertices": vertices.detach().clone(),
+        "faces": model.faces.clone().long(),
+        "joints": skeleton.joints,
+        "bones": skeleton.bones,
+        "joint_names": list(skeleton.names),
+        "skin_weights": weights,
+        "landmark_names": list(landmarks),
+        "landmarks": torch.stack(list(landmarks.values())),
+        "params": {
+            "generator": "anny",
+            "anny_version": anny_version(),
+            "fit_version": FIT_VERSION,
+            "topology": TOPOLOGY,
+            "requested": dict(measurements),
+            "measured": fit.measured,
+            "max_error": fit.max_error,
+            "phenotype": fit.phenotype,
+            "local_changes": fit.local_changes,
+            "fit_seconds": fit.seconds,
+            "fit_rounds": fit.rounds,
+            "fit_steps": fit.steps,
+        },
+    }
+
+
+def cache_description(measurements: dict[str, float], settings: FitSettings = FitSettings()) -> dict:
+    """What a fitted body depends on (hashed into its cache key)."""
+    return {
+        "kind": "anny_body",
+        "measurements": dict(sorted(measurements.items())),
+        "anny_version": anny_version(),
+        "fit_version": FIT_VERSION,
+        "topology": TOPOLOGY,
+        "settings": asdict(settings),
+    }
+
+
+def body_from_measurements(
+    measurements: dict[str, float],
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+    cache: bool = True,
+    settings: FitSettings = FitSettings(),
+) -> Body:
+    """An anny body whose own measurements match the request.
+
+    Args:
+        measurements: metres; ``height``, ``bust``, ``waist``, ``hips`` required; ``underbust``, ``thigh``,
+            ``upper_arm``, ``neck``, ``wrist`` optional (see :data:`RANGES`).
+        dtype: float dtype of the returned tensors.
+        device: device of the returned tensors (fitting runs on the CPU).
+        cache: read and write the disk cache (:mod:`torchgarment.body.cache`).
+        settings: fit settings.
+
+    Returns:
+        A :class:`Body`: closed manifold mesh (V = 13,348 vertices), +Y up, metres, feet at y = 0, centred in x
+        and z; skeleton of anny's bone heads (joint names kept); (J, V) skin weights; landmarks at the girth
+        section seeds (``"bust"``, ...) and the ``"crown"``; ``params`` with the request, the measured values,
+        the fitted anny parameters and the fit's timing. ``params["cache_hit"]`` tells whether it came from
+        the cache.
+
+    Raises:
+        InputError: bad names or values, or a request the model cannot reach.
+    """
+    request = validate_measurements(measurements)
+    key = body_cache.cache_key(cache_description(request, settings))
+    payload = body_cache.load_entry(key) if cache else None
+    hit = payload is not None
+    if payload is None:
+        payload = _generate(request, settings)
+        if cache:
+            body_cache.store_entry(key, payload)
+    params = dict(payload["params"])
+    params["cache_hit"] = hit
+    params["cache_key"] = key
+    body = Body(
+        vertices=payload["vertices"],
+        faces=payload["faces"],
+        skeleton=Skeleton(payload["joints"], payload["bones"], list(payload["joint_names"])),
+        skin_weights=payload["skin_weights"],
+        landmarks={n: payload["landmarks"][i] for i, n in enumerate(payload["landmark_names"])},
+        params=params,
+    )
+    return body.to(device=device, dtype=dtype)
