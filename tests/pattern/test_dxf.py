@@ -91,17 +91,19 @@ def test_round_trip(tmp_path):
     got = load_dxf(tmp_path / "p.dxf")
     got.validate()
     assert got.name == "test" and list(got.panels) == list(pat.panels)
-    assert got.metadata["dxf_max_fit_error"] < 1e-6
+    assert got.metadata["dxf_max_fit_error"] < 1e-9  # the stored exact edges match their points
     for name, p in pat.panels.items():
         q = got.panels[name]
-        assert hausdorff(p, q) < 1e-6  # acceptance is 0.1 mm; the exact refit reaches 1 um
+        assert hausdorff(p, q) < 1e-9  # acceptance is 0.1 mm; the stored exact edges reach float precision
         assert len(q.edges) == len(p.edges)
         for i, (ep, eq) in enumerate(zip(p.edges, q.edges)):
             assert np.allclose(q.edge_endpoints(i), p.edge_endpoints(i), atol=1e-9)
-            want = {EdgeKind.LINE: EdgeKind.LINE, EdgeKind.ARC: EdgeKind.ARC}.get(ep.kind, EdgeKind.CUBIC)
-            assert eq.kind is want
+            assert eq.kind is ep.kind  # exact: a quadratic stays quadratic
+            if ep.controls is not None:
+                np.testing.assert_allclose(eq.controls, ep.controls, atol=1e-12)
+            assert eq.arc == ep.arc
             assert eq.label == ep.label
-            assert abs(q.edge_length(i) - p.edge_length(i)) < 1e-6
+            assert abs(q.edge_length(i) - p.edge_length(i)) < 1e-9
         np.testing.assert_allclose(q.translation, p.translation, atol=1e-15)
         np.testing.assert_allclose(q.rotation, p.rotation, atol=1e-15)
         np.testing.assert_allclose(q.grainline, p.grainline, atol=1e-9)
@@ -109,12 +111,70 @@ def test_round_trip(tmp_path):
         assert [n.edge for n in q.notches] == [n.edge for n in p.notches]
         assert [n.name for n in q.notches] == [n.name for n in p.notches]
         assert np.allclose([n.t for n in q.notches], [n.t for n in p.notches], atol=5e-3)
-    cubic = got.panels["back"].edges[0]
-    np.testing.assert_allclose(cubic.controls, [[0.3, -0.1], [0.7, 0.1]], atol=1e-6)
+    assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation) for s in pat.stitches]
+
+
+def _without_exact_edges(src, dst, replace=None):
+    """Copy a DXF of ours with the ``edge`` data entries disabled (or one entry replaced): a 'foreign' file."""
+    lines = src.read_text(encoding="ascii").splitlines()
+    if replace is None:
+        lines = ["x" + ln if ln.startswith("edge ") else ln for ln in lines]
+    else:
+        assert replace[0] in lines
+        lines = [replace[1] if ln == replace[0] else ln for ln in lines]
+    dst.write_text("\n".join(lines) + "\n", encoding="ascii")
+
+
+def test_refit_without_exact_edges(tmp_path):
+    # the fallback path other CAD tools' files take: lines, arcs and cubics are refitted from the points
+    pat = _pattern()
+    save_dxf(tmp_path / "p.dxf", pat)
+    _without_exact_edges(tmp_path / "p.dxf", tmp_path / "f.dxf")
+    got = load_dxf(tmp_path / "f.dxf")
+    assert got.metadata["dxf_max_fit_error"] < 1e-6
+    for name, p in pat.panels.items():
+        q = got.panels[name]
+        assert hausdorff(p, q) < 1e-6
+        assert len(q.edges) == len(p.edges)
+        for ep, eq in zip(p.edges, q.edges):
+            want = {EdgeKind.LINE: EdgeKind.LINE, EdgeKind.ARC: EdgeKind.ARC}.get(ep.kind, EdgeKind.CUBIC)
+            assert eq.kind is want
+    np.testing.assert_allclose(got.panels["back"].edges[0].controls, [[0.3, -0.1], [0.7, 0.1]], atol=1e-6)
     quad = got.panels["front"].edges[1]  # degree-elevated quadratic
     np.testing.assert_allclose(quad.controls, [[1 / 3, 0.1], [2 / 3, 0.1]], atol=1e-6)
     assert got.panels["cäp é"].edges[0].arc == pytest.approx((0.15, True, False))
     assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation) for s in pat.stitches]
+
+
+def test_inconsistent_exact_edge_is_refitted(tmp_path):
+    # a stored definition that disagrees with the boundary points (geometry edited elsewhere) is not trusted
+    pat = _pattern()
+    save_dxf(tmp_path / "p.dxf", pat)
+    _without_exact_edges(tmp_path / "p.dxf", tmp_path / "t.dxf",
+                         replace=("edge 0 cubic 0.3 -0.1 0.7 0.1", "edge 0 cubic 0.3 -0.1 0.7 0.102"))
+    got = load_dxf(tmp_path / "t.dxf")
+    edge = got.panels["back"].edges[0]
+    np.testing.assert_allclose(edge.controls, [[0.3, -0.1], [0.7, 0.1]], atol=1e-6)  # fitted to the points
+    assert got.panels["front"].edges[1].kind is EdgeKind.QUADRATIC  # other edges still exact
+    assert got.metadata["dxf_max_fit_error"] < 1e-6
+    _without_exact_edges(tmp_path / "p.dxf", tmp_path / "m.dxf", replace=("edge 0 line", "edge 0 cubic 0.5"))
+    with pytest.raises(PatternError, match="bad TORCHGARMENT entry 'edge 0 cubic 0.5'"):
+        load_dxf(tmp_path / "m.dxf")
+
+
+def test_library_tshirt_round_trip_keeps_stitched_edges(tmp_path):
+    # regression: the largest tshirt's armhole cubic used to be refitted into a loop and split, losing a stitch
+    lib = pytest.importorskip("torchgarment.pattern.library")
+    chart = pytest.importorskip("torchgarment.body.size_chart")
+    pat = lib.draft("tshirt", chart.chart_row(chart.list_sizes()[-1]))
+    save_dxf(tmp_path / "t.dxf", pat)
+    _without_exact_edges(tmp_path / "t.dxf", tmp_path / "f.dxf")
+    for path, tol in ((tmp_path / "t.dxf", 1e-9), (tmp_path / "f.dxf", 1e-6)):
+        got = load_dxf(path)
+        got.validate()
+        assert [len(p.edges) for p in got.panels.values()] == [len(p.edges) for p in pat.panels.values()]
+        assert max(hausdorff(p, got.panels[n], 200) for n, p in pat.panels.items()) < tol
+        assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation) for s in pat.stitches]
 
 
 def _foreign(path, points_mm, bulges=None, turn_points=None, layer_units=None):

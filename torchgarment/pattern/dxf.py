@@ -17,16 +17,24 @@ blocks (``$MODEL_SPACE``...) and tables that Gerber's strict parser rejects. The
 
 What AAMA cannot hold goes on the extra layer ``TORCHGARMENT`` as ``TEXT`` entities that AAMA readers skip
 (they only read the numbered layers): per block ``translation x y z`` (metres), ``rotation x y z``
-(radians), ``label <text>``, ``edge_label <i> <text>``, ``notch_name <j> <text>``; in model space one
+(radians), ``label <text>``, ``edge_label <i> <text>``, ``notch_name <j> <text>``, and for every edge its
+exact definition relative to its two turn points: ``edge <i> line``, ``edge <i> quadratic <u> <v>``,
+``edge <i> cubic <u1> <v1> <u2> <v2>`` (relative controls, see :mod:`torchgarment.pattern.spec`) or
+``edge <i> circle <radius metres> <large 0|1> <sweep 0|1>``; in model space one
 ``stitch <block a> <edge a> <block b> <edge b> <opposite|same>`` per stitch. Text outside printable ASCII
 is written as DXF ``\\U+XXXX`` escapes. The pattern's free-form ``metadata`` is not stored.
 
 Reading (:func:`load_dxf`) turns turn points into vertices and the curve points between two turn points
-into one edge: a ``LINE`` when they are collinear (within 1 um), an ``ARC`` when they lie on a circle
-(within 1 um), else a cubic Bezier fitted by least squares with arc-length start parameters refined by
-Newton projection. A cubic that stays further than ``max_fit_error`` from its points is split at the worst
-point (a new vertex) until every piece fits. Files from other CAD tools without turn points get one at
-every polyline corner sharper than 20 degrees; clockwise pieces without torchgarment data are reversed.
+into one edge. When the piece carries an ``edge`` entry for every turn-point segment and an entry agrees
+with its boundary points (each point within 1 um of the stored curve, and the curve within the writing
+chord tolerance plus 1 um of the points), that exact edge is used, so our own files round-trip exactly
+(kinds, controls, arcs). Otherwise (files from other CAD tools, or edited geometry) the edge is refitted:
+a ``LINE`` when the points are collinear (within 1 um), an ``ARC`` when they lie on a circle (within
+1 um), else a cubic Bezier fitted by Gauss-Newton on orthogonal distances (see :func:`_fit_cubic`). A
+cubic that stays further than ``max_fit_error`` from its points, or loops back at an end, is split at the
+point farthest from the chord (a new vertex) until every piece fits. Files from other CAD tools without
+turn points get one at every polyline corner sharper than 20 degrees; clockwise pieces without
+torchgarment data are reversed.
 """
 
 from __future__ import annotations
@@ -166,6 +174,7 @@ def pattern_dxf_document(pattern: SewingPattern) -> Drawing:
         ]
         if panel.label:
             data.append(f"label {panel.label}")
+        data += [_edge_entry(i, e) for i, e in enumerate(panel.edges)]
         data += [f"edge_label {i} {e.label}" for i, e in enumerate(panel.edges) if e.label]
         data += [f"notch_name {j} {n.name}" for j, n in enumerate(panel.notches) if n.name]
         for k, text in enumerate(data):
@@ -181,6 +190,18 @@ def pattern_dxf_document(pattern: SewingPattern) -> Drawing:
         text = f"stitch {blocks[s.a.panel]} {s.a.edge} {blocks[s.b.panel]} {s.b.edge} {s.orientation.value}"
         msp.add_text(text, dxfattribs={"layer": DATA_LAYER, "height": 2.0, "insert": (0.0, -20.0 - 3.0 * k)})
     return doc
+
+
+def _edge_entry(i: int, edge: Edge) -> str:
+    """The ``edge`` entry of the data layer: the exact definition of edge ``i`` relative to its turn points."""
+    if edge.kind is EdgeKind.ARC:
+        r, large, sweep = edge.arc
+        numbers = [repr(float(r)), str(int(large)), str(int(sweep))]
+    elif edge.kind is EdgeKind.LINE:
+        numbers = []
+    else:
+        numbers = [repr(float(x)) for x in np.asarray(edge.controls, dtype=np.float64).reshape(-1)]
+    return " ".join([f"edge {i} {edge.kind.value}"] + numbers)
 
 
 def _edge_points(panel: Panel) -> list[np.ndarray]:
@@ -262,37 +283,76 @@ def _bezier(ctrl: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
 
 
 def _project(ctrl: np.ndarray, q: np.ndarray, t: np.ndarray, steps: int) -> np.ndarray:
-    """Newton steps moving parameters t (m,) to the foot points of q (m, 2) on the cubic ctrl; ends fixed."""
+    """Foot-point parameters (m,) of points q (m, 2) on the cubic ctrl, refined from t; ends stay at 0 and 1.
+
+    Each point starts from the better of ``t`` and the nearest of 129 curve samples (so that a point cannot
+    stay trapped at a far local minimum after the curve changed), then takes safeguarded Newton steps: the
+    Gauss-Newton denominator ``|B'|^2`` is used where the full one is not clearly positive, and a step is
+    at most 1/64 of the parameter range.
+    """
+    t = np.array(t, dtype=np.float64)
+    grid = np.linspace(0.0, 1.0, 129)
+    g, _, _ = _bezier(ctrl, grid)
+    for chunk in range(0, q.shape[0], 2048):
+        qc = q[chunk: chunk + 2048]
+        d2 = ((qc[:, None, :] - g[None]) ** 2).sum(axis=-1)
+        k = np.argmin(d2, axis=1)
+        p, _, _ = _bezier(ctrl, t[chunk: chunk + 2048])
+        worse = ((p - qc) ** 2).sum(axis=1) > d2[np.arange(qc.shape[0]), k]
+        t[chunk: chunk + 2048] = np.where(worse, grid[k], t[chunk: chunk + 2048])
     for _ in range(steps):
         p, d1, d2 = _bezier(ctrl, t)
         diff = p - q
         num = (diff * d1).sum(axis=1)
-        den = (d1 * d1).sum(axis=1) + (diff * d2).sum(axis=1)
+        gn = (d1 * d1).sum(axis=1)
+        den = gn + (diff * d2).sum(axis=1)
+        den = np.where(den > 0.25 * gn, den, gn)
         ok = den > 1e-300
-        t = np.clip(t - np.where(ok, num / np.where(ok, den, 1.0), 0.0), 0.0, 1.0)
+        step = np.clip(np.where(ok, num / np.where(ok, den, 1.0), 0.0), -1.0 / 64, 1.0 / 64)
+        t = np.clip(t - step, 0.0, 1.0)
         t[0], t[-1] = 0.0, 1.0
     return t
 
 
-def _fit_cubic(q: np.ndarray, iterations: int = 40) -> tuple[np.ndarray, float]:
-    """Cubic Bezier with ends ``q[0]``, ``q[-1]`` fitted to points (m, 2): absolute controls (2, 2), max error.
+def _fit_cubic(q: np.ndarray, iterations: int = 30) -> tuple[np.ndarray, float, bool]:
+    """Cubic Bezier with ends ``q[0]``, ``q[-1]`` fitted to points (m, 2).
 
-    Start: normalised arc-length parameters and the linear least-squares inner controls for them. Then
-    Gauss-Newton on the orthogonal distances: project every point onto the curve (Newton), linearise the
-    normal component of the residual in the four inner control coordinates, solve, repeat.
+    Returns:
+        Absolute inner controls (2, 2), the largest distance (metres) of a point from the curve, and whether
+        the fit loops back at an end (an inner control behind its end's tangent).
+
+    Two starts, the better result kept: parameters uniform in the point index (exact for curves sampled at
+    uniform curve parameters, as :func:`save_dxf` and many CAD tools do) and normalised arc length. From
+    each: the linear least-squares inner controls for those parameters, then Gauss-Newton on the orthogonal
+    distances (project every point onto the curve, linearise the normal component of the residual in the
+    four inner control coordinates, solve; a step that raises the squared error is shortened). A fit that
+    loops back at an end (a tiny loop can hide inside the error bound and makes the outline cross itself)
+    loses against one that does not.
     """
-    a, b = q[0], q[-1]
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
-    t = s / s[-1]
+    best: tuple[np.ndarray, float, bool] | None = None
+    for t in (np.linspace(0.0, 1.0, q.shape[0]), s / s[-1]):
+        ctrl, err, loops = _fit_cubic_from(q, t, iterations)
+        if best is None or (loops, err) < (best[2], best[1]):
+            best = (ctrl, err, loops)
+        if not best[2] and best[1] <= 1e-12 * s[-1]:
+            break
+    return best
+
+
+def _fit_cubic_from(q: np.ndarray, t: np.ndarray, iterations: int) -> tuple[np.ndarray, float, bool]:
+    """One start of :func:`_fit_cubic`: initial parameters t (m,) in [0, 1]."""
+    a, b = q[0], q[-1]
     u = 1 - t
     basis = np.stack([3 * u**2 * t, 3 * u * t**2], axis=1)
     rhs = q - (u**3)[:, None] * a - (t**3)[:, None] * b
     inner, *_ = np.linalg.lstsq(basis, rhs, rcond=None)
     ctrl = np.stack([a, inner[0], inner[1], b])
     scale = float(np.linalg.norm(b - a))
+    t = _project(ctrl, q, t, 8)
+    p, d1, _ = _bezier(ctrl, t)
+    cost = float(((p - q) ** 2).sum())
     for _ in range(iterations):
-        t = _project(ctrl, q, t, 8)
-        p, d1, _ = _bezier(ctrl, t)
         tn = np.linalg.norm(d1, axis=1)
         normal = np.stack([-d1[:, 1], d1[:, 0]], axis=1) / np.where(tn > 0, tn, 1.0)[:, None]
         res = ((p - q) * normal).sum(axis=1)
@@ -300,14 +360,24 @@ def _fit_cubic(q: np.ndarray, iterations: int = 40) -> tuple[np.ndarray, float]:
         b1, b2 = 3 * u**2 * t, 3 * u * t**2
         jac = np.stack([normal[:, 0] * b1, normal[:, 1] * b1, normal[:, 0] * b2, normal[:, 1] * b2], axis=1)
         step, *_ = np.linalg.lstsq(jac, -res, rcond=None)
-        ctrl = ctrl.copy()
-        ctrl[1] += step[:2]
-        ctrl[2] += step[2:]
+        for _ in range(4):
+            trial = ctrl.copy()
+            trial[1] += step[:2]
+            trial[2] += step[2:]
+            t_trial = _project(trial, q, t, 8)
+            p_trial, d1_trial, _ = _bezier(trial, t_trial)
+            c_trial = float(((p_trial - q) ** 2).sum())
+            if c_trial <= cost:
+                break
+            step = 0.25 * step
+        else:
+            break
+        ctrl, t, p, d1, cost = trial, t_trial, p_trial, d1_trial, c_trial
         if float(np.abs(step).max()) < 1e-13 * max(scale, 1e-300):
             break
-    t = _project(ctrl, q, t, 8)
-    p, _, _ = _bezier(ctrl, t)
-    return ctrl[1:3], float(np.linalg.norm(p - q, axis=1).max())
+    err = float(np.linalg.norm(p - q, axis=1).max())
+    loops = float((ctrl[1] - a) @ (q[1] - q[0])) <= 0.0 or float((b - ctrl[2]) @ (q[-1] - q[-2])) <= 0.0
+    return ctrl[1:3], err, loops
 
 
 def _fit_edge(q: np.ndarray, max_fit_error: float) -> list[_Fit]:
@@ -336,12 +406,66 @@ def _fit_edge(q: np.ndarray, max_fit_error: float) -> list[_Fit]:
             err = float(np.abs(np.linalg.norm(q - cc, axis=1) - rr).max())
             if err <= ARC_TOLERANCE and abs(abs(sweep) - abs(dt)) < 1e-6:
                 return [_Fit(EdgeKind.ARC, q, arc=arc, error=err)]
-    ctrl, err = _fit_cubic(q)
-    if err <= max_fit_error or q.shape[0] <= 4:
+    ctrl, err, loops = _fit_cubic(q)
+    if (err <= max_fit_error and not loops) or q.shape[0] <= 4:
         return [_Fit(EdgeKind.CUBIC, q, controls=_relative(ctrl, a, b), error=err)]
     # split at the point farthest from the chord (a stable choice that is never an end)
     k = int(np.argmax(off[1:-1])) + 1
     return _fit_edge(q[: k + 1], max_fit_error) + _fit_edge(q[k:], max_fit_error)
+
+
+def _dist_to_polyline(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Distance (n,) of points (n, 2) to an open polyline (m, 2), m >= 2."""
+    a, ab = poly[:-1], np.diff(poly, axis=0)
+    ab2 = np.maximum((ab * ab).sum(axis=1), 1e-300)
+    out = []
+    for q in np.array_split(p, max(1, (p.shape[0] * a.shape[0]) // 200_000 + 1)):
+        rel = q[:, None, :] - a[None]
+        t = np.clip((rel * ab[None]).sum(axis=-1) / ab2[None], 0.0, 1.0)
+        out.append(np.linalg.norm(rel - t[..., None] * ab[None], axis=-1).min(axis=1))
+    return np.concatenate(out)
+
+
+def _parse_edge_entry(rest: str) -> tuple[int, Edge]:
+    """``<i> <kind> <numbers>`` of an ``edge`` data entry: the index and the edge (vertices 0 -> 1)."""
+    parts = rest.split()
+    i, kind = int(parts[0]), EdgeKind(parts[1])
+    nums = [float(x) for x in parts[2:]]
+    need = {EdgeKind.LINE: 0, EdgeKind.QUADRATIC: 2, EdgeKind.CUBIC: 4, EdgeKind.ARC: 3}[kind]
+    if len(nums) != need or not all(math.isfinite(x) for x in nums):
+        raise ValueError(f"{kind.value} edge needs {need} finite numbers")
+    if kind is EdgeKind.ARC:
+        if nums[0] <= 0 or nums[1] not in (0.0, 1.0) or nums[2] not in (0.0, 1.0):
+            raise ValueError("arc needs radius > 0 and 0/1 flags")
+        return i, Edge(0, 1, kind, arc=(nums[0], bool(nums[1]), bool(nums[2])))
+    if kind is EdgeKind.LINE:
+        return i, Edge(0, 1, kind)
+    return i, Edge(0, 1, kind, controls=np.array(nums).reshape(-1, 2))
+
+
+def _exact_fit(edge: Edge, q: np.ndarray) -> _Fit | None:
+    """The stored exact edge if it agrees with the boundary points q (m, 2) between two turn points, else None.
+
+    Agreement: the points are, within ``LINE_TOLERANCE``, the curve at the parameters :func:`save_dxf`
+    samples; or (points resampled by another tool) every point lies within ``LINE_TOLERANCE`` of the curve
+    (sampled with chord error ``LINE_TOLERANCE / 10``) and every such curve sample lies within
+    ``CHORD_TOLERANCE + LINE_TOLERANCE`` of the boundary polyline.
+    """
+    a, b = q[0], q[-1]
+    if float(np.linalg.norm(b - a)) == 0.0:
+        return None
+    written = _edge_params(edge, a, b, CHORD_TOLERANCE)
+    if written.shape[0] == q.shape[0] - 1:  # the points save_dxf writes for this edge: compare one to one
+        pts = np.concatenate([edge.evaluate(a, b, written), b[None]])
+        err = float(np.linalg.norm(pts - q, axis=1).max())
+        if err <= LINE_TOLERANCE:
+            return _Fit(edge.kind, q, controls=edge.controls, arc=edge.arc, error=err)
+    dense = np.concatenate([edge.evaluate(a, b, _edge_params(edge, a, b, 0.1 * LINE_TOLERANCE)), b[None]])
+    dense[0] = a
+    on_curve = float(_dist_to_polyline(q, dense).max())
+    if on_curve > LINE_TOLERANCE or float(_dist_to_polyline(dense, q).max()) > CHORD_TOLERANCE + LINE_TOLERANCE:
+        return None
+    return _Fit(edge.kind, q, controls=edge.controls, arc=edge.arc, error=on_curve)
 
 
 @dataclass
@@ -482,11 +606,24 @@ def _build_panel(piece: _Piece, max_fit_error: float) -> tuple[Panel, list[list[
     m = piece.points.shape[0]
     bounds = list(piece.turn) + [m]
     closed = np.concatenate([piece.points, piece.points[:1]])
+    exact: dict[int, Edge] = {}
+    for line in piece.data:
+        key, _, rest = line.partition(" ")
+        if key == "edge":
+            try:
+                i, edge = _parse_edge_entry(rest)
+            except (ValueError, IndexError, PatternError) as exc:
+                raise PatternError(f"DXF piece '{piece.name}': bad {DATA_LAYER} entry '{line}'") from exc
+            exact[i] = edge
+    if set(exact) != set(range(len(piece.turn))):  # not the edges of these turn points: fit them all
+        exact = {}
     fits: list[_Fit] = []
     seg_edges: list[list[int]] = []
     for k in range(len(piece.turn)):
+        q = closed[bounds[k]: bounds[k + 1] + 1]
+        known = _exact_fit(exact[k], q) if k in exact else None
         try:
-            parts = _fit_edge(closed[bounds[k]: bounds[k + 1] + 1], max_fit_error)
+            parts = [known] if known is not None else _fit_edge(q, max_fit_error)
         except PatternError as exc:
             raise PatternError(f"DXF piece '{piece.name}': {exc}") from None
         seg_edges.append(list(range(len(fits), len(fits) + len(parts))))
@@ -521,7 +658,8 @@ def load_dxf(path: str | os.PathLike, *, max_fit_error: float = 5e-5) -> SewingP
     """Read an ASTM D6673 / AAMA DXF pattern (as written by :func:`save_dxf` or other CAD tools).
 
     Every block with a closed boundary polyline on layer 1 is a piece; turn points (layer 2) become panel
-    vertices and the boundary points between them one edge each (line, arc or fitted cubic; see the module
+    vertices and the boundary points between them one edge each: the exact edge stored on the
+    ``TORCHGARMENT`` layer when it agrees with the points, else a fitted line, arc or cubic (see the module
     docstring). Stitches, placements and labels come back from the ``TORCHGARMENT`` layer when present.
 
     Args:
