@@ -238,3 +238,13 @@ def test_real_body_2p5mm(garmentcode_dir):
     sdf, err, gn = _real_body_check(garmentcode_dir, 0.0025, 8)
     assert err.mean() < 1e-4 and np.percentile(err, 99) < 5e-4 and err.max() < 1.25e-3
     assert np.median(np.abs(gn - 1)) < 0.01 and np.percentile(gn, 5) > 0.8
+
+
+@pytest.mark.slow
+def test_real_body_1p75mm_within_1mm(garmentcode_dir):
+    # The acceptance bound (1 mm everywhere in the band) needs voxels below 2 mm: the worst points sit in
+    # concave creases (armpit, between the legs), where the distance field has a kink that trilinear
+    # interpolation rounds off by about 0.45 voxel (2.5 mm: 1.18 mm, see test_real_body_2p5mm; 2 mm: 1.01 mm).
+    sdf, err, gn = _real_body_check(garmentcode_dir, 0.00175, 8, n=50000)
+    assert err.max() < 1e-3 and np.percentile(err, 99) < 4e-4
+    assert np.median(np.abs(gn - 1)) < 0.01
