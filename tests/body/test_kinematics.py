@@ -163,3 +163,23 @@ def test_urdf_is_loadable_by_pytorch_kinematics():
     chain = pk.build_chain_from_urdf(skeleton_to_urdf(Skeleton(JOINTS, BONES)))
     fk = chain.forward_kinematics(torch.zeros(1, 27))
     assert torch.allclose(fk["joint3"].get_matrix()[0, :3, 3].double(), JOINTS[3], atol=1e-6)
+
+
+def test_chain_cache_per_topology_keeps_offsets_apart(kin):
+    import time
+
+    from torchgarment.body import kinematics
+
+    torch.manual_seed(1)
+    other_joints = JOINTS + 0.1 * torch.randn_like(JOINTS) + 1e-9  # not float32-representable
+    start = time.perf_counter()
+    other = KinematicSkeleton(Skeleton(other_joints, BONES))
+    assert time.perf_counter() - start < 1.0
+    assert tuple(other.parents.tolist()) in kinematics._CHAIN_TEMPLATES
+    rot = torch.randn(9, 3, dtype=torch.float64)
+    assert (other.forward_kinematics(rot) - direct_fk(other_joints, other.parents, rot)).abs().max() < 1e-13
+    assert (kin.forward_kinematics(rot) - direct_fk(JOINTS, kin.parents, rot)).abs().max() < 1e-13
+    assert (other.posed_joints(torch.zeros(9, 3, dtype=torch.float64)) - other_joints).abs().max() < 1e-15
+    # A copied template does not share state: the cached chain still has the first skeleton's offsets.
+    first = KinematicSkeleton(Skeleton(JOINTS, BONES))
+    assert (first.posed_joints(torch.zeros(9, 3, dtype=torch.float64)) - JOINTS).abs().max() < 1e-15

@@ -12,9 +12,12 @@ import trimesh
 from torchgarment.body.body import Body
 from torchgarment.body.kinematics import KinematicSkeleton
 from torchgarment.body.skeleton import Skeleton
+from torchgarment.body import skinning
 from torchgarment.body.skinning import (
     Pose,
+    arm_angles,
     find_arms,
+    inverse_linear_blend_skinning,
     linear_blend_skinning,
     nearest_bone_weights,
     repose,
@@ -215,3 +218,145 @@ def test_single_bone_rotation_moves_only_its_subtree():
     # distances to the hip joint are preserved (rigid rotation about the hip)
     hip = body.skeleton.joints[9]
     assert torch.allclose((posed[in_subtree] - hip).norm(dim=1), (body.vertices[in_subtree] - hip).norm(dim=1), atol=1e-12)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Real rig: an anny body (104 joints, smooth LBS weights); size "6" is fitted once and then disk-cached.
+# ----------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def anny():
+    return Body.from_size("6")
+
+
+@pytest.fixture(scope="module")
+def anny_t(anny):
+    return repose(anny, Pose.T)
+
+
+def _arm_subtree(skel: Skeleton, arms) -> list[int]:
+    parents = KinematicSkeleton(skel).parents.tolist()
+    out = []
+    for j in range(len(parents)):
+        k = j
+        while k >= 0 and k not in (arms[0].shoulder, arms[1].shoulder):
+            k = parents[k]
+        if k >= 0:
+            out.append(j)
+    return out
+
+
+def test_find_arms_on_anny_picks_ball_joints(anny):
+    names = anny.skeleton.names
+    for arm, s in zip(find_arms(anny.skeleton), "LR"):
+        assert names[arm.chest] == "spine01"
+        assert [names[arm.shoulder], names[arm.elbow], names[arm.wrist]] == [f"upperarm01.{s}", f"lowerarm01.{s}", f"wrist.{s}"]
+    # The geometric rule alone (no names) finds the same joints.
+    unnamed = Skeleton(anny.skeleton.joints, anny.skeleton.bones, [])
+    assert find_arms(unnamed) == find_arms(anny.skeleton)
+
+
+def test_find_arms_name_hint_and_pattern():
+    # A wide clavicle (9 % of the height sideways) passes the lateral rule; the upper-arm name wins over it.
+    joints = torch.cat([stick_joints(), torch.tensor([[0.15, 1.43, 0.0], [-0.15, 1.43, 0.0]], dtype=torch.float64)])
+    bones = [b for b in BONES if b not in ((1, 3), (1, 6))] + [(1, 15), (15, 3), (1, 16), (16, 6)]
+    geometric = find_arms(Skeleton(joints, torch.tensor(bones)))
+    assert (geometric[0].shoulder, geometric[1].shoulder) == (15, 16)
+    names = [f"j{i}" for i in range(17)]
+    names[3], names[6], names[15], names[16] = "mixamorig:LeftArm", "mixamorig:RightArm", "LeftShoulder", "RightShoulder"
+    named = find_arms(Skeleton(joints, torch.tensor(bones), names))
+    assert (named[0].shoulder, named[0].elbow, named[1].shoulder, named[1].elbow) == (3, 4, 6, 7)
+    pattern = skinning._UPPER_ARM_NAME
+    for good in ("upperarm01.L", "mixamorig:LeftArm", "RightArm", "l_upperarm", "Humerus_R", "arm_l"):
+        assert pattern.search(good), good
+    for bad in ("LeftForeArm", "lowerarm01.L", "LeftShoulder", "shoulder01.L", "left_shoulder", "forearm_r", "armature"):
+        assert not pattern.search(bad), bad
+
+
+def test_anny_t_pose_arms_straight_in_coronal_plane(anny, anny_t):
+    joints = anny_t.skeleton.joints
+    for arm in find_arms(anny_t.skeleton):
+        for j in (arm.elbow, arm.wrist):
+            assert abs(float(joints[j, 1] - joints[arm.shoulder, 1])) < 0.015
+            assert abs(float(joints[j, 2] - joints[arm.shoulder, 2])) < 0.015
+        assert arm.side * float(joints[arm.wrist, 0] - joints[arm.shoulder, 0]) > 0.4  # reaches out sideways
+    assert all(abs(a) < 1e-9 for a in arm_angles(anny_t))
+    assert anny_t.params["pose"] == "T" and anny_t.skin_weights is anny.skin_weights
+    # The rest pose is an A-pose a few degrees steeper than 45 (so a 45-degree A-pose also moves the arms).
+    assert all(math.radians(40) < a < math.radians(55) for a in arm_angles(anny))
+
+
+def test_anny_a_pose_angle_and_path_independence(anny, anny_t):
+    a_from_t = repose(anny_t, Pose.A)
+    for angle in arm_angles(a_from_t):
+        assert abs(math.degrees(angle) - 45.0) < 1.0
+    a_direct = repose(anny, Pose.A)
+    assert (a_from_t.vertices - a_direct.vertices).abs().max() < 1e-9
+    custom = repose(anny_t, (math.radians(30), math.radians(60)))
+    left, right = arm_angles(custom)
+    assert abs(math.degrees(left) - 30) < 1e-6 and abs(math.degrees(right) - 60) < 1e-6
+    assert custom.params["pose"] == "custom"
+
+
+def test_anny_round_trip_to_rest_and_torso_fixed(anny, anny_t):
+    back = repose(anny_t, Pose.REST)
+    err = (back.vertices - anny.vertices).norm(dim=1).max().item()
+    assert err < 2e-3 and err < 1e-9, err  # exact up to round-off
+    assert (back.skeleton.joints - anny.skeleton.joints).abs().max() < 1e-9
+    assert skinning.ROTATIONS_KEY not in back.params and back.params["pose"] == "rest"
+    moved = (anny_t.vertices - anny.vertices).norm(dim=1)
+    arm_weight = anny.skin_weights[_arm_subtree(anny.skeleton, find_arms(anny.skeleton))].sum(0)
+    torso = arm_weight == 0
+    assert torso.sum() > anny.num_vertices // 2
+    assert moved[torso].max() < 1e-12
+    assert moved[arm_weight > 0.99].min() > 0.005 and moved.max() > 0.3
+
+
+def test_anny_keep_elbows_and_naive_inverse_is_worse(anny, anny_t):
+    bent = repose(anny_t, arm_angles(anny), straighten_elbows=False)
+    # Same upper-arm angles as the rest pose, rest elbow flexion: only the removed upper-arm swing differs.
+    assert max(abs(a - b) for a, b in zip(arm_angles(bent), arm_angles(anny))) < 1e-9
+    assert (bent.vertices - anny.vertices).norm(dim=1).max() < 0.03
+    # Skinning the T-pose with the inverse rotations does not undo the T-pose where weights blend joints.
+    kin = KinematicSkeleton(anny.skeleton)
+    rotations = skinning.joint_rotations(anny_t)
+    transforms = kin.skinning_transforms(rotations)
+    weights = anny.skin_weights
+    posed = linear_blend_skinning(anny.vertices, weights, transforms)
+    assert (posed - anny_t.vertices).abs().max() < 1e-12
+    exact = inverse_linear_blend_skinning(posed, weights, transforms)
+    naive = linear_blend_skinning(posed, weights, KinematicSkeleton(anny_t.skeleton).skinning_transforms(-rotations))
+    assert (exact - anny.vertices).norm(dim=1).max() < 1e-10
+    assert (naive - anny.vertices).norm(dim=1).max() > 5e-3
+
+
+def test_inverse_lbs_gradcheck_and_errors():
+    torch.manual_seed(0)
+    v = torch.randn(5, 3, dtype=torch.float64, requires_grad=True)
+    w = torch.rand(3, 5, dtype=torch.float64)
+    w = (w / w.sum(0)).requires_grad_(True)
+    t = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1) + 0.1 * torch.randn(3, 4, 4, dtype=torch.float64)
+    t.requires_grad_(True)
+    assert torch.autograd.gradcheck(inverse_linear_blend_skinning, (v, w, t))
+    posed = linear_blend_skinning(v, w, t)
+    assert torch.allclose(inverse_linear_blend_skinning(posed, w, t), v, atol=1e-12)
+    with pytest.raises(InputError, match="singular"):
+        inverse_linear_blend_skinning(v, torch.zeros(3, 5, dtype=torch.float64), t)
+    with pytest.raises(InputError, match="transforms"):
+        inverse_linear_blend_skinning(v, w, t[:2])
+
+
+def test_repose_targets_and_params_errors():
+    body = stick_body(45.0)
+    for bad in (math.pi / 2, (0.1, 2.0), "X", (0.1,)):
+        with pytest.raises((InputError, ValueError)):
+            repose(body, bad)
+    broken = Body(body.vertices, body.faces, body.skeleton, params={skinning.ROTATIONS_KEY: {"99": [0, 0, 1]}})
+    with pytest.raises(InputError, match="malformed"):
+        repose(broken, Pose.T)
+    t_body = repose(body, Pose.T)
+    assert set(t_body.params[skinning.ROTATIONS_KEY]) == {"3", "6"}  # shoulders only: the arms are straight
+    t_body.skin_weights = None
+    with pytest.raises(InputError, match="skin_weights"):
+        repose(t_body, Pose.A)

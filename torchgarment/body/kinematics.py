@@ -5,7 +5,9 @@ every joint, three revolute (URDF ``continuous``) joints about the world x, y an
 rotation is ``R = Rx(a) @ Ry(b) @ Rz(c)`` (intrinsic XYZ Euler angles). The rest pose is the skeleton's
 joint positions with every joint frame aligned with the world axes. Forests are joined under a virtual
 ``world`` link. The chain is loaded with ``pytorch_kinematics.build_chain_from_urdf``; its static offsets
-are then set from the float64 joint positions (the URDF parser rounds them to float32).
+are then set from the float64 joint positions (the URDF parser rounds them to float32). Parsing is slow
+(about 1 s for 100 joints), so the parsed chain is cached per topology (the parent of every joint; the last
+8 topologies): a skeleton with known bones copies it and only sets its own offsets.
 
 Conventions (the SMPL ones):
 
@@ -23,8 +25,9 @@ and bones are directed away from it. A bone graph with a cycle is rejected.
 
 from __future__ import annotations
 
+import copy
 import enum
-from collections import deque
+from collections import OrderedDict, deque
 
 import torch
 
@@ -268,6 +271,35 @@ def skeleton_to_urdf(skeleton: Skeleton, parents: torch.Tensor | None = None, na
     return "\n".join(out)
 
 
+#: Chains of recently used skeleton topologies (building one from its URDF costs about 1 s for 100 joints).
+_CHAIN_TEMPLATES: "OrderedDict[tuple[int, ...], tuple[object, dict[str, int]]]" = OrderedDict()
+_MAX_CHAIN_TEMPLATES = 8
+
+
+def _chain_template(urdf: str, parents: tuple[int, ...]):
+    """The float64 CPU pytorch-kinematics chain of a topology and its frame index map (cached per topology).
+
+    Only the static offsets of the ``joint{j}_x`` frames depend on the joint positions; callers copy the
+    template and overwrite them.
+    """
+    import pytorch_kinematics as pk
+
+    if parents in _CHAIN_TEMPLATES:
+        _CHAIN_TEMPLATES.move_to_end(parents)
+        return _CHAIN_TEMPLATES[parents]
+    try:
+        urdf_chain = pk.build_chain_from_urdf(urdf)
+    except Exception as e:  # pragma: no cover - the URDF is generated here
+        raise InputError(f"pytorch-kinematics rejected the skeleton URDF: {type(e).__name__}: {e}") from None
+    root = urdf_chain.find_frame("world")
+    root.to(dtype=torch.float64, device="cpu")
+    chain = pk.Chain(root, dtype=torch.float64, device="cpu")
+    _CHAIN_TEMPLATES[parents] = (chain, dict(chain.frame_to_idx))
+    while len(_CHAIN_TEMPLATES) > _MAX_CHAIN_TEMPLATES:
+        _CHAIN_TEMPLATES.popitem(last=False)
+    return _CHAIN_TEMPLATES[parents]
+
+
 class KinematicSkeleton:
     """Forward kinematics of a skeleton, computed by a pytorch-kinematics chain built from its URDF.
 
@@ -282,24 +314,21 @@ class KinematicSkeleton:
     """
 
     def __init__(self, skeleton: Skeleton):
-        import pytorch_kinematics as pk
         from pytorch_kinematics import transforms as tf
 
         self.skeleton = skeleton
         self.parents = joint_parents(skeleton)
         self.urdf = skeleton_to_urdf(skeleton, self.parents)
-        try:
-            urdf_chain = pk.build_chain_from_urdf(self.urdf)
-        except Exception as e:  # pragma: no cover - the URDF is generated here
-            raise InputError(f"pytorch-kinematics rejected the skeleton URDF: {type(e).__name__}: {e}") from None
-        # Replace the float32-rounded joint offsets with exact float64 ones and rebuild the chain.
-        root = urdf_chain.find_frame("world")
-        root.to(dtype=torch.float64, device="cpu")
+        template, frame_of = _chain_template(self.urdf, tuple(self.parents.tolist()))
+        chain = copy.deepcopy(template)
+        # Set the exact float64 joint offsets (the URDF parser rounds them to float32).
         offsets = _offsets(skeleton.joints, self.parents)
+        x_frames = torch.tensor([frame_of[f"{_link(j)}_x"] for j in range(skeleton.num_joints)], dtype=torch.long)
+        chain._static_offsets[x_frames, :3, 3] = offsets
         for j in range(skeleton.num_joints):
-            frame = urdf_chain.find_frame(f"{_link(j)}_x")
-            frame.joint.offset = tf.Transform3d(pos=offsets[j], dtype=torch.float64)
-        chain = pk.Chain(root, dtype=torch.float64, device="cpu")
+            k = int(x_frames[j])
+            chain.joint_offsets[k] = chain._static_offsets[k][None].clone()
+            chain.find_frame(f"{_link(j)}_x").joint.offset = tf.Transform3d(pos=offsets[j], dtype=torch.float64)
         names = chain.get_joint_parameter_names()
         position = {n: i for i, n in enumerate(names)}
         dof = torch.tensor(
@@ -307,7 +336,7 @@ class KinematicSkeleton:
             dtype=torch.long,
         )
         self._gather = torch.argsort(dof.flatten())  # th[:, k] = angles.flatten()[:, gather[k]]
-        self._frames = torch.tensor([chain.frame_to_idx[_link(j)] for j in range(skeleton.num_joints)])
+        self._frames = torch.tensor([frame_of[_link(j)] for j in range(skeleton.num_joints)])
         self._chains = {(torch.float64, torch.device("cpu")): chain}
         self._rest = skeleton.joints.detach().cpu().double()
 
@@ -317,8 +346,6 @@ class KinematicSkeleton:
 
     def chain(self, dtype: torch.dtype, device: torch.device):
         """The pytorch-kinematics chain for ``dtype`` and ``device`` (built on first use)."""
-        import copy
-
         key = (dtype, torch.device(device))
         if key not in self._chains:
             base = self._chains[(torch.float64, torch.device("cpu"))]
