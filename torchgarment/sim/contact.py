@@ -1,0 +1,533 @@
+"""IPC contact energies (Li et al. 2020, Incremental Potential Contact) computed by ``ipctk``.
+
+Two :class:`~torchgarment.sim.energies.base.EnergyTerm` subclasses:
+
+* :class:`SelfContact`: cloth-cloth contact of a garment with itself (multi-layer garments).
+* :class:`BodyMeshContact`: garment against a static body triangle mesh (optionally plus self-contact).
+
+The energy is ipctk's area-weighted "physical" log barrier (the convergent IPC formulation)::
+
+    E(x) = kappa * sum_k w_k * b(d_k),   b(d) = -(d^2 - dhat^2)^2 ln(d^2 / dhat^2) / units,  0 < d < dhat
+
+over the point-triangle and edge-edge pairs closer than ``dhat`` (metres); ``w_k`` are barycentric areas
+(m^2) and ``b`` is normalised to a length, so the stiffness ``kappa`` is a pressure (Pa) and E is in joules.
+``E`` is 0 beyond ``dhat`` and tends to +inf as two primitives touch. Crossing (intersecting) primitives can
+have a finite barrier, so the terms additionally report +inf when the mesh intersects (``check_intersections``).
+
+Collision candidates are rebuilt from ``x`` by ipctk's broad phase on every call (the last set is reused when a
+call sees exactly the same positions, e.g. ``value_and_grad`` then ``hessian_blocks``). Everything at the
+boundary is device/dtype agnostic: positions go to numpy float64 for ipctk, results come back in ``x``'s dtype on
+``x``'s device. Not differentiable twice (``forward`` has a first-order custom backward).
+
+Seams: a pattern mesh keeps one vertex per panel on a seam, and sewing drives the pairs to distance 0, which an
+unfiltered barrier would forbid. Pass ``seam_pairs`` and every vertex pair around a seam in the
+*welded* mesh is excluded from contact (ipctk collision filter, see :func:`seam_exclusion_pairs`), so the
+seams can close.
+"""
+
+from __future__ import annotations
+
+import math
+from enum import Enum
+
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+import torch
+from scipy.sparse.csgraph import connected_components
+
+from torchgarment.errors import InputError, MeshError
+from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
+
+
+class StepBound(str, Enum):
+    """How :meth:`max_step` bounds the step.
+
+    CCD: ipctk continuous collision detection (Tight-Inclusion CCD, rescaled by 0.8): the largest safe step,
+        but expensive on dense steps.
+    CONSERVATIVE: ``alpha = safety * min(d_min, r) / (2 max_i |dx_i|)`` from the minimum distance ``d_min`` of
+        pairs closer than ``r`` (see :meth:`_IPCContact.max_step`): one distance query, never larger than the
+        true time of impact, usually smaller.
+    """
+
+    CCD = "ccd"
+    CONSERVATIVE = "conservative"
+
+
+class BroadPhase(str, Enum):
+    """ipctk broad-phase method used to find candidate pairs."""
+
+    HASH_GRID = "hash_grid"
+    LBVH = "lbvh"
+    SWEEP_AND_PRUNE = "sweep_and_prune"
+    BRUTE_FORCE = "brute_force"
+
+
+_BROAD_PHASES = {
+    BroadPhase.HASH_GRID: ipctk.HashGrid,
+    BroadPhase.LBVH: ipctk.LBVH,
+    BroadPhase.SWEEP_AND_PRUNE: ipctk.SweepAndPrune,
+    BroadPhase.BRUTE_FORCE: ipctk.BruteForce,
+}
+
+#: default areal density (kg/m^2) of cloth used for IPC's minimum stiffness (light cotton ~0.1-0.3)
+DEFAULT_AREAL_DENSITY = 0.2
+
+
+def _np_faces(faces: torch.Tensor | np.ndarray, what: str) -> np.ndarray:
+    f = faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
+        raise MeshError(f"{what} must be an integer (F, 3) array, got shape {f.shape} dtype {f.dtype}")
+    if f.shape[0] == 0:
+        raise MeshError(f"{what} is empty")
+    return np.asfortranarray(f, dtype=np.int32)
+
+
+def _np_points(p: torch.Tensor | np.ndarray, what: str) -> np.ndarray:
+    a = p.detach().to("cpu", torch.float64).numpy() if isinstance(p, torch.Tensor) else np.asarray(p, np.float64)
+    if a.ndim != 2 or a.shape[1] not in (2, 3):
+        raise InputError(f"{what} must be a (V, 3) (or (V, 2) flat) array, got shape {a.shape}")
+    if a.shape[1] == 2:
+        a = np.concatenate([a, np.zeros((a.shape[0], 1))], axis=1)
+    if not np.isfinite(a).all():
+        raise InputError(f"{what} contains non-finite values")
+    return np.asfortranarray(a)
+
+
+def _np_seams(seam_pairs: torch.Tensor | np.ndarray, num_vertices: int) -> np.ndarray:
+    a = np.asarray(seam_pairs.cpu() if isinstance(seam_pairs, torch.Tensor) else seam_pairs)
+    if a.ndim != 2 or a.shape[1] != 2 or not np.issubdtype(a.dtype, np.integer) \
+            or (a.size and (a.min() < 0 or a.max() >= num_vertices)):
+        raise InputError(f"seam_pairs must be an integer (S, 2) array of vertex indices in [0, {num_vertices})")
+    return a.astype(np.int64)
+
+
+def seam_exclusion_pairs(edges: np.ndarray, seam_pairs: np.ndarray, num_vertices: int) -> np.ndarray:
+    """Vertex pairs that must not collide so that seams can close.
+
+    Vertices are welded along ``seam_pairs`` (connected components of the stitch graph). Two primitives that
+    share a welded seam vertex ``w`` touch once the seam is sewn, and IPC must ignore them as it ignores
+    adjacent primitives. ipctk lets two primitives collide when *any* pair of their vertices may collide,
+    and every vertex of such primitives lies in the closed one-ring of ``w`` in the welded mesh, so all pairs
+    (i, j) with weld(i) and weld(j) in the closed one-ring of one seam group are excluded. This also drops
+    a few pairs that are merely near a seam (at most two welded edges apart), never pairs farther away.
+
+    Args:
+        edges: (E, 2) int mesh edges.
+        seam_pairs: (S, 2) int stitched vertex pairs.
+        num_vertices: V.
+
+    Returns:
+        (P, 2) int64 pairs with i < j (empty when there are no seams).
+    """
+    if seam_pairs.shape[0] == 0:
+        return np.zeros((0, 2), np.int64)
+    n = num_vertices
+    g = sp.coo_matrix((np.ones(seam_pairs.shape[0]), (seam_pairs[:, 0], seam_pairs[:, 1])), shape=(n, n))
+    num_w, weld = connected_components(g, directed=False)
+    seam_w = np.unique(weld[seam_pairs.reshape(-1)])
+    row_of = np.full(num_w, -1)
+    row_of[seam_w] = np.arange(seam_w.shape[0])
+    we = weld[edges]
+    we = we[we[:, 0] != we[:, 1]]
+    # ring[k, m] = 1 when welded vertex m is in the closed one-ring of seam group seam_w[k]
+    r = np.concatenate([row_of[we[:, 0]], row_of[we[:, 1]], np.arange(seam_w.shape[0])])
+    c = np.concatenate([we[:, 1], we[:, 0], seam_w])
+    keep = r >= 0
+    ring = sp.csr_matrix((np.ones(int(keep.sum())), (r[keep], c[keep])), shape=(seam_w.shape[0], num_w))
+    member = sp.csr_matrix((np.ones(n), (np.arange(n), weld)), shape=(n, num_w))
+    vring = ring @ member.T  # (groups, V): vertices in each seam group's closed one-ring
+    vring.data[:] = 1.0
+    pairs = sp.triu(vring.T @ vring, k=1).tocoo()
+    return np.stack([pairs.row.astype(np.int64), pairs.col.astype(np.int64)], axis=1)
+
+
+def _sparse_false_filter(pairs: np.ndarray) -> "ipctk.CollisionFilter":
+    keys = [tuple(p) for p in pairs.tolist()]
+    return ipctk.make_sparse_filter(dict.fromkeys(keys, False), True)
+
+
+def _energy_or_inf(e: float) -> float:
+    # ipctk returns NaN (0 * inf in the area-weighted barrier) when two primitives touch exactly (d = 0),
+    # where the barrier is +inf; no other input gives NaN (positions are checked finite).
+    e = float(e)
+    return math.inf if math.isnan(e) else e
+
+
+class _IPCEnergy(torch.autograd.Function):
+    """E(x) with the ipctk analytic gradient as backward."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, term: "_IPCContact") -> torch.Tensor:  # noqa: D102
+        if ctx.needs_input_grad[0]:
+            e, g = term._value_grad_np(x)
+            ctx.save_for_backward(torch.as_tensor(g.reshape(-1, 3), dtype=x.dtype, device=x.device))
+        else:
+            e = term._value_np(x)
+        return torch.as_tensor(e, dtype=x.dtype, device=x.device)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out: torch.Tensor):  # noqa: D102
+        (g,) = ctx.saved_tensors
+        return grad_out * g, None
+
+
+class _IPCContact(EnergyTerm):
+    """Shared machinery: a CollisionMesh whose first ``num_dynamic`` vertices are the garment ``x``.
+
+    Static vertices (a body) follow them; they never move and get no gradient.
+    """
+
+    name = "ipc_contact"
+
+    def __init__(
+        self,
+        faces: np.ndarray,
+        rest_positions: np.ndarray,
+        num_dynamic: int,
+        static_positions: np.ndarray | None,
+        dhat: float,
+        stiffness: float | None,
+        areal_density: float,
+        collision_filter: "ipctk.CollisionFilter | None",
+        step_bound: StepBound,
+        step_safety: float,
+        conservative_radius: float | None,
+        check_intersections: bool,
+        broad_phase: BroadPhase,
+    ) -> None:
+        super().__init__()
+        if not (math.isfinite(dhat) and dhat > 0):
+            raise InputError(f"dhat must be a positive distance in metres, got {dhat}")
+        if not 0 < step_safety < 1:
+            raise InputError(f"step_safety must be in (0, 1), got {step_safety}")
+        if conservative_radius is not None and not conservative_radius > 0:
+            raise InputError(f"conservative_radius must be positive, got {conservative_radius}")
+        if areal_density <= 0:
+            raise InputError(f"areal_density must be positive, got {areal_density}")
+        nv = rest_positions.shape[0]
+        if faces.max() >= nv or faces.min() < 0:
+            raise MeshError(f"faces index vertices outside [0, {nv})")
+        self.dhat = float(dhat)
+        self.num_vertices = int(num_dynamic)
+        self.step_bound = StepBound(step_bound)
+        self.step_safety = float(step_safety)
+        self.conservative_radius = float(conservative_radius) if conservative_radius is not None else float(dhat)
+        self.check_intersections = bool(check_intersections)
+        self.broad_phase = BroadPhase(broad_phase)
+        self._static = static_positions
+        self._mesh = ipctk.CollisionMesh(rest_positions, ipctk.edges(faces), faces)
+        if collision_filter is not None:
+            self._mesh.can_collide = collision_filter
+        self._cache_x: np.ndarray | None = None
+        self._cache_col: ipctk.NormalCollisions | None = None
+        # IPC's minimum stiffness for the mean garment vertex mass (area weighting: mass / mean weight)
+        areas = np.asarray(self._mesh.vertex_areas)[: self.num_vertices]
+        mean_area = float(areas[areas > 0].mean()) if np.any(areas > 0) else 1.0
+        self._average_mass = areal_density * mean_area
+        self._mean_weight = mean_area
+        self._bbox_diagonal = float(ipctk.world_bbox_diagonal_length(rest_positions))
+        probe = ipctk.BarrierPotential(self.dhat, 1.0, True)
+        zero = np.zeros(3)
+        self.min_stiffness, self.max_stiffness = ipctk.initial_barrier_stiffness(
+            self._bbox_diagonal, probe.barrier, self.dhat, self._average_mass / self._mean_weight, zero, zero
+        )
+        if stiffness is not None and not (math.isfinite(stiffness) and stiffness > 0):
+            raise InputError(f"stiffness must be a positive pressure in Pa, got {stiffness}")
+        self.stiffness = float(stiffness) if stiffness is not None else float(self.min_stiffness)
+
+    # ------------------------------------------------------------------ conversions and caching
+
+    @property
+    def stiffness(self) -> float:
+        """Barrier stiffness kappa (Pa)."""
+        return self._stiffness
+
+    @stiffness.setter
+    def stiffness(self, value: float) -> None:
+        self._stiffness = float(value)
+        self._potential = ipctk.BarrierPotential(self.dhat, self._stiffness, True)
+
+    def _positions(self, x: torch.Tensor) -> np.ndarray:
+        if not isinstance(x, torch.Tensor) or x.shape != (self.num_vertices, 3):
+            raise InputError(f"x must be a ({self.num_vertices}, 3) tensor, got {getattr(x, 'shape', type(x))}")
+        xn = x.detach().to("cpu", torch.float64).numpy()
+        if not np.isfinite(xn).all():
+            raise InputError("x contains non-finite positions")
+        if self._static is not None:
+            xn = np.concatenate([xn, self._static], axis=0)
+        return np.asfortranarray(xn)
+
+    def _bp(self):
+        return _BROAD_PHASES[self.broad_phase]()
+
+    def _collisions(self, xn: np.ndarray) -> "ipctk.NormalCollisions":
+        if self._cache_x is not None and np.array_equal(self._cache_x, xn):
+            return self._cache_col
+        col = ipctk.NormalCollisions()
+        col.use_area_weighting = True
+        col.build(self._mesh, xn, self.dhat, 0.0, self._bp())
+        self._cache_x, self._cache_col = xn.copy(), col
+        return col
+
+    def _intersecting(self, xn: np.ndarray) -> bool:
+        return self.check_intersections and bool(ipctk.has_intersections(self._mesh, xn, self._bp()))
+
+    def _value_np(self, x: torch.Tensor) -> float:
+        xn = self._positions(x)
+        if self._intersecting(xn):
+            return math.inf
+        return _energy_or_inf(self._potential(self._collisions(xn), self._mesh, xn))
+
+    def _value_grad_np(self, x: torch.Tensor) -> tuple[float, np.ndarray]:
+        xn = self._positions(x)
+        col = self._collisions(xn)
+        g = np.asarray(self._potential.gradient(col, self._mesh, xn))[: 3 * self.num_vertices]
+        e = math.inf if self._intersecting(xn) else _energy_or_inf(self._potential(col, self._mesh, xn))
+        return e, g
+
+    def _hessian_bsr(self, x: torch.Tensor, project_psd: bool) -> sp.bsr_matrix:
+        xn = self._positions(x)
+        method = ipctk.PSDProjectionMethod.CLAMP if project_psd else ipctk.PSDProjectionMethod.NONE
+        h = self._potential.hessian(self._collisions(xn), self._mesh, xn, method)
+        n = 3 * self.num_vertices
+        if self._static is not None:
+            h = h[:n, :n]
+        return sp.csr_matrix(h).tobsr(blocksize=(3, 3))
+
+    # ------------------------------------------------------------------ EnergyTerm contract
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Barrier energy (J), a scalar tensor; +inf when the mesh intersects (with ``check_intersections``).
+
+        Args:
+            x: (V, 3) garment positions (m). Differentiable once (ipctk's analytic gradient).
+        """
+        return _IPCEnergy.apply(x, self)
+
+    def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Energy () in J and its analytic gradient (V, 3) in N.
+
+        The energy is +inf when the mesh intersects (``check_intersections``); the gradient is then still
+        the barrier gradient of the pairs within ``dhat``, which does not undo the crossing.
+        """
+        e, g = self._value_grad_np(x)
+        return (torch.as_tensor(e, dtype=x.dtype, device=x.device),
+                torch.as_tensor(g.reshape(-1, 3), dtype=x.dtype, device=x.device))
+
+    def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
+        """Block-COO Hessian (N/m) over garment vertices; per-collision PSD projection (clamp) when asked."""
+        h = self._hessian_bsr(x, project_psd)
+        rows = np.repeat(np.arange(h.shape[0] // 3), np.diff(h.indptr))
+        dev, dt = x.device, x.dtype
+        return HessianBlocks(
+            torch.as_tensor(rows, dtype=torch.long, device=dev),
+            torch.as_tensor(h.indices.astype(np.int64), device=dev),
+            torch.as_tensor(h.data, dtype=dt, device=dev).reshape(-1, 3, 3),
+        )
+
+    def hessian_diagonal(self, x: torch.Tensor) -> torch.Tensor:
+        """(V, 3, 3) diagonal blocks of the PSD-projected Hessian (N/m)."""
+        h = self._hessian_bsr(x, True)
+        rows = np.repeat(np.arange(h.shape[0] // 3), np.diff(h.indptr))
+        diag = rows == h.indices
+        out = np.zeros((self.num_vertices, 3, 3))
+        out[rows[diag]] = h.data[diag]
+        return torch.as_tensor(out, dtype=x.dtype, device=x.device)
+
+    # ------------------------------------------------------------------ step bounds and queries
+
+    def max_step(self, x: torch.Tensor, dx: torch.Tensor, method: StepBound | None = None) -> float:
+        """Largest alpha in [0, 1] such that ``x + alpha dx`` stays intersection free (barrier finite).
+
+        ``StepBound.CCD`` uses ipctk.compute_collision_free_stepsize (Tight-Inclusion CCD, 0.8 x time of impact).
+        ``StepBound.CONSERVATIVE`` returns ``alpha = safety * min(d_min, r) / (2 M)``, ``M = max_i |dx_i|``:
+        along a linear trajectory every point of a triangle or edge moves by a convex combination of its
+        vertices' displacements, so by at most ``alpha M``; the distance between two primitives therefore
+        shrinks by at most ``2 alpha M`` (``alpha M`` against the static body) and stays
+        >= (1 - safety) * d_min > 0. Pairs farther apart than ``r = conservative_radius`` are not queried and
+        are covered by the ``min(d_min, r)``; with the default ``r = dhat`` the query reuses the barrier's
+        collision set at ``x`` (nearly free after ``value_and_grad(x)``) but caps one step's largest vertex move
+        at ``safety * dhat / 2``; a larger ``r`` allows longer steps at the cost of a wider query. Since the
+        true time of impact is >= d_min / (2M), this bound is below the CCD step whenever ``safety <= 0.8`` (CCD's rescaling). Assumes ``x`` is intersection free.
+
+        Args:
+            x: (V, 3) positions (m). dx: (V, 3) step (m). method: overrides ``self.step_bound``.
+        """
+        method = self.step_bound if method is None else StepBound(method)
+        x0 = self._positions(x)
+        if dx.shape != x.shape:
+            raise InputError(f"dx must have the shape of x {tuple(x.shape)}, got {tuple(dx.shape)}")
+        dxn = dx.detach().to("cpu", torch.float64).numpy()
+        if not np.isfinite(dxn).all():
+            raise InputError("dx contains non-finite values")
+        reach = 2.0 * float(np.sqrt((dxn * dxn).sum(1)).max(initial=0.0))
+        if reach == 0.0:
+            return 1.0
+        if method is StepBound.CCD:
+            x1 = x0.copy()
+            x1[: self.num_vertices] += dxn
+            return float(ipctk.compute_collision_free_stepsize(
+                self._mesh, x0, np.asfortranarray(x1), 0.0, self._bp(), ipctk.TightInclusionCCD()))
+        radius = min(self.conservative_radius, reach)
+        if radius <= self.dhat:
+            radius = self.dhat  # the barrier's collision set at x already holds every pair closer than dhat
+            col = self._collisions(x0)
+            d = math.sqrt(max(float(col.compute_minimum_distance(self._mesh, x0)), 0.0)) if len(col) else math.inf
+        else:
+            d = self._min_distance_np(x0, radius)
+        return min(1.0, self.step_safety * min(d, radius) / reach)
+
+    def _min_distance_np(self, xn: np.ndarray, max_distance: float) -> float:
+        col = ipctk.NormalCollisions()
+        col.build(self._mesh, xn, max_distance, 0.0, self._bp())
+        if len(col) == 0:
+            return math.inf
+        return math.sqrt(max(float(col.compute_minimum_distance(self._mesh, xn)), 0.0))
+
+    def min_distance(self, x: torch.Tensor, max_distance: float | None = None) -> float:
+        """Smallest distance (m) between non-adjacent (and non-filtered) primitives, searched within
+        ``max_distance`` (default ``dhat``); +inf when no pair is that close."""
+        r = self.dhat if max_distance is None else float(max_distance)
+        if not r > 0:
+            raise InputError(f"max_distance must be positive, got {max_distance}")
+        return self._min_distance_np(self._positions(x), r)
+
+    def has_intersections(self, x: torch.Tensor) -> bool:
+        """Whether any two (non-filtered) triangles/edges of the collision mesh intersect at ``x``."""
+        return bool(ipctk.has_intersections(self._mesh, self._positions(x), self._bp()))
+
+    def calibrate_stiffness(self, x: torch.Tensor, elastic_grad: torch.Tensor) -> float:
+        """IPC's adaptive initial stiffness: balance the barrier gradient against the other terms' gradient.
+
+        ``kappa = -<g_b, g_e> / |g_b|^2`` clamped to [min_stiffness, max_stiffness] (ipctk
+        initial_barrier_stiffness); sets and returns ``self.stiffness`` (Pa).
+
+        Args:
+            x: (V, 3) positions (m). elastic_grad: (V, 3) gradient (N) of the rest of the energy at ``x``.
+        """
+        if elastic_grad.shape != x.shape:
+            raise InputError(f"elastic_grad must have the shape of x {tuple(x.shape)}")
+        xn = self._positions(x)
+        unit = ipctk.BarrierPotential(self.dhat, 1.0, True)
+        gb = np.asarray(unit.gradient(self._collisions(xn), self._mesh, xn))
+        ge = np.zeros_like(gb)
+        ge[: 3 * self.num_vertices] = elastic_grad.detach().to("cpu", torch.float64).numpy().reshape(-1)
+        kappa, kmax = ipctk.initial_barrier_stiffness(
+            self._bbox_diagonal, unit.barrier, self.dhat, self._average_mass / self._mean_weight, ge, gb)
+        self.max_stiffness = float(kmax)
+        self.stiffness = float(kappa)
+        return self.stiffness
+
+
+class SelfContact(_IPCContact):
+    """IPC self-contact of a garment (cloth-cloth, e.g. layered garments).
+
+    Args:
+        faces: (F, 3) int triangle vertex indices.
+        rest_positions: (V, 3) reference positions (m) for adjacency and the area weights (a (V, 2) flat pattern
+            is padded with z = 0).
+        dhat: barrier activation distance (m).
+        stiffness: kappa (Pa); None = IPC's minimum adaptive stiffness for the mean vertex mass
+            (``areal_density`` x mean barycentric vertex area), refine it with :meth:`calibrate_stiffness`.
+        num_vertices: V, checked against ``rest_positions`` (None: take it from ``rest_positions``).
+        seam_pairs: (S, 2) stitched vertex pairs excluded from contact (see the module docstring), or None.
+        areal_density: kg/m^2, only for the default stiffness.
+        step_bound: default :meth:`max_step` method.
+        step_safety: fraction of the distance bound used by the conservative step (0 < s < 1).
+        conservative_radius: distance (m) up to which the conservative step queries pairs; default dhat.
+        check_intersections: report +inf energy when triangles cross (an extra ipctk query per evaluation).
+        broad_phase: ipctk broad phase.
+    """
+
+    name = "self_contact"
+
+    def __init__(
+        self,
+        faces: torch.Tensor | np.ndarray,
+        rest_positions: torch.Tensor | np.ndarray,
+        dhat: float = 2e-3,
+        stiffness: float | None = None,
+        num_vertices: int | None = None,
+        *,
+        seam_pairs: torch.Tensor | np.ndarray | None = None,
+        areal_density: float = DEFAULT_AREAL_DENSITY,
+        step_bound: StepBound = StepBound.CONSERVATIVE,
+        step_safety: float = 0.8,
+        conservative_radius: float | None = None,
+        check_intersections: bool = True,
+        broad_phase: BroadPhase = BroadPhase.LBVH,
+    ) -> None:
+        f = _np_faces(faces, "faces")
+        rest = _np_points(rest_positions, "rest_positions")
+        if num_vertices is not None and num_vertices != rest.shape[0]:
+            raise InputError(f"num_vertices={num_vertices} but rest_positions has {rest.shape[0]} rows")
+        filt = None
+        if seam_pairs is not None:
+            pairs = seam_exclusion_pairs(np.asarray(ipctk.edges(f)), _np_seams(seam_pairs, rest.shape[0]),
+                                         rest.shape[0])
+            filt = _sparse_false_filter(pairs) if pairs.shape[0] else None
+        super().__init__(f, rest, rest.shape[0], None, dhat, stiffness, areal_density, filt, step_bound,
+                         step_safety, conservative_radius, check_intersections, broad_phase)
+
+
+class BodyMeshContact(_IPCContact):
+    """IPC contact of a garment against a static body mesh (one ipctk CollisionMesh over garment + body).
+
+    The body vertices follow the garment vertices in the collision mesh and never move; body-body pairs are
+    never tested. With ``self_contact=False`` only garment-body pairs are (ipctk vertex-patch filter).
+
+    Args:
+        garment_faces: (F, 3) int garment triangles.
+        body_vertices: (B, 3) body positions (m).
+        body_faces: (G, 3) int body triangles (indices into ``body_vertices``).
+        dhat: barrier activation distance (m).
+        stiffness: kappa (Pa) or None (IPC minimum stiffness, see :class:`SelfContact`).
+        garment_rest_positions: (V, 3) garment reference positions (area weights, adjacency); required.
+        self_contact: also include garment-garment pairs.
+        seam_pairs: (S, 2) garment seam pairs excluded from self-contact.
+        Others: as :class:`SelfContact`.
+    """
+
+    name = "body_contact"
+
+    def __init__(
+        self,
+        garment_faces: torch.Tensor | np.ndarray,
+        body_vertices: torch.Tensor | np.ndarray,
+        body_faces: torch.Tensor | np.ndarray,
+        dhat: float = 2e-3,
+        stiffness: float | None = None,
+        *,
+        garment_rest_positions: torch.Tensor | np.ndarray,
+        self_contact: bool = False,
+        seam_pairs: torch.Tensor | np.ndarray | None = None,
+        areal_density: float = DEFAULT_AREAL_DENSITY,
+        step_bound: StepBound = StepBound.CONSERVATIVE,
+        step_safety: float = 0.8,
+        conservative_radius: float | None = None,
+        check_intersections: bool = True,
+        broad_phase: BroadPhase = BroadPhase.LBVH,
+    ) -> None:
+        gf = _np_faces(garment_faces, "garment_faces")
+        bf = _np_faces(body_faces, "body_faces")
+        grest = _np_points(garment_rest_positions, "garment_rest_positions")
+        bv = _np_points(body_vertices, "body_vertices")
+        nv, nb = grest.shape[0], bv.shape[0]
+        if gf.max() >= nv:
+            raise MeshError(f"garment_faces index vertices outside [0, {nv})")
+        if bf.max() >= nb or bf.min() < 0:
+            raise MeshError(f"body_faces index vertices outside [0, {nb})")
+        faces = np.asfortranarray(np.concatenate([gf, bf + nv]), dtype=np.int32)
+        rest = np.asfortranarray(np.concatenate([grest, bv]))
+        if self_contact:
+            filt = ipctk.make_static_obstacle_filter(nv)
+            if seam_pairs is not None:
+                pairs = seam_exclusion_pairs(np.asarray(ipctk.edges(gf)), _np_seams(seam_pairs, nv), nv)
+                if pairs.shape[0]:
+                    filt = filt & _sparse_false_filter(pairs)
+        else:
+            filt = ipctk.make_vertex_patches_filter(np.r_[np.zeros(nv, np.int32), np.ones(nb, np.int32)])
+        super().__init__(faces, rest, nv, np.ascontiguousarray(bv), dhat, stiffness, areal_density, filt,
+                         step_bound, step_safety, conservative_radius, check_intersections, broad_phase)

@@ -1,0 +1,75 @@
+"""The contract every simulation energy term follows.
+
+A term is a ``torch.nn.Module`` whose ``forward(x)`` returns the scalar energy (joules) of garment positions
+``x: (V, 3)`` (metres), built from differentiable torch operations so that autograd gives dE/dx and, through the
+term's parameters (e.g. the 2D rest positions ``p``), d/dp of anything computed from it. Solvers do not use
+autograd in their inner loop: each term also provides analytic, vectorized first and second derivatives.
+
+* ``value_and_grad(x) -> (E, g)``: energy () and gradient (V, 3), analytic, no autograd graph.
+* ``hessian_diagonal(x) -> (V, 3, 3)``: the 3x3 diagonal blocks of the Hessian (Jacobi preconditioning).
+* ``hessian_blocks(x, project_psd) -> HessianBlocks``: block-COO (rows, cols, (K, 3, 3) values) of the full
+  Hessian, with per-element blocks projected to positive semi-definite when asked (projected Newton).
+
+The total Hessian is the sum over terms; blocks with the same (row, col) are summed when assembled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class HessianBlocks:
+    """A block-sparse symmetric matrix in COO form over vertices.
+
+    Attributes:
+        rows: (K,) long vertex indices of the block rows.
+        cols: (K,) long vertex indices of the block columns.
+        values: (K, 3, 3) blocks; duplicates of one (row, col) are summed.
+    """
+
+    rows: torch.Tensor
+    cols: torch.Tensor
+    values: torch.Tensor
+
+    @staticmethod
+    def cat(parts: "list[HessianBlocks]") -> "HessianBlocks":
+        """Concatenate several block lists (their sum as a matrix)."""
+        return HessianBlocks(
+            torch.cat([p.rows for p in parts]), torch.cat([p.cols for p in parts]), torch.cat([p.values for p in parts])
+        )
+
+    def to_sparse(self, num_vertices: int) -> torch.Tensor:
+        """Assemble a (3V, 3V) torch sparse COO matrix (coalesced)."""
+        k = self.rows.shape[0]
+        r = (3 * self.rows)[:, None, None] + torch.arange(3, device=self.rows.device)[None, :, None]
+        c = (3 * self.cols)[:, None, None] + torch.arange(3, device=self.rows.device)[None, None, :]
+        idx = torch.stack([r.expand(k, 3, 3).reshape(-1), c.expand(k, 3, 3).reshape(-1)])
+        n = 3 * num_vertices
+        return torch.sparse_coo_tensor(idx, self.values.reshape(-1), (n, n), check_invariants=False).coalesce()
+
+
+class EnergyTerm(torch.nn.Module):
+    """Base class of simulation energy terms (see the module docstring for the contract)."""
+
+    #: short name used in metrics and logs, e.g. "stretch"
+    name: str = "energy"
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Energy () and analytic gradient (V, 3). The default uses autograd; terms override it."""
+        with torch.enable_grad():
+            xr = x.detach().requires_grad_(True)
+            e = self.forward(xr)
+            (g,) = torch.autograd.grad(e, xr)
+        return e.detach(), g
+
+    def hessian_diagonal(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:  # pragma: no cover
+        raise NotImplementedError

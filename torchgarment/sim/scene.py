@@ -1,0 +1,369 @@
+"""Scenes declare which physical effects a simulation has; :meth:`Scene.build` composes only those terms.
+
+A :class:`Scene` holds the garment, the optional body (as a signed distance field and/or a triangle mesh),
+optional pins, the :class:`Material` and the set of :class:`Effect` s. With ``effects=None`` the effects are
+detected from what the scene holds:
+
+* ``STRETCH`` when the garment has 2D rest positions ``p``; ``SEW`` when it has seam pairs;
+* ``BEND`` and ``GRAVITY`` always;
+* ``PINS`` when pin indices are given; ``BODY_BARRIER`` when a body SDF is given;
+* never ``SELF_CONTACT`` nor ``BODY_CONTACT`` (the IPC terms are slower; ask for them).
+
+An effect asked for explicitly without what it needs (``SEW`` without seam pairs, ``BODY_BARRIER`` without an
+SDF, ...) raises :class:`~torchgarment.errors.InputError`.
+
+:meth:`Scene.build` returns a :class:`SimModel`: a frozen composition (warp.sim style) of the requested
+:class:`~torchgarment.sim.energies.base.EnergyTerm` s with the interface the solvers use (total energy,
+analytic gradient, Hessian diagonal and blocks, barrier step bounds and feasibility projection).
+
+Example::
+
+    scene = Scene(garment=mesh, body_sdf=BodySDF.from_body(body))
+    model = scene.build()            # stretch, sew, bend, gravity, body_barrier
+    E, g = model.value_and_grad(mesh.x)
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+
+import torch
+
+from torchgarment.errors import InputError
+from torchgarment.sim.energies.barrier import DEFAULT_BARRIER_MU, BodyBarrier
+from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
+from torchgarment.sim.energies.bend import DEFAULT_BEND_STIFFNESS, QuadraticBending
+from torchgarment.sim.energies.gravity import DEFAULT_DENSITY, STANDARD_GRAVITY, Gravity
+from torchgarment.sim.energies.pins import DEFAULT_PIN_STIFFNESS, Pins
+from torchgarment.sim.energies.sew import DEFAULT_SEW_STIFFNESS, SewingSprings
+from torchgarment.sim.energies.stretch import DEFAULT_STRETCH_STIFFNESS, PlanarSprings, check_positions
+from torchgarment.structures.garment_mesh import GarmentMesh
+
+
+class Effect(str, Enum):
+    """Physical effects a scene may include (each becomes one energy term)."""
+
+    STRETCH = "stretch"
+    """In-panel springs with rest lengths from the pattern (:class:`PlanarSprings`)."""
+    SEW = "sew"
+    """Zero-rest-length springs on the seam pairs (:class:`SewingSprings`)."""
+    BEND = "bend"
+    """Quadratic bending, also across seams (:class:`QuadraticBending`)."""
+    GRAVITY = "gravity"
+    """Weight of the cloth (:class:`Gravity`)."""
+    PINS = "pins"
+    """Sticking springs to targets: pins and belts (:class:`Pins`)."""
+    BODY_BARRIER = "body_barrier"
+    """Log barrier on the body SDF (:class:`BodyBarrier`, Wang et al. 2018)."""
+    SELF_CONTACT = "self_contact"
+    """IPC cloth-cloth contact (``torchgarment.sim.contact.SelfContact``)."""
+    BODY_CONTACT = "body_contact"
+    """IPC contact against the body triangle mesh (``torchgarment.sim.contact.BodyMeshContact``)."""
+
+
+@dataclass
+class Material:
+    """Cloth and interaction parameters, SI units.
+
+    Attributes:
+        stretch_stiffness: ``Y`` of the planar springs in N (about 2,900 N/m membrane stiffness at 1 cm edges).
+        sew_stiffness: seam spring constant in N/m.
+        bend_stiffness: bending stiffness in N m (J).
+        density: areal density in kg/m^2.
+        gravity: gravitational acceleration in m/s^2 (along -Y).
+        barrier_mu: weight of the body log barrier in J.
+        barrier_offset: clearance in m restored by ``project_feasible``; None = ``max(1 mm, voxel / 4)``.
+        pin_stiffness: pin spring constant in N/m.
+        contact_dhat: IPC activation distance in m.
+        contact_stiffness: IPC barrier stiffness in Pa; None = IPC's adaptive minimum.
+    """
+
+    stretch_stiffness: float = DEFAULT_STRETCH_STIFFNESS
+    sew_stiffness: float = DEFAULT_SEW_STIFFNESS
+    bend_stiffness: float = DEFAULT_BEND_STIFFNESS
+    density: float = DEFAULT_DENSITY
+    gravity: float = STANDARD_GRAVITY
+    barrier_mu: float = DEFAULT_BARRIER_MU
+    barrier_offset: float | None = None
+    pin_stiffness: float = DEFAULT_PIN_STIFFNESS
+    contact_dhat: float = 2.0e-3
+    contact_stiffness: float | None = None
+
+
+@dataclass
+class Scene:
+    """What to simulate.
+
+    Attributes:
+        garment: the garment mesh; its ``x`` is the initial state and its ``p`` the rest pattern.
+        body_sdf: signed distance field of the body (a :class:`~torchgarment.sdf.BodySDF`), or None.
+        body_vertices: (B, 3) body mesh positions in metres (for ``BODY_CONTACT``), or None.
+        body_faces: (G, 3) long body triangles, or None.
+        pin_indices: (P,) long pinned garment vertices, or None.
+        pin_targets: (P, 3) their targets in metres; None = their positions in ``garment.x``.
+        effects: the effects to build, or None to detect them (see the module docstring).
+        material: parameters.
+    """
+
+    garment: GarmentMesh
+    body_sdf: torch.nn.Module | None = None
+    body_vertices: torch.Tensor | None = None
+    body_faces: torch.Tensor | None = None
+    pin_indices: torch.Tensor | None = None
+    pin_targets: torch.Tensor | None = None
+    effects: set[Effect] | None = None
+    material: Material = field(default_factory=Material)
+
+    def detected_effects(self) -> set[Effect]:
+        """The effects ``effects=None`` stands for."""
+        out = {Effect.BEND, Effect.GRAVITY}
+        if self.garment.p is not None:
+            out.add(Effect.STRETCH)
+        if self.garment.seam_pairs.shape[0] > 0:
+            out.add(Effect.SEW)
+        if self.pin_indices is not None:
+            out.add(Effect.PINS)
+        if self.body_sdf is not None:
+            out.add(Effect.BODY_BARRIER)
+        return out
+
+    def resolved_effects(self) -> list[Effect]:
+        """The effects to build, in :class:`Effect` order, checked against what the scene holds.
+
+        Raises:
+            InputError: an unknown effect name, or an effect asked for without what it needs.
+        """
+        if not isinstance(self.garment, GarmentMesh):
+            raise InputError(f"Scene.garment must be a GarmentMesh, got {type(self.garment).__name__}")
+        wanted = self.detected_effects() if self.effects is None else _as_effects(self.effects)
+        g = self.garment
+        missing = {
+            Effect.STRETCH: (g.p is None, "the garment has no 2D rest positions p"),
+            Effect.SEW: (g.seam_pairs.shape[0] == 0, "the garment has no seam pairs"),
+            Effect.PINS: (self.pin_indices is None, "no pin_indices were given"),
+            Effect.BODY_BARRIER: (self.body_sdf is None, "no body_sdf was given"),
+            Effect.BODY_CONTACT: (self.body_vertices is None or self.body_faces is None,
+                                  "body_vertices and body_faces were not given"),
+        }
+        for eff in wanted:
+            bad, why = missing.get(eff, (False, ""))
+            if bad:
+                raise InputError(f"effect {eff.value!r} was asked for but {why}")
+        return [e for e in Effect if e in wanted]
+
+    def build(self) -> "SimModel":
+        """Build the :class:`SimModel` with exactly the resolved effects' terms.
+
+        Raises:
+            InputError: see :meth:`resolved_effects`; bad pins; an SDF on another device; missing contact module.
+        """
+        effects = self.resolved_effects()
+        g, m = self.garment, self.material
+        V = g.num_vertices
+        terms: list[EnergyTerm] = []
+        for eff in effects:
+            if eff is Effect.STRETCH:
+                terms.append(PlanarSprings.from_mesh(g, stiffness=m.stretch_stiffness))
+            elif eff is Effect.SEW:
+                terms.append(SewingSprings.from_mesh(g, stiffness=m.sew_stiffness))
+            elif eff is Effect.BEND:
+                terms.append(QuadraticBending.from_mesh(g, stiffness=m.bend_stiffness))
+            elif eff is Effect.GRAVITY:
+                terms.append(Gravity.from_mesh(g, density=m.density, gravity=m.gravity))
+            elif eff is Effect.PINS:
+                terms.append(self._pins())
+            elif eff is Effect.BODY_BARRIER:
+                sdf = self.body_sdf
+                dev = getattr(sdf, "device", g.device)
+                if torch.device(dev) != g.device:
+                    raise InputError(f"the body SDF is on {dev} but the garment is on {g.device}")
+                terms.append(BodyBarrier(sdf, V, mu=m.barrier_mu, offset=m.barrier_offset))
+            elif eff is Effect.SELF_CONTACT:
+                contact = _contact_module(eff)
+                terms.append(contact.SelfContact(
+                    g.faces, _rest_positions(g), m.contact_dhat, m.contact_stiffness, V,
+                    seam_pairs=g.seam_pairs, areal_density=m.density))
+            elif eff is Effect.BODY_CONTACT:
+                contact = _contact_module(eff)
+                terms.append(contact.BodyMeshContact(
+                    g.faces, self.body_vertices, self.body_faces, m.contact_dhat, m.contact_stiffness,
+                    garment_rest_positions=_rest_positions(g), self_contact=False, seam_pairs=g.seam_pairs,
+                    areal_density=m.density))
+        return SimModel(terms, V, device=g.device, dtype=g.dtype, effects=effects)
+
+    def _pins(self) -> Pins:
+        g = self.garment
+        idx = self.pin_indices
+        if not isinstance(idx, torch.Tensor):
+            try:
+                idx = torch.as_tensor(idx, dtype=torch.long, device=g.device)
+            except (TypeError, ValueError, RuntimeError) as exc:
+                raise InputError(f"pin_indices cannot be converted to a long tensor: {exc}") from exc
+        idx = idx.to(g.device).reshape(-1)
+        if idx.dtype != torch.long:
+            raise InputError(f"pin_indices must be integers, got {idx.dtype}")
+        if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= g.num_vertices):
+            raise InputError(f"pin_indices outside [0, {g.num_vertices})")
+        tgt = g.x.detach()[idx] if self.pin_targets is None else torch.as_tensor(
+            self.pin_targets, dtype=g.dtype, device=g.device)
+        return Pins(idx, tgt, g.num_vertices, stiffness=self.material.pin_stiffness)
+
+
+class SimModel(torch.nn.Module):
+    """A frozen composition of energy terms: the object solvers work on.
+
+    Built by :meth:`Scene.build`; treat it as immutable (build a new one to change effects).
+
+    Attributes:
+        terms: ``nn.ModuleList`` of the terms, in :class:`Effect` order.
+        effects: the effects built, one per term.
+        num_vertices: V. device, dtype: of the garment.
+    """
+
+    def __init__(self, terms: Sequence[EnergyTerm], num_vertices: int, *, device: torch.device,
+                 dtype: torch.dtype, effects: Sequence[Effect] = ()) -> None:
+        super().__init__()
+        names = [t.name for t in terms]
+        if len(set(names)) != len(names):
+            raise InputError(f"duplicate energy term names: {names}")
+        self.terms = torch.nn.ModuleList(terms)
+        self.effects = tuple(effects)
+        self.num_vertices = int(num_vertices)
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self._diag_fused = [hasattr(t, "value_grad_hessian_diagonal") for t in terms]
+
+    @property
+    def term_names(self) -> tuple[str, ...]:
+        """Names of the terms, in order."""
+        return tuple(t.name for t in self.terms)
+
+    def term(self, name: str) -> EnergyTerm:
+        """The term called ``name``.
+
+        Raises:
+            InputError: no such term in this model.
+        """
+        for t in self.terms:
+            if t.name == name:
+                return t
+        raise InputError(f"this model has no term {name!r}; it has {list(self.term_names)}")
+
+    # ------------------------------------------------------------------ energy and derivatives
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Total energy in joules, autograd-differentiable (same as :meth:`energy`)."""
+        return self.energy(x)
+
+    def energy(self, x: torch.Tensor) -> torch.Tensor:
+        """Total energy () in joules of positions ``x`` (V, 3); differentiable in ``x`` and term parameters."""
+        check_positions(x, self.num_vertices, "SimModel")
+        total = torch.zeros((), dtype=x.dtype, device=x.device)
+        for t in self.terms:
+            total = total + t(x)
+        return total
+
+    def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Total energy () and its analytic gradient (V, 3) (sum of the terms' analytic results)."""
+        check_positions(x, self.num_vertices, "SimModel")
+        x = x.detach()
+        E = torch.zeros((), dtype=x.dtype, device=x.device)
+        g = torch.zeros_like(x)
+        for t in self.terms:
+            e, gt = t.value_and_grad(x)
+            E = E + e
+            g.add_(gt)
+        return E, g
+
+    def hessian_diagonal(self, x: torch.Tensor) -> torch.Tensor:
+        """(V, 3, 3) sum of the terms' Hessian diagonal blocks (each term's default: PSD-projected)."""
+        check_positions(x, self.num_vertices, "SimModel")
+        x = x.detach()
+        h = torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device)
+        for t in self.terms:
+            h.add_(t.hessian_diagonal(x))
+        return h
+
+    def value_grad_hessian_diagonal(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Energy, gradient and Hessian diagonal together; terms that can share work between them do."""
+        check_positions(x, self.num_vertices, "SimModel")
+        x = x.detach()
+        E = torch.zeros((), dtype=x.dtype, device=x.device)
+        g = torch.zeros_like(x)
+        h = torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device)
+        for t, fused in zip(self.terms, self._diag_fused):
+            if fused:
+                e, gt, ht = t.value_grad_hessian_diagonal(x)
+            else:
+                e, gt = t.value_and_grad(x)
+                ht = t.hessian_diagonal(x)
+            E = E + e
+            g.add_(gt)
+            h.add_(ht)
+        return E, g, h
+
+    def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
+        """Block-COO Hessian of the total energy (the terms' blocks concatenated; duplicates sum)."""
+        check_positions(x, self.num_vertices, "SimModel")
+        x = x.detach()
+        parts = [t.hessian_blocks(x, project_psd=project_psd) for t in self.terms]
+        if not parts:
+            empty = torch.zeros(0, dtype=torch.long, device=x.device)
+            return HessianBlocks(empty, empty.clone(), torch.zeros(0, 3, 3, dtype=x.dtype, device=x.device))
+        return HessianBlocks.cat(parts)
+
+    def term_values(self, x: torch.Tensor) -> dict[str, float]:
+        """Each term's energy in joules, by name (analytic evaluation, no graph)."""
+        check_positions(x, self.num_vertices, "SimModel")
+        with torch.no_grad():
+            return {t.name: float(t.value_and_grad(x.detach())[0]) for t in self.terms}
+
+    # ------------------------------------------------------------------ barriers
+    def max_step(self, x: torch.Tensor, dx: torch.Tensor) -> float:
+        """Largest ``alpha`` in (0, 1] keeping every barrier finite along ``x + alpha dx``: the minimum over
+        the terms that have a ``max_step`` (SDF barrier, IPC CCD); 1.0 if none does."""
+        check_positions(x, self.num_vertices, "SimModel")
+        alpha = 1.0
+        for t in self.terms:
+            if hasattr(t, "max_step"):
+                alpha = min(alpha, float(t.max_step(x, dx)))
+        return alpha
+
+    def project_feasible(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` with vertices inside the body moved just outside (each term with ``project_feasible`` in turn);
+        ``x`` itself when no term has one."""
+        check_positions(x, self.num_vertices, "SimModel")
+        for t in self.terms:
+            if hasattr(t, "project_feasible"):
+                x = t.project_feasible(x)
+        return x
+
+    def extra_repr(self) -> str:
+        return f"num_vertices={self.num_vertices}, terms={list(self.term_names)}, dtype={self.dtype}"
+
+
+def _as_effects(effects: Iterable[Effect | str]) -> set[Effect]:
+    if isinstance(effects, (str, Effect)):
+        effects = [effects]
+    out = set()
+    for e in effects:
+        try:
+            out.add(Effect(e))
+        except ValueError as exc:
+            raise InputError(f"unknown effect {e!r}; choose from {[x.value for x in Effect]}") from exc
+    return out
+
+
+def _rest_positions(g: GarmentMesh) -> torch.Tensor:
+    """Reference positions for the IPC terms: the flat pattern when there is one (its areas and adjacency)."""
+    return (g.p if g.p is not None else g.x).detach()
+
+
+def _contact_module(effect: Effect):  # noqa: ANN202 - a module
+    try:
+        return importlib.import_module("torchgarment.sim.contact")
+    except ImportError as exc:
+        raise InputError(f"effect {effect.value!r} needs torchgarment.sim.contact (IPC via ipctk), which could not "
+                         f"be imported: {exc}") from exc

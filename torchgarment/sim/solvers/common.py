@@ -1,0 +1,299 @@
+"""Settings, results and helpers shared by the quasistatic solvers.
+
+A quasistatic solve finds garment positions ``x: (V, 3)`` (metres) where the total force ``-dE/dx`` of a
+:class:`~torchgarment.sim.scene.SimModel` vanishes. Every solver reports the force norm ``|g|`` (newtons, the
+Euclidean norm over all ``3V`` entries) per iteration and stops when ``|g| <= max(rtol * |g0|, atol)``.
+
+The solvers only use the model through this interface (duck-typed, see :class:`SolverModel`):
+``value_and_grad``, ``hessian_diagonal``, ``hessian_blocks``, ``max_step`` and ``project_feasible``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from typing import Callable, Protocol
+
+import numpy as np
+import scipy.sparse
+import torch
+
+from torchgarment.errors import InputError, TorchGarmentError
+from torchgarment.sim.energies.base import HessianBlocks
+
+#: ``callback(iteration, x, residual, energy) -> stop``; return True to stop the solve early.
+Callback = Callable[[int, torch.Tensor, float, float], "bool | None"]
+
+
+class NonFiniteError(TorchGarmentError, FloatingPointError):
+    """The model returned a NaN or infinite energy, gradient or Hessian during a solve."""
+
+
+class SolverKind(str, Enum):
+    """Available quasistatic solvers."""
+
+    GD_CHEBYSHEV = "gd-chebyshev"
+    NEWTON = "newton"
+
+    @classmethod
+    def resolve(cls, name: "str | SolverKind") -> "SolverKind":
+        """Turn a solver name into a :class:`SolverKind`, raising :class:`InputError` for unknown names."""
+        if isinstance(name, SolverKind):
+            return name
+        try:
+            return cls(str(name).strip().lower())
+        except ValueError:
+            known = ", ".join(k.value for k in cls)
+            raise InputError(f"unknown solver {name!r}; expected one of: {known}") from None
+
+
+class Preconditioner(str, Enum):
+    """Jacobi preconditioner of the gradient-descent solver."""
+
+    #: 3x3 Hessian diagonal blocks, inverted per vertex (non positive-definite blocks fall back to SCALAR)
+    BLOCK = "block"
+    #: the scalar Hessian diagonal (clamped to a small positive floor)
+    SCALAR = "scalar"
+
+
+class Safeguard(str, Enum):
+    """How the gradient-descent solver keeps barriers finite after each step."""
+
+    #: scale the step by ``0.9 * model.max_step(x, dx)`` when that is below 1 (works for any barrier, incl. CCD)
+    MAX_STEP = "max-step"
+    #: take the step, then ``model.project_feasible`` per vertex (Wang 2018; only for barriers it can project)
+    PROJECT = "project"
+
+
+@dataclass
+class SolveSettings:
+    """Settings of a quasistatic solve.
+
+    Attributes:
+        rtol: stop when the force norm ``|g| <= rtol * |g(x0)|``.
+        atol: or when ``|g| <= atol`` (newtons); 0 disables the absolute test.
+        max_iterations: iteration budget (one iteration = one gradient evaluation for GD, one linear solve
+            for Newton).
+        chebyshev_rho: spectral-radius estimate of the Jacobi iteration (Wang & Yang 2016), in [0, 1);
+            0 disables the acceleration (plain preconditioned gradient descent).
+        chebyshev_delay: iterations of plain descent before the Chebyshev weights start (and after a restart).
+        step: initial under-relaxation ``alpha`` of the Jacobi step ``-alpha * D^-1 g``, in (0, 1].
+        step_decrease: factor applied to ``step`` when the energy increases between two checkpoints.
+        min_step: smallest allowed ``step``; the solve stops (not converged) below it.
+        check_interval: iterations between energy checkpoints (energy increase -> roll back, shrink the step,
+            restart Chebyshev).
+        diagonal_interval: recompute the Hessian diagonal every this many iterations (1 = every iteration).
+        preconditioner: BLOCK (3x3 block Jacobi) or SCALAR (diagonal Jacobi).
+        diagonal_floor: relative floor of the preconditioner, times the mean Hessian diagonal, so that
+            vertices without stiffness do not get infinite steps.
+        safeguard: how GD keeps barriers finite (MAX_STEP or PROJECT).
+        max_displacement: GD trust region in metres: each vertex's move per iteration is clamped to this
+            length (flat cloth has no out-of-plane stiffness, so ``D^-1 g`` can be huge there); None disables.
+        project_psd: project per-element Hessian blocks to PSD in Newton (projected Newton).
+        armijo_c: Armijo sufficient-decrease constant of Newton's backtracking line search.
+        backtrack: step shrink factor of the line search.
+        max_backtracks: line-search trials before the solve stops as stalled.
+        step_fraction: fraction of ``model.max_step`` Newton steps are capped to when the full step is infeasible.
+        regularization: initial ``lambda`` (relative to the mean Hessian diagonal) added as ``lambda * I`` when
+            the factorization fails or the direction is not a descent direction; grows by 10 per retry.
+        max_regularizations: retries of the regularized factorization before giving up.
+    """
+
+    rtol: float = 1e-4
+    atol: float = 0.0
+    max_iterations: int = 1000
+    chebyshev_rho: float = 0.99
+    chebyshev_delay: int = 10
+    step: float = 0.7
+    step_decrease: float = 0.7
+    min_step: float = 1e-6
+    check_interval: int = 8
+    diagonal_interval: int = 1
+    preconditioner: Preconditioner = Preconditioner.BLOCK
+    diagonal_floor: float = 1e-8
+    safeguard: Safeguard = Safeguard.MAX_STEP
+    max_displacement: float | None = 0.01
+    project_psd: bool = True
+    armijo_c: float = 1e-4
+    backtrack: float = 0.5
+    max_backtracks: int = 40
+    step_fraction: float = 0.9
+    regularization: float = 1e-8
+    max_regularizations: int = 12
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` for out-of-range settings."""
+        self.preconditioner = Preconditioner(self.preconditioner)
+        self.safeguard = Safeguard(self.safeguard)
+        checks = [
+            (self.rtol >= 0 and self.atol >= 0, "rtol and atol must be >= 0"),
+            (self.max_iterations >= 0, "max_iterations must be >= 0"),
+            (0.0 <= self.chebyshev_rho < 1.0, "chebyshev_rho must lie in [0, 1)"),
+            (self.chebyshev_delay >= 0, "chebyshev_delay must be >= 0"),
+            (0.0 < self.step <= 1.0, "step must lie in (0, 1]"),
+            (0.0 < self.step_decrease < 1.0, "step_decrease must lie in (0, 1)"),
+            (self.min_step > 0, "min_step must be > 0"),
+            (self.check_interval >= 1 and self.diagonal_interval >= 1, "check/diagonal intervals must be >= 1"),
+            (self.diagonal_floor > 0, "diagonal_floor must be > 0"),
+            (self.max_displacement is None or self.max_displacement > 0, "max_displacement must be > 0 or None"),
+            (0.0 < self.armijo_c < 1.0 and 0.0 < self.backtrack < 1.0, "armijo_c and backtrack must lie in (0, 1)"),
+            (self.max_backtracks >= 1 and self.max_regularizations >= 0, "max_backtracks must be >= 1"),
+            (0.0 < self.step_fraction < 1.0, "step_fraction must lie in (0, 1)"),
+            (self.regularization > 0, "regularization must be > 0"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise InputError(f"invalid SolveSettings: {msg}")
+
+
+@dataclass
+class SolveInfo:
+    """What happened during a solve.
+
+    Attributes:
+        solver: the solver's name (a :class:`SolverKind` value).
+        iterations: iterations performed.
+        converged: whether the force-norm tolerance was met.
+        residual_history: force norm ``|g|`` (N) at the start and after every iteration (``iterations + 1``
+            entries for GD unless stopped early; entry 0 is ``|g(x0)|``).
+        energy_history: total energy (J) at the same points.
+        seconds: wall time of the solve.
+        message: why the solve stopped.
+        restarts: GD: Chebyshev restarts after energy increases; Newton: regularized factorizations.
+        final_step: GD: the step ``alpha`` at the end; Newton: the last line-search step.
+    """
+
+    solver: str
+    iterations: int = 0
+    converged: bool = False
+    residual_history: list[float] = field(default_factory=list)
+    energy_history: list[float] = field(default_factory=list)
+    seconds: float = 0.0
+    message: str = ""
+    restarts: int = 0
+    final_step: float = 1.0
+
+    @property
+    def residual(self) -> float:
+        """The final force norm (N)."""
+        return self.residual_history[-1] if self.residual_history else math.nan
+
+    def to_dict(self) -> dict:
+        """A JSON-serializable dictionary (for metrics.json)."""
+        return asdict(self)
+
+
+class SolverModel(Protocol):
+    """The part of :class:`~torchgarment.sim.scene.SimModel` the solvers use."""
+
+    num_vertices: int
+
+    def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+    def hessian_diagonal(self, x: torch.Tensor) -> torch.Tensor: ...
+
+    def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks: ...
+
+    def max_step(self, x: torch.Tensor, dx: torch.Tensor) -> float: ...
+
+    def project_feasible(self, x: torch.Tensor) -> torch.Tensor: ...
+
+
+def check_x0(model: SolverModel, x0: torch.Tensor) -> None:
+    """Raise :class:`InputError` unless ``x0`` is a finite (num_vertices, 3) floating tensor."""
+    if not isinstance(x0, torch.Tensor) or not x0.is_floating_point():
+        raise InputError("x0 must be a floating-point torch tensor of shape (V, 3)")
+    v = int(model.num_vertices)
+    if x0.shape != (v, 3):
+        raise InputError(f"x0 has shape {tuple(x0.shape)}, expected ({v}, 3)")
+    if not bool(torch.isfinite(x0).all()):
+        raise InputError("x0 contains NaN or infinite coordinates")
+
+
+def evaluate(model: SolverModel, x: torch.Tensor, iteration: int, what: str = "") -> tuple[float, torch.Tensor, float]:
+    """Energy, gradient and gradient norm at ``x``; raises :class:`NonFiniteError` naming the iteration.
+
+    Returns:
+        ``(energy, g, |g|)`` with ``g: (V, 3)``.
+    """
+    e, g = model.value_and_grad(x)
+    ef = float(e)
+    gn = float(torch.linalg.vector_norm(g))
+    if not (math.isfinite(ef) and math.isfinite(gn)):
+        where = f" ({what})" if what else ""
+        bad = "energy" if not math.isfinite(ef) else "gradient"
+        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: E={ef}, |g|={gn}")
+    return ef, g, gn
+
+
+def checked_max_step(model: SolverModel, x: torch.Tensor, dx: torch.Tensor, iteration: int) -> float:
+    """``model.max_step(x, dx)`` validated to lie in (0, 1]."""
+    t = float(model.max_step(x, dx))
+    if not (math.isfinite(t) and 0.0 < t <= 1.0 + 1e-12):
+        raise NonFiniteError(f"model.max_step returned {t} at solver iteration {iteration}; expected a value in (0, 1]")
+    return min(t, 1.0)
+
+
+def tolerance(settings: SolveSettings, g0_norm: float) -> float:
+    """The force-norm threshold ``max(rtol * |g0|, atol)``."""
+    return max(settings.rtol * g0_norm, settings.atol)
+
+
+class Timer:
+    """Wall-clock stopwatch (``time.perf_counter``)."""
+
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+
+class CSRAssembler:
+    """Assembles :class:`HessianBlocks` into a scipy CSR matrix (3V, 3V), float64, on the CPU.
+
+    The COO -> CSR permutation is computed once per sparsity pattern and reused while the block rows and
+    columns stay the same (they do for the elastic terms; contact terms may change them), so assembly is one
+    ``np.bincount`` per iteration.
+    """
+
+    def __init__(self, num_vertices: int) -> None:
+        self.n = 3 * int(num_vertices)
+        self._rows: torch.Tensor | None = None
+        self._cols: torch.Tensor | None = None
+        self._slot: np.ndarray | None = None
+        self._indptr: np.ndarray | None = None
+        self._indices: np.ndarray | None = None
+
+    def _build_pattern(self, rows: torch.Tensor, cols: torch.Tensor) -> None:
+        r = rows.detach().cpu().numpy().astype(np.int64)
+        c = cols.detach().cpu().numpy().astype(np.int64)
+        k = r.shape[0]
+        ar = np.arange(3, dtype=np.int64)
+        rr = (3 * r[:, None, None] + ar[None, :, None]).repeat(3, axis=2).reshape(-1)
+        cc = (3 * c[:, None, None] + ar[None, None, :]).repeat(3, axis=1).reshape(-1)
+        key = rr * self.n + cc
+        uniq, slot = np.unique(key, return_inverse=True)
+        self._slot = slot.reshape(-1)
+        urow = uniq // self.n
+        self._indices = (uniq % self.n).astype(np.int32 if self.n < 2**31 else np.int64)
+        self._indptr = np.zeros(self.n + 1, dtype=self._indices.dtype)
+        np.cumsum(np.bincount(urow, minlength=self.n), out=self._indptr[1:])
+        self._rows, self._cols = rows.detach().clone(), cols.detach().clone()
+        assert k * 9 == self._slot.shape[0]
+
+    def assemble(self, blocks: HessianBlocks) -> scipy.sparse.csr_matrix:
+        """The summed matrix of ``blocks`` as CSR (float64)."""
+        same = (
+            self._rows is not None
+            and self._rows.shape == blocks.rows.shape
+            and bool(torch.equal(self._rows, blocks.rows.to(self._rows.device)))
+            and bool(torch.equal(self._cols, blocks.cols.to(self._cols.device)))
+        )
+        if not same:
+            self._build_pattern(blocks.rows, blocks.cols)
+        vals = blocks.values.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
+        data = np.bincount(self._slot, weights=vals, minlength=self._indices.shape[0])
+        return scipy.sparse.csr_matrix((data, self._indices, self._indptr), shape=(self.n, self.n))
