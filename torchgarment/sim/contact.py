@@ -350,7 +350,8 @@ class _IPCContact(EnergyTerm):
         are covered by the ``min(d_min, r)``; with the default ``r = dhat`` the query reuses the barrier's
         collision set at ``x`` (nearly free after ``value_and_grad(x)``) but caps one step's largest vertex move
         at ``safety * dhat / 2``; a larger ``r`` allows longer steps at the cost of a wider query. Since the
-        true time of impact is >= d_min / (2M), this bound is below the CCD step whenever ``safety <= 0.8`` (CCD's rescaling). Assumes ``x`` is intersection free.
+        true time of impact is >= d_min / (2M), this bound is below the CCD
+        step whenever ``safety <= 0.8`` (CCD's rescaling). Assumes ``x`` is intersection free.
 
         Args:
             x: (V, 3) positions (m). dx: (V, 3) step (m). method: overrides ``self.step_bound``.
