@@ -170,3 +170,40 @@ def test_garmentcode_gradient_and_speed(garmentcode_dir):
     # planes are fixed in space; only check that girths grow when the body grows
     assert grad_dot > 0
     assert all(float(g2[k]) > 0 for k in GIRTH_NAMES)
+
+
+def test_plane_subset_matches_full_search(garmentcode_dir):
+    v, f, _ = _load(garmentcode_dir, "mean_female")
+    full = find_section_planes(v, f)
+    sub = find_section_planes(v, f, names=("waist", "bust", "underbust"))
+    assert list(sub) == ["bust", "underbust", "waist"]  # GIRTH_NAMES order
+    for name, plane in sub.items():
+        assert torch.equal(plane.point, full[name].point) and torch.equal(plane.normal, full[name].normal)
+    with pytest.raises(InputError, match="unknown girth"):
+        find_section_planes(v, f, names=("bust", "shoe"))
+
+
+def test_breast_growth_moves_bust_landmarks_continuously(garmentcode_dir):
+    """Grow and lower the breasts of the mean female body in small steps: the bust and underbust tapes and
+    girths follow in small, even steps (no jumps between landmark candidates)."""
+    v, f, _ = _load(garmentcode_dir, "mean_female")
+    planes = find_section_planes(v, f, names=("bust",))
+    nip = planes["bust"].point[1]
+    x0 = float(v[:, 0].mean())
+    front = v[:, 2] - float(v[:, 2].mean())
+    # a smooth bump on each breast: forward and downward, fading away from the nipple level and the side
+    bump = torch.exp(-(((v[:, 1] - nip) / 0.06) ** 2)) * torch.exp(-(((v[:, 0] - x0).abs() - 0.09) / 0.07) ** 2)
+    bump = bump * torch.clamp(front / 0.1, 0.0, 1.0)
+    ys, gs = [], []
+    for t in np.linspace(0.0, 1.0, 9):
+        w = v.clone()
+        w[:, 2] += 0.03 * t * bump
+        w[:, 1] -= 0.02 * t * bump
+        p = find_section_planes(w, f, names=("bust", "underbust"))
+        g = section_girths(w, f, p)
+        ys.append([float(p[n].point[1]) for n in ("bust", "underbust")])
+        gs.append([float(g[n]) for n in ("bust", "underbust")])
+    dy, dg = np.abs(np.diff(ys, axis=0)), np.diff(gs, axis=0)
+    assert dy.max() < 0.008, dy
+    assert np.all(dg[:, 0] > 0) and dg[:, 0].max() < 0.015, dg
+    assert np.abs(dg[:, 1]).max() < 0.01, dg

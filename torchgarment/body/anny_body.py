@@ -8,18 +8,24 @@ with the front towards +Z and the left at +X (``(x, y, z) -> (x, z, -y)``, a pro
 stays outward), metres, feet at ``y = 0`` and centred on the bounding box
 in x and z. The pose is anny's rest pose (an A-pose).
 
-Fitting (:func:`fit_anny`): the phenotype ``age`` is fixed to the "young adult" anchor (2/3), ``muscle`` and
-``proportions`` to 0.5, and ``gender`` to a guess from the shape of the request (the bust-underbust and
-hips-waist drops). The free parameters are the phenotype ``height`` and ``weight`` and, for every requested
-girth, the matching MakeHuman local change ``measure-<girth>-circ-incr`` in [-1, 1]. The residuals are the
-body's *own* measurements (:mod:`torchgarment.body.measure`: ``body_height`` and ``section_girths``, both
-differentiable) minus the request. They are minimised by projected Levenberg-Marquardt with Jacobians from
-torch autograd (the problem has at most 12 unknowns and is close to linear, so this converges in a handful
-of steps, far fewer than Adam or L-BFGS need). A weak prior pulls the local changes to 0 (the one direction
-the residuals leave free is weight vs. local changes). The tape positions (section planes) depend on the
-shape, so they are re-found (:func:`~torchgarment.body.measure.find_section_planes`) between rounds of steps;
-the fit stops when the measurements with freshly found planes, i.e. exactly what
-:func:`~torchgarment.body.measure.measure_body` reports, are within ``FitSettings.tolerance``.
+Fitting (:func:`fit_anny`): the model is loaded with all phenotypes (``phenotypes="all"``, which adds the
+breast phenotypes ``cupsize`` and ``firmness`` and the race mix). ``age`` is fixed to the "young adult" anchor
+(2/3), ``firmness`` and the race mix to anny's neutral 0.5, and ``gender`` to a guess from the shape of the
+request (the bust-underbust and hips-waist drops). The free parameters are the phenotypes ``height``,
+``weight``, ``muscle``, ``proportions`` and ``cupsize`` (the bust-underbust drop of a large bust comes from a
+real, larger breast rather than from stretching the chest with a local change) and, for every requested girth,
+the matching MakeHuman local change ``measure-<girth>-circ-incr`` in [-1.5, 1.5]. The residuals are the body's
+*own* measurements (:mod:`torchgarment.body.measure`: ``body_height`` and ``section_girths``, both
+differentiable) minus the request, with the tape planes found afresh
+(:func:`~torchgarment.body.measure.find_section_planes`) for every evaluated body, i.e. exactly what
+:func:`~torchgarment.body.measure.measure_body` reports. They are minimised by projected Levenberg-Marquardt.
+The Jacobian is the autograd Jacobian with the planes fixed plus, once the largest error is below 2 cm, the
+effect of the planes moving with the shape (girth slope along each plane normal times the plane motion per
+parameter, by finite differences of the landmark search): without it the fit alternates between plane sets,
+because e.g. a larger breast moves its own fold, and with it the underbust tape, down. A weak prior pulls the
+local changes to 0 (the one direction the residuals leave free is weight vs. local changes). The fit stops
+when every measurement is within ``FitSettings.tolerance``; a final :func:`measure_body` check within
+``FitSettings.accept`` is mandatory.
 
 Loading: anny builds its model data from the MakeHuman target files on first use and caches it under
 ``~/.cache/anny`` (``$ANNY_CACHE_DIR``). Measured on this project's machine: about 220 s cold (no anny cache),
@@ -39,11 +45,11 @@ import torch
 
 from torchgarment.body import cache as body_cache
 from torchgarment.body.body import Body
-from torchgarment.body.measure import body_height, find_section_planes, measure_body, section_girths
+from torchgarment.body.measure import SectionPlane, body_height, find_section_planes, measure_body, section_girths
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError
 
-FIT_VERSION = "3"
+FIT_VERSION = "4"
 """Version of the fitting code; part of the cache key. Bump it whenever fitted bodies would change."""
 
 TOPOLOGY = "anny-noeyes-notongue"
@@ -80,13 +86,34 @@ RANGES: dict[str, tuple[float, float]] = {
 ADULT_AGE = 2.0 / 3.0
 """Anny ``age`` of the MakeHuman "young" (25 years) targets."""
 
-_PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
-NUM_PHENO_FREE = 4  # height, weight, muscle, proportions
+_PHENOTYPES = (
+    "gender", "age", "muscle", "weight", "height", "proportions", "cupsize", "firmness", "african", "asian", "caucasian"
+)
+"""Anny's phenotype labels with ``phenotypes="all"``, in the model's order."""
 
-MAX_WEIGHT = 0.8
-"""Upper bound of the fitted ``weight`` phenotype: heavier anny women have sagging breasts whose nipple falls
-below the band where :func:`~torchgarment.body.measure.find_section_planes` looks for the bust; larger girths
-come from the local changes instead."""
+_FREE = ("height", "weight", "muscle", "proportions", "cupsize")
+"""Fitted phenotypes, in the order of the first entries of the parameter vector."""
+
+NUM_PHENO_FREE = len(_FREE)
+
+DEFAULT_PHENOTYPE: dict[str, float] = {
+    "age": ADULT_AGE,
+    "muscle": 0.5,
+    "weight": 0.5,
+    "height": 0.5,
+    "proportions": 0.5,
+    "cupsize": 0.5,
+    "firmness": 0.5,
+    "african": 0.5,
+    "asian": 0.5,
+    "caucasian": 0.5,
+}
+"""Start values of the phenotypes (``gender`` comes from :func:`guess_gender`); anny's neutral 0.5 except the
+adult age. Equal race values give anny's mixed average."""
+
+MAX_WEIGHT = 0.9
+"""Upper bound of the fitted ``weight`` phenotype (the heaviest anny bodies have a belly that overhangs the
+hips); larger girths come from the local changes instead."""
 
 LOCAL_CHANGE_RANGE = (-1.5, 1.5)
 """Bounds of the fitted local changes (MakeHuman's sliders span [-1, 1]; the targets are linear offsets, and a
@@ -99,21 +126,25 @@ class FitSettings:
 
     Attributes:
         tolerance: stop when every measurement (height and girths, re-measured with fresh planes) is within this
-            many metres of the request.
-        max_rounds: maximum number of plane searches (each followed by up to ``steps_per_round`` steps).
-        steps_per_round: Levenberg-Marquardt steps with fixed planes.
+            many metres of the request (the landmark search has about 1 mm of jitter, so much less is wasted
+            time).
+        max_rounds: maximum number of Levenberg-Marquardt iterations (each re-finds the planes of every trial).
         prior: weight (metres per unit) of the prior pulling local changes to 0.
         accept: a fit whose final error exceeds this many metres raises InputError.
         max_step: largest change of any parameter in one step (a trust region: the tape planes move with the
             shape, so long steps computed with fixed planes overshoot).
+        plane_motion_below: once the largest error is below this (metres), the Jacobian also models how the
+            tape planes move with the shape (finite differences of the landmark search, one per parameter).
+        fd_step: parameter step of those finite differences.
     """
 
-    tolerance: float = 3e-4
-    max_rounds: int = 20
-    steps_per_round: int = 2
+    tolerance: float = 1e-3
+    max_rounds: int = 30
     prior: float = 2e-4
     accept: float = 3e-3
     max_step: float = 0.15
+    plane_motion_below: float = 0.02
+    fd_step: float = 1e-3
 
 
 @dataclass
@@ -148,7 +179,7 @@ def load_anny_model():
     """
     import anny
 
-    return anny.Anny(topology=TOPOLOGY, local_changes=list(LOCAL_CHANGES.values()))
+    return anny.Anny(topology=TOPOLOGY, local_changes=list(LOCAL_CHANGES.values()), phenotypes="all")
 
 
 def anny_version() -> str:
@@ -212,27 +243,33 @@ def _to_y_up(v: torch.Tensor) -> torch.Tensor:
 
 
 class _Shape:
-    """Differentiable map from the free parameters to Y-up rest vertices (V, 3), float64 CPU."""
+    """Differentiable map from the free parameters to Y-up rest vertices (V, 3), float64 CPU.
+
+    The parameter vector is ``[height, weight, muscle, proportions, cupsize, local changes of girths]``.
+    """
 
     def __init__(self, model, phenotype: dict[str, float], girths: list[str]):
         self.model = model
+        if tuple(model.phenotype_labels) != _PHENOTYPES:
+            raise InputError(f"unexpected anny phenotype labels {list(model.phenotype_labels)}")
         self.base_pheno = torch.tensor([phenotype[k] for k in _PHENOTYPES], dtype=torch.float64)
+        self.free_index = torch.tensor([_PHENOTYPES.index(k) for k in _FREE], dtype=torch.long)
         labels = list(model.local_change_labels)
         self.lc_index = torch.tensor([labels.index(LOCAL_CHANGES[g]) for g in girths], dtype=torch.long)
         self.num_lc = len(labels)
         self.girths = girths
-        # free parameters: [height, weight, muscle, proportions, local changes of the requested girths]
+        upper = {"weight": MAX_WEIGHT}
         self.lower = torch.tensor([0.0] * NUM_PHENO_FREE + [LOCAL_CHANGE_RANGE[0]] * len(girths), dtype=torch.float64)
-        self.upper = torch.tensor([1.0, MAX_WEIGHT, 1.0, 1.0] + [LOCAL_CHANGE_RANGE[1]] * len(girths), dtype=torch.float64)
+        self.upper = torch.tensor(
+            [upper.get(k, 1.0) for k in _FREE] + [LOCAL_CHANGE_RANGE[1]] * len(girths), dtype=torch.float64
+        )
 
     def initial(self) -> torch.Tensor:
         """Start point: the base phenotype's free values, no local changes."""
-        p = self.base_pheno
-        return torch.cat([torch.stack([p[4], p[3], p[2], p[5]]), p.new_zeros(len(self.girths))])
+        return torch.cat([self.base_pheno[self.free_index], self.base_pheno.new_zeros(len(self.girths))])
 
     def split(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        # phenotype order: gender, age, muscle, weight, height, proportions
-        pheno = torch.cat([self.base_pheno[:2], x[2:3], x[1:2], x[0:1], x[3:4]])
+        pheno = self.base_pheno.to(x.dtype).index_put((self.free_index,), x[:NUM_PHENO_FREE])
         lc = torch.zeros(self.num_lc, dtype=x.dtype).index_put((self.lc_index,), x[NUM_PHENO_FREE:])
         return pheno, lc
 
@@ -262,6 +299,38 @@ def _solve_height(shape: _Shape, x: torch.Tensor, target: float) -> torch.Tensor
             h1 = h(t1)
         x[0] = float(np.clip(t1, 0.0, 1.0))
     return x
+
+
+def _plane_offsets(planes: dict[str, SectionPlane], names: tuple[str, ...]) -> torch.Tensor:
+    """(G,) signed offset of each plane along its normal (``point . normal``), metres."""
+    return torch.stack([(planes[n].point * planes[n].normal).sum() for n in names]).to(torch.float64)
+
+
+def _plane_motion(
+    shape: "_Shape", faces: torch.Tensor, names: tuple[str, ...], x: torch.Tensor, offsets: torch.Tensor, h: float
+) -> torch.Tensor:
+    """(G, P) derivative of the plane offsets (``point . normal`` of freshly found planes) with respect to the
+    parameters, by one-sided finite differences of step ``h`` (backwards at an upper bound)."""
+    out = torch.zeros(len(names), x.numel(), dtype=torch.float64)
+    for k in range(x.numel()):
+        d = -h if float(x[k]) + h > float(shape.upper[k]) else h
+        y = x.clone()
+        y[k] += d
+        with torch.no_grad():
+            v = shape.vertices(y)
+        out[:, k] = (_plane_offsets(find_section_planes(v, faces, names=names), names) - offsets) / d
+    return out
+
+
+def _girth_slopes(vertices: torch.Tensor, faces: torch.Tensor, planes: dict[str, SectionPlane], eps: float = 1e-3):
+    """(G,) derivative of each girth with respect to moving its plane along the normal (central differences
+    over +-eps metres), in the order of ``planes``."""
+    shifted = {}
+    for n, p in planes.items():
+        for sign in (1.0, -1.0):
+            shifted[f"{n}{sign:+}"] = SectionPlane(n, p.point + sign * eps * p.normal, p.normal, p.seed)
+    g = section_girths(vertices, faces, shifted)
+    return torch.stack([(g[f"{n}+1.0"] - g[f"{n}-1.0"]) / (2 * eps) for n in planes])
 
 
 def _bounded_step(
@@ -303,21 +372,15 @@ def fit_anny(measurements: dict[str, float], settings: FitSettings = FitSettings
     model = load_anny_model()
     faces = model.faces
     girths = [g for g in LOCAL_CHANGES if g in measurements]
-    phenotype = {
-        "gender": guess_gender(measurements),
-        "age": ADULT_AGE,
-        "muscle": 0.5,
-        "weight": 0.5,
-        "height": 0.5,
-        "proportions": 0.5,
-    }
+    phenotype = dict(DEFAULT_PHENOTYPE, gender=guess_gender(measurements))
     shape = _Shape(model, phenotype, girths)
     target = torch.tensor([measurements["height"]] + [measurements[g] for g in girths], dtype=torch.float64)
     x = _solve_height(shape, shape.initial(), measurements["height"])
     # prior weights (metres of residual per unit of parameter): none on height, weak on the body-wide
     # phenotypes, the full prior on local changes
     prior_w = torch.tensor(
-        [0.0, 0.1 * settings.prior, 0.5 * settings.prior, 0.5 * settings.prior] + [settings.prior] * len(girths),
+        [0.0, 0.1 * settings.prior, 0.5 * settings.prior, 0.5 * settings.prior, 0.1 * settings.prior]
+        + [settings.prior] * len(girths),
         dtype=torch.float64,
     )
     x_prior = x.clone()
@@ -329,48 +392,63 @@ def fit_anny(measurements: dict[str, float], settings: FitSettings = FitSettings
         return torch.cat([meas - target, prior_w * (xv - x_prior)])
 
     n_meas = 1 + len(girths)
+    names = tuple(girths)
     steps = 0
     rounds = 0
-    max_err = math.inf
     history: list[float] = []
-    best = (math.inf, x.clone())  # the landmarks can jump between rounds: keep the best body measured
+
+    def evaluate(xv: torch.Tensor):
+        """(fresh planes, their offsets (G,), true residual) of the body at xv: what measure_body reports."""
+        with torch.no_grad():
+            v = shape.vertices(xv)
+        fresh = find_section_planes(v, faces, names=names)
+        with torch.no_grad():
+            r = residual(xv, fresh)
+        return fresh, _plane_offsets(fresh, names), r
+
+    planes, offsets, r = evaluate(x)
+    best = (math.inf, x.clone())
     mu = 1e-3
-    while rounds < settings.max_rounds:
+    motion: torch.Tensor | None = None  # (G, P) plane motion per parameter, once close to the goal
+    fresh_motion = False
+    while True:
         rounds += 1
-        with torch.no_grad():
-            v = shape.vertices(x)
-        planes = find_section_planes(v, faces)
-        planes = {n: planes[n] for n in girths}
-        with torch.no_grad():
-            r = residual(x, planes)
         max_err = float(r[:n_meas].abs().max())
         history.append(max_err)
         if max_err < best[0]:
             best = (max_err, x.clone())
-        if max_err <= settings.tolerance:
+        if max_err <= settings.tolerance or rounds > settings.max_rounds:
             break
-        mu = 1e-3
-        for _ in range(settings.steps_per_round):
-            jac = torch.autograd.functional.jacobian(lambda xv: residual(xv, planes), x)
-            jtj = jac.T @ jac
-            jtr = jac.T @ r
-            cost = float(r @ r)
-            improved = False
-            for _ in range(8):
-                step = _bounded_step(jtj, jtr, mu, x, shape.lower, shape.upper)
-                step = step * min(1.0, settings.max_step / max(float(step.abs().max()), 1e-30))
-                x_new = torch.minimum(torch.maximum(x + step, shape.lower), shape.upper)
-                with torch.no_grad():
-                    r_new = residual(x_new, planes)
-                if float(r_new @ r_new) < cost:
-                    x, r = x_new, r_new
-                    mu = max(mu / 3.0, 1e-7)
-                    improved = True
-                    break
-                mu *= 4.0
+        # Jacobian of the true residual: the shape change with the planes fixed (autograd) plus, close to the
+        # goal, the girth change caused by the tape planes moving with the shape (girth slope along each plane
+        # normal x plane motion per parameter, by finite differences of the landmark search)
+        jac = torch.autograd.functional.jacobian(lambda xv: residual(xv, planes), x).clone()
+        if max_err < settings.plane_motion_below:
+            # the plane motion changes slowly with the shape: re-estimated only after a failed iteration
+            fresh_motion = motion is None
+            if fresh_motion:
+                motion = _plane_motion(shape, faces, names, x, offsets, settings.fd_step)
+            with torch.no_grad():
+                slopes = _girth_slopes(shape.vertices(x), faces, planes)
+            jac[1:n_meas] += slopes[:, None] * motion
+        jtj, jtr, cost = jac.T @ jac, jac.T @ r, float(r @ r)
+        improved = False
+        for _ in range(8):
+            step = _bounded_step(jtj, jtr, mu, x, shape.lower, shape.upper)
+            step = step * min(1.0, settings.max_step / max(float(step.abs().max()), 1e-30))
+            x_new = torch.minimum(torch.maximum(x + step, shape.lower), shape.upper)
+            planes_new, offsets_new, r_new = evaluate(x_new)
             steps += 1
-            if not improved or float(r[:n_meas].abs().max()) < 0.3 * settings.tolerance:
+            if float(r_new @ r_new) < cost:
+                x, planes, offsets, r = x_new, planes_new, offsets_new, r_new
+                mu = max(mu / 3.0, 1e-7)
+                improved = True
                 break
+            mu *= 4.0
+        if not improved:
+            if motion is None or fresh_motion:
+                break
+            motion, mu = None, 1e-3  # retry with a fresh plane-motion estimate
     x = best[1]
     with torch.no_grad():
         v = shape.vertices(x)

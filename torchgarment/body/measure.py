@@ -18,14 +18,21 @@ Landmark heuristics (all found from horizontal section loops, never from vertex 
   separate loops. Refined by bisection to 0.5 mm.
 * **armpit**: scanning up from the hips, the first height where the straddling (torso) loop abruptly widens by
   more than 0.02 ``h`` between two neighbouring sections: the arms join the torso. Refined by bisection.
-* **bust**: the nipple level is the highest local maximum (over +-0.01 ``h``) of the front profile (the most
-  frontal point of the torso loop as a function of height) between ``armpit - 0.15 h`` and ``armpit - 0.01 h``;
-  the bust is the maximum torso girth within +-0.0075 ``h`` of it (the tape slid to the fullest part). Without
-  such a maximum (flat chest) the nipple level is the level of maximum torso girth in that band.
-* **underbust**: below the nipple the front profile drops with the breast to a local minimum on the rib cage
-  (the breast fold, searched within ``0.06 h`` below the nipple, at least ``0.005 h`` deeper than the nipple);
-  the tape sits just under it, at ``fold - 0.005 h``. Without a fold (flat chest) the underbust is at
-  ``nipple - 0.035 h`` (the fold distance of the GarmentCode mean bodies).
+* **bust**: the nipple level is the highest local maximum (over +-0.01 ``h``; the window is truncated at the
+  top of the band, so a high breast just under the armpits still counts) of the front profile (the most frontal
+  point of the torso loop as a function of height) between ``armpit - 0.15 h`` and ``armpit - 0.005 h``,
+  refined to sub-sample precision with a parabola; the bust is the maximum torso girth within +-0.0075 ``h`` of
+  it (the tape slid to the fullest part, also refined with a parabola). Without such a maximum (flat chest) the
+  nipple level is the level of maximum torso girth in that band.
+* **underbust**: below the nipple the front profile drops steeply with the breast down to the breast fold,
+  where the rib cage takes over and the profile flattens (or turns forward again over a belly). The fold is
+  the *soft* minimum (temperature ``0.001 h`` of depth) of the tilted profile ``front(y) - 0.3 y`` within
+  ``0.08 h`` below the nipple, i.e. about where the profile's slope drops below 0.3; the tape sits just under
+  it, at ``fold - 0.005 h``. With a breast depth (nipple front minus fold front) below ``0.01 h`` the level is
+  blended linearly towards ``nipple - 0.035 h`` (the fold distance of the GarmentCode mean bodies), the rule
+  for a flat chest. Every step is continuous in the shape (no thresholds, no discrete picks among sections),
+  so the underbust plane moves little when the body changes little, even for large, low-hanging breasts
+  whose fold is a crease.
 * **waist**: horizontal plane of minimum torso girth between ``crotch + 0.1 h`` and ``underbust - 0.01 h``.
 * **hips**: the buttocks level is the most posterior point of the torso between crotch and waist; the hips are
   the maximum torso girth within +-0.01 ``h`` of it.
@@ -77,6 +84,21 @@ from torchgarment.errors import InputError, MeshError
 GIRTH_NAMES = ("bust", "underbust", "waist", "hips", "thigh", "upper_arm", "neck", "wrist")
 
 _UP = np.array([0.0, 1.0, 0.0])
+
+_FOLD_SLOPE = 0.3
+"""Slope (metres of front depth per metre of height) of the front profile below which the breast has ended."""
+
+_FOLD_SEARCH = 0.08
+"""How far below the nipple the breast fold is searched, as a fraction of the height."""
+
+_FOLD_SOFTNESS = 0.001
+"""Temperature (fraction of the height, in front depth) of the soft minimum that places the breast fold: levels
+whose tilted front depth is within a few times this of the minimum share the weight, so the fold moves
+continuously with the shape instead of jumping between mesh rows."""
+
+_FOLD_DEPTH = 0.01
+"""Breast depth (nipple minus fold front depth, fraction of the height) from which the fold fully sets the
+underbust; shallower breasts blend towards the flat-chest rule."""
 
 
 @dataclass
@@ -567,13 +589,32 @@ def _find_armpit(sl: _Slicer, crotch: float, centre: float) -> float:
 
 
 def _local_maxima(values: np.ndarray, half_window: int) -> np.ndarray:
-    """Indices i whose value is the strict maximum of values[i-hw : i+hw+1] (windows inside the array)."""
+    """Indices i whose value is the strict maximum of values[i-hw : i+hw+1].
+
+    Windows are truncated at the ends of the array (a peak close to an end is still found) but must keep at
+    least one neighbour on each side, which must be lower.
+    """
     idx = []
-    for i in range(half_window, len(values) - half_window):
-        win = values[i - half_window : i + half_window + 1]
+    n = len(values)
+    for i in range(1, n - 1):
+        win = values[max(0, i - half_window) : min(n, i + half_window + 1)]
         if np.all(np.isfinite(win)) and values[i] == win.max() and win[0] < values[i] and win[-1] < values[i]:
             idx.append(i)
     return np.asarray(idx, dtype=np.int64)
+
+
+def _parabolic_offset(values: np.ndarray, i: int) -> float:
+    """Sub-sample position (in samples, within [-0.5, 0.5]) of the extremum at ``values[i]``.
+
+    The parabola through the samples i-1, i, i+1; 0 at the ends of the array or where it is not curved.
+    """
+    if i <= 0 or i >= len(values) - 1:
+        return 0.0
+    a, b, c = values[i - 1], values[i], values[i + 1]
+    den = a - 2.0 * b + c
+    if not np.isfinite(den) or abs(den) < 1e-15:
+        return 0.0
+    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
 
 
 def _arm_centreline(sl: _Slicer, chest_lo: float, crotch: float) -> np.ndarray:
@@ -687,15 +728,19 @@ def _arm_planes(sl: _Slicer, chest: tuple[float, float], crotch: float, centre: 
 
 
 def _refine_extreme(sl: _Slicer, centre: float, lo: float, hi: float, maximum: bool, n: int = 17) -> float:
-    """Height of the max (or min) torso girth sampled at ``n`` heights in [lo, hi]."""
+    """Height of the max (or min) torso girth in [lo, hi]: ``n`` samples, then a parabola through the best
+    three (so the height moves continuously with the shape)."""
     ys = np.linspace(lo, hi, n)
     g = _torso_profile(sl, centre, ys)["girth"]
     if not np.isfinite(g).any():
         raise InputError(f"no closed torso section between heights {lo:.3f} and {hi:.3f} m")
-    return float(ys[int(np.nanargmax(g) if maximum else np.nanargmin(g))])
+    i = int(np.nanargmax(g) if maximum else np.nanargmin(g))
+    return float(ys[i] + _parabolic_offset(g, i) * (ys[1] - ys[0]))
 
 
-def find_section_planes(vertices: torch.Tensor, faces: torch.Tensor) -> dict[str, SectionPlane]:
+def find_section_planes(
+    vertices: torch.Tensor, faces: torch.Tensor, names: tuple[str, ...] | None = None
+) -> dict[str, SectionPlane]:
     """Find where to put the tape measure for every girth of :data:`GIRTH_NAMES` (not differentiable).
 
     See the module docstring for the landmark heuristics.
@@ -703,14 +748,20 @@ def find_section_planes(vertices: torch.Tensor, faces: torch.Tensor) -> dict[str
     Args:
         vertices: (V, 3) positions of a closed human body mesh, metres, +Y up, A- or T-pose, any placement.
         faces: (F, 3) long vertex indices.
+        names: only these girths (default: all of :data:`GIRTH_NAMES`); skipping the neck and the arms saves
+            most of the time. The planes found do not depend on this choice.
 
     Returns:
-        Planes by girth name; tensors are float64 on the CPU.
+        Planes by girth name (in the order of :data:`GIRTH_NAMES`); tensors are float64 on the CPU.
 
     Raises:
         MeshError: the mesh is empty, open or malformed.
         InputError: a landmark cannot be found (the mesh does not look like a standing human body).
     """
+    wanted = GIRTH_NAMES if names is None else tuple(names)
+    unknown = sorted(set(wanted) - set(GIRTH_NAMES))
+    if unknown:
+        raise InputError(f"unknown girth name(s) {unknown}; known: {', '.join(GIRTH_NAMES)}")
     _check_mesh(vertices, faces)
     topo = _topology(faces)
     _check_closed(topo)
@@ -737,22 +788,33 @@ def find_section_planes(vertices: torch.Tensor, faces: torch.Tensor) -> dict[str
     prof = _torso_profile(sl, centre, ys)
     chest = (float(prof["lo"][-1]), float(prof["hi"][-1]))
 
-    # bust: the nipple level is the highest local maximum of the front profile in the chest band
-    band = np.flatnonzero((ys >= armpit - 0.15 * h) & (ys <= armpit - 0.01 * h))
+    # bust: the nipple level is the highest local maximum of the front profile in the chest band (windows
+    # truncated at the top of the band, so a high breast close to the armpits is still found), refined to
+    # sub-sample precision; the bust is the largest girth around it
+    front = prof["front"]
+    band = np.flatnonzero(ys >= armpit - 0.15 * h)
     hw = max(1, int(round(0.01 * h / g)))
-    peaks = band[0] + _local_maxima(prof["front"][band], hw)
+    peaks = band[0] + _local_maxima(front[band], hw)
     if peaks.size:
-        nipple = float(ys[peaks.max()])
+        i_nip = int(peaks.max())
+        nipple = float(ys[i_nip] + _parabolic_offset(front, i_nip) * g)
     else:  # flat chest: no breast point; use the level of largest torso girth in the band
-        nipple = float(ys[band][int(np.nanargmax(prof["girth"][band]))])
+        i_nip = int(band[int(np.nanargmax(prof["girth"][band]))])
+        nipple = float(ys[i_nip])
     bust = _refine_extreme(sl, centre, nipple - 0.0075 * h, nipple + 0.0075 * h, maximum=True, n=9)
 
-    # underbust: the breast fold (front profile local minimum below the nipple), else nipple - 0.035 h
-    below = np.flatnonzero((ys >= nipple - 0.06 * h) & (ys < nipple))
-    folds = below[0] + _local_maxima(-prof["front"][below], hw) if below.size > 2 * hw else np.array([], int)
-    i_nip = int(np.argmin(np.abs(ys - nipple)))
-    folds = [i for i in folds if prof["front"][i_nip] - prof["front"][i] > 0.005 * h]
-    underbust = float(ys[max(folds)]) - 0.005 * h if folds else nipple - 0.035 * h
+    # underbust: the breast fold is where the front profile, going down from the nipple, stops falling
+    # steeply: the (soft) minimum of front(y) - FOLD_SLOPE * y within FOLD_SEARCH below the nipple (the level
+    # where the profile's slope drops below FOLD_SLOPE). The tape sits 0.005 h under it. Shallow breasts blend continuously towards nipple - 0.035 h (flat chest) with the breast depth.
+    below = np.flatnonzero((ys >= nipple - _FOLD_SEARCH * h) & (ys <= ys[i_nip]) & np.isfinite(front))
+    if below.size < 3:
+        raise InputError("the torso is too short to find the underbust")
+    tilted = front[below] - _FOLD_SLOPE * ys[below]
+    weights = np.exp(-(tilted - tilted.min()) / (_FOLD_SOFTNESS * h))
+    fold = float(np.sum(weights * ys[below]) / np.sum(weights))
+    depth = float(front[i_nip] - np.interp(fold, ys[below], front[below]))
+    w = float(np.clip(depth / (_FOLD_DEPTH * h), 0.0, 1.0))
+    underbust = (1.0 - w) * (nipple - 0.035 * h) + w * (fold - 0.005 * h)
 
     # waist: minimum torso girth between crotch + 0.1 h and just below the underbust
     wb = np.flatnonzero((ys >= crotch + 0.1 * h) & (ys <= underbust - 0.01 * h))
@@ -774,7 +836,25 @@ def find_section_planes(vertices: torch.Tensor, faces: torch.Tensor) -> dict[str
     thigh_loop = max(right, key=lambda lp: len(lp.points))
     thigh_seed = thigh_loop.points.mean(axis=0)
 
-    # neck: minimum horizontal torso girth between the armpits and 90 % of the height, then tilted
+    planes = {
+        "bust": horizontal_plane("bust", bust, torso_seed(bust)),
+        "underbust": horizontal_plane("underbust", underbust, torso_seed(underbust)),
+        "waist": horizontal_plane("waist", waist, torso_seed(waist)),
+        "hips": horizontal_plane("hips", hips, torso_seed(hips)),
+        "thigh": horizontal_plane("thigh", y_thigh, thigh_seed),
+    }
+    if "neck" in wanted:
+        planes["neck"] = _neck_plane(sl, armpit, centre, torso_seed)
+    if "upper_arm" in wanted or "wrist" in wanted:
+        planes.update(_arm_planes(sl, chest, crotch, centre))
+    return {name: planes[name] for name in GIRTH_NAMES if name in wanted}
+
+
+def _neck_plane(sl: _Slicer, armpit: float, centre: float, torso_seed) -> SectionPlane:
+    """The neck plane (see the module doc); ``torso_seed(y)`` is the torso loop centroid at height y."""
+    f = sl.frame
+    h = f.height
+    g = 0.0025 * h
     nys = np.arange(armpit + 0.03 * h, f.y0 + 0.9 * h, g)
     nprof = _torso_profile(sl, centre, nys)
     if not np.isfinite(nprof["girth"]).any():
@@ -787,7 +867,7 @@ def find_section_planes(vertices: torch.Tensor, faces: torch.Tensor) -> dict[str
     basis = _plane_basis(axis)
     for off in np.linspace(-0.008 * h, 0.008 * h, 9):
         p = c_mid + off * axis
-        lp = _pick_loop(_cut(v, topo, p, axis), p, basis)
+        lp = _pick_loop(_cut(sl.v, sl.topo, p, axis), p, basis)
         if lp is None or not lp.closed:
             continue
         gn = lp.hull_perimeter(basis)
@@ -796,17 +876,7 @@ def find_section_planes(vertices: torch.Tensor, faces: torch.Tensor) -> dict[str
     if best is None:
         raise InputError("cannot measure the neck")
     t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
-
-    planes = {
-        "bust": horizontal_plane("bust", bust, torso_seed(bust)),
-        "underbust": horizontal_plane("underbust", underbust, torso_seed(underbust)),
-        "waist": horizontal_plane("waist", waist, torso_seed(waist)),
-        "hips": horizontal_plane("hips", hips, torso_seed(hips)),
-        "thigh": horizontal_plane("thigh", y_thigh, thigh_seed),
-        "neck": SectionPlane("neck", t(best[1]), t(axis), t(best[1])),
-    }
-    planes.update(_arm_planes(sl, chest, crotch, centre))
-    return {name: planes[name] for name in GIRTH_NAMES}
+    return SectionPlane("neck", t(best[1]), t(axis), t(best[1]))
 
 
 def _check_closed(topo: _Topology) -> None:
