@@ -134,11 +134,15 @@ def test_body_mesh_frame_and_rig(fitted):
     assert mesh.is_watertight and mesh.is_winding_consistent
     assert mesh.volume > 0  # outward normals
     assert len(mesh.split(only_watertight=False)) == 1
-    # +Y up, feet at 0, centred in x and z, toes towards +z
+    # +Y up, feet at 0, root (pelvis) joint on the Y axis, toes towards +z
     assert float(v[:, 1].min()) == pytest.approx(0.0, abs=1e-12)
     lo, hi = v.min(0).values, v.max(0).values
-    assert float(lo[0] + hi[0]) == pytest.approx(0.0, abs=1e-9) and float(lo[2] + hi[2]) == pytest.approx(0.0, abs=1e-9)
     joint = {n: body.skeleton.joints[i] for i, n in enumerate(body.skeleton.names)}
+    assert float(joint["root"][0]) == pytest.approx(0.0, abs=1e-12) and float(joint["root"][2]) == pytest.approx(0.0, abs=1e-12)
+    # the torso surrounds the Y axis: at hip height the body spans both signs of x and z
+    hips = v[(v[:, 1] - body.landmarks["hips"][1]).abs() < 0.01]
+    assert float(hips[:, 0].min()) < -0.1 < 0.1 < float(hips[:, 0].max())
+    assert float(hips[:, 2].min()) < -0.05 < 0.05 < float(hips[:, 2].max())
     assert float(joint["toe1-1.L"][2] - joint["foot.L"][2]) > 0.1  # toes (front) towards +z
     assert float(joint["upperarm01.L"][0]) > 0.1  # the body's left at +x
     assert float(body.landmarks["crown"][1]) == pytest.approx(float(hi[1]))

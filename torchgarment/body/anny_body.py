@@ -5,8 +5,8 @@ without eyes and tongue the triangulated body is one closed, consistently wound 
 with trimesh: watertight, winding-consistent, Euler number 2), as measuring and collision code need. Anny is
 Z-up with the front (toes) towards -Y and the body's left at +X (Blender's convention); bodies here are +Y up
 with the front towards +Z and the left at +X (``(x, y, z) -> (x, z, -y)``, a proper rotation, so face winding
-stays outward), metres, feet at ``y = 0`` and centred on the bounding box
-in x and z. The pose is anny's rest pose (an A-pose).
+stays outward), metres, feet at ``y = 0`` and the root (pelvis) joint on the Y axis (x = z = 0), so that
+garments placed around the Y axis sit around the torso. The pose is anny's rest pose (an A-pose).
 
 Fitting (:func:`fit_anny`): the model is loaded with all phenotypes (``phenotypes="all"``, which adds the
 breast phenotypes ``cupsize`` and ``firmness`` and the race mix). ``age`` is fixed to the "young adult" anchor
@@ -49,7 +49,7 @@ from torchgarment.body.measure import SectionPlane, body_height, find_section_pl
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError
 
-FIT_VERSION = "4"
+FIT_VERSION = "5"
 """Version of the fitting code; part of the cache key. Bump it whenever fitted bodies would change."""
 
 TOPOLOGY = "anny-noeyes-notongue"
@@ -508,13 +508,16 @@ def _generate(measurements: dict[str, float], settings: FitSettings) -> dict:
     """Fit and assemble a body as a cache payload (float64 CPU tensors and plain data)."""
     model = load_anny_model()
     fit, v = fit_anny(measurements, settings)
-    lo, hi = v.min(dim=0).values, v.max(dim=0).values
-    offset = torch.stack([(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2])
-    vertices = v - offset
     shape = _Shape(model, fit.phenotype, list(LOCAL_CHANGES))
     x = shape.initial()
     x[NUM_PHENO_FREE:] = torch.tensor([fit.local_changes[LOCAL_CHANGES[g]] for g in LOCAL_CHANGES])
-    skeleton, weights = _rig(model, shape.coefficients(x).detach(), offset)
+    skeleton, weights = _rig(model, shape.coefficients(x).detach(), torch.zeros(3, dtype=v.dtype))
+    # Body frame: feet at y = 0 and the root (pelvis) joint on the Y axis, so that garments placed around
+    # the Y axis sit around the torso (a bounding-box centre would be pulled forward by the toes).
+    root = skeleton.joints[skeleton.names.index("root") if "root" in skeleton.names else 0]
+    offset = torch.stack([root[0], v[:, 1].min(), root[2]])
+    vertices = v - offset
+    skeleton = Skeleton(joints=skeleton.joints - offset, bones=skeleton.bones, names=skeleton.names)
     planes = find_section_planes(vertices, model.faces)
     landmarks = {name: p.seed.to(torch.float64) for name, p in planes.items()}
     landmarks["crown"] = vertices[int(torch.argmax(vertices[:, 1]))].clone()
