@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import time
 from dataclasses import asdict, dataclass
 
@@ -177,16 +178,43 @@ def load_anny_model():
     Returns:
         ``anny.Anny`` in float64 on the CPU, topology :data:`TOPOLOGY`, local changes :data:`LOCAL_CHANGES`.
     """
-    import anny
-
+    anny = _import_anny_quietly()
     return anny.Anny(topology=TOPOLOGY, local_changes=list(LOCAL_CHANGES.values()), phenotypes="all")
+
+
+def _import_anny_quietly():
+    """Import anny without the banner its NVIDIA Warp dependency prints on stdout and stderr at import.
+
+    anny initializes Warp at import; Warp prints a version banner (stdout) and, on machines without a CUDA
+    driver, a "GPU execution will not be available" line from native code (stderr). torchgarment does not use
+    Warp (anny's skinning runs in torch here), so both are silenced: the banner through Warp's log level, the
+    native line by pointing file descriptor 2 at /dev/null for the duration of the import only. Exceptions
+    raised by the import propagate unchanged.
+    """
+    import sys
+
+    if "anny" in sys.modules:
+        return sys.modules["anny"]
+    import logging
+
+    import warp
+
+    warp.config.log_level = logging.ERROR
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            import anny
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+    return anny
 
 
 def anny_version() -> str:
     """Installed anny version (part of the cache key)."""
-    import anny
-
-    return str(anny.__version__)
+    return str(_import_anny_quietly().__version__)
 
 
 def validate_measurements(measurements: dict) -> dict[str, float]:
