@@ -248,3 +248,165 @@ def test_real_body_1p75mm_within_1mm(garmentcode_dir):
     sdf, err, gn = _real_body_check(garmentcode_dir, 0.00175, 8, n=50000)
     assert err.max() < 1e-3 and np.percentile(err, 99) < 4e-4
     assert np.median(np.abs(gn - 1)) < 0.01
+
+
+# ---------------------------------------------------------------------------------------------- fast sampling
+def _reference_sample(sdf, x):
+    """The straightforward sampler (separate fine / coarse lookups, one gather per corner) as ground truth."""
+    h, B = sdf.voxel_size, sdf.brick
+    nb = sdf.brick_index.shape
+    n_fine = torch.tensor([n * B for n in nb], dtype=x.dtype)
+    u = (x - sdf.origin) / h
+    uc = torch.minimum(torch.clamp(u, min=0.0), n_fine)
+    off = (u - uc) * h
+    sq = (off * off).sum(-1)
+    outside = sq > 0
+    dist = torch.where(outside, torch.sqrt(torch.where(outside, sq, torch.ones_like(sq))), torch.zeros_like(sq))
+    cell = torch.minimum(torch.floor(uc), n_fine - 1).long()
+    bc = torch.div(cell, B, rounding_mode="floor")
+    loc = cell - bc * B
+    bid = sdf.brick_index[bc[:, 0], bc[:, 1], bc[:, 2]]
+    fine = bid >= 0
+    bricks = sdf.bricks[bid.clamp(min=0)]  # (N, B+1, B+1, B+1)
+    r = torch.arange(len(x))
+
+    def interp(corner, t):
+        c = {(i, j, k): corner(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)}
+        tx, ty, tz = t.unbind(-1)
+        c00 = c[0, 0, 0] + (c[0, 0, 1] - c[0, 0, 0]) * tz
+        c01 = c[0, 1, 0] + (c[0, 1, 1] - c[0, 1, 0]) * tz
+        c10 = c[1, 0, 0] + (c[1, 0, 1] - c[1, 0, 0]) * tz
+        c11 = c[1, 1, 0] + (c[1, 1, 1] - c[1, 1, 0]) * tz
+        c0, c1 = c00 + (c01 - c00) * ty, c10 + (c11 - c10) * ty
+        d0 = (c[0, 0, 1] - c[0, 0, 0]) + ((c[0, 1, 1] - c[0, 1, 0]) - (c[0, 0, 1] - c[0, 0, 0])) * ty
+        d1 = (c[1, 0, 1] - c[1, 0, 0]) + ((c[1, 1, 1] - c[1, 1, 0]) - (c[1, 0, 1] - c[1, 0, 0])) * ty
+        dy = (c01 - c00) + ((c11 - c10) - (c01 - c00)) * tx
+        return c0 + (c1 - c0) * tx, torch.stack([c1 - c0, dy, d0 + (d1 - d0) * tx], -1)
+
+    pf, gf = interp(lambda i, j, k: bricks[r, loc[:, 0] + i, loc[:, 1] + j, loc[:, 2] + k], uc - cell)
+    pc, gc = interp(lambda i, j, k: sdf.coarse[bc[:, 0] + i, bc[:, 1] + j, bc[:, 2] + k], uc / B - bc)
+    phi = torch.where(fine, pf, pc) + dist
+    grad = torch.where(fine[:, None], gf / h, gc / (B * h))
+    grad = torch.where((u >= 0) & (u <= n_fine), grad, torch.zeros_like(grad))
+    grad = grad + torch.where(outside[:, None], off / dist.clamp(min=torch.finfo(x.dtype).tiny)[:, None], 0.0)
+    return phi, grad
+
+
+def _mixed_points(sdf, n, seed):
+    """Band points, far-field points, points outside the box and points exactly on grid nodes and box faces."""
+    rng = np.random.default_rng(seed)
+    lo, hi = sdf.bounds.double().numpy()
+    dirs = rng.normal(size=(n, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    band = dirs * (R + rng.uniform(-0.03, 0.03, size=(n, 1)))
+    box = rng.uniform(lo, hi, size=(n, 3))
+    out = rng.uniform(lo - 0.2, hi + 0.2, size=(n, 3))
+    o, h = sdf.origin.double().numpy(), sdf.voxel_size
+    nodes = o + np.round((band[: n // 4] - o) / h) * h
+    faces = np.array([lo, hi, [lo[0], 0.0, hi[2]], [hi[0], 0.0, 0.0]])
+    return np.concatenate([band, box, out, nodes, faces])
+
+
+@pytest.mark.parametrize("brick", [4, 3])
+def test_fast_sampler_matches_reference(sphere, sphere_sdf, brick):
+    sdf = sphere_sdf if brick == 4 else BodySDF.from_mesh(*sphere, SDFSettings(voxel_size=0.005, brick=3))
+    assert sdf.num_bricks < np.prod(sdf.shape)  # both fine and coarse cells are sampled
+    pts = _mixed_points(sdf, 3000, 8)
+    for dtype, tol in ((torch.float64, 1e-15), (torch.float32, 1e-6)):
+        s = BodySDF(sdf.to_data(), dtype=dtype)
+        x = torch.as_tensor(pts, dtype=dtype)
+        phi, grad = s.value_and_gradient(x)
+        phi_ref, grad_ref = _reference_sample(s, x)
+        assert phi.dtype == dtype and grad.dtype == dtype
+        torch.testing.assert_close(phi, phi_ref, rtol=0, atol=tol)
+        torch.testing.assert_close(grad, grad_ref, rtol=0, atol=tol * 100)
+        torch.testing.assert_close(s(x), phi_ref, rtol=0, atol=tol)
+        # All inside the box (the far-field term is skipped then) gives the same values.
+        inner = x[:3000]
+        lo, hi = s.bounds
+        assert ((inner > lo) & (inner < hi)).all()
+        torch.testing.assert_close(s.value_and_gradient(inner)[1], grad_ref[:3000], rtol=0, atol=tol * 100)
+
+
+def test_blocked_queries(sphere_sdf, monkeypatch):
+    from torchgarment.sdf import grid
+
+    x = torch.as_tensor(_mixed_points(sphere_sdf, 1000, 11))
+    phi, grad = sphere_sdf.value_and_gradient(x)
+    monkeypatch.setattr(grid, "_BLOCK", 700)  # 3250 points -> 5 blocks, the last one partial
+    phi_b, grad_b = sphere_sdf.value_and_gradient(x)
+    assert torch.equal(phi, phi_b) and torch.equal(grad, grad_b) and grad_b.is_contiguous()
+    assert torch.equal(sphere_sdf(x), phi)
+    xr = x.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(sphere_sdf(xr).sum(), xr)
+    assert torch.equal(g, grad)
+
+
+def test_forward_autograd_first_order_only(sphere_sdf):
+    x = _off_face_points(sphere_sdf, 50, 9).requires_grad_(True)
+    phi = sphere_sdf(x)
+    (g,) = torch.autograd.grad(phi.square().sum(), x, create_graph=False)
+    _, g_ref = sphere_sdf.value_and_gradient(x)
+    torch.testing.assert_close(g, 2 * phi.detach()[:, None] * g_ref, rtol=1e-12, atol=1e-14)
+    # A float32 query on a float64 SDF: the gradient flows back through the cast.
+    x32 = x.detach().float().requires_grad_(True)
+    (g32,) = torch.autograd.grad(sphere_sdf(x32).sum(), x32)
+    assert g32.dtype == torch.float32 and (g32.double() - g_ref).abs().max() < 1e-3
+    # Second derivatives are not provided: asking for them fails loudly instead of returning zeros.
+    (g2,) = torch.autograd.grad(sphere_sdf(x).sum(), x, create_graph=True)
+    with pytest.raises(RuntimeError):
+        torch.autograd.grad(g2.sum(), x)
+
+
+def test_non_finite_queries(sphere_sdf):
+    for bad in (float("nan"), float("inf")):
+        x = torch.zeros(10, 3, dtype=torch.float64)
+        x[4, 1] = bad
+        with pytest.raises(InputError):
+            sphere_sdf(x)
+        with pytest.raises(InputError):
+            sphere_sdf.value_and_gradient(x)
+
+
+def test_buffers_move_and_state(sphere_sdf):
+    s = BodySDF(sphere_sdf.to_data()).to(dtype=torch.float32)
+    assert s.nodes.dtype == torch.float32 and s.cell_base.dtype == torch.int32 and s.bricks.dtype == torch.float32
+    assert s.bricks.data_ptr() == s.nodes.data_ptr()  # a view, no second copy
+    assert set(s.state_dict()) == {"origin", "coarse", "brick_index", "nodes"}
+    np.testing.assert_array_equal(s.to_data().bricks, sphere_sdf.to_data().bricks.astype(np.float32))
+
+
+# ---------------------------------------------------------------------------------------------- disk cache
+def test_sdf_cache(sphere, tmp_path, monkeypatch):
+    from torchgarment.sdf import cache as sdf_cache
+
+    v, f = sphere
+    calls = []
+    real_build = sdf_cache.build_sdf_grid
+    monkeypatch.setattr(sdf_cache, "build_sdf_grid", lambda *a: calls.append(1) or real_build(*a))
+    a = BodySDF.cached(v, f, SMALL, cache_dir=tmp_path)
+    b = BodySDF.cached(torch.as_tensor(v), torch.as_tensor(f), SMALL, cache_dir=tmp_path)
+    assert len(calls) == 1 and len(list(tmp_path.glob("*.npz"))) == 1
+    x = _mixed_points(a, 500, 10)
+    x = torch.as_tensor(x)
+    assert torch.equal(a(x), b(x)) and torch.equal(a.value_and_gradient(x)[1], b.value_and_gradient(x)[1])
+    fresh = BodySDF.from_mesh(v, f, SMALL)
+    assert torch.equal(fresh(x), b(x))
+    c32 = BodySDF.cached(v, f, SMALL, cache_dir=tmp_path, dtype=torch.float32)
+    assert len(calls) == 1 and c32.dtype == torch.float32
+    # Keys depend on the settings that change the grid and on the mesh, not on the thread count.
+    key = sdf_cache.sdf_cache_key(v, f, SMALL)
+    assert key != sdf_cache.sdf_cache_key(v, f, SDFSettings(voxel_size=0.005, brick=4, band=0.025))
+    assert key != sdf_cache.sdf_cache_key(v, f, SDFSettings(voxel_size=0.004, brick=4))
+    assert key != sdf_cache.sdf_cache_key(v, f, SDFSettings(voxel_size=0.005, brick=4, sign_type="pseudonormal"))
+    assert key != sdf_cache.sdf_cache_key(v * (1 + 1e-12), f, SMALL)
+    assert key == sdf_cache.sdf_cache_key(v.astype(np.float64), f.astype(np.int32), SDFSettings(voxel_size=0.005, brick=4, workers=1))
+    # A corrupt entry is rebuilt.
+    entry = tmp_path / f"{key}.npz"
+    entry.write_bytes(entry.read_bytes()[:1000])
+    d = BodySDF.cached(v, f, SMALL, cache_dir=tmp_path)
+    assert len(calls) == 2 and torch.equal(d(x), a(x))
+    # Default folder: $TORCHGARMENT_CACHE/sdf.
+    monkeypatch.setenv("TORCHGARMENT_CACHE", str(tmp_path / "root"))
+    BodySDF.cached(v, f, SMALL)
+    assert (tmp_path / "root" / "sdf" / f"{key}.npz").is_file()
