@@ -38,6 +38,7 @@ from torchgarment.sim.solvers.common import (
     Timer,
     checked_max_step,
     evaluate,
+    evaluate_with_diagonal,
     tolerance,
 )
 
@@ -97,7 +98,7 @@ def apply_inverse(dinv: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """``D^-1 g`` for block (V, 3, 3) or scalar (V, 3) inverses; ``g: (V, 3)``."""
     if dinv.dim() == 2:
         return dinv * g
-    return (dinv * g[:, None, :]).sum(-1)
+    return torch.bmm(dinv, g.unsqueeze(-1)).squeeze(-1)
 
 
 def clamp_displacement_(step: torch.Tensor, max_length: float) -> torch.Tensor:
@@ -142,7 +143,8 @@ def solve_gd_chebyshev(
 
     with torch.no_grad():
         x = x0.detach().clone()
-        e, g, gn = evaluate(model, x, 0, "initial state")
+        e, g, gn, h = evaluate_with_diagonal(model, x, 0, "initial state")
+        dinv = jacobi_inverse(h, settings.preconditioner, settings.diagonal_floor)
         info.residual_history.append(gn)
         info.energy_history.append(e)
         tol = tolerance(settings, gn)
@@ -150,20 +152,17 @@ def solve_gd_chebyshev(
         x_prev: torch.Tensor | None = None
         omega = 1.0
         since_restart = 0
-        dinv: torch.Tensor | None = None
         info.message = "max iterations reached"
         if gn <= tol:
             info.converged, info.message = True, "converged"
 
         k = 0
         while not info.converged and k < max_iterations:
-            if dinv is None or k % settings.diagonal_interval == 0:
-                dinv = jacobi_inverse(model.hessian_diagonal(x), settings.preconditioner, settings.diagonal_floor)
             step = apply_inverse(dinv, g).mul_(-alpha)
             omega = chebyshev_weight(since_restart, omega, rho, settings.chebyshev_delay)
             if omega != 1.0 and x_prev is not None:
-                # x_new - x = omega * (x + step - x_prev) + x_prev - x = omega * step + (omega - 1) (x - x_prev)
-                step = step.mul_(omega).add_(x - x_prev, alpha=omega - 1.0)
+                # x_new - x = omega (x + step - x_prev) + x_prev - x = omega step + (omega - 1) (x - x_prev)
+                step.mul_(omega).add_(x - x_prev, alpha=omega - 1.0)
             if settings.max_displacement is not None:
                 clamp_displacement_(step, settings.max_displacement)
             if settings.safeguard == Safeguard.MAX_STEP:
@@ -176,9 +175,11 @@ def solve_gd_chebyshev(
             x_prev, x = x, x_new
             since_restart += 1
             k += 1
-            e, g, gn = evaluate(model, x, k)
-            if not bool(torch.isfinite(x).all()):
-                raise NonFiniteError(f"non-finite positions at solver iteration {k}")
+            if k % settings.diagonal_interval == 0:
+                e, g, gn, h = evaluate_with_diagonal(model, x, k)
+                dinv = jacobi_inverse(h, settings.preconditioner, settings.diagonal_floor)
+            else:
+                e, g, gn = evaluate(model, x, k)
             if gn <= tol:
                 info.converged, info.message = True, "converged"
             elif k % settings.check_interval == 0:
@@ -187,7 +188,7 @@ def solve_gd_chebyshev(
                     # energy went up since the checkpoint: roll back, shrink the step, restart Chebyshev
                     x, e, g, gn = ckpt
                     x_prev, omega, since_restart = None, 1.0, 0
-                    dinv = None
+                    dinv = jacobi_inverse(model.hessian_diagonal(x), settings.preconditioner, settings.diagonal_floor)
                     alpha *= settings.step_decrease
                     info.restarts += 1
                     if alpha < settings.min_step:

@@ -228,6 +228,25 @@ def evaluate(model: SolverModel, x: torch.Tensor, iteration: int, what: str = ""
     return ef, g, gn
 
 
+def evaluate_with_diagonal(
+    model: SolverModel, x: torch.Tensor, iteration: int, what: str = ""
+) -> tuple[float, torch.Tensor, float, torch.Tensor]:
+    """Like :func:`evaluate`, plus the Hessian diagonal blocks (V, 3, 3); uses the model's fused
+    ``value_grad_hessian_diagonal`` when it has one (terms share their work), else two calls."""
+    fused = getattr(model, "value_grad_hessian_diagonal", None)
+    if fused is None:
+        e, g, gn = evaluate(model, x, iteration, what)
+        return e, g, gn, model.hessian_diagonal(x)
+    e, g, h = fused(x)
+    ef = float(e)
+    gn = float(torch.linalg.vector_norm(g))
+    if not (math.isfinite(ef) and math.isfinite(gn)):
+        where = f" ({what})" if what else ""
+        bad = "energy" if not math.isfinite(ef) else "gradient"
+        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: E={ef}, |g|={gn}")
+    return ef, g, gn, h
+
+
 def checked_max_step(model: SolverModel, x: torch.Tensor, dx: torch.Tensor, iteration: int) -> float:
     """``model.max_step(x, dx)`` validated to lie in (0, 1]."""
     t = float(model.max_step(x, dx))
