@@ -1,6 +1,6 @@
 """The ``torchgarment`` command line.
 
-Subcommands: ``body``, ``pattern``, ``measure``, ``demo``. Every subcommand has ``--help``. Bad input ends
+Subcommands: ``body``, ``pattern``, ``measure``, ``drape``, ``demo``. Every subcommand has ``--help``. Bad input ends
 with one readable line on stderr and exit code 2; outputs are staged and published only on success.
 """
 
@@ -248,6 +248,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mesh", help="body mesh file (OBJ, PLY, STL, GLB)")
     p.add_argument("--out", required=True, metavar="FILE.json", help="output JSON file")
     p.set_defaults(func=cmd_measure)
+
+    from torchgarment.sim.drape_cli import add_drape_parser
+
+    add_drape_parser(sub)
 
     p = sub.add_parser("demo", help="run the main job on built-in defaults",
                        description="Make bodies of two chart sizes, draft a garment for each, mesh it, place it "

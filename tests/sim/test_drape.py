@@ -1,0 +1,130 @@
+"""Tests of torchgarment.sim.drape: one small drape end to end, plus the full matrix (slow)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from torchgarment.errors import InputError
+from torchgarment.sim.drape import DrapeSettings, drape, max_seam_gap, seam_gaps, vertex_stretch_ratio
+from torchgarment.structures.garment_mesh import GarmentMesh
+
+# small case: the force tolerance is the garment's weight (atol_weight=1): the projected-Newton settle stage on
+# the trilinear SDF converges linearly, so tighter tolerances need hundreds of iterations (see drape_all).
+SMALL = DrapeSettings(edge_length=0.035, voxel_size=0.008, sew_solver="gd-chebyshev", solver="newton",
+                      sew_max_iterations=600, max_iterations=120, atol_weight=1.0)
+
+
+@pytest.fixture(scope="module")
+def small_drape():
+    from torchgarment.body import Body
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+
+    body = Body.from_size("6")
+    pattern = draft("straight_skirt", chart_row("6"))
+    return body, pattern, drape(pattern, body, settings=SMALL)
+
+
+def test_small_drape_end_to_end(small_drape):
+    body, pattern, r = small_drape
+    m = r.metrics
+    sdf = r.model.term("body_barrier").sdf
+    phi = sdf(r.x)
+    assert float(phi.min()) >= 0.0 and m["min_sdf_mm"] >= 0.0 and m["inside_vertices"] == 0
+    assert abs(m["min_sdf_mm"] - 1e3 * float(phi.min())) < 1e-9
+    assert m["max_seam_gap_mm"] <= 1.0
+    assert r.converged and m["converged"] and r.ok
+    assert m["residual"] <= m["tolerance"]
+    assert m["energy"] < m["energy_start"]
+    # every stage keeps its residual history; the sewing stage closed the seams from ~30 cm
+    assert [s.name for s in r.stages] == ["sew", "settle"]
+    assert all(len(s.info.residual_history) == s.info.iterations + 1 for s in r.stages)
+    placed = pattern_mesh(pattern)
+    assert r.stages[0].max_seam_gap < 0.02 < max_seam_gap(placed, placed.x)
+    assert m["iterations"] == sum(s.info.iterations for s in r.stages)
+    assert set(m["energy_terms"]) == {"stretch", "sew", "bend", "gravity", "body_barrier"}
+    assert r.x.shape == (m["vertices"], 3) and torch.isfinite(r.x).all()
+    json.dumps(m)  # serializable
+    # draped cloth is near its rest lengths (the skirt neither collapses nor blows up)
+    ratio = vertex_stretch_ratio(r.mesh, r.x)
+    assert 0.9 < float(ratio.median()) < 1.1
+
+
+def pattern_mesh(pattern):
+    from torchgarment.pattern.meshing import mesh_pattern
+
+    return mesh_pattern(pattern, SMALL.edge_length)
+
+
+def test_seam_gaps_and_gradcheck():
+    x = torch.tensor([[0.0, 0, 0], [0.0, 0, 0.003], [1.0, 0, 0], [1.0, 0.004, 0]], dtype=torch.float64)
+    faces = torch.tensor([[0, 2, 3], [0, 3, 1]])
+    mesh = GarmentMesh(x, faces, seam_pairs=torch.tensor([[0, 1], [2, 3]]))
+    assert torch.allclose(seam_gaps(mesh, x), torch.tensor([0.003, 0.004], dtype=torch.float64))
+    assert abs(max_seam_gap(mesh, x) - 0.004) < 1e-15
+    xr = (x + 0.01 * torch.randn(4, 3, dtype=torch.float64)).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda y: seam_gaps(mesh, y), (xr,))
+
+
+def test_stretch_ratio_uniform_scaling():
+    p = torch.tensor([[0.0, 0], [1, 0], [0, 1], [1, 1]], dtype=torch.float64)
+    x = torch.cat([p, torch.zeros(4, 1, dtype=torch.float64)], dim=1)
+    mesh = GarmentMesh(x, torch.tensor([[0, 1, 3], [0, 3, 2]]), p=p)
+    assert torch.allclose(vertex_stretch_ratio(mesh, 1.05 * x), torch.full((4,), 1.05, dtype=torch.float64))
+
+
+def test_bad_input():
+    with pytest.raises(InputError):
+        drape("not a pattern", None, settings=DrapeSettings())
+    with pytest.raises(InputError):
+        DrapeSettings(edge_length=-1.0).validate()
+    with pytest.raises(InputError):
+        DrapeSettings(solver="nope").validate()
+
+
+def test_cli_bad_input(tmp_path, capsys):
+    import argparse
+
+    from torchgarment.sim.drape_cli import add_drape_parser
+
+    parser = argparse.ArgumentParser()
+    add_drape_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["drape", "--pattern", "no_such_garment", "--body", "6", "--out", str(tmp_path / "o")])
+    with pytest.raises(InputError, match="neither a library garment"):
+        args.func(args)
+    args = parser.parse_args(["drape", "--pattern", "straight_skirt", "--body", str(tmp_path / "nobody.obj"),
+                              "--out", str(tmp_path / "o")])
+    with pytest.raises(InputError, match="neither a chart size"):
+        args.func(args)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("garment", ["straight_skirt", "aline_skirt", "sheath_dress", "tshirt", "trousers",
+                                     "bodysuit"])
+@pytest.mark.parametrize("size", ["6", "20"])
+def test_library_matrix(garment, size):
+    from torchgarment.body import Body
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+
+    r = drape(draft(garment, chart_row(size)), Body.from_size(size),
+              settings=DrapeSettings(edge_length=0.03, sew_solver="gd-chebyshev", max_iterations=300))
+    assert r.metrics["min_sdf_mm"] >= 0 and r.metrics["max_seam_gap_mm"] <= 1.0
+    assert r.converged, r.metrics["message"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec,body", [("shirt_mean", "mean_all"), ("dress_pencil", "mean_female")])
+def test_garmentcode_matrix(garmentcode_dir, spec, body):
+    from torchgarment.body.load import load_body
+    from torchgarment.pattern.garmentcode import load_pattern
+
+    r = drape(load_pattern(garmentcode_dir / "patterns" / f"{spec}_specification.json"),
+              load_body(garmentcode_dir / "bodies" / f"{body}.obj"),
+              settings=DrapeSettings(edge_length=0.03, sew_solver="gd-chebyshev", max_iterations=300))
+    assert r.metrics["min_sdf_mm"] >= 0 and r.metrics["max_seam_gap_mm"] <= 1.0
+    assert r.converged, r.metrics["message"]
