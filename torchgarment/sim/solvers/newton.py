@@ -5,6 +5,13 @@ projected to positive semi-definite) into a scipy CSR matrix on the CPU, solves 
 caps the step at ``step_fraction * model.max_step(x, dx)`` when the full step would make a barrier infinite, and
 backtracks until the Armijo condition ``E(x + a dx) <= E(x) + c a g.dx`` holds. When the factorization fails or
 the solution is not a descent direction, ``lambda * I`` is added (``lambda`` growing tenfold per retry).
+
+When the line search fails (the projected Hessian is a poor model: dropped negative-curvature parts of
+compressed springs or of the barrier, a non-smooth SDF), the step is not abandoned: the direction is recomputed
+with a Levenberg damping ``(H + lambda diag(H)) dx = -g`` (``lambda`` from ``levenberg_start``, tenfold per retry,
+up to :data:`LEVENBERG_RETRIES` retries), which bends the step towards scaled gradient descent and shortens it. A
+damping that worked is kept (divided by ten per successful iteration) so that the next iterations start from it.
+The solve stops as stalled only when every damped direction also fails.
 """
 
 from __future__ import annotations
@@ -27,6 +34,13 @@ from torchgarment.sim.solvers.common import (
     evaluate,
     tolerance,
 )
+
+
+LEVENBERG_START = 1e-4
+"""First Levenberg damping ``lambda`` (relative to the Hessian diagonal) after a failed line search."""
+
+LEVENBERG_RETRIES = 8
+"""Damped directions tried (``lambda`` tenfold each) before a failed line search stops the solve."""
 
 
 def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray) -> np.ndarray | None:
@@ -109,30 +123,40 @@ def solve_newton(
             info.converged, info.message = True, "converged"
 
         k = 0
+        damping = 0.0  # Levenberg damping carried between iterations (0: plain projected Newton)
         while not info.converged and k < max_iterations:
             k += 1
             h = assembler.assemble(model.hessian_blocks(x, project_psd=settings.project_psd))
             if not np.all(np.isfinite(h.data)):
                 raise NonFiniteError(f"model returned a non-finite Hessian at solver iteration {k}")
             g64 = g.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
-            dx64, retries = newton_direction(h, g64, settings, k)
-            info.restarts += retries
-            slope = float(g64 @ dx64)  # < 0
-            dx = torch.from_numpy(dx64).to(device=x.device, dtype=x.dtype).reshape(x.shape)
-            a = checked_max_step(model, x, dx, k)
-            a = 1.0 if a >= 1.0 else settings.step_fraction * a
+            diag = np.maximum(np.abs(h.diagonal()), 1e-12 * float(np.abs(h.diagonal()).max() or 1.0))
             accepted = False
-            for _ in range(settings.max_backtracks):
-                xt = x + a * dx
-                et, gt, gnt = evaluate(model, xt, k, f"line search, step {a:.3g}")
-                if et <= e + settings.armijo_c * a * slope + slack * abs(e):
-                    accepted = True
-                    break
-                a *= settings.backtrack
+            trial = 0
+            while not accepted and trial <= LEVENBERG_RETRIES:
+                hk = h if damping == 0.0 else (h + scipy.sparse.diags(damping * diag, format="csr")).tocsr()
+                dx64, retries = newton_direction(hk, g64, settings, k)
+                info.restarts += retries
+                slope = float(g64 @ dx64)  # < 0
+                dx = torch.from_numpy(dx64).to(device=x.device, dtype=x.dtype).reshape(x.shape)
+                a = checked_max_step(model, x, dx, k)
+                a = 1.0 if a >= 1.0 else settings.step_fraction * a
+                for _ in range(settings.max_backtracks):
+                    xt = x + a * dx
+                    et, gt, gnt = evaluate(model, xt, k, f"line search, step {a:.3g}")
+                    if et <= e + settings.armijo_c * a * slope + slack * abs(e):
+                        accepted = True
+                        break
+                    a *= settings.backtrack
+                if not accepted:
+                    trial += 1
+                    damping = LEVENBERG_START if damping == 0.0 else 10.0 * damping
+                    info.restarts += 1
             if not accepted:
-                info.message = f"line search failed at iteration {k} (no sufficient decrease)"
+                info.message = f"line search failed at iteration {k} (no sufficient decrease, damping {damping:.3g})"
                 k -= 1
                 break
+            damping = 0.0 if damping <= LEVENBERG_START else 0.1 * damping
             x, e, g, gn = xt, et, gt, gnt
             info.final_step = a
             info.residual_history.append(gn)
