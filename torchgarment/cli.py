@@ -71,24 +71,6 @@ def _draft_measurements_for_size(size: str):
     return chart_row(size)
 
 
-def _load_pattern_file(path: str):
-    from torchgarment.errors import InputError
-
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{path}: no such file")
-    suffix = p.suffix.lower()
-    if suffix == ".json":
-        from torchgarment.pattern.garmentcode import load_pattern
-
-        return load_pattern(p)
-    if suffix == ".dxf":
-        from torchgarment.pattern.dxf import load_dxf
-
-        return load_dxf(p)
-    raise InputError(f"{path}: unknown pattern format '{suffix}' (expected .json or .dxf)")
-
-
 def _write_pattern_outputs(pattern, stage: Path, edge_length: float | None) -> dict:
     from torchgarment.pattern.dxf import save_dxf
     from torchgarment.pattern.garmentcode import save_pattern
@@ -155,7 +137,9 @@ def cmd_pattern(args: argparse.Namespace) -> int:
             raise _UsageError("pattern: --garment needs --size S (see `torchgarment body --list-sizes`)")
         pattern = draft(args.garment, _draft_measurements_for_size(args.size))
     else:
-        pattern = _load_pattern_file(args.file)
+        from torchgarment.pattern.files import load_pattern_file
+
+        pattern = load_pattern_file(args.file)
     with staged_output(args.out) as stage:
         info = _write_pattern_outputs(pattern, stage, args.edge_length)
     print(f"pattern {info['name']}: {info['panels']} panels, {info['stitches']} stitches -> {args.out}")

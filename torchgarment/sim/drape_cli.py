@@ -71,19 +71,11 @@ def _load_pattern(spec: str, size: str | None, body_spec: str):  # noqa: ANN202 
         if size is None:
             raise InputError(f"--pattern {spec} is a library garment: give --size S (one of {', '.join(list_sizes())})")
         return draft(spec, chart_row(size))
-    path = Path(spec)
-    if not path.is_file():
+    if not Path(spec).is_file():
         raise InputError(f"--pattern {spec}: neither a library garment ({', '.join(list_garments())}) nor a file")
-    suffix = path.suffix.lower()
-    if suffix == ".json":
-        from torchgarment.pattern.garmentcode import load_pattern
+    from torchgarment.pattern.files import load_pattern_file
 
-        return load_pattern(path)
-    if suffix == ".dxf":
-        from torchgarment.pattern.dxf import load_dxf
-
-        return load_dxf(path)
-    raise InputError(f"--pattern {spec}: unknown pattern format '{suffix}' (expected .json or .dxf)")
+    return load_pattern_file(spec)
 
 
 class _Progress:
