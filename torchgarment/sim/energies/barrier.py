@@ -36,6 +36,15 @@ DEFAULT_OFFSET = 1.0e-3
 """Default minimum clearance in metres that :meth:`BodyBarrier.project_feasible` restores (raised to a quarter
 voxel for coarse SDFs)."""
 
+_DIRECT_SAMPLES = 8192
+"""Below this many path samples :meth:`BodyBarrier.max_step` skips its end-point pre-check (one query less)."""
+
+_MAX_TRIALS = 15
+"""Trial step lengths certified at once by one multisection pass of :meth:`BodyBarrier.max_step`."""
+
+_MAX_REFINE_SAMPLES = 65536
+"""Most path samples of one multisection pass of :meth:`BodyBarrier.max_step`."""
+
 SDF_LIPSCHITZ = math.sqrt(3.0)
 """Lipschitz bound of a trilinear interpolant of exact distances (each partial derivative is at most 1)."""
 
@@ -102,6 +111,9 @@ class BodyBarrier(EnergyTerm):
         self.segment_samples = int(segment_samples)
         self.bisection_steps = int(bisection_steps)
         self.project_iterations = int(project_iterations)
+        self._cache_x: torch.Tensor | None = None
+        self._cache_key: tuple | None = None
+        self._cache_val: tuple[torch.Tensor, torch.Tensor] | None = None
 
     # ------------------------------------------------------------------ sampling
     def _phi(self, x: torch.Tensor) -> torch.Tensor:
@@ -111,6 +123,31 @@ class BodyBarrier(EnergyTerm):
     def _phi_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         phi, g = self.sdf.value_and_gradient(x)
         return phi.to(x.dtype), g.to(x.dtype)
+
+    @staticmethod
+    def _key(x: torch.Tensor) -> tuple:
+        # the version counter is shared by a tensor and its detached aliases, so in-place changes are seen;
+        # the cached tensor is held, so its storage (and data_ptr) cannot be reused by another tensor
+        return (x.data_ptr(), x._version, tuple(x.shape), x.stride(), x.dtype, x.device)
+
+    def _cached(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(phi, grad phi)`` of the last :meth:`_phi_grad_cached` call if ``x`` is that same, unmodified tensor."""
+        if self._cache_x is not None and self._cache_key == self._key(x):
+            return self._cache_val
+        return None
+
+    def _phi_grad_cached(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(phi, grad phi)`` of all vertices ``x`` (V, 3), reusing the last evaluation when ``x`` is unchanged.
+
+        The solvers evaluate the gradient at ``x`` and then call :meth:`max_step` from the same ``x``; the cache
+        saves that second SDF query.
+        """
+        hit = self._cached(x)
+        if hit is not None:
+            return hit
+        val = self._phi_grad(x)
+        self._cache_x, self._cache_key, self._cache_val = x, self._key(x), val
+        return val
 
     # ------------------------------------------------------------------ energy
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -122,27 +159,29 @@ class BodyBarrier(EnergyTerm):
         e = torch.where(ok, -self.mu * torch.log(safe), torch.full_like(phi, math.inf))
         return e.sum()
 
-    def _evaluate(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _evaluate(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Energy (), ``phi`` clamped to :attr:`offset` where infeasible (V,), and ``grad phi`` (V, 3)."""
         check_positions(x, self.num_vertices, self.name)
-        phi, gphi = self._phi_grad(x.detach())
-        ok = phi > 0
-        safe = torch.where(ok, phi, torch.full_like(phi, self.offset))
-        E = -self.mu * torch.log(safe).sum()
-        if not bool(ok.all()):
-            E = torch.full_like(E, math.inf)
-        return E, phi, safe, gphi
+        phi, gphi = self._phi_grad_cached(x.detach())
+        if phi.numel() == 0 or float(phi.min()) > 0:
+            return -self.mu * torch.log(phi).sum(), phi, gphi
+        safe = torch.where(phi > 0, phi, torch.full_like(phi, self.offset))
+        return torch.full((), math.inf, dtype=phi.dtype, device=phi.device), safe, gphi
 
     def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Energy () in joules and analytic gradient ``-mu grad phi / phi`` (V, 3) in newtons."""
-        E, _, safe, gphi = self._evaluate(x)
+        E, safe, gphi = self._evaluate(x)
         return E, gphi * (-self.mu / safe).unsqueeze(1)
 
     def value_grad_hessian_diagonal(
         self, x: torch.Tensor, project_psd: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Energy, gradient and Hessian diagonal blocks sharing one SDF evaluation."""
-        E, _, safe, gphi = self._evaluate(x)
-        return E, gphi * (-self.mu / safe).unsqueeze(1), self._blocks(safe, gphi)
+        E, safe, gphi = self._evaluate(x)
+        w = (-self.mu / safe).unsqueeze(1)
+        g = gphi * w
+        # blocks mu g g^T / phi^2 = (gphi mu / phi) (gphi / phi)^T: reuse the gradient
+        return E, g, g.unsqueeze(2) * (gphi / safe.unsqueeze(1)).neg_().unsqueeze(1)
 
     def _blocks(self, safe: torch.Tensor, gphi: torch.Tensor) -> torch.Tensor:
         s = (self.mu / (safe * safe)).sqrt().unsqueeze(1) * gphi  # sqrt(mu) g / phi
@@ -150,7 +189,7 @@ class BodyBarrier(EnergyTerm):
 
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
         """(V, 3, 3) blocks ``mu g g^T / phi^2`` (PSD; the ``Hess(phi)`` part is dropped)."""
-        _, _, safe, gphi = self._evaluate(x)
+        _, safe, gphi = self._evaluate(x)
         return self._blocks(safe, gphi)
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
@@ -164,11 +203,23 @@ class BodyBarrier(EnergyTerm):
         """Largest ``alpha`` in (0, 1] (up to bisection) such that every path ``x_i + t dx_i``, ``t <= alpha``,
         stays outside the body (``phi > 0``).
 
-        A path is certified safe when it is shorter than ``phi(x_i) / L`` (``L``: :attr:`lipschitz`); longer
-        paths are sampled at :attr:`segment_samples` points, and each piece between consecutive samples
-        ``a, b`` is certified by ``|b - a| < (phi(a) + phi(b)) / L``. The result is 1.0 when the full step is
-        certified, else the largest certified ``alpha`` found by bisection (never below the conservative
-        ``min_i phi(x_i) / (L |dx_i|)``, scaled by 0.999).
+        Certificates use the Lipschitz bound ``L`` (:attr:`lipschitz`) of ``phi``: a piece of path from ``a`` to
+        ``b`` is safe when ``L |b - a| < phi(a) + phi(b)`` (and ``phi(b) > 0``), and so is the ball of radius
+        ``phi(a) / L`` around a sample ``a``. In order of cost:
+
+        1. a path shorter than ``phi(x_i) / L`` is safe (no SDF query: ``phi(x_i)`` is reused from the last
+           energy evaluation at ``x`` when there was one); if all are, the result is 1.0;
+        2. when many paths remain, they are first checked as one piece each, with one sample at the end point;
+        3. the paths still open are sampled at :attr:`segment_samples` points; each gets a certified
+           ``alpha_i`` (its pieces up to the first failing one, plus the safe ball of the last good sample)
+           and, when a sample lies inside the body, an upper bound ``hi_i``;
+        4. while the bracket ``[min alpha_i, min hi_i]`` is wider than 1 %: multisection, i.e. bisection
+           with up to 15 trial ``alpha`` s per SDF query, each certified by :attr:`segment_samples` pieces on
+           ``[0, alpha]`` of the paths not yet certified that far (at most the resolution of
+           :attr:`bisection_steps` bisection steps).
+
+        Each stage is one batched SDF query. The result ``min alpha_i`` is never below the conservative
+        ``min_i phi(x_i) / (L |dx_i|)``.
 
         Args:
             x: (V, 3) feasible positions (every ``phi > 0``).
@@ -180,50 +231,102 @@ class BodyBarrier(EnergyTerm):
         check_positions(x, self.num_vertices, self.name)
         check_positions(dx, self.num_vertices, self.name + " step")
         x, dx = x.detach(), dx.detach().to(x.dtype)
-        phi0 = self._phi(x)
-        if not bool((phi0 > 0).all()):
+        hit = self._cached(x)
+        phi0 = hit[0] if hit is not None else self._phi(x)
+        if phi0.numel() == 0:
+            return 1.0
+        if not float(phi0.min()) > 0:
             raise InputError(f"{int((phi0 <= 0).sum())} vertices are inside the body (phi <= 0); "
                              f"call project_feasible first")
+        L, n = self.lipschitz, self.segment_samples
         length = torch.linalg.vector_norm(dx, dim=1)
-        moving = length > 0
-        safe = torch.full_like(phi0, math.inf)
-        safe[moving] = phi0[moving] / (self.lipschitz * length[moving])  # alpha below which a path is safe
-        cand = torch.nonzero(safe < 1.0, as_tuple=False).flatten()
+        # stage 1: paths shorter than phi / L (a zero step never becomes a candidate)
+        cand = torch.nonzero(L * length >= phi0, as_tuple=False).flatten()
         if cand.numel() == 0:
             return 1.0
-        x_c, dx_c, phi_c, len_c, safe_c = x[cand], dx[cand], phi0[cand], length[cand], safe[cand]
-        n = self.segment_samples
+        x_c, dx_c, phi_c, len_c = x[cand], dx[cand], phi0[cand], length[cand]
+        if cand.numel() * n > _DIRECT_SAMPLES:
+            # stage 2: the whole path as one piece
+            phi_end = self._phi(x_c + dx_c)
+            keep = ~((phi_end > 0) & (L * len_c < phi_c + phi_end))
+            if not bool(keep.any()):
+                return 1.0
+            x_c, dx_c, phi_c, len_c = x_c[keep], dx_c[keep], phi_c[keep], len_c[keep]
+        m = len_c.shape[0]
+        lo_i = torch.zeros(m, dtype=x.dtype, device=x.device)
+        hi_i = torch.ones(m, dtype=x.dtype, device=x.device)
+        # stage 3 on all open paths (the start's phi is known), then stage 4 on the limiting ones
+        lo_i, hi_i, _ = self._certify(x_c, dx_c, len_c, lo_i, hi_i, phi_c, n)
+        lo, hi = min(float(lo_i.min()), 1.0), float(hi_i.min())
+        steps = self.bisection_steps
+        while steps > 0 and lo < 0.99 * hi:
+            # multisection: certify J trial alphas in (lo, hi) at once, on the paths not certified up to them
+            rows = torch.nonzero(lo_i < hi, as_tuple=False).flatten()
+            J = max(1, min(_MAX_TRIALS, _MAX_REFINE_SAMPLES // (rows.numel() * n)))
+            J = min(J, 2 ** steps - 1)  # no finer than the bisection steps left
+            trials = lo + (hi - lo) * torch.arange(1, J + 1, dtype=x.dtype, device=x.device) / (J + 1)
+            ok = self._certified(x_c[rows], dx_c[rows], phi_c[rows], len_c[rows], lo_i[rows], trials)
+            j = int(ok.to(torch.int8).argmin()) if not bool(ok.all()) else J  # first failing trial
+            if j > 0:
+                lo = float(trials[j - 1])
+            if j < J:
+                hi = float(trials[j])
+            steps -= max(1, int(math.log2(J + 1)))
+        return max(min(lo, 1.0), 0.999 * float((phi_c / (L * len_c)).min()))
+
+    def _certified(self, x: torch.Tensor, dx: torch.Tensor, phi: torch.Tensor, length: torch.Tensor,
+                   lo_i: torch.Tensor, trials: torch.Tensor) -> torch.Tensor:
+        """(J,) bool: whether every path ``x + t dx`` (m, 3) is certified on ``[0, a_j]`` for each trial ``a_j``
+        (``segment_samples`` pieces each); paths already certified up to ``lo_i >= a_j`` count as certified."""
+        n, L = self.segment_samples, self.lipschitz
         t = torch.arange(1, n + 1, dtype=x.dtype, device=x.device) / n
+        at = trials[:, None] * t[None, :]  # (J, n)
+        pts = x[:, None, None, :] + at[None, :, :, None] * dx[:, None, None, :]  # (m, J, n, 3)
+        ph = self._phi(pts.reshape(-1, 3)).view(x.shape[0], trials.shape[0], n)
+        prev = torch.cat([phi[:, None, None].expand(-1, trials.shape[0], 1), ph[:, :, :-1]], dim=2)
+        piece = (L / n) * trials[None, :, None] * length[:, None, None]
+        good = ((ph > 0) & (piece < prev + ph)).all(dim=2) | (lo_i[:, None] >= trials[None, :])  # (m, J)
+        return good.all(dim=0)
 
-        def certified(alpha: float) -> bool:
-            m = safe_c < alpha
-            if not bool(m.any()):
-                return True
-            pts = x_c[m, None, :] + (alpha * t)[None, :, None] * dx_c[m, None, :]
-            phis = self._phi(pts.reshape(-1, 3)).view(-1, n)
-            if not bool((phis > 0).all()):
-                return False
-            prev = torch.cat([phi_c[m, None], phis[:, :-1]], dim=1)
-            piece = (alpha / n) * len_c[m, None]
-            return bool((self.lipschitz * piece < prev + phis).all())
+    def _certify(self, x: torch.Tensor, dx: torch.Tensor, length: torch.Tensor, s: torch.Tensor, e: torch.Tensor,
+                 phi_s: torch.Tensor | None, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Sample the paths ``x + t dx`` (m, 3) on ``t in [s, e]`` (m,) in ``n`` pieces, where ``[0, s]`` is
+        already certified.
 
-        if certified(1.0):
-            return 1.0
-        lo, hi = 0.999 * float(safe_c.min()), 1.0
-        for _ in range(self.bisection_steps):
-            mid = 0.5 * (lo + hi)
-            if certified(mid):
-                lo = mid
-            else:
-                hi = mid
-        return lo
+        Args:
+            phi_s: ``phi`` at ``t = s`` when known (then not sampled again), else None.
+
+        Returns:
+            The new certified ``alpha`` (m,), upper bounds (m,) (``e`` unless a sample is inside the body) and
+            ``phi`` of the last good sample (m,) (a clearance estimate for the next pass).
+        """
+        L = self.lipschitz
+        k = torch.arange(0 if phi_s is None else 1, n + 1, dtype=x.dtype, device=x.device) / n
+        tt = s[:, None] + (e - s)[:, None] * k[None, :]  # (m, n + 1) or (m, n)
+        pts = x[:, None, :] + tt[:, :, None] * dx[:, None, :]
+        ph = self._phi(pts.reshape(-1, 3)).view(tt.shape)
+        if phi_s is not None:
+            ph = torch.cat([phi_s[:, None], ph], dim=1)
+            tt = torch.cat([s[:, None], tt], dim=1)
+        piece = (L / n) * (e - s) * length  # (m,) length of a piece times L
+        good = (ph[:, 1:] > 0) & (piece[:, None] < ph[:, :-1] + ph[:, 1:]) & (ph[:, :1] > 0)  # (m, n)
+        bad = ~good
+        failing = bad.any(dim=1)
+        f = bad.to(torch.int8).argmax(dim=1, keepdim=True)  # first failing piece (0 if none: masked below)
+        t_a, t_b = tt.gather(1, f)[:, 0], tt.gather(1, f + 1)[:, 0]
+        ball = ph.gather(1, f)[:, 0].clamp_min(0.0) / (L * length)
+        lo = torch.where(failing, torch.minimum(t_a + ball, t_b), e)
+        inside = failing & (ph.gather(1, f + 1)[:, 0] <= 0)
+        hi = torch.where(inside, torch.minimum(t_b, e), e)
+        return torch.maximum(lo, s), hi, ph.gather(1, f)[:, 0]
 
     @torch.no_grad()
     def project_feasible(self, x: torch.Tensor) -> torch.Tensor:
         """Positions with every vertex at least about :attr:`offset` outside the body.
 
         Vertices with ``phi < offset`` move along ``grad phi / |grad phi|`` by ``offset - phi``, repeated
-        :attr:`project_iterations` times since the interpolated gradient is approximate. Others are unchanged.
+        :attr:`project_iterations` times since the interpolated gradient is approximate. Others are unchanged
+        (only the vertices below the offset are sampled again; none when every vertex is clear).
 
         Args:
             x: (V, 3) positions in metres.
@@ -236,17 +339,21 @@ class BodyBarrier(EnergyTerm):
         """
         check_positions(x, self.num_vertices, self.name)
         y = x.detach().clone()
+        hit = self._cached(x.detach())
+        phi = hit[0] if hit is not None else self._phi(y)
+        idx = torch.nonzero(phi < self.offset, as_tuple=False).flatten()
+        if idx.numel() == 0:
+            return y
+        moved = idx
         for _ in range(self.project_iterations):
-            phi, g = self._phi_grad(y)
-            bad = torch.nonzero(phi < self.offset, as_tuple=False).flatten()
-            if bad.numel() == 0:
+            phib, gb = self._phi_grad(y[idx])
+            low = phib < self.offset
+            if not bool(low.any()):
                 return y
-            gb = g[bad]
+            idx, phib, gb = idx[low], phib[low], gb[low]
             gn = torch.linalg.vector_norm(gb, dim=1, keepdim=True)
-            step = (self.offset - phi[bad]).unsqueeze(1) * gb / gn.clamp_min(torch.finfo(y.dtype).tiny)
-            y[bad] += step
-        phi = self._phi(y)
-        inside = int((phi <= 0).sum())
+            y[idx] += (self.offset - phib).unsqueeze(1) * gb / gn.clamp_min(torch.finfo(y.dtype).tiny)
+        inside = int((self._phi(y[moved]) <= 0).sum())
         if inside:
             raise InputError(f"project_feasible: {inside} vertices are still inside the body after "
                              f"{self.project_iterations} projection steps")

@@ -81,6 +81,8 @@ class Gravity(EnergyTerm):
         self.num_vertices = int(masses.shape[0])
         self.register_buffer("masses", masses.detach().clone())
         self.register_buffer("direction", d / torch.linalg.vector_norm(d))
+        self._force_key: tuple | None = None
+        self._force_cache: torch.Tensor | None = None
 
     @classmethod
     def from_mesh(cls, mesh: GarmentMesh, *, density: float = DEFAULT_DENSITY, gravity: float = STANDARD_GRAVITY,
@@ -89,9 +91,15 @@ class Gravity(EnergyTerm):
         return cls(vertex_masses(mesh, density), gravity=gravity, direction=direction)
 
     def _force(self, x: torch.Tensor) -> torch.Tensor:
-        """(V, 3) gravity force ``m_i g d`` (the negative gradient)."""
-        m = self.masses.to(x.dtype)
-        return (self.gravity * m)[:, None] * self.direction.to(x.dtype)[None, :]
+        """(V, 3) gravity force ``m_i g d`` (the negative gradient); cached per dtype and device (do not modify)."""
+        m, dvec = self.masses, self.direction
+        key = (x.dtype, x.device, m.data_ptr(), m._version, dvec.data_ptr(), dvec._version, self.gravity)
+        if key != self._force_key:
+            m = m.to(device=x.device, dtype=x.dtype)
+            self._force_cache = (self.gravity * m)[:, None] * dvec.to(device=x.device, dtype=x.dtype)[None, :]
+            self._force_key = key
+        assert self._force_cache is not None
+        return self._force_cache
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Energy in joules of positions ``x`` (V, 3); differentiable in ``x``."""
@@ -102,7 +110,7 @@ class Gravity(EnergyTerm):
         """Energy () in joules and the constant gradient ``-m_i g d`` (V, 3)."""
         check_positions(x, self.num_vertices, self.name)
         f = self._force(x.detach())
-        return -torch.dot(f.reshape(-1), x.detach().reshape(-1)), f.neg_()
+        return -torch.dot(f.reshape(-1), x.detach().reshape(-1)), f.neg()
 
     def value_grad_hessian_diagonal(
         self, x: torch.Tensor, project_psd: bool = True

@@ -56,6 +56,7 @@ class SewingSprings(EnergyTerm):
         self.num_vertices = int(num_vertices)
         self.register_buffer("pairs", pairs.contiguous())
         self._ops = PairOperator(pairs[:, 0].contiguous(), pairs[:, 1].contiguous(), self.num_vertices)
+        self._count: torch.Tensor | None = None  # seam pairs per vertex (float64), built on first use
 
     @classmethod
     def from_mesh(cls, mesh: GarmentMesh, *, stiffness: float = DEFAULT_SEW_STIFFNESS) -> "SewingSprings":
@@ -89,7 +90,15 @@ class SewingSprings(EnergyTerm):
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
         """(V, 3, 3) diagonal blocks ``Y_sew * (number of seam pairs at the vertex) * I`` (always PSD)."""
         check_positions(x, self.num_vertices, self.name)
-        return self._ops.diagonal(self._block(x))
+        if self._count is None or self._count.device != x.device:
+            count = torch.zeros(self.num_vertices, dtype=torch.float64, device=x.device)
+            count.index_add_(0, self.pairs.reshape(-1).to(x.device),
+                             torch.ones(self.pairs.numel(), dtype=torch.float64, device=x.device))
+            self._count = count
+        d = (self.stiffness * self._count).to(x.dtype)
+        h = torch.zeros(self.num_vertices, 9, dtype=x.dtype, device=x.device)
+        h[:, 0::4] = d.unsqueeze(1)
+        return h.view(self.num_vertices, 3, 3)
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
         """Block-COO Hessian (constant, PSD: ``project_psd`` changes nothing)."""

@@ -173,12 +173,39 @@ class PlanarSprings(EnergyTerm):
         s = l - rl
         ks = k * s
         E = 0.5 * torch.dot(ks, s)
-        f = d * (ks / lsafe).unsqueeze(1)
-        g = self._ops.scatter(f)
+        w = ks / lsafe
+        g = self._ops.scatter(d * w.unsqueeze(1))
         if not with_hessian:
             return E, g, None
-        K = self._blocks(k, rl, d, lsafe, project_psd)
-        return E, g, self._ops.diagonal(K)
+        return E, g, self._diagonal(k, rl, d, lsafe, w, project_psd)
+
+    def _diagonal(self, k: torch.Tensor, rl: torch.Tensor, d: torch.Tensor, lsafe: torch.Tensor,
+                  w: torch.Tensor, project_psd: bool) -> torch.Tensor:
+        """(V, 3, 3) sums of the spring blocks ``K = a I + (k - a) u u^T`` at both endpoints.
+
+        Scatters 7 numbers per spring instead of 9 (``K`` is symmetric): ``c d d^T`` with ``c = (k - a) / l^2``
+        (3 diagonal and 3 off-diagonal entries) and ``a``. Here ``a = k (1 - rL / l) = w``, the force factor.
+        """
+        a = w.clamp_min(0.0) if project_psd else w
+        c = (k - a).div_(lsafe * lsafe)
+        cols = torch.empty(d.shape[0], 7, dtype=d.dtype, device=d.device)
+        cd = d * c.unsqueeze(1)
+        torch.mul(cd, d, out=cols[:, 0:3])
+        torch.mul(cd[:, 0:2], d[:, 1:3], out=cols[:, 3:5])  # xy, yz
+        torch.mul(cd[:, 0], d[:, 2], out=cols[:, 5])  # xz
+        cols[:, 6] = a
+        sums = self._ops.scatter_both(cols)  # (V, 7)
+        V = sums.shape[0]
+        h = torch.empty(V, 3, 3, dtype=d.dtype, device=d.device)
+        hv = h.view(V, 9)
+        torch.add(sums[:, 0:3], sums[:, 6:7], out=hv[:, 0::4])
+        hv[:, 1] = sums[:, 3]
+        hv[:, 3] = sums[:, 3]
+        hv[:, 5] = sums[:, 4]
+        hv[:, 7] = sums[:, 4]
+        hv[:, 2] = sums[:, 5]
+        hv[:, 6] = sums[:, 5]
+        return h
 
     def _blocks(self, k: torch.Tensor, rl: torch.Tensor, d: torch.Tensor, lsafe: torch.Tensor,
                 project_psd: bool) -> torch.Tensor:
@@ -194,8 +221,8 @@ class PlanarSprings(EnergyTerm):
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
         """(V, 3, 3) diagonal blocks of the Hessian (N/m), of per-spring PSD-projected blocks by default."""
         x = x.detach()
-        k, rl, d, _, lsafe = self._kinematics(x)
-        return self._ops.diagonal(self._blocks(k, rl, d, lsafe, project_psd))
+        k, rl, d, l, lsafe = self._kinematics(x)
+        return self._diagonal(k, rl, d, lsafe, k * (l - rl) / lsafe, project_psd)
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
         """Block-COO Hessian: V diagonal blocks and 2E off-diagonal blocks ``-K``."""

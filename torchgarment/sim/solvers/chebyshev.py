@@ -61,37 +61,44 @@ def jacobi_inverse(diag_blocks: torch.Tensor, kind: Preconditioner, floor: float
         InputError: the Hessian diagonal is zero everywhere (the preconditioner is undefined).
     """
     h = diag_blocks
-    d = torch.diagonal(h, dim1=-2, dim2=-1)  # (V, 3)
-    scale = float(d.abs().mean())
+    V = h.shape[0]
+    hv = h.reshape(V, 9)
+    dsafe = hv[:, 0::4].abs()  # (V, 3) diagonal entries
+    scale = float(dsafe.mean()) if V else 0.0
     if not math.isfinite(scale):
         raise NonFiniteError("model.hessian_diagonal returned non-finite values")
     if scale <= 0.0:
         raise InputError("the Hessian diagonal is zero everywhere; the Jacobi preconditioner is undefined")
     f = floor * scale
-    dsafe = d.abs().clamp_min(f)
+    dsafe.clamp_min_(f)
     if kind == Preconditioner.SCALAR:
-        return 1.0 / dsafe
-    # symmetrized block plus floor * I, inverted through the adjugate; PD tested by the leading minors
-    a = 0.5 * (h + h.transpose(-1, -2))
-    a00 = a[:, 0, 0] + f
-    a11 = a[:, 1, 1] + f
-    a22 = a[:, 2, 2] + f
-    a01, a02, a12 = a[:, 0, 1], a[:, 0, 2], a[:, 1, 2]
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    det = a00 * c00 + a01 * c01 + a02 * c02
+        return dsafe.reciprocal_()
+    # symmetrized block plus floor * I, inverted through the adjugate; PD tested by the leading minors.
+    # Every entry is read once into a contiguous (V,) vector (no (V, 3, 3) temporaries, no transposed copies).
+    a00, a11, a22 = hv[:, 0] + f, hv[:, 4] + f, hv[:, 8] + f
+    a01 = (hv[:, 1] + hv[:, 3]).mul_(0.5)
+    a02 = (hv[:, 2] + hv[:, 6]).mul_(0.5)
+    a12 = (hv[:, 5] + hv[:, 7]).mul_(0.5)
+    c00 = torch.mul(a11, a22).addcmul_(a12, a12, value=-1.0)
+    c01 = torch.mul(a02, a12).addcmul_(a01, a22, value=-1.0)
+    c02 = torch.mul(a01, a12).addcmul_(a02, a11, value=-1.0)
+    c11 = torch.mul(a00, a22).addcmul_(a02, a02, value=-1.0)
+    c12 = torch.mul(a01, a02).addcmul_(a00, a12, value=-1.0)
+    c22 = torch.mul(a00, a11).addcmul_(a01, a01, value=-1.0)
+    det = (a00 * c00).addcmul_(a01, c01).addcmul_(a02, c02)
     # relative tests so that nearly singular blocks (det ~ roundoff) also fall back
     tiny = 1e3 * torch.finfo(h.dtype).eps
-    pd = (a00 > 0) & (c22 > tiny * a00 * a11) & (det > tiny * a00 * a11 * a22)
-    inv = torch.stack(
-        [torch.stack([c00, c01, c02], -1), torch.stack([c01, c11, c12], -1), torch.stack([c02, c12, c22], -1)], -2
-    ) / torch.where(pd, det, torch.ones_like(det))[:, None, None]
-    fallback = torch.diag_embed(1.0 / dsafe)
-    return torch.where(pd[:, None, None], inv, fallback)
+    m2 = a00 * a11
+    pd = (a00 > 0) & (c22 > tiny * m2) & (det > m2.mul_(a22).mul_(tiny))
+    all_pd = bool(pd.all())
+    scale_inv = det.reciprocal_() if all_pd else torch.where(pd, det, torch.ones_like(det)).reciprocal_()
+    inv = torch.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], dim=1).mul_(scale_inv.unsqueeze(1))
+    if not all_pd:
+        bad = torch.nonzero(~pd, as_tuple=False).flatten()
+        fallback = torch.zeros(bad.numel(), 9, dtype=h.dtype, device=h.device)
+        fallback[:, 0::4] = dsafe[bad].reciprocal()
+        inv[bad] = fallback
+    return inv.view(V, 3, 3)
 
 
 def apply_inverse(dinv: torch.Tensor, g: torch.Tensor) -> torch.Tensor:

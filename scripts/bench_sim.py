@@ -1,0 +1,269 @@
+"""Benchmark of one simulator iteration (GD-Chebyshev) against a bare spring evaluation, per garment size.
+
+Usage:
+    python scripts/bench_sim.py [--json FILE] [--sizes 5000 15000 30000 60000] [--garment tshirt]
+                                [--body-size 12] [--voxel-mm 2.5] [--sdf-dtype float32] [--threads 2]
+                                [--warmup 200] [--iterations 60] [--calls 60] [--rounds 6] [--diagonal-interval 4]
+
+For every target size the library garment ``--garment`` (drafted for chart size ``--body-size``) is meshed at the
+edge length that gives about that many vertices, and a scene with stretch, sew, bend, gravity and the body
+barrier (SDF of ``Body.from_size(--body-size)`` at ``--voxel-mm``, from the disk cache, stored in
+``--sdf-dtype``; positions stay float64) is built. Its state is the placed panels projected out of the body
+and then ``--warmup`` GD-Chebyshev iterations (some vertices close to the body, as in a real drape). Measured in
+the same process, with ``torch.set_num_threads(--threads)``:
+
+* ``ms_per_iteration``: wall time between consecutive solver callbacks (default :class:`SolveSettings`, so the
+  Hessian diagonal is recomputed every iteration): gradient, Hessian diagonal, preconditioner, Chebyshev
+  update and step bound; ``ms_per_iteration_diagonal_interval``: the same with the diagonal recomputed only
+  every ``--diagonal-interval`` iterations;
+* ``ms_bare_spring``: the baseline, one stretch ``value_and_grad`` (energy and gradient of the springs alone)
+  on the same mesh and state;
+* per effect: ``ms_value_grad`` and ``ms_value_grad_diag`` of its term alone on fresh positions (no cache
+  hit), for the barrier also ``ms_max_step`` (its own SDF query) and ``ms_value_grad_then_max_step`` (as the
+  solver calls it: the step bound reuses the gradient's SDF query), with the solver's first step; and
+  ``ms_saved_when_left_out``: ``ms_per_iteration`` minus the per-iteration time of the same solve without
+  that effect.
+
+All measurements are interleaved over ``--rounds`` rounds so that a varying machine load affects them alike.
+Times are medians, ``*_min`` minima (the best estimate on a shared machine); ratios are against the baseline
+measured in the same run. A table is printed; ``--json`` writes everything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import statistics
+import time
+from dataclasses import replace
+
+import torch
+
+from torchgarment.body import Body
+from torchgarment.body.size_chart import chart_row
+from torchgarment.io.atomic import atomic_open
+from torchgarment.pattern.library import draft
+from torchgarment.pattern.meshing import mesh_pattern
+from torchgarment.sdf import BodySDF, SDFSettings
+from torchgarment.sim.scene import Effect, Scene
+from torchgarment.sim.solvers import SolveSettings, solve
+from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse
+
+DEFAULT_SIZES = (5_000, 15_000, 30_000, 60_000)
+EFFECTS = (Effect.STRETCH, Effect.SEW, Effect.BEND, Effect.GRAVITY, Effect.BODY_BARRIER)
+TARGET_MS_30K = 20.0
+TARGET_RATIO = 4.0
+
+
+def call_times(fn, x: torch.Tensor, calls: int) -> list[float]:  # noqa: ANN001
+    """Seconds of ``calls`` calls of ``fn(x)``.
+
+    Every call gets its own copy of ``x`` (made before the clock starts), so that no term can reuse results
+    cached for the previous call's positions (the barrier caches its last SDF query).
+    """
+    ts = []
+    for _ in range(calls):
+        xc = x.clone()
+        t0 = time.perf_counter()
+        fn(xc)
+        ts.append(time.perf_counter() - t0)
+    return ts
+
+
+def run_interleaved(tasks: dict, rounds: int) -> dict[str, tuple[float, float]]:
+    """Run every task (``name -> () -> list of seconds``) once per round, in turn, so that a varying machine
+    load hits all of them alike; returns ``name -> (median ms, min ms)`` over all samples (after one warm-up
+    round that is discarded)."""
+    samples: dict[str, list[float]] = {k: [] for k in tasks}
+    for r in range(rounds + 1):
+        for k, fn in tasks.items():
+            ts = fn()
+            if r > 0:
+                samples[k].extend(ts)
+    return {k: (1e3 * statistics.median(v), 1e3 * min(v)) for k, v in samples.items()}
+
+
+def mesh_with_vertices(pattern, target: int, dtype: torch.dtype):  # noqa: ANN001, ANN201
+    """Mesh ``pattern`` at the edge length giving about ``target`` vertices (V ~ 1 / h^2, two corrections)."""
+    h = 0.005
+    mesh = mesh_pattern(pattern, h, dtype=dtype)
+    for _ in range(2):
+        h *= math.sqrt(mesh.num_vertices / target)
+        mesh = mesh_pattern(pattern, h, dtype=dtype)
+    return mesh, h
+
+
+def iteration_times(model, x: torch.Tensor, settings: SolveSettings, iterations: int) -> list[float]:  # noqa: ANN001
+    """Seconds between consecutive solver callbacks (one per iteration) of a GD-Chebyshev solve from ``x``."""
+    stamps: list[float] = []
+
+    def cb(k: int, xk: torch.Tensor, gn: float, e: float) -> bool:
+        stamps.append(time.perf_counter())
+        return False
+
+    solve(model, x, settings, solver="gd-chebyshev", max_iterations=iterations + 1, callback=cb)
+    return [b - a for a, b in zip(stamps[:-1], stamps[1:])]
+
+
+def bench_size(target: int, args: argparse.Namespace, pattern, sdf: BodySDF) -> dict:  # noqa: ANN001
+    """One table row (a dict) for the size ``target``."""
+    dtype = torch.float64
+    mesh, h = mesh_with_vertices(pattern, target, dtype)
+    settings = SolveSettings(rtol=0.0, atol=0.0)
+
+    def build(effects):  # noqa: ANN001, ANN202
+        return Scene(mesh, body_sdf=sdf, effects=set(effects)).build()
+
+    model = build(EFFECTS)
+    x = model.project_feasible(mesh.x.detach())
+    if args.warmup > 0:
+        x, _ = solve(model, x, settings, solver="gd-chebyshev", max_iterations=args.warmup)
+    phi = sdf(x.to(sdf.dtype))
+    near = int((phi < 0.01).sum())
+
+    stretch = model.term(Effect.STRETCH.value)
+    # the solver's first step from x (for timing max_step on a realistic step)
+    _, g, hd = model.value_grad_hessian_diagonal(x)
+    step = apply_inverse(jacobi_inverse(hd, settings.preconditioner, settings.diagonal_floor), g).mul_(-settings.step)
+    n = torch.linalg.vector_norm(step, dim=1, keepdim=True)
+    step.mul_(settings.max_displacement / n.clamp_min(settings.max_displacement))
+
+    per_round = max(1, args.iterations // args.rounds)
+    calls = max(1, args.calls // args.rounds)
+    settings_k = replace(settings, diagonal_interval=args.diagonal_interval)
+    tasks = {
+        "spring": lambda: call_times(stretch.value_and_grad, x, calls),
+        "iteration": lambda: iteration_times(model, x, settings, per_round),
+        "iteration_k": lambda: iteration_times(model, x, settings_k, per_round),
+    }
+    for eff in EFFECTS:
+        term = model.term(eff.value)
+        without = build([e for e in EFFECTS if e is not eff])
+        tasks[f"{eff.value}/v+g"] = lambda term=term: call_times(term.value_and_grad, x, calls)
+        fused = getattr(term, "value_grad_hessian_diagonal", None)
+        if fused is not None:
+            tasks[f"{eff.value}/v+g+diag"] = lambda fused=fused: call_times(fused, x, calls)
+        if hasattr(term, "max_step"):
+            tasks[f"{eff.value}/max_step"] = lambda term=term: call_times(lambda xc: term.max_step(xc, step), x, calls)
+            # as the solver does it: the gradient at x, then the step bound from the same x
+            tasks[f"{eff.value}/v+g,max_step"] = lambda term=term: call_times(
+                lambda xc: (term.value_and_grad(xc), term.max_step(xc, step)), x, calls)
+        tasks[f"{eff.value}/without"] = lambda without=without: iteration_times(without, x, settings, per_round)
+    res = run_interleaved(tasks, args.rounds)
+    (bare, bare_min), (ms_it, ms_it_min) = res["spring"], res["iteration"]
+    effects = {}
+    for eff in EFFECTS:
+        term = model.term(eff.value)
+        row: dict = {}
+        row["ms_value_grad"], row["ms_value_grad_min"] = res[f"{eff.value}/v+g"]
+        if f"{eff.value}/v+g+diag" in res:
+            row["ms_value_grad_diag"], row["ms_value_grad_diag_min"] = res[f"{eff.value}/v+g+diag"]
+        if f"{eff.value}/max_step" in res:
+            row["ms_max_step"], row["ms_max_step_min"] = res[f"{eff.value}/max_step"]
+            row["ms_value_grad_then_max_step"], row["ms_value_grad_then_max_step_min"] = res[f"{eff.value}/v+g,max_step"]
+            row["max_step"] = float(term.max_step(x, step))
+        row["ms_per_iteration_without"], row["ms_per_iteration_without_min"] = res[f"{eff.value}/without"]
+        row["ms_saved_when_left_out"] = ms_it - row["ms_per_iteration_without"]
+        row["ms_saved_when_left_out_min"] = ms_it_min - row["ms_per_iteration_without_min"]
+        effects[eff.value] = row
+    its_k, its_k_min = res["iteration_k"]
+
+    return {
+        "vertices": mesh.num_vertices,
+        "target_vertices": target,
+        "edge_length_m": h,
+        "springs": int(stretch.edges.shape[0]),
+        "seam_pairs": int(mesh.seam_pairs.shape[0]),
+        "vertices_within_1cm_of_body": near,
+        "ms_per_iteration": ms_it,
+        "ms_per_iteration_min": ms_it_min,
+        "ms_bare_spring": bare,
+        "ms_bare_spring_min": bare_min,
+        "ratio_iteration_to_spring": ms_it / bare,
+        "ratio_iteration_to_spring_min": ms_it_min / bare_min,
+        "diagonal_interval": args.diagonal_interval,
+        "ms_per_iteration_diagonal_interval": its_k,
+        "ms_per_iteration_diagonal_interval_min": its_k_min,
+        "effects": effects,
+    }
+
+
+def print_table(rows: list[dict]) -> None:
+    """Print the per-size table and the per-effect table."""
+    k = rows[0]["diagonal_interval"] if rows else 1
+    print(f"\n{'vertices':>9} {'ms/iter':>8} {'(min)':>7} {'ms spring':>9} {'(min)':>7} {'ratio':>6} {'(min)':>6} "
+          f"{f'ms/iter diag/{k}':>14} {'(min)':>7} {'ratio':>6}")
+    for r in rows:
+        print(f"{r['vertices']:>9d} {r['ms_per_iteration']:8.2f} {r['ms_per_iteration_min']:7.2f} "
+              f"{r['ms_bare_spring']:9.3f} {r['ms_bare_spring_min']:7.3f} {r['ratio_iteration_to_spring']:6.2f} "
+              f"{r['ratio_iteration_to_spring_min']:6.2f} {r['ms_per_iteration_diagonal_interval']:14.2f} "
+              f"{r['ms_per_iteration_diagonal_interval_min']:7.2f} "
+              f"{r['ms_per_iteration_diagonal_interval'] / r['ms_bare_spring']:6.2f}")
+    print(f"\n{'vertices':>9} {'effect':>13} {'ms v+g':>8} {'ms v+g+diag':>11} {'ms max_step':>11} "
+          f"{'ms/iter without':>15} {'saved':>7} {'(min)':>7}")
+    for r in rows:
+        for name, e in r["effects"].items():
+            diag = e.get("ms_value_grad_diag", math.nan)
+            ms = e.get("ms_value_grad_then_max_step", math.nan) - e["ms_value_grad"]
+            print(f"{r['vertices']:>9d} {name:>13} {e['ms_value_grad']:8.3f} {diag:11.3f} {ms:11.3f} "
+                  f"{e['ms_per_iteration_without']:15.2f} {e['ms_saved_when_left_out']:7.2f} "
+                  f"{e['ms_saved_when_left_out_min']:7.2f}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", default=None, help="write the results to this JSON file")
+    ap.add_argument("--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES), help="target vertex counts")
+    ap.add_argument("--garment", default="tshirt", help="library garment to mesh")
+    ap.add_argument("--body-size", default="12", help="size-chart body (garment drafted for it)")
+    ap.add_argument("--voxel-mm", type=float, default=2.5, help="SDF voxel size in mm")
+    ap.add_argument("--sdf-dtype", choices=("float32", "float64"), default="float32",
+                    help="storage dtype of the SDF (positions stay float64)")
+    ap.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    ap.add_argument("--warmup", type=int, default=200, help="GD iterations before timing (realistic state)")
+    ap.add_argument("--iterations", type=int, default=60, help="timed solver iterations per model (all rounds)")
+    ap.add_argument("--calls", type=int, default=60, help="timed calls per single-term measurement (all rounds)")
+    ap.add_argument("--rounds", type=int, default=6, help="rounds the measurements are interleaved in")
+    ap.add_argument("--diagonal-interval", type=int, default=4,
+                    help="also time iterations with the Hessian diagonal recomputed only every this many iterations")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+
+    body = Body.from_size(args.body_size)
+    pattern = draft(args.garment, chart_row(args.body_size))
+    sdf_dtype = getattr(torch, args.sdf_dtype)
+    sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=args.voxel_mm * 1e-3), dtype=sdf_dtype)
+    rows = []
+    for target in args.sizes:
+        t0 = time.perf_counter()
+        rows.append(bench_size(target, args, pattern, sdf))
+        print(f"size {target}: {rows[-1]['vertices']} vertices, {rows[-1]['ms_per_iteration']:.2f} ms/iteration "
+              f"({time.perf_counter() - t0:.1f} s)", flush=True)
+    print_table(rows)
+    r30 = min(rows, key=lambda r: abs(r["vertices"] - 30_000))
+    print(f"\nat {r30['vertices']} vertices: {r30['ms_per_iteration']:.2f} ms/iteration "
+          f"(target <= {TARGET_MS_30K} ms), {r30['ratio_iteration_to_spring']:.2f}x the bare spring evaluation "
+          f"(target <= {TARGET_RATIO}x)")
+    out = {
+        "threads": args.threads,
+        "garment": args.garment,
+        "body_size": args.body_size,
+        "voxel_mm": args.voxel_mm,
+        "sdf_dtype": args.sdf_dtype,
+        "warmup_iterations": args.warmup,
+        "timed_iterations": args.iterations,
+        "calls": args.calls,
+        "torch": torch.__version__,
+        "machine": platform.processor() or platform.machine(),
+        "targets": {"vertices": 30_000, "ms_per_iteration": TARGET_MS_30K, "ratio_to_bare_spring": TARGET_RATIO},
+        "sizes": rows,
+    }
+    if args.json:
+        with atomic_open(args.json, "w") as f:
+            json.dump(out, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
