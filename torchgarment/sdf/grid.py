@@ -23,7 +23,6 @@ pieces per axis) and its gradient is the exact derivative of that formula; it ke
 from __future__ import annotations
 
 import copy
-import enum
 import os
 import zipfile
 from typing import TYPE_CHECKING
@@ -33,6 +32,7 @@ import torch
 
 from torchgarment.errors import InputError
 from torchgarment.io.atomic import atomic_path
+from torchgarment.options import OptionEnum
 from torchgarment.sdf.build import SDFGridData, SDFSettings, build_sdf_grid, check_mesh
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -40,7 +40,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 _FORMAT_VERSION = 1
 
-class SDFSampling(str, enum.Enum):
+class SDFSampling(OptionEnum):
     """How :class:`BodySDF` interpolates its nodes.
 
     ``TRILINEAR``: C0, gradient jumps across voxel faces (cheapest: one 8-corner gather per point).
@@ -50,14 +50,6 @@ class SDFSampling(str, enum.Enum):
 
     TRILINEAR = "trilinear"
     QUADRATIC = "quadratic"
-
-    @classmethod
-    def resolve(cls, value: "SDFSampling | str") -> "SDFSampling":
-        """The member for ``value`` (member or its string value); :class:`InputError` otherwise."""
-        try:
-            return cls(value)
-        except ValueError:
-            raise InputError(f"unknown SDF sampling {value!r}; expected one of {[m.value for m in cls]}") from None
 
 
 _BLOCK = 32768

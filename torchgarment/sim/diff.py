@@ -71,7 +71,6 @@ import time
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from enum import Enum
 
 import numpy as np
 import scipy.sparse
@@ -80,6 +79,7 @@ import torch
 from torch.func import functional_call
 
 from torchgarment.errors import InputError, TorchGarmentError
+from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.barrier import BodyBarrier
 from torchgarment.sim.energies.base import HessianBlocks
 from torchgarment.sim.solvers import SolveInfo, SolverKind, SolveSettings, solve
@@ -95,7 +95,7 @@ class NonConvergenceWarning(UserWarning):
     """Issued instead of :class:`NonConvergenceError` when ``strict=False``: the gradient is inexact."""
 
 
-class BackwardMode(str, Enum):
+class BackwardMode(OptionEnum):
     """How the gradient of the equilibrium is computed."""
 
     ADJOINT = "adjoint"
@@ -106,25 +106,12 @@ class BackwardMode(str, Enum):
     """Solve without a graph, then unroll only the last ``truncated_steps`` Newton steps from the solution."""
 
     @classmethod
-    def resolve(cls, mode: "str | BackwardMode") -> "BackwardMode":
-        """A :class:`BackwardMode` from itself or a name (case-insensitive; ``"implicit"`` means ADJOINT,
-        ``"full"``/``"unrolled"`` mean UNROLL).
-
-        Raises:
-            InputError: unknown name.
-        """
-        if isinstance(mode, BackwardMode):
-            return mode
-        name = str(mode).strip().lower()
-        name = {"implicit": "adjoint", "full": "unroll", "unrolled": "unroll"}.get(name, name)
-        try:
-            return cls(name)
-        except ValueError:
-            raise InputError(f"unknown backward mode {mode!r}; expected one of: adjoint (implicit), unroll, "
-                             f"truncated") from None
+    def aliases(cls) -> dict[str, str]:
+        """``"implicit"`` means ADJOINT; ``"full"`` and ``"unrolled"`` mean UNROLL."""
+        return {"implicit": "adjoint", "full": "unroll", "unrolled": "unroll"}
 
 
-class AdjointLinearSolver(str, Enum):
+class AdjointLinearSolver(OptionEnum):
     """Linear solver of the adjoint system ``K lambda = dL/dx``."""
 
     CG = "cg"
@@ -132,34 +119,14 @@ class AdjointLinearSolver(str, Enum):
     SPARSE = "sparse"
     """Assembled sparse ``K``, SuperLU factorization (any non-singular ``K``)."""
 
-    @classmethod
-    def resolve(cls, name: "str | AdjointLinearSolver") -> "AdjointLinearSolver":
-        """An :class:`AdjointLinearSolver` from itself or its name; :class:`InputError` for unknown names."""
-        if isinstance(name, AdjointLinearSolver):
-            return name
-        try:
-            return cls(str(name).strip().lower())
-        except ValueError:
-            raise InputError(f"unknown adjoint linear solver {name!r}; expected one of: cg, sparse") from None
 
-
-class HessianProduct(str, Enum):
+class HessianProduct(OptionEnum):
     """Where CG's Hessian-vector products come from."""
 
     ASSEMBLED = "assembled"
     """:func:`exact_hessian_blocks` assembled once into a torch sparse CSR matrix; one SpMV per product."""
     AUTOGRAD = "autograd"
     """Double backward through ``model.energy`` (exact for twice-differentiable terms; not for a BodySDF)."""
-
-    @classmethod
-    def resolve(cls, name: "str | HessianProduct") -> "HessianProduct":
-        """A :class:`HessianProduct` from itself or its name; :class:`InputError` for unknown names."""
-        if isinstance(name, HessianProduct):
-            return name
-        try:
-            return cls(str(name).strip().lower())
-        except ValueError:
-            raise InputError(f"unknown Hessian product {name!r}; expected one of: assembled, autograd") from None
 
 
 @dataclass

@@ -21,6 +21,7 @@ import scipy.sparse
 import torch
 
 from torchgarment.errors import InputError, TorchGarmentError
+from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.base import HessianBlocks
 
 #: ``callback(iteration, x, residual, energy) -> stop``; return True to stop the solve early.
@@ -31,22 +32,11 @@ class NonFiniteError(TorchGarmentError, FloatingPointError):
     """The model returned a NaN or infinite energy, gradient or Hessian during a solve."""
 
 
-class SolverKind(str, Enum):
+class SolverKind(OptionEnum):
     """Available quasistatic solvers."""
 
     GD_CHEBYSHEV = "gd-chebyshev"
     NEWTON = "newton"
-
-    @classmethod
-    def resolve(cls, name: "str | SolverKind") -> "SolverKind":
-        """Turn a solver name into a :class:`SolverKind`, raising :class:`InputError` for unknown names."""
-        if isinstance(name, SolverKind):
-            return name
-        try:
-            return cls(str(name).strip().lower())
-        except ValueError:
-            known = ", ".join(k.value for k in cls)
-            raise InputError(f"unknown solver {name!r}; expected one of: {known}") from None
 
 
 class Preconditioner(str, Enum):

@@ -1,0 +1,36 @@
+"""String options as enums, resolved from names (the theseus pattern)."""
+
+from __future__ import annotations
+
+import re
+from enum import Enum
+
+from torchgarment.errors import InputError
+
+
+class OptionEnum(str, Enum):
+    """Base of the string-valued option enums: ``resolve`` turns a member or a name into a member.
+
+    Names are matched case-insensitively after stripping blanks; a subclass may accept synonyms by overriding
+    :meth:`aliases`. Unknown names raise :class:`InputError` listing the valid ones.
+    """
+
+    @classmethod
+    def aliases(cls) -> dict[str, str]:
+        """Extra accepted names, mapped to member values (none by default)."""
+        return {}
+
+    @classmethod
+    def resolve(cls, value):
+        """The member for ``value`` (a member, its value or an alias); :class:`InputError` otherwise."""
+        if isinstance(value, cls):
+            return value
+        name = str(value).strip().lower()
+        name = cls.aliases().get(name, name)
+        try:
+            return cls(name)
+        except ValueError:
+            label = re.sub(r"(?<=[a-z])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])", " ", cls.__name__).lower()
+            known = ", ".join(m.value for m in cls)
+            synonyms = "".join(f", {a} (= {v})" for a, v in cls.aliases().items())
+            raise InputError(f"unknown {label} {value!r}; expected one of: {known}{synonyms}") from None
