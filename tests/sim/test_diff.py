@@ -118,12 +118,15 @@ def build(case: str, icosphere_sdf=None):
     effects = {"stretch": {"stretch", "pins"}, "gravity": {"stretch", "pins", "gravity"},
                "bend": {"stretch", "pins", "bend"}, "pins": {"stretch", "pins"},
                "barrier_sphere": {"stretch", "pins", "gravity", "body_barrier"},
-               "barrier_bodysdf": {"stretch", "pins", "gravity", "body_barrier"}}[case]
+               "barrier_bodysdf": {"stretch", "pins", "gravity", "body_barrier"},
+               "barrier_limited": {"stretch", "pins", "gravity", "body_barrier"}}[case]
     if case.startswith("barrier"):
         mesh, bnd, tgt = trampoline(y=0.012, wave=0.0)  # starts above the body; pins pull it down onto it
-        sdf = SphereSDF((0.06, -0.045, 0.06), 0.05) if case == "barrier_sphere" else icosphere_sdf
+        sdf = icosphere_sdf if case == "barrier_bodysdf" else SphereSDF((0.06, -0.045, 0.06), 0.05)
+        # the unbounded -mu log phi (paper's Eq. 4) and the range-limited form (dhat = 4 mm)
+        dhat = 4e-3 if case == "barrier_limited" else None
         scene = Scene(mesh, body_sdf=sdf, pin_indices=bnd, pin_targets=tgt, effects=effects,
-                      material=Material(barrier_mu=1e-3, density=2.0))
+                      material=Material(barrier_mu=1e-3, barrier_dhat=dhat, density=2.0))
         return scene.build(), mesh.x
     mesh, bnd, tgt = trampoline()
     mat = Material(density=2.0)  # heavy cloth: gravity matters at this scale
@@ -177,6 +180,7 @@ def test_backward_mode_resolve():
     ("sew", "p"),
     ("barrier_sphere", "p"),
     ("barrier_bodysdf", "p"),
+    ("barrier_limited", "p"),
 ])
 def test_gradient_matches_finite_differences(case, param, icosphere_sdf):
     model, x0 = build(case, icosphere_sdf)

@@ -270,6 +270,47 @@ def test_barrier_plane_exact_derivatives():
     _check_term(BodyBarrier(sdf, x.shape[0]), x, num_samples=None, num_columns=None)
 
 
+@pytest.mark.parametrize("dhat", [0.3, 0.7])
+def test_range_limited_barrier_plane_exact_derivatives(dhat):
+    # points at 0 .. 0.3 m from the plane y = 0.9 - ...: some inside dhat, some beyond
+    x = _shell_points(60, 0.0, 0.3, seed=3) + torch.tensor([0.0, 0.9, 0.0], dtype=torch.float64)
+    sdf = PlaneSDF()
+    phi = sdf(x)
+    assert bool((phi > 0).all()) and bool((phi < dhat).any())
+    term = BodyBarrier(sdf, x.shape[0], dhat=dhat)
+    _check_term(term, x, num_samples=None, num_columns=None)
+    # the closed form, zero beyond dhat
+    s = (phi / dhat).clamp(max=1.0)
+    assert float(term(x)) == pytest.approx(float((-0.01 * (s - 1) ** 2 * torch.log(s)).sum()), rel=1e-12)
+    E, g = term.value_and_grad(x)
+    assert torch.all(g[phi >= dhat] == 0)
+
+
+def test_range_limited_barrier_scalar_derivatives():
+    """b, b', b'' of the range-limited form against autograd, C2 at dhat, the log singularity near 0."""
+    sdf = PlaneSDF()
+    term = BodyBarrier(sdf, 1, dhat=3e-3)
+    phi = torch.linspace(1e-6, 4e-3, 400, dtype=torch.float64, requires_grad=True)
+    b = term.barrier(phi)
+    (d1,) = torch.autograd.grad(b.sum(), phi, create_graph=True)
+    (d2,) = torch.autograd.grad(d1.sum(), phi)
+    a1, a2 = term.derivatives(phi.detach())
+    torch.testing.assert_close(a1, d1.detach(), rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(a2, d2, rtol=1e-10, atol=1e-9)
+    assert bool((a2 >= 0).all()) and bool((a1 <= 0).all())  # convex and repulsive
+    # continuity at dhat: value, slope and curvature -> 0
+    at = torch.tensor([3e-3 * (1 - 1e-6)], dtype=torch.float64)
+    b1, b2 = term.derivatives(at)
+    assert abs(float(term.barrier(at))) < 1e-18 and abs(float(b1)) < 1e-10 and abs(float(b2)) < 1e-2
+    # near the body it is the paper's force mu / phi
+    near = torch.tensor([1e-9], dtype=torch.float64)
+    assert float(term.derivatives(near)[0]) == pytest.approx(-0.01 / 1e-9, rel=1e-4)
+    with pytest.raises(InputError, match="dhat"):
+        BodyBarrier(sdf, 1, dhat=-1.0)
+    with pytest.raises(InputError, match="below dhat"):
+        BodyBarrier(sdf, 1, dhat=1e-3, offset=2e-3)
+
+
 def test_barrier_body_sdf_gradient(sphere_sdf):
     x = _shell_points(200, 0.31, 0.36, seed=4)
     term = BodyBarrier(sphere_sdf, x.shape[0])

@@ -148,7 +148,7 @@ class AdjointInfo:
 
 # ---------------------------------------------------------------------------------------------- Hessian
 def barrier_curvature_blocks(term: BodyBarrier, x: torch.Tensor) -> torch.Tensor:
-    """The part ``-mu Hess(phi)(x_i) / phi(x_i)`` (V, 3, 3) that the barrier's Hessian blocks drop.
+    """The part ``b'(phi(x_i)) Hess(phi)(x_i)`` (V, 3, 3) that the barrier's Hessian blocks drop.
 
     ``Hess(phi)`` is the central difference of the SDF's analytic gradient ``value_and_gradient`` with step
     ``eps^(1/3) * 1 cm`` (``eps`` the dtype's machine epsilon; 6e-8 m in float64), symmetrized: exact (up to
@@ -173,7 +173,7 @@ def barrier_curvature_blocks(term: BodyBarrier, x: torch.Tensor) -> torch.Tensor
         cols.append((gp - gm) / (2.0 * step))
     hphi = torch.stack(cols, dim=2)  # (V, 3, 3): column a = d grad / d x_a
     hphi = 0.5 * (hphi + hphi.transpose(1, 2))
-    return hphi * (-term.mu / phi)[:, None, None]
+    return hphi * term.derivatives(phi)[0][:, None, None]
 
 
 def exact_hessian_blocks(model: torch.nn.Module, x: torch.Tensor) -> HessianBlocks:

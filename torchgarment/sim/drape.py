@@ -62,13 +62,11 @@ class DrapeSettings:
         sew_rtol: relative force tolerance of the sewing stage.
         sew_max_iterations: iteration budget of the sewing stage.
         final_sew_stiffness: sewing spring constant (N/m) of the settle stage; None keeps ``material``'s.
-        barrier_mu: body-barrier weight (J) of the settle stage; None keeps ``material``'s. The log
-            barrier acts at every distance with a force ``mu / phi`` (0.25 N at 4 cm for Wang 2018's
-            ``mu = 0.01``, i.e. hundreds of times a 3 cm cloth vertex's weight), so with the paper's weight the
-            loose parts of a garment float on the far field of the SDF and the settle stage converges slowly;
-            the default 1e-3 J keeps the body clearance positive (the barrier is still infinite at ``phi = 0``)
-            while making it act mainly where the cloth touches the body (measured: the settle stage of
-            straight_skirt size 6 at 3 cm stalls near 0.03-1 N with 0.01 J and converges to 1e-3 W with 1e-3 J).
+        barrier_mu: body-barrier weight (J) of the settle stage; None (default) keeps ``material``'s (the paper's
+            0.01 J, range-limited to ``material.barrier_dhat`` = 3 mm). With the unbounded ``-mu log phi``
+            (``material.barrier_dhat = None``) the paper's weight pushes with ``mu / phi`` at every distance
+            (0.25 N at 4 cm, hundreds of times a 3 cm cloth vertex's weight): loose cloth floats on the far
+            field and the settle stage stalls; use about 1e-3 J with that form.
         rtol: relative force tolerance of the settle stage (relative to its initial force norm); default 0:
             the initial force of the settle stage is dominated by the stiffened seam springs (hundreds of
             newtons for a 2 mm gap), so a relative test would accept whatever that leftover happens to be.
@@ -93,7 +91,7 @@ class DrapeSettings:
     sew_rtol: float = 1.0e-4
     sew_max_iterations: int = 1500
     final_sew_stiffness: float | None = 1.0e5
-    barrier_mu: float | None = 1.0e-3
+    barrier_mu: float | None = None
     rtol: float = 0.0
     atol_weight: float = 1.0e-3
     max_iterations: int = 500

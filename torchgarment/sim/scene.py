@@ -43,7 +43,7 @@ from enum import Enum
 import torch
 
 from torchgarment.errors import InputError, MeshError
-from torchgarment.sim.energies.barrier import DEFAULT_BARRIER_MU, BodyBarrier
+from torchgarment.sim.energies.barrier import DEFAULT_BARRIER_DHAT, DEFAULT_BARRIER_MU, BodyBarrier
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 from torchgarment.sim.energies.bend import DEFAULT_BEND_STIFFNESS, QuadraticBending
 from torchgarment.sim.energies.gravity import DEFAULT_DENSITY, STANDARD_GRAVITY, Gravity
@@ -97,7 +97,9 @@ class Material:
         bend_stiffness: bending stiffness in N m (J).
         density: areal density in kg/m^2.
         gravity: gravitational acceleration in m/s^2 (along -Y).
-        barrier_mu: weight of the body log barrier in J.
+        barrier_mu: weight of the body log barrier in J (Wang 2018: 0.01).
+        barrier_dhat: range of the body barrier in m (the IPC-form range-limited log barrier, see
+            :mod:`torchgarment.sim.energies.barrier`), or None for the paper's unbounded ``-mu log phi``.
         barrier_offset: clearance in m restored by ``project_feasible``; None = ``max(1 mm, voxel / 4)``.
         pin_stiffness: pin spring constant in N/m.
         contact_dhat: IPC activation distance in m.
@@ -110,6 +112,7 @@ class Material:
     density: float = DEFAULT_DENSITY
     gravity: float = STANDARD_GRAVITY
     barrier_mu: float = DEFAULT_BARRIER_MU
+    barrier_dhat: float | None = DEFAULT_BARRIER_DHAT
     barrier_offset: float | None = None
     pin_stiffness: float = DEFAULT_PIN_STIFFNESS
     contact_dhat: float = 2.0e-3
@@ -207,7 +210,7 @@ class Scene:
                 dev = getattr(sdf, "device", g.device)
                 if torch.device(dev) != g.device:
                     raise InputError(f"the body SDF is on {dev} but the garment is on {g.device}")
-                terms.append(BodyBarrier(sdf, V, mu=m.barrier_mu, offset=m.barrier_offset))
+                terms.append(BodyBarrier(sdf, V, mu=m.barrier_mu, dhat=m.barrier_dhat, offset=m.barrier_offset))
             elif eff is Effect.SELF_CONTACT:
                 contact = _contact_module(eff)
                 terms.append(contact.SelfContact(

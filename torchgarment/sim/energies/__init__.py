@@ -8,7 +8,7 @@
 * :class:`BodyBarrier` - ``-mu sum log phi`` on a body SDF (Eq. 4), with ``max_step`` and ``project_feasible``.
 """
 
-from torchgarment.sim.energies.barrier import DEFAULT_BARRIER_MU, BodyBarrier
+from torchgarment.sim.energies.barrier import DEFAULT_BARRIER_DHAT, DEFAULT_BARRIER_MU, BodyBarrier
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 from torchgarment.sim.energies.bend import DEFAULT_BEND_STIFFNESS, QuadraticBending
 from torchgarment.sim.energies.gravity import DEFAULT_DENSITY, STANDARD_GRAVITY, Gravity, vertex_masses
@@ -17,6 +17,7 @@ from torchgarment.sim.energies.sew import DEFAULT_SEW_STIFFNESS, SewingSprings
 from torchgarment.sim.energies.stretch import DEFAULT_STRETCH_STIFFNESS, PairOperator, PlanarSprings
 
 __all__ = [
+    "DEFAULT_BARRIER_DHAT",
     "DEFAULT_BARRIER_MU",
     "DEFAULT_BEND_STIFFNESS",
     "DEFAULT_DENSITY",

@@ -2,15 +2,23 @@
 
 ::
 
-    E = -mu * sum_i log(phi(x_i))          phi: the body's signed distance (metres, negative inside)
+    E = sum_i b(phi(x_i))                  phi: the body's signed distance (metres, negative inside)
+    b(phi) = -mu log(phi)                                   unbounded (dhat = None): the paper's Eq. 4
+    b(phi) = -mu (phi/dhat - 1)^2 log(phi/dhat), phi < dhat range-limited (IPC form, Li et al. 2020), 0 beyond
 
-``mu`` is in joules (the paper uses 0.01). The force on a vertex is ``mu grad phi / phi``: it grows without
-bound as the vertex approaches the body. Where ``phi <= 0`` the energy is ``+inf`` (never NaN); the gradient
+``mu`` is in joules (the paper uses 0.01). Near the body both forms push with ``mu grad phi / phi``, which
+grows without bound as a vertex approaches the body. The unbounded form also pushes at every distance
+(``mu / phi`` = 0.25 N at 4 cm for ``mu = 0.01`` J, hundreds of times a cloth vertex's weight in SI units), so
+loose cloth floats on the far field; the range-limited form (the default in :class:`~torchgarment.sim.scene.
+Material`, ``dhat`` = 3 mm) is C2 at ``dhat`` and acts only within ``dhat`` of the body: resting cloth sits
+just inside ``dhat`` (for a vertex weight ``w`` the equilibrium is ``phi = dhat (1 - u)`` with
+``3 mu u^2 / dhat = w``, ``u`` ~ 1 % at 2 cm edges), and with it the paper's ``mu = 0.01`` J drapes well. Where ``phi <= 0`` the energy is ``+inf`` (never NaN); the gradient
 and Hessian there are evaluated as if ``phi = offset`` (finite, pushing outward), but solvers must not accept
 such states: use :meth:`BodyBarrier.max_step` to stay feasible and :meth:`BodyBarrier.project_feasible` to
 repair an infeasible start (the paper projects penetrating vertices onto the body surface).
 
-Hessian: per vertex ``mu (g g^T) / phi^2 - mu Hess(phi) / phi``. The second part is dropped: the trilinear
+Hessian: per vertex ``b''(phi) g g^T + b'(phi) Hess(phi)`` (``b'' = mu / phi^2``, ``b' = -mu / phi`` for the
+unbounded form). The second part is dropped: the trilinear
 SDF's second derivatives are piecewise (mixed partials only, jumping across cells) and near the surface
 ``Hess(phi)`` of a convex body part is PSD, so the dropped term would mostly reduce stiffness. What remains is
 always PSD, so projection changes nothing. (With a planar SDF, ``Hess(phi) = 0`` and the blocks are exact.)
@@ -32,6 +40,10 @@ from torchgarment.sim.energies.stretch import check_positions
 DEFAULT_BARRIER_MU = 0.01
 """Default barrier weight ``mu`` in joules (Wang et al. 2018)."""
 
+DEFAULT_BARRIER_DHAT = 3.0e-3
+"""Default range in metres of the range-limited body barrier used by scenes (:class:`~torchgarment.sim.scene.
+Material`); resting cloth sits just inside it."""
+
 DEFAULT_OFFSET = 1.0e-3
 """Default minimum clearance in metres that :meth:`BodyBarrier.project_feasible` restores (raised to a quarter
 voxel for coarse SDFs)."""
@@ -50,11 +62,12 @@ SDF_LIPSCHITZ = math.sqrt(3.0)
 
 
 class BodyBarrier(EnergyTerm):
-    """``-mu sum log phi(x_i)`` on a body signed distance field.
+    """``sum_i b(phi(x_i))`` on a body signed distance field (the log barrier, optionally range-limited).
 
     Attributes:
         sdf: the signed distance module.
         mu: barrier weight in joules.
+        dhat: activation distance in metres of the range-limited form, or None for the unbounded ``-mu log phi``.
         offset: clearance in metres restored by :meth:`project_feasible`; also the ``phi`` used for the
             gradient of infeasible vertices.
         lipschitz: assumed Lipschitz constant of ``phi`` (for the safe-step certificate of :meth:`max_step`).
@@ -70,6 +83,7 @@ class BodyBarrier(EnergyTerm):
         num_vertices: int,
         *,
         mu: float = DEFAULT_BARRIER_MU,
+        dhat: float | None = None,
         offset: float | None = None,
         lipschitz: float = SDF_LIPSCHITZ,
         segment_samples: int = 8,
@@ -82,7 +96,9 @@ class BodyBarrier(EnergyTerm):
             sdf: module with ``forward`` and ``value_and_gradient`` (a BodySDF).
             num_vertices: V.
             mu: barrier weight in joules, > 0.
-            offset: clearance in metres, > 0; None means ``max(1 mm, voxel_size / 4)``.
+            dhat: activation distance in metres (> 0) of the range-limited barrier, or None (unbounded).
+            offset: clearance in metres, > 0 (below ``dhat``); None means ``max(1 mm, voxel_size / 4)``, at most
+                ``dhat / 2``.
             lipschitz: Lipschitz bound of ``phi`` (>= 1).
             segment_samples: samples per vertex path checked by :meth:`max_step` (>= 1).
             bisection_steps: bisection steps of :meth:`max_step`.
@@ -96,8 +112,12 @@ class BodyBarrier(EnergyTerm):
             raise InputError(f"the body barrier needs an SDF module with value_and_gradient, got {type(sdf).__name__}")
         if not mu > 0:
             raise InputError(f"barrier mu must be positive, got {mu}")
+        if dhat is not None and not (math.isfinite(dhat) and dhat > 0):
+            raise InputError(f"barrier dhat must be a positive distance in metres or None, got {dhat}")
         if offset is None:
             offset = max(DEFAULT_OFFSET, 0.25 * float(getattr(sdf, "voxel_size", 0.0)))
+            if dhat is not None:
+                offset = min(offset, 0.5 * dhat)
         if not offset > 0:
             raise InputError(f"barrier offset must be positive, got {offset}")
         if not lipschitz >= 1.0 or segment_samples < 1 or bisection_steps < 0 or project_iterations < 1:
@@ -106,6 +126,10 @@ class BodyBarrier(EnergyTerm):
         self.sdf = sdf
         self.num_vertices = int(num_vertices)
         self.mu = float(mu)
+        self.dhat = None if dhat is None else float(dhat)
+        if self.dhat is not None and offset >= self.dhat:
+            raise InputError(f"barrier offset ({offset} m) must be below dhat ({self.dhat} m): projected vertices "
+                             f"must land where the barrier acts")
         self.offset = float(offset)
         self.lipschitz = float(lipschitz)
         self.segment_samples = int(segment_samples)
@@ -150,13 +174,32 @@ class BodyBarrier(EnergyTerm):
         return val
 
     # ------------------------------------------------------------------ energy
+    def barrier(self, phi: torch.Tensor) -> torch.Tensor:
+        """``b(phi)`` (any shape) for ``phi > 0``, differentiable (autograd); 0 beyond ``dhat``."""
+        if self.dhat is None:
+            return -self.mu * torch.log(phi)
+        s = (phi / self.dhat).clamp(max=1.0)
+        return -self.mu * (s - 1.0).square() * torch.log(s)
+
+    def derivatives(self, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(b'(phi), b''(phi))`` (same shape as ``phi``) in J/m and J/m^2, for ``phi > 0``."""
+        if self.dhat is None:
+            inv = 1.0 / phi
+            return -self.mu * inv, self.mu * inv * inv
+        s = (phi / self.dhat).clamp(max=1.0)
+        sm1 = s - 1.0
+        ls = torch.log(s)
+        d1 = (-self.mu / self.dhat) * (2.0 * sm1 * ls + sm1 * sm1 / s)
+        d2 = (-self.mu / self.dhat ** 2) * (2.0 * ls + 4.0 * sm1 / s - (sm1 / s).square())
+        return d1, d2
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Energy in joules of positions ``x`` (V, 3), ``+inf`` if a vertex has ``phi <= 0``; differentiable."""
         check_positions(x, self.num_vertices, self.name)
         phi = self.sdf(x).to(x.dtype)
         ok = phi > 0
         safe = torch.where(ok, phi, torch.ones_like(phi))
-        e = torch.where(ok, -self.mu * torch.log(safe), torch.full_like(phi, math.inf))
+        e = torch.where(ok, self.barrier(safe), torch.full_like(phi, math.inf))
         return e.sum()
 
     def _evaluate(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -164,31 +207,32 @@ class BodyBarrier(EnergyTerm):
         check_positions(x, self.num_vertices, self.name)
         phi, gphi = self._phi_grad_cached(x.detach())
         if phi.numel() == 0 or float(phi.min()) > 0:
-            return -self.mu * torch.log(phi).sum(), phi, gphi
+            return self.barrier(phi).sum(), phi, gphi
         safe = torch.where(phi > 0, phi, torch.full_like(phi, self.offset))
         return torch.full((), math.inf, dtype=phi.dtype, device=phi.device), safe, gphi
 
     def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Energy () in joules and analytic gradient ``-mu grad phi / phi`` (V, 3) in newtons."""
+        """Energy () in joules and analytic gradient ``b'(phi) grad phi`` (V, 3) in newtons."""
         E, safe, gphi = self._evaluate(x)
-        return E, gphi * (-self.mu / safe).unsqueeze(1)
+        d1, _ = self.derivatives(safe)
+        return E, gphi * d1.unsqueeze(1)
 
     def value_grad_hessian_diagonal(
         self, x: torch.Tensor, project_psd: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Energy, gradient and Hessian diagonal blocks sharing one SDF evaluation."""
         E, safe, gphi = self._evaluate(x)
-        w = (-self.mu / safe).unsqueeze(1)
-        g = gphi * w
-        # blocks mu g g^T / phi^2 = (gphi mu / phi) (gphi / phi)^T: reuse the gradient
-        return E, g, g.unsqueeze(2) * (gphi / safe.unsqueeze(1)).neg_().unsqueeze(1)
+        d1, d2 = self.derivatives(safe)
+        g = gphi * d1.unsqueeze(1)
+        return E, g, (gphi * d2.unsqueeze(1)).unsqueeze(2) * gphi.unsqueeze(1)
 
     def _blocks(self, safe: torch.Tensor, gphi: torch.Tensor) -> torch.Tensor:
-        s = (self.mu / (safe * safe)).sqrt().unsqueeze(1) * gphi  # sqrt(mu) g / phi
+        _, d2 = self.derivatives(safe)
+        s = d2.clamp_min(0.0).sqrt().unsqueeze(1) * gphi  # sqrt(b'') g
         return s.unsqueeze(2) * s.unsqueeze(1)
 
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
-        """(V, 3, 3) blocks ``mu g g^T / phi^2`` (PSD; the ``Hess(phi)`` part is dropped)."""
+        """(V, 3, 3) blocks ``b''(phi) g g^T`` (PSD: ``b'' >= 0``; the ``b'(phi) Hess(phi)`` part is dropped)."""
         _, safe, gphi = self._evaluate(x)
         return self._blocks(safe, gphi)
 
@@ -360,4 +404,5 @@ class BodyBarrier(EnergyTerm):
         return y
 
     def extra_repr(self) -> str:
-        return f"mu={self.mu} J, offset={self.offset} m"
+        rng = "unbounded" if self.dhat is None else f"dhat={self.dhat} m"
+        return f"mu={self.mu} J, {rng}, offset={self.offset} m"
