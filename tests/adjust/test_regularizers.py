@@ -1,0 +1,151 @@
+"""Regularizers on the boundary parameters (Wang 2018 Eq. 9-10, seam lengths): values, invariances, gradients,
+approximate Hessians."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchgarment.adjust.parametrization import BoundaryParametrization
+from torchgarment.adjust.regularizers import (
+    BoundaryCurvatureRegularizer,
+    FixingRegularizer,
+    SeamLengthRegularizer,
+)
+from torchgarment.body.size_chart import chart_row
+from torchgarment.errors import InputError
+from torchgarment.pattern.library import draft
+from torchgarment.pattern.meshing import mesh_pattern
+from torchgarment.testing import check_gradient
+
+_CACHE: dict = {}
+
+
+def setup():
+    if "P" not in _CACHE:
+        mesh = mesh_pattern(draft("straight_skirt", chart_row("12")), 0.06)
+        _CACHE["mesh"] = mesh
+        _CACHE["P"] = BoundaryParametrization(mesh)
+    return _CACHE["mesh"], _CACHE["P"]
+
+
+def noisy(q: torch.Tensor, scale: float = 0.005, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return q + scale * torch.randn(q.shape, generator=g, dtype=q.dtype)
+
+
+def per_panel_similarity(mesh, P, seed: int = 3) -> torch.Tensor:
+    """q after a random rotation + uniform scale + translation of every panel."""
+    g = torch.Generator().manual_seed(seed)
+    q = P.initial().clone()
+    pid = mesh.vertex_panel_ids[P.boundary_index]
+    for k in range(len(mesh.panel_names)):
+        th = float(torch.rand(1, generator=g)) * 6.0
+        s = 0.8 + 0.4 * float(torch.rand(1, generator=g))
+        R = torch.tensor([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]], dtype=torch.float64)
+        sel = pid == k
+        q[sel] = s * q[sel] @ R.T + torch.randn(2, generator=g, dtype=torch.float64)
+    return q
+
+
+def dense_hessian(fn, q: torch.Tensor) -> torch.Tensor:
+    n = q.numel()
+    H = torch.autograd.functional.hessian(lambda v: fn(v.view_as(q)), q.reshape(-1).clone())
+    return H.reshape(n, n)
+
+
+def test_fixing_value_gradient_hessian():
+    _, P = setup()
+    q0 = P.initial()
+    R = FixingRegularizer(q0, weight=100.0)
+    q = noisy(q0)
+    assert float(R(q0)) == 0.0
+    assert float(R(q)) == pytest.approx(50.0 * float((q - q0).pow(2).sum()), rel=1e-12)
+    check_gradient(R, q, rtol=1e-7)
+    H = R.hessian().toarray()
+    assert np.allclose(H, dense_hessian(R, q).numpy(), atol=1e-9)
+    with pytest.raises(InputError):
+        R(q[:-1])
+
+
+def test_curvature_zero_at_base_and_under_similarities():
+    mesh, P = setup()
+    R = BoundaryCurvatureRegularizer(P, weight=1e6)
+    assert float(R(P.initial())) < 1e-20
+    q = per_panel_similarity(mesh, P)
+    assert float(R(q)) < 1e-14  # invariant to rotation + uniform scale + translation of each outline
+    # a non-uniform scale is penalized
+    q2 = P.initial() * torch.tensor([1.1, 0.9], dtype=torch.float64)
+    assert float(R(q2)) > 1e-3
+
+
+def test_curvature_similarity_recovers_rotation_and_scale():
+    mesh, P = setup()
+    R = BoundaryCurvatureRegularizer(P, weight=1.0)
+    th, s = 0.7, 1.3
+    Rm = torch.tensor([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]], dtype=torch.float64)
+    T = R.similarities(s * P.initial() @ Rm.T)
+    assert torch.allclose(T, torch.tensor([s * np.cos(th), s * np.sin(th)], dtype=torch.float64).expand_as(T),
+                          atol=1e-12)
+
+
+def test_curvature_gradient_and_corner_weight():
+    mesh, P = setup()
+    R = BoundaryCurvatureRegularizer(P, weight=1e6, corner_weight=0.1)
+    check_gradient(R, noisy(P.initial()), rtol=1e-6)
+    # the same bump costs 10x less at a corner than at a regular outline vertex
+    c = int(torch.nonzero(P.corner_mask)[0])
+    r = int(torch.nonzero(~P.corner_mask & ~P.corner_mask[P.boundary_prev] & ~P.corner_mask[P.boundary_next]
+                          & ~P.corner_mask[P.boundary_prev[P.boundary_prev]]
+                          & ~P.corner_mask[P.boundary_next[P.boundary_next]])[0])
+    R1 = BoundaryCurvatureRegularizer(P, weight=1e6, corner_weight=1.0)
+    R0 = BoundaryCurvatureRegularizer(P, weight=1e6, corner_weight=0.0)
+    bump = torch.zeros(P.num_boundary, 2, dtype=torch.float64)
+    bump[c] = 1e-3
+    # at the corner, only the corner's own residual weight changes
+    v1, v0 = float(R1(P.initial() + bump)), float(R0(P.initial() + bump))
+    assert float(R(P.initial() + bump)) == pytest.approx(v0 + 0.1 * (v1 - v0), rel=1e-9)
+    assert v1 > v0 > 0
+    bump2 = torch.zeros_like(bump)
+    bump2[r] = 1e-3
+    assert float(R(P.initial() + bump2)) == pytest.approx(float(R1(P.initial() + bump2)), rel=1e-12)
+
+
+def test_curvature_hessian_is_exact_with_T_held_constant():
+    mesh, P = setup()
+    R = BoundaryCurvatureRegularizer(P, weight=1e6, corner_weight=0.1)
+    q0 = P.initial()
+    w = R.vertex_weight
+
+    def fixed_T(q):  # Eq. 10 with T_i = identity
+        lap = q[R.prev] + q[R.next] - 2 * q
+        lap0 = q0[R.prev] + q0[R.next] - 2 * q0
+        return 0.5 * R.weight * (w * (lap - lap0).pow(2).sum(-1)).sum()
+
+    H = R.hessian()
+    assert np.allclose(H.toarray(), dense_hessian(fixed_T, q0).numpy(), rtol=1e-10, atol=1e-4)
+    assert abs(H - H.T).max() < 1e-6
+
+
+def test_seam_regularizer():
+    mesh, P = setup()
+    R = SeamLengthRegularizer(P, weight=1e6)
+    q0 = P.initial()
+    assert float(R(q0)) < 1e-20
+    assert float(R(1.07 * q0)) < 1e-20  # scaling all panels keeps the ratios
+    assert float(R(per_panel_similarity(mesh, P))) > 1.0  # different scales per panel break the seams
+    check_gradient(R, noisy(q0), rtol=1e-6)
+    H = R.hessian()
+    assert abs(H - H.T).max() < 1e-6
+    assert np.linalg.eigvalsh(H.toarray()).min() > -1e-6
+    # at the base pattern the Gauss-Newton Hessian is the exact Hessian (zero residuals)
+    assert np.allclose(H.toarray(), dense_hessian(R, q0).numpy(), rtol=1e-8, atol=1e-3)
+
+
+def test_residuals_give_the_value():
+    mesh, P = setup()
+    q = noisy(P.initial())
+    for R in (FixingRegularizer(P.initial(), 3.0), BoundaryCurvatureRegularizer(P, 5.0, 0.2),
+              SeamLengthRegularizer(P, 7.0)):
+        assert float(R(q)) == pytest.approx(0.5 * R.weight * float(R.residuals(q).pow(2).sum()), rel=1e-12)

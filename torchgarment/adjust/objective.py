@@ -1,0 +1,244 @@
+"""The objective of pattern adjustment: ``f = R_fix + R_cur + R_seam + C_dis + C_smo + C_str + C_pos``.
+
+:class:`AdjustObjective` composes the costs of :mod:`.costs` (functions of the garment ``x`` on the target
+body and the pattern ``p``) and the regularizers of :mod:`.regularizers` (functions of the boundary
+parameters ``q = p[boundary_index]``) with the coefficients of :class:`CostWeights` (Wang et al. 2018,
+Eq. 17). It also provides the constant approximate regularizer Hessian used as the preconditioner of
+section 7 and the initialization objective of section 7 (``x`` held at the transferred garment).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import scipy.sparse
+import torch
+
+from torchgarment.adjust.costs import (
+    DEFAULT_BOUNDARY_POSITION_WEIGHT,
+    DistanceCost,
+    PositionalCost,
+    SmoothnessCost,
+    StretchingCost,
+)
+from torchgarment.adjust.parametrization import BoundaryParametrization
+from torchgarment.adjust.regularizers import (
+    DEFAULT_CORNER_WEIGHT,
+    BoundaryCurvatureRegularizer,
+    FixingRegularizer,
+    SeamLengthRegularizer,
+)
+from torchgarment.adjust.transfer import DEFAULT_BAND, transfer_deformation
+from torchgarment.body.body import Body
+from torchgarment.errors import InputError
+from torchgarment.structures.garment_mesh import GarmentMesh
+
+COST_NAMES = ("distance", "smoothness", "stretching", "positional")
+"""Names of the cost terms (functions of ``x`` and ``p``)."""
+REGULARIZER_NAMES = ("fixing", "curvature", "seam")
+"""Names of the regularizers (functions of ``q``)."""
+TERM_NAMES = COST_NAMES + REGULARIZER_NAMES
+"""Every term, in the order of :meth:`AdjustObjective.term_values`."""
+
+
+@dataclass
+class CostWeights:
+    """Coefficients of the terms (1/m^2; 0 turns a term off).
+
+    Defaults are the paper's (Table 1, secretary dress: ``δ_fix, δ_cur, δ_dis, δ_smo, δ_str, δ_pos`` =
+    100, 1e6, 1, 0.05, 1, 100) plus our seam-length term (not in the paper; see
+    :class:`~torchgarment.adjust.regularizers.SeamLengthRegularizer`).
+
+    Attributes:
+        distance: ``δ_dis`` (Eq. 11). smoothness: ``δ_smo`` (Eq. 12). stretching: ``δ_str`` (Eq. 14).
+        positional: ``δ_pos`` (Eq. 16). fixing: ``δ_fix`` (Eq. 9). curvature: ``δ_cur`` (Eq. 10).
+        seam: seam-length consistency coefficient.
+        corner_weight: ``w_i`` of Eq. 10 at corners (1 elsewhere).
+        boundary_position_weight: ``u_i`` of Eq. 16 on pattern-boundary vertices (1 elsewhere).
+    """
+
+    distance: float = 1.0
+    smoothness: float = 0.05
+    stretching: float = 1.0
+    positional: float = 100.0
+    fixing: float = 100.0
+    curvature: float = 1e6
+    seam: float = 1e6
+    corner_weight: float = DEFAULT_CORNER_WEIGHT
+    boundary_position_weight: float = DEFAULT_BOUNDARY_POSITION_WEIGHT
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` unless every entry is finite and >= 0."""
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise InputError(f"cost weight {f.name} must be a finite number >= 0, got {v!r}")
+
+    def to_dict(self) -> dict[str, float]:
+        """Plain dict (for metrics and checkpoints)."""
+        return {k: float(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CostWeights":
+        """Inverse of :meth:`to_dict`; unknown keys raise :class:`InputError`."""
+        known = {f.name for f in fields(cls)}
+        bad = set(d) - known
+        if bad:
+            raise InputError(f"unknown cost weights {sorted(bad)}; expected some of {sorted(known)}")
+        out = cls(**{k: float(v) for k, v in d.items()})
+        out.validate()
+        return out
+
+
+def body_sdf(body: Body, dtype: torch.dtype, device: torch.device | str | None,
+             sampling: str = "trilinear") -> torch.nn.Module:
+    """The (disk-cached) :class:`~torchgarment.sdf.grid.BodySDF` of a body with default grid settings.
+
+    Args:
+        sampling: ``"trilinear"`` (default: 3.6 ms for 30K points and gradient, C0) or ``"quadratic"`` (C1,
+            the simulator's default, 10x the cost: 35 ms).
+    """
+    from torchgarment.sdf.grid import BodySDF
+
+    return BodySDF.cached(body.vertices, body.faces, dtype=dtype, device=device).with_sampling(sampling)
+
+
+class AdjustObjective(torch.nn.Module):
+    """Total weighted objective of Eq. 17 as a function of ``x`` (V, 3) and ``p`` (V, 2).
+
+    Attributes:
+        weights: the :class:`CostWeights`.
+        parametrization: the :class:`BoundaryParametrization` (gives ``boundary_index``).
+        x_transfer: buffer (V, 3), the transferred garment ``x̃`` (Eq. 15).
+        costs: ``nn.ModuleDict`` of the active costs (weight > 0) by name.
+        regularizers: ``nn.ModuleDict`` of the active regularizers by name.
+    """
+
+    x_transfer: torch.Tensor
+
+    def __init__(self, base_mesh: GarmentMesh, base_body: Body, target_body: Body,
+                 parametrization: BoundaryParametrization, weights: CostWeights | None = None, *,
+                 x_transfer: torch.Tensor | None = None, base_sdf: torch.nn.Module | None = None,
+                 target_sdf: torch.nn.Module | None = None, band: float = DEFAULT_BAND,
+                 sdf_sampling: str = "trilinear") -> None:
+        """Precompute every reference quantity.
+
+        Args:
+            base_mesh: ``p`` = the base pattern, ``x`` = the base garment draped on the base body.
+            base_body, target_body: bodies of one topology (for the transfer and the SDFs).
+            parametrization: the boundary parametrization of ``base_mesh``.
+            weights: coefficients (default :class:`CostWeights()`).
+            x_transfer: (V, 3) transferred garment; default :func:`transfer_deformation` with ``band``.
+            base_sdf, target_sdf: SDF modules of the bodies (default: cached :class:`BodySDF`); only used
+                when ``weights.distance > 0``.
+            band: transition bandwidth of the transfer (metres).
+            sdf_sampling: sampling of the default SDFs (see :func:`body_sdf`).
+
+        Raises:
+            InputError: bad weights, shapes, or bodies of different topologies (when transferring).
+        """
+        super().__init__()
+        self.weights = weights if weights is not None else CostWeights()
+        self.weights.validate()
+        if base_mesh.p is None:
+            raise InputError("the base mesh needs pattern positions p")
+        V = base_mesh.num_vertices
+        if parametrization.num_vertices != V:
+            raise InputError(f"parametrization has {parametrization.num_vertices} vertices, base mesh {V}")
+        dtype, device = base_mesh.dtype, base_mesh.device
+        if x_transfer is None:
+            x_transfer = transfer_deformation(base_mesh.x, base_body, target_body, band=band)
+        if x_transfer.shape != (V, 3):
+            raise InputError(f"x_transfer must be ({V}, 3), got {tuple(x_transfer.shape)}")
+        self.parametrization = parametrization
+        self.register_buffer("x_transfer", x_transfer.detach().to(dtype=dtype, device=device).clone())
+        w = self.weights
+        costs: dict[str, torch.nn.Module] = {}
+        if w.distance > 0:
+            bs = base_sdf if base_sdf is not None else body_sdf(base_body, dtype, device, sdf_sampling)
+            ts = target_sdf if target_sdf is not None else body_sdf(target_body, dtype, device, sdf_sampling)
+            costs["distance"] = DistanceCost.from_garment(base_mesh.x.detach(), bs, ts, w.distance)
+        if w.smoothness > 0:
+            costs["smoothness"] = SmoothnessCost(base_mesh, w.smoothness)
+        if w.stretching > 0:
+            costs["stretching"] = StretchingCost(base_mesh, w.stretching)
+        if w.positional > 0:
+            costs["positional"] = PositionalCost.for_mesh(base_mesh, self.x_transfer, w.positional,
+                                                          w.boundary_position_weight)
+        q0 = base_mesh.p.detach()[parametrization.boundary_index.to(device)]
+        regs: dict[str, torch.nn.Module] = {}
+        if w.fixing > 0:
+            regs["fixing"] = FixingRegularizer(q0, w.fixing)
+        if w.curvature > 0:
+            regs["curvature"] = BoundaryCurvatureRegularizer(parametrization, w.curvature, w.corner_weight, q_base=q0)
+        if w.seam > 0 and parametrization.seam_edge_pairs.shape[0]:
+            regs["seam"] = SeamLengthRegularizer(parametrization, w.seam, q_base=q0)
+        self.costs = torch.nn.ModuleDict(costs)
+        self.regularizers = torch.nn.ModuleDict(regs)
+        self.num_vertices = V
+
+    # ------------------------------------------------------------------ evaluation
+    def boundary(self, p: torch.Tensor) -> torch.Tensor:
+        """(B, 2) boundary parameters ``q`` of a pattern ``p`` (V, 2)."""
+        return p[self.parametrization.boundary_index]
+
+    def _check(self, x: torch.Tensor | None, p: torch.Tensor) -> None:
+        V = self.num_vertices
+        if x is not None and tuple(x.shape) != (V, 3):
+            raise InputError(f"x must be ({V}, 3), got {tuple(x.shape)}")
+        if tuple(p.shape) != (V, 2):
+            raise InputError(f"p must be ({V}, 2), got {tuple(p.shape)}")
+
+    def terms(self, x: torch.Tensor, p: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Every active weighted term as a differentiable scalar, by name."""
+        self._check(x, p)
+        q = self.boundary(p)
+        out = {name: c(x, p) for name, c in self.costs.items()}
+        out.update({name: r(q) for name, r in self.regularizers.items()})
+        return out
+
+    def forward(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """Total objective () for the garment ``x`` (V, 3) on the target body and the pattern ``p`` (V, 2)."""
+        return sum(self.terms(x, p).values(), torch.zeros((), dtype=p.dtype, device=p.device))
+
+    def term_values(self, x: torch.Tensor, p: torch.Tensor) -> dict[str, float]:
+        """Each weighted term's value by name (all of :data:`TERM_NAMES`; 0.0 for terms turned off)."""
+        with torch.no_grad():
+            t = self.terms(x, p)
+        return {name: float(t[name]) if name in t else 0.0 for name in TERM_NAMES}
+
+    def regularization(self, p: torch.Tensor) -> torch.Tensor:
+        """Sum () of the regularizers at the pattern ``p`` (V, 2)."""
+        self._check(None, p)
+        q = self.boundary(p)
+        return sum((r(q) for r in self.regularizers.values()), torch.zeros((), dtype=p.dtype, device=p.device))
+
+    def initialization_objective(self, p: torch.Tensor) -> torch.Tensor:
+        """Section 7's initialization objective (): stretching at ``x = x_transfer`` plus the regularizers.
+
+        Args:
+            p: (V, 2) pattern (usually ``parametrization(q)``), differentiable.
+        """
+        self._check(None, p)
+        out = self.regularization(p)
+        if "stretching" in self.costs:
+            out = out + self.costs["stretching"](self.x_transfer.to(p.dtype), p)
+        return out
+
+    def regularizer_hessian(self) -> scipy.sparse.csr_matrix:
+        """Constant approximate Hessian (2B, 2B) of the regularizers w.r.t. ``q.reshape(-1)``, positive definite.
+
+        Fixing: exact (``δ_fix I``); curvature: ``T_i`` held constant; seam: base edge directions. When the
+        fixing term is off, ``1e-8`` times the largest diagonal entry (or 1 if all are zero) is added on the
+        diagonal to keep the matrix positive definite.
+        """
+        n = 2 * self.parametrization.num_boundary
+        H = scipy.sparse.csr_matrix((n, n))
+        for r in self.regularizers.values():
+            H = H + r.hessian()
+        if "fixing" not in self.regularizers:
+            d = H.diagonal()
+            eps = 1e-8 * float(d.max()) if d.size and d.max() > 0 else 1.0
+            H = H + eps * scipy.sparse.identity(n, format="csr")
+        return H.tocsr()

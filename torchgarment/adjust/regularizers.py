@@ -1,0 +1,204 @@
+"""Regularizers on the boundary parameters ``q`` (Wang et al. 2018, section 5.1, Eq. 9-10) and seam lengths.
+
+Every regularizer is an ``nn.Module`` whose ``forward(q)`` takes the boundary positions ``q`` (B, 2) (metres,
+in the order of :attr:`BoundaryParametrization.boundary_index`) and returns a scalar; autograd gives ``dR/dq``.
+Like the costs, each is a least-squares sum ``forward(q) = weight / 2 * |residuals(q)|^2`` (for Gauss-Newton).
+``hessian()`` returns the constant approximate Hessian (scipy csr, (2B, 2B), ``q`` flattened row-major) used
+by the preconditioner of section 7: exact for the fixing term, with ``T_i`` held constant for the curvature
+term (the paper's choice), and with edge directions held at the base pattern's for the seam term.
+Coefficients are in 1/m^2 like the paper's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse
+import torch
+
+from torchgarment.adjust.parametrization import BoundaryParametrization
+from torchgarment.errors import InputError
+
+DEFAULT_CORNER_WEIGHT = 0.1
+"""``w_i`` of Eq. 10 at corner vertices (1 elsewhere); the paper only says "smaller"."""
+
+
+def _check_q(q: torch.Tensor, B: int, who: str) -> None:
+    if q.ndim != 2 or q.shape != (B, 2):
+        raise InputError(f"{who}: q must be ({B}, 2), got {tuple(q.shape)}")
+
+
+class FixingRegularizer(torch.nn.Module):
+    """Eq. 9: ``R_fix = weight / 2 * sum_i |q_i - q̄_i|^2`` over the boundary vertices.
+
+    Attributes:
+        weight: ``δ_fix`` (1/m^2).
+        q_base: buffer (B, 2), the base boundary positions.
+    """
+
+    q_base: torch.Tensor
+
+    def __init__(self, q_base: torch.Tensor, weight: float = 1.0) -> None:
+        """Args: q_base: (B, 2) base boundary positions (metres). weight: ``δ_fix``."""
+        super().__init__()
+        self.weight = float(weight)
+        self.register_buffer("q_base", q_base.detach().clone())
+
+    def residuals(self, q: torch.Tensor) -> torch.Tensor:
+        """(B, 2) ``q - q̄`` (metres)."""
+        _check_q(q, self.q_base.shape[0], "FixingRegularizer")
+        return q - self.q_base.to(q.dtype)
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """Value () for boundary positions ``q`` (B, 2)."""
+        return 0.5 * self.weight * self.residuals(q).pow(2).sum()
+
+    def hessian(self) -> scipy.sparse.csr_matrix:
+        """(2B, 2B) exact Hessian ``weight * I``."""
+        return (self.weight * scipy.sparse.identity(2 * self.q_base.shape[0], format="csr")).tocsr()
+
+
+def _complex_mul(z: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Product of 2D vectors as complex numbers: z (..., 2) [a, b] acts as [[a, -b], [b, a]] on v (..., 2)."""
+    return torch.stack([z[..., 0] * v[..., 0] - z[..., 1] * v[..., 1],
+                        z[..., 1] * v[..., 0] + z[..., 0] * v[..., 1]], -1)
+
+
+class BoundaryCurvatureRegularizer(torch.nn.Module):
+    """Eq. 10: ``R_cur = weight / 2 * sum_i w_i |q_j + q_k - 2 q_i - T_i (q̄_j + q̄_k - 2 q̄_i)|^2``.
+
+    ``j``, ``k`` are the outline neighbours of boundary vertex ``i``. ``T_i`` is the similarity (rotation and
+    uniform scale, ``[[a, -b], [b, a]]``) that best maps the base edge vectors ``(q̄_j - q̄_i, q̄_k - q̄_i)`` onto
+    the current ones ``(q_j - q_i, q_k - q_i)`` in the least-squares sense (Fig. 6); it is a smooth function of
+    ``q`` and autograd differentiates through it. The term is zero under any rotation + uniform scale +
+    translation of a whole outline. ``w_i = corner_weight`` at corners, 1 elsewhere.
+
+    Attributes:
+        weight: ``δ_cur`` (1/m^2). corner_weight: ``w_i`` at corners.
+        prev, next: buffers (B,) long, outline neighbours (positions in ``q``).
+        vertex_weight: buffer (B,), ``w_i``.
+        q_base: buffer (B, 2).
+    """
+
+    prev: torch.Tensor
+    next: torch.Tensor
+    vertex_weight: torch.Tensor
+    q_base: torch.Tensor
+
+    def __init__(self, parametrization: BoundaryParametrization, weight: float = 1.0,
+                 corner_weight: float = DEFAULT_CORNER_WEIGHT, q_base: torch.Tensor | None = None) -> None:
+        """Args: parametrization: gives the outline neighbours and corners. weight: ``δ_cur``.
+        corner_weight: ``w_i`` at corners (>= 0). q_base: (B, 2) base positions (default ``initial()``)."""
+        super().__init__()
+        if corner_weight < 0:
+            raise InputError(f"corner_weight must be >= 0, got {corner_weight}")
+        self.weight = float(weight)
+        self.corner_weight = float(corner_weight)
+        qb = parametrization.initial() if q_base is None else q_base.detach().clone()
+        self.register_buffer("prev", parametrization.boundary_prev.clone())
+        self.register_buffer("next", parametrization.boundary_next.clone())
+        w = torch.ones(qb.shape[0], dtype=qb.dtype, device=qb.device)
+        w[parametrization.corner_mask] = self.corner_weight
+        self.register_buffer("vertex_weight", w)
+        self.register_buffer("q_base", qb)
+
+    def similarities(self, q: torch.Tensor) -> torch.Tensor:
+        """(B, 2) ``T_i`` as complex numbers ``[a, b]`` (least-squares similarity from base to current edges)."""
+        qb = self.q_base.to(q.dtype)
+        ej, ek = q[self.prev] - q, q[self.next] - q
+        bj, bk = qb[self.prev] - qb, qb[self.next] - qb
+        # z = sum conj(b) e / sum |b|^2
+        num = torch.stack([(bj * ej).sum(-1) + (bk * ek).sum(-1),
+                           bj[:, 0] * ej[:, 1] - bj[:, 1] * ej[:, 0] + bk[:, 0] * ek[:, 1] - bk[:, 1] * ek[:, 0]], -1)
+        den = bj.pow(2).sum(-1) + bk.pow(2).sum(-1)
+        return num / den[:, None]
+
+    def bending(self, q: torch.Tensor) -> torch.Tensor:
+        """(B, 2) ``q_j + q_k - 2 q_i - T_i (q̄_j + q̄_k - 2 q̄_i)`` (metres, unweighted)."""
+        _check_q(q, self.q_base.shape[0], "BoundaryCurvatureRegularizer")
+        qb = self.q_base.to(q.dtype)
+        lap = q[self.prev] + q[self.next] - 2.0 * q
+        lap0 = qb[self.prev] + qb[self.next] - 2.0 * qb
+        return lap - _complex_mul(self.similarities(q), lap0)
+
+    def residuals(self, q: torch.Tensor) -> torch.Tensor:
+        """(B, 2) ``sqrt(w_i)`` times :meth:`bending`."""
+        return self.vertex_weight.to(q.dtype).sqrt()[:, None] * self.bending(q)
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """Value () for boundary positions ``q`` (B, 2)."""
+        return 0.5 * self.weight * self.residuals(q).pow(2).sum()
+
+    def hessian(self) -> scipy.sparse.csr_matrix:
+        """(2B, 2B) Hessian with ``T_i`` held constant: ``weight * kron(D^T W D, I_2)``, D the second difference."""
+        B = self.q_base.shape[0]
+        i = np.arange(B)
+        pv, nx = self.prev.cpu().numpy(), self.next.cpu().numpy()
+        D = scipy.sparse.coo_matrix((np.concatenate([np.ones(B), np.ones(B), -2.0 * np.ones(B)]),
+                                     (np.concatenate([i, i, i]), np.concatenate([pv, nx, i]))), shape=(B, B)).tocsr()
+        W = scipy.sparse.diags(self.vertex_weight.detach().cpu().double().numpy())
+        return scipy.sparse.kron(self.weight * (D.T @ W @ D), scipy.sparse.identity(2), format="csr")
+
+
+class SeamLengthRegularizer(torch.nn.Module):
+    """Seam consistency: stitched boundary edges keep the base pattern's length ratio.
+
+    ``R_seam = weight / 2 * sum_e (|q_a1 - q_a0| - r̄_e |q_b1 - q_b0|)^2`` over the stitched edge pairs of
+    :attr:`BoundaryParametrization.seam_edge_pairs`, with ``r̄_e`` the base ratio (1 for plain seams, the
+    gathering ratio for shirred ones). Not in the paper (whose parameters are the boundary vertices of both
+    sides too, kept together only by the simulated sewing springs and the stretching cost); it keeps the two
+    sides of every seam the same length so the adjusted pattern can be sewn.
+
+    Attributes:
+        weight: coefficient (1/m^2). pairs: buffer (K, 4) long ``[a0, a1, b0, b1]``. ratio: buffer (K,).
+    """
+
+    pairs: torch.Tensor
+    ratio: torch.Tensor
+    q_base: torch.Tensor
+
+    def __init__(self, parametrization: BoundaryParametrization, weight: float = 1.0,
+                 q_base: torch.Tensor | None = None) -> None:
+        """Args: parametrization: gives the stitched edge pairs. weight: coefficient. q_base: (B, 2) base."""
+        super().__init__()
+        self.weight = float(weight)
+        qb = parametrization.initial() if q_base is None else q_base.detach().clone()
+        pr = parametrization.seam_edge_pairs.clone()
+        la = (qb[pr[:, 1]] - qb[pr[:, 0]]).norm(dim=-1)
+        lb = (qb[pr[:, 3]] - qb[pr[:, 2]]).norm(dim=-1)
+        self.register_buffer("pairs", pr)
+        self.register_buffer("ratio", la / lb)
+        self.register_buffer("q_base", qb)
+
+    def residuals(self, q: torch.Tensor) -> torch.Tensor:
+        """(K,) ``|q_a1 - q_a0| - r̄ |q_b1 - q_b0|`` in metres."""
+        _check_q(q, self.q_base.shape[0], "SeamLengthRegularizer")
+        pr = self.pairs
+        la = (q[pr[:, 1]] - q[pr[:, 0]]).norm(dim=-1)
+        lb = (q[pr[:, 3]] - q[pr[:, 2]]).norm(dim=-1)
+        return la - self.ratio.to(q.dtype) * lb
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """Value () for boundary positions ``q`` (B, 2)."""
+        return 0.5 * self.weight * self.residuals(q).pow(2).sum()
+
+    def hessian(self) -> scipy.sparse.csr_matrix:
+        """(2B, 2B) Gauss-Newton Hessian with the edge directions of the base pattern: ``weight * sum g g^T``."""
+        B = self.q_base.shape[0]
+        pr = self.pairs.cpu().numpy()
+        if pr.shape[0] == 0:
+            return scipy.sparse.csr_matrix((2 * B, 2 * B))
+        qb = self.q_base.detach().cpu().double().numpy()
+        ua = qb[pr[:, 1]] - qb[pr[:, 0]]
+        ua /= np.linalg.norm(ua, axis=1, keepdims=True)
+        ub = qb[pr[:, 3]] - qb[pr[:, 2]]
+        ub /= np.linalg.norm(ub, axis=1, keepdims=True)
+        r = self.ratio.detach().cpu().double().numpy()[:, None]
+        # residual gradient: +ua at a1, -ua at a0, -r ub at b1, +r ub at b0
+        coef = np.stack([-ua, ua, r * ub, -r * ub], axis=1)  # (K, 4, 2)
+        idx = 2 * pr[:, :, None] + np.arange(2)[None, None, :]  # (K, 4, 2)
+        g_idx = idx.reshape(len(pr), 8)
+        g_val = coef.reshape(len(pr), 8)
+        rows = np.repeat(g_idx, 8, axis=1).ravel()
+        cols = np.tile(g_idx, (1, 8)).ravel()
+        vals = (g_val[:, :, None] * g_val[:, None, :]).reshape(-1)
+        return (self.weight * scipy.sparse.coo_matrix((vals, (rows, cols)), shape=(2 * B, 2 * B))).tocsr()
