@@ -1,0 +1,106 @@
+"""Benchmark of online data-driven fitting (Gillies et al. 2004): garment from known weights, and batches.
+
+A synthetic body model of the anny size (13,348 vertices) and a synthetic clothing basis of a 30K-vertex
+garment (random, the right sizes: the timing does not depend on the values) are stacked in an
+:class:`~torchgarment.datadriven.online.OnlineFitter`. Reported (medians over repeats, CPU):
+
+* ``fit_ms``: one customer's garment once the weights are known (target <= 2 ms);
+* ``weights_ms``: the projection of one body to weights (done once per customer);
+* ``bodies_per_s``: batch throughput of ``fit`` over B customers at once.
+
+Example::
+
+    python scripts/bench_pca_fit.py --vertices 30000 --k 5 10 20 --batch 256 --json /tmp/bench_pca.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def median_seconds(fn, repeats: int) -> float:  # noqa: ANN001
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--vertices", type=int, default=30000, help="garment vertices (default 30000)")
+    ap.add_argument("--body-vertices", type=int, default=13348, help="body vertices (default 13348, anny)")
+    ap.add_argument("--k", type=int, nargs="+", default=[5, 10, 20], help="component counts (default 5 10 20)")
+    ap.add_argument("--batch", type=int, default=256, help="customers per batch for the throughput (default 256)")
+    ap.add_argument("--repeats", type=int, default=50, help="timed repeats (default 50)")
+    ap.add_argument("--dtype", default="float32", choices=["float32", "float64"], help="default float32")
+    ap.add_argument("--interpolation", default="piecewise", choices=["linear", "piecewise"])
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch intra-op threads (default 1: one customer per core; 0 keeps torch's default)")
+    ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
+    args = ap.parse_args(argv)
+
+    from torchgarment.datadriven.basis import ClothingBasis
+    from torchgarment.datadriven.online import OnlineFitter
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.structures.garment_mesh import GarmentMesh
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    dtype = getattr(torch, args.dtype)
+    g = torch.Generator().manual_seed(0)
+    kmax = max(args.k)
+    nb, ng = args.body_vertices, args.vertices
+    q, _ = torch.linalg.qr(torch.randn(3 * nb, kmax, generator=g, dtype=torch.float64))
+    pca = BodyPCA(mean=torch.randn(nb, 3, generator=g, dtype=torch.float64), components=q.T.reshape(kmax, nb, 3),
+                  variances=torch.linspace(1.0, 0.01, kmax, dtype=torch.float64), total_variance=6.0,
+                  faces=torch.tensor([[0, 1, 2]], dtype=torch.long), num_bodies=kmax + 1)
+    mean = torch.randn(ng, 3, generator=g, dtype=torch.float64)
+    garment = GarmentMesh(mean, torch.tensor([[0, 1, 2]], dtype=torch.long))
+    basis = ClothingBasis(mean, mean + 0.01 * torch.randn(kmax, ng, 3, generator=g, dtype=torch.float64),
+                          mean - 0.01 * torch.randn(kmax, ng, 3, generator=g, dtype=torch.float64),
+                          pca.sigmas.clone(), garment, pca.fingerprint(), "bench", "synthetic")
+    rows = []
+    for k in args.k:
+        fitter = OnlineFitter(pca, [basis], k=k, interpolation=args.interpolation, dtype=dtype)
+        body = (pca.mean + 0.01 * torch.randn(nb, 3, generator=g, dtype=torch.float64)).to(dtype)
+        w = fitter.weights(body)
+        bodies = body + 0.01 * torch.randn(args.batch, nb, 3, generator=g, dtype=torch.float64).to(dtype)
+        wb = fitter.weights(bodies)
+        with torch.no_grad():
+            fit_s = median_seconds(lambda: fitter.fit_all(w), args.repeats)
+            weights_s = median_seconds(lambda: fitter.weights(body), args.repeats)
+            batch_s = median_seconds(lambda: fitter.fit_all(wb), max(5, args.repeats // 10))
+        rows.append({"k": k, "fit_ms": 1e3 * fit_s, "weights_ms": 1e3 * weights_s,
+                     "batch": args.batch, "batch_ms": 1e3 * batch_s, "bodies_per_s": args.batch / batch_s})
+    result = {"garment_vertices": ng, "body_vertices": nb, "dtype": args.dtype, "interpolation": args.interpolation,
+              "threads": torch.get_num_threads(), "torch": torch.__version__, "rows": rows}
+    print(f"online fit of a {ng}-vertex garment ({args.dtype}, {args.interpolation}, {result['threads']} threads), "
+          f"medians of {args.repeats}:")
+    print(f"{'k':>3} {'fit ms':>8} {'weights ms':>11} {'batch':>6} {'batch ms':>9} {'bodies/s':>10}")
+    for r in rows:
+        print(f"{r['k']:>3} {r['fit_ms']:>8.3f} {r['weights_ms']:>11.3f} {r['batch']:>6} {r['batch_ms']:>9.2f} "
+              f"{r['bodies_per_s']:>10.0f}")
+    if args.json:
+        from torchgarment.io.atomic import atomic_path
+
+        with atomic_path(args.json) as tmp:
+            Path(tmp).write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

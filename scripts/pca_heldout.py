@@ -1,0 +1,164 @@
+"""Held-out accuracy of data-driven garment fitting (Gillies et al. 2004) against full drapes, as a function of k.
+
+N training anny adults give the PCA body model; a garment drafted for the mean body is draped on the mean and
+the +-c sigma_i example bodies (the clothing basis, cached and resumable). For each of H held-out bodies
+(sampled with another seed) the same garment mesh, placed by the same rule, is fully draped (the reference,
+also cached), and the PCA garment for k = 0..kmax components is compared with it: mean and max vertex
+distance (mm), vertices inside the body (SDF phi < 0) before and after the push-out, and the body's own
+rank-k reconstruction error.
+
+Example (about 30 drapes; tens of minutes on 2 CPU cores)::
+
+    python scripts/pca_heldout.py --train 60 --heldout 20 --kmax 3 --json /tmp/pca_heldout.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--train", type=int, default=60, help="training bodies (default 60)")
+    ap.add_argument("--heldout", type=int, default=20, help="held-out bodies (default 20)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the training bodies (held-out: seed + 1000)")
+    ap.add_argument("--garment", default="straight_skirt", help="library garment (default straight_skirt)")
+    ap.add_argument("--hip-ease", type=float, default=0.06, help="hip ease of the skirt drafts (default 0.06 m)")
+    ap.add_argument("--kmax", type=int, default=3, help="largest k (components draped: 2 kmax + 1 drapes)")
+    ap.add_argument("--c", type=float, default=1.0, help="example bodies at +-c sigma (default 1)")
+    ap.add_argument("--edge-length", type=float, default=0.05, help="garment edge length, m (default 0.05)")
+    ap.add_argument("--voxel", type=float, default=0.01, help="SDF voxel size, m (default 0.01)")
+    ap.add_argument("--cache", default=None, help="cache folder (default $TORCHGARMENT_CACHE/clothing_basis)")
+    ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
+    args = ap.parse_args(argv)
+
+    from tqdm import tqdm
+
+    from torchgarment.body.measure import measure_body
+    from torchgarment.datadriven.basis import (
+        BasisSettings,
+        BodyFrame,
+        Interpolation,
+        basis_cache_dir,
+        build_basis,
+        drape_on_body,
+        mesh_hash,
+    )
+    from torchgarment.datadriven.dataset import BodyDataset
+    from torchgarment.datadriven.online import OnlineFitter, push_out
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.io.atomic import atomic_path
+    from torchgarment.pattern.library import draft
+    from torchgarment.pattern.meshing import mesh_pattern
+    from torchgarment.sdf import BodySDF, SDFSettings
+    from torchgarment.sim.drape import DrapeSettings
+
+    t0 = time.perf_counter()
+    train = BodyDataset.from_anny(args.train, seed=args.seed)
+    held = BodyDataset.from_anny(args.heldout, seed=args.seed + 1000)
+    t_data = time.perf_counter() - t0
+    pca = BodyPCA.fit(train)
+    m = measure_body(pca.mean, pca.faces).to_dict()
+    req = {k: m[k] for k in ("height", "bust", "underbust", "waist", "hips")}
+    ease = {"hip_ease": args.hip_ease} if "skirt" in args.garment else {}
+    pattern = draft(args.garment, req, **ease)
+    dsettings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel)
+    mesh = mesh_pattern(pattern, args.edge_length)
+    settings = BasisSettings(k=args.kmax, c=args.c, drape=dsettings)
+    t1 = time.perf_counter()
+    basis = build_basis(pca, mesh, settings, name=args.garment, cache_dir=args.cache)
+    t_basis = time.perf_counter() - t1
+    reference = BodyFrame.of(pca.mean, pca.faces)
+
+    # full drapes of the held-out bodies (the references), cached per body
+    cache = Path(args.cache) if args.cache else basis_cache_dir()
+    tag = hashlib.sha256(basis.key.encode() + held.vertices.double().numpy().tobytes() + mesh_hash(mesh).encode())
+    ref_dir = cache / f"heldout-{tag.hexdigest()[:20]}"
+    refs, ref_metrics, drape_seconds = [], [], []
+    for i in tqdm(range(len(held)), desc="held-out full drapes"):
+        path = ref_dir / f"body_{i:03d}.pt"
+        if path.is_file():
+            e = torch.load(path, map_location="cpu", weights_only=True)
+        else:
+            t = time.perf_counter()
+            r = drape_on_body(mesh, held.vertices[i], held.faces, reference, dsettings)
+            e = {"x": r.x.detach().double(), "metrics_json": json.dumps(
+                {"ok": r.ok, "converged": r.converged, "min_sdf_mm": r.metrics["min_sdf_mm"],
+                 "seconds": time.perf_counter() - t})}
+            with atomic_path(path) as tmp:
+                torch.save(e, tmp)
+        refs.append(e["x"])
+        ref_metrics.append(json.loads(e["metrics_json"]))
+        drape_seconds.append(ref_metrics[-1]["seconds"])
+
+    sdfs = [BodySDF.cached(held.vertices[i], held.faces, SDFSettings(voxel_size=args.voxel)) for i in range(len(held))]
+    rows = []
+    for interp in (Interpolation.LINEAR, Interpolation.PIECEWISE):
+        for k in range(args.kmax + 1):
+            fitter = OnlineFitter(pca, {args.garment: basis}, k=k, interpolation=interp)
+            tw = time.perf_counter()
+            w = fitter.weights(held.vertices)
+            tf = time.perf_counter()
+            xs = fitter.fit(w)[args.garment]
+            tend = time.perf_counter()
+            body_err = pca.reconstruction_error(held.vertices, k)
+            means, maxes, inside, inside_after = [], [], [], []
+            for i in range(len(held)):
+                d = torch.linalg.vector_norm(xs[i] - refs[i], dim=1)
+                means.append(1e3 * float(d.mean()))
+                maxes.append(1e3 * float(d.max()))
+                with torch.no_grad():
+                    inside.append(int((sdfs[i](xs[i]) < 0).sum()))
+                inside_after.append(push_out(xs[i], sdfs[i]).inside_after)
+            rows.append({
+                "interpolation": interp.value, "k": k,
+                "explained_variance": float(pca.explained_variance_ratio[:k].sum()),
+                "mean_error_mm": statistics.mean(means), "max_error_mm": max(maxes),
+                "median_of_max_error_mm": statistics.median(maxes),
+                "inside_vertices_mean": statistics.mean(inside), "inside_vertices_max": max(inside),
+                "inside_after_push_out_max": max(inside_after),
+                "body_reconstruction_mean_mm": 1e3 * float(body_err["mean"].mean()),
+                "weights_ms_per_body": 1e3 * (tf - tw) / len(held), "fit_ms_per_body": 1e3 * (tend - tf) / len(held),
+            })
+    ref_inside = [int((sdfs[i](refs[i]) < 0).sum()) for i in range(len(held))]
+    result = {
+        "train": args.train, "heldout": args.heldout, "garment": args.garment, "kmax": args.kmax, "c": args.c,
+        "edge_length": args.edge_length, "voxel": args.voxel, "garment_vertices": basis.num_vertices,
+        "k_for_95": pca.k_for_variance(0.95), "k_for_99": pca.k_for_variance(0.99),
+        "basis_drapes_ok": {n: mm.get("ok") for n, mm in basis.metrics.items()},
+        "heldout_drapes_ok": sum(1 for mm in ref_metrics if mm["ok"]),
+        "heldout_reference_inside_vertices_max": max(ref_inside),
+        "seconds": {"dataset": t_data, "basis": t_basis, "full_drape_median": statistics.median(drape_seconds)},
+        "rows": rows,
+    }
+    print(f"{args.garment}: {basis.num_vertices} vertices, {args.train} training / {args.heldout} held-out bodies, "
+          f"k95={result['k_for_95']} k99={result['k_for_99']}, full drape median "
+          f"{result['seconds']['full_drape_median']:.1f} s, {result['heldout_drapes_ok']}/{args.heldout} references ok")
+    hdr = f"{'interp':>9} {'k':>2} {'var%':>6} {'mean mm':>8} {'max mm':>8} {'med max':>8} {'inside':>7} " \
+          f"{'in max':>6} {'push':>5} {'body mm':>8} {'fit ms':>7}"
+    print(hdr)
+    for r in rows:
+        print(f"{r['interpolation']:>9} {r['k']:>2} {100 * r['explained_variance']:>6.2f} {r['mean_error_mm']:>8.2f} "
+              f"{r['max_error_mm']:>8.2f} {r['median_of_max_error_mm']:>8.2f} {r['inside_vertices_mean']:>7.1f} "
+              f"{r['inside_vertices_max']:>6d} {r['inside_after_push_out_max']:>5d} "
+              f"{r['body_reconstruction_mean_mm']:>8.2f} {r['fit_ms_per_body']:>7.3f}")
+    if args.json:
+        with atomic_path(args.json) as tmp:
+            Path(tmp).write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,128 @@
+"""Tests of online data-driven fitting (torchgarment.datadriven.online)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchgarment.datadriven.basis import ClothingBasis
+from torchgarment.datadriven.dataset import BodyDataset
+from torchgarment.datadriven.online import OnlineFitter, push_out
+from torchgarment.datadriven.pca import BodyPCA
+from torchgarment.errors import InputError, MeshError
+from torchgarment.structures.garment_mesh import GarmentMesh
+
+
+def grid_mesh(n: int) -> GarmentMesh:
+    u = torch.linspace(0.0, 0.3, n, dtype=torch.float64)
+    gx, gy = torch.meshgrid(u, u, indexing="xy")
+    p = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=1)
+    x = torch.stack([p[:, 0], p[:, 1] + 0.9, torch.full_like(p[:, 0], 0.2)], dim=1)
+    faces = [[j * n + i, j * n + i + 1, (j + 1) * n + i + 1] for j in range(n - 1) for i in range(n - 1)]
+    return GarmentMesh(x, torch.tensor(faces, dtype=torch.long), p=p)
+
+
+def random_basis(pca: BodyPCA, n: int, k: int, seed: int, name: str) -> ClothingBasis:
+    g = torch.Generator().manual_seed(seed)
+    mesh = grid_mesh(n)
+    nv = n * n
+    mean = mesh.x + 0.01 * torch.randn(nv, 3, generator=g, dtype=torch.float64)
+    plus = mean + 0.02 * torch.randn(k, nv, 3, generator=g, dtype=torch.float64)
+    minus = mean - 0.02 * torch.randn(k, nv, 3, generator=g, dtype=torch.float64)
+    return ClothingBasis(mean, plus, minus, pca.sigmas[:k].clone(), mesh.with_positions(mean), pca.fingerprint(),
+                         f"key{seed}", name)
+
+
+@pytest.fixture(scope="module")
+def pca():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(10, 30, 3, generator=g, dtype=torch.float64)
+    return BodyPCA.fit(BodyDataset(x, torch.tensor([[0, 1, 2]], dtype=torch.long)))
+
+
+def test_online_fit_matches_basis_garments_exactly_at_basis_bodies(pca):
+    bases = {"a": random_basis(pca, 4, 3, 1, "a"), "b": random_basis(pca, 5, 3, 2, "b")}
+    fitter = OnlineFitter(pca, bases, interpolation="piecewise")
+    bodies = [pca.mean] + [pca.sample_body(i, s) for i in range(3) for s in (1.0, -1.0)]
+    w = fitter.weights(torch.stack(bodies))  # weights once per customer, (7, 3)
+    out = fitter.fit(w)
+    for name, b in bases.items():
+        expected = torch.stack([b.mean] + [g for i in range(3) for g in (b.plus[i], b.minus[i])])
+        assert torch.allclose(out[name], expected, atol=1e-12)
+    lin = OnlineFitter(pca, bases, interpolation="linear")
+    assert torch.allclose(lin.fit(lin.weights(pca.mean))["b"], bases["b"].mean, atol=1e-12)
+
+
+def test_batched_equals_per_body_and_reference(pca):
+    bases = [random_basis(pca, 4, 3, 3, "a"), random_basis(pca, 6, 3, 4, "b")]
+    fitter = OnlineFitter(pca, bases, k=2)
+    g = torch.Generator().manual_seed(5)
+    bodies = pca.mean + 0.3 * torch.randn(6, 30, 3, generator=g, dtype=torch.float64)
+    w = fitter.weights(bodies)
+    assert w.shape == (6, 2) and torch.allclose(w, pca.project(bodies, 2))
+    flat = fitter.fit_all(w)
+    assert flat.shape == (6, 16 + 36, 3)
+    per = fitter.fit(w)
+    for i in range(6):
+        single = fitter.fit(w[i])
+        for b in bases:
+            assert torch.allclose(single[b.name], per[b.name][i], atol=1e-14)
+            assert torch.allclose(per[b.name][i], b.evaluate(w[i]), atol=1e-14)
+    assert torch.equal(flat[:, :16], per["a"])
+    only_b = fitter.fit(w, ["b"])
+    assert list(only_b) == ["b"]
+    assert torch.allclose(fitter.fit_all(w, chunk=1), flat, atol=1e-14)
+    assert torch.allclose(fitter.fit_all(w, chunk=0), flat, atol=1e-14)
+    wg = w.clone().requires_grad_(True)  # differentiable path gives the same garments and a gradient
+    xg = fitter.fit_all(wg)
+    assert torch.allclose(xg.detach(), flat, atol=1e-14)
+    xg.sum().backward()
+    assert wg.grad is not None and torch.isfinite(wg.grad).all()
+    # float64 finite-difference check of d garment / d weights (away from the piecewise kink at w = 0)
+    assert torch.autograd.gradcheck(lambda ww: fitter.fit_all(ww)[:, :5], (w[:2].clone().requires_grad_(True),))
+    zero = OnlineFitter(pca, bases, k=0)  # k = 0: everybody gets the mean garment
+    assert torch.equal(zero.fit(zero.weights(bodies))["a"], bases[0].mean.expand(6, -1, -1))
+    f32 = OnlineFitter(pca, bases, k=2, dtype=torch.float32)
+    assert torch.allclose(f32.fit(f32.weights(bodies))["b"].double(), per["b"], atol=1e-4)
+
+
+def test_errors(pca):
+    b = random_basis(pca, 4, 2, 1, "a")
+    with pytest.raises(InputError, match="k must"):
+        OnlineFitter(pca, [b], k=3)
+    other = random_basis(pca, 4, 2, 1, "x")
+    other.pca_fingerprint = "0" * 64
+    with pytest.raises(InputError, match="another body model"):
+        OnlineFitter(pca, [b, other])
+    fitter = OnlineFitter(pca, [b])
+    with pytest.raises(MeshError, match="topology"):
+        fitter.weights(torch.zeros(29, 3, dtype=torch.float64))
+    with pytest.raises(InputError, match="unknown garment"):
+        fitter.fit(torch.zeros(2, dtype=torch.float64), ["zzz"])
+    with pytest.raises(InputError, match="fitter.s k"):
+        fitter.fit_all(torch.zeros(5, dtype=torch.float64))
+
+
+def test_push_out_leaves_no_vertex_inside():
+    from torchgarment.body.anny_phenotype import body_from_phenotype
+    from torchgarment.sdf import BodySDF, SDFSettings
+
+    body = body_from_phenotype({"gender": 1.0, "weight": 0.6})
+    sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=0.01))
+    # a garment-like point set: torso vertices moved 1 cm inwards (inside) and 3 cm outwards
+    v = body.vertices
+    torso = v[(v[:, 1] > 0.9) & (v[:, 1] < 1.3)][::5]
+    _, n = sdf.value_and_gradient(torso)
+    n = n / torch.linalg.vector_norm(n, dim=1, keepdim=True)
+    inward, outside = torso - 0.01 * n, torso + 0.03 * n
+    x = torch.cat([inward, outside])
+    phi0 = sdf(x)
+    assert int((phi0 < 0).sum()) > 0.8 * inward.shape[0]
+    res = push_out(x, sdf, margin=1e-3)
+    phi = sdf(res.x)
+    assert int((phi < 0).sum()) == 0 and res.inside_after == 0 and res.min_phi >= 0
+    assert res.inside_before == int((phi0 < 0).sum())
+    far = phi0 > 2e-3
+    assert torch.equal(res.x[far], x[far])  # vertices well outside do not move
+    with pytest.raises(InputError):
+        push_out(x, sdf, margin=-1.0)

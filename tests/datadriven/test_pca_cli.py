@@ -1,0 +1,122 @@
+"""Tests of the ``torchgarment pca build`` / ``pca fit`` subcommands (torchgarment.datadriven.cli)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+import torchgarment.datadriven.basis as basis_mod
+from torchgarment.datadriven.cli import add_pca_parser, load_model
+from torchgarment.errors import InputError
+from torchgarment.io.mesh import save_obj
+
+
+def run(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="torchgarment")
+    add_pca_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def fake_drape(mesh, vertices, faces, reference, settings, frame=None):  # noqa: ANN001, ANN201
+    """Affine stand-in for the simulator (fast): the garment moves with the body's first vertices."""
+    x = basis_mod.place_for_body(mesh.x, reference, reference) + 0.1 * (vertices[: mesh.num_vertices].double()
+                                                                      - vertices[: mesh.num_vertices].double().mean(0))
+    return SimpleNamespace(x=x, metrics={"vertices": mesh.num_vertices, "iterations": 1, "converged": True, "ok": True,
+                                         "min_sdf_mm": 1.0, "inside_vertices": 0, "max_seam_gap_mm": 0.0,
+                                         "residual": 0.0})
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("pca") / "model"
+    cache = tmp_path_factory.mktemp("cache")
+    mp = pytest.MonkeyPatch()
+    mp.setattr(basis_mod, "drape_on_body", fake_drape)
+    try:
+        rc = run(["pca", "build", "--garment", "straight_skirt", "--bodies", "5", "--k", "2", "--edge-length", "0.08",
+                  "--voxel", "0.01", "--cache", str(cache), "--out", str(out), "--no-progress"])
+    finally:
+        mp.undo()
+    assert rc == 0
+    return out
+
+
+def test_build_writes_model(model_dir):
+    assert {p.name for p in model_dir.iterdir()} == {"pca.pt", "basis.pt", "model.json"}
+    info = json.loads((model_dir / "model.json").read_text())
+    assert info["k"] == 2 and info["bodies"] == 5 and info["garment"] == "straight_skirt"
+    assert set(info["drapes"]) == {"mean", "plus_0", "minus_0", "plus_1", "minus_1"}
+    assert info["all_drapes_ok"] is True and 0 < info["explained_variance"] <= 1
+    pca, basis, _ = load_model(model_dir)
+    assert basis.k == 2 and basis.pca_fingerprint == pca.fingerprint()
+
+
+def test_fit_writes_garment_and_metrics(model_dir, tmp_path):
+    from torchgarment.body.anny_phenotype import body_from_phenotype, sample_phenotypes
+
+    body = body_from_phenotype(sample_phenotypes(1, seed=77)[0])
+    save_obj(tmp_path / "b.obj", body.vertices, body.faces)
+    out = tmp_path / "fit"
+    rc = run(["pca", "fit", "--model", str(model_dir), "--body", str(tmp_path / "b.obj"), "--out", str(out),
+              "--push-out", "--voxel", "0.01"])
+    assert rc == 0
+    assert (out / "garment.obj").is_file()
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["k"] == 2 and len(m["weights"]) == 2
+    for key in ("weights", "fit", "sdf", "push_out", "total"):
+        assert m["seconds"][key] >= 0
+    assert m["penetrations"]["inside_after_push_out"] == 0
+    # the weights are the projection of the body
+    pca, _, _ = load_model(model_dir)
+    from torchgarment.body.load import load_body
+
+    w = pca.project(load_body(tmp_path / "b.obj").vertices, 2)
+    assert torch.allclose(torch.tensor(m["weights"], dtype=torch.float64), w, atol=1e-9)
+
+
+def test_fit_rejects_other_topology_and_missing_model(model_dir, tmp_path):
+    tet = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
+    save_obj(tmp_path / "tet.obj", tet, torch.tensor([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]]))
+    with pytest.raises(InputError, match="topology"):
+        run(["pca", "fit", "--model", str(model_dir), "--body", str(tmp_path / "tet.obj"),
+             "--out", str(tmp_path / "o")])
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(InputError, match="no such folder"):
+        run(["pca", "fit", "--model", str(tmp_path / "none"), "--body", str(tmp_path / "tet.obj"),
+             "--out", str(tmp_path / "o")])
+    with pytest.raises(InputError, match="no such file"):
+        run(["pca", "fit", "--model", str(model_dir), "--body", str(tmp_path / "none.obj"),
+             "--out", str(tmp_path / "o")])
+
+
+def test_build_rejects_bad_options(tmp_path):
+    with pytest.raises(InputError, match="at least 3"):
+        run(["pca", "build", "--garment", "straight_skirt", "--bodies", "2", "--out", str(tmp_path / "m")])
+    with pytest.raises(InputError, match="c must"):
+        run(["pca", "build", "--garment", "straight_skirt", "--bodies", "4", "--c", "0", "--out", str(tmp_path / "m")])
+    with pytest.raises(SystemExit):
+        run(["pca", "build", "--bodies", "4", "--out", str(tmp_path / "m")])  # no garment
+    assert not (tmp_path / "m").exists()
+
+
+def test_build_from_a_folder_of_meshes(tmp_path, monkeypatch):
+    from torchgarment.datadriven.dataset import BodyDataset
+
+    ds = BodyDataset.from_anny(4, seed=9)
+    folder = tmp_path / "bodies"
+    for i in range(4):
+        save_obj(folder / f"b{i}.obj", ds.vertices[i], ds.faces)
+    monkeypatch.setattr(basis_mod, "drape_on_body", fake_drape)
+    out = tmp_path / "model"
+    rc = run(["pca", "build", "--garment", "aline_skirt", "--dataset", str(folder), "--k", "1", "--edge-length",
+              "0.1", "--cache", str(tmp_path / "cache"), "--out", str(out), "--no-progress"])
+    assert rc == 0
+    info = json.loads((out / "model.json").read_text())
+    assert info["bodies"] == 4 and info["source"] == "meshes" and info["seed"] is None
+    pca, _, _ = load_model(out)
+    assert torch.allclose(pca.mean, ds.vertices.mean(dim=0), atol=1e-9)

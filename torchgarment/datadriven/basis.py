@@ -1,0 +1,354 @@
+"""Offline step of Gillies et al. 2004: a clothing basis parallel to the PCA body basis.
+
+One garment mesh (a pattern meshed once, so every result shares its topology) is draped with the simulator
+(:func:`torchgarment.sim.drape.drape`) on the mean body and on the bodies ``mean +- c sigma_i component_i``
+for each kept component ``i < k`` (2k + 1 drapes). The paper subtracts the mean garment from the garment
+fitted to each example body and normalizes; here the weight of the example body along component ``i`` is
+``+-h_i`` with ``h_i = c sigma_i`` (metres), so the garment displacement per unit weight is
+
+* ``"linear"`` (the paper's linear model): ``G_i = (g_i+ - g_i-) / (2 h_i)`` (central difference), garment
+  ``= g_0 + sum_i w_i G_i``; exact at the mean body, second-order accurate in between;
+* ``"piecewise"``: ``G_i+ = (g_i+ - g_0) / h_i`` for ``w_i > 0`` and ``G_i- = (g_0 - g_i-) / h_i`` for
+  ``w_i < 0``; garment ``= g_0 + sum_i max(w_i, 0) G_i+ + min(w_i, 0) G_i-``, which reproduces every one of the
+  2k + 1 basis drapes exactly (still two einsums online).
+
+Placement of the fixed pattern around each body (the library drafts a pattern *for* one body and places
+its panels from that body's measurements): the garment mesh is placed once for the reference (mean) body,
+and for another body its placed positions are scaled about the floor and the Y axis, ``y' = y H_b / H_0``
+(stature ratio: the library's heights are proportional to stature) and ``(x', z') = (x, z) D_b / D_0`` with
+``D = max(bust, underbust, waist, hips) / (2 pi)`` (the library's panel-depth rule, so panels keep their
+clearance from a larger body). Measurements come from :func:`torchgarment.body.measure.measure_body`. The
+rest shape (panel coordinates ``p``) is never changed: the simulator sees the same garment on every body.
+
+Caching: every drape is saved as it finishes under ``<cache>/<key>/<sample>.pt`` (atomic writes), so an
+interrupted build resumes where it stopped, and a build for a larger k reuses the drapes of a smaller one;
+the key hashes the PCA model (:meth:`BodyPCA.fingerprint`), the garment mesh, ``c``, the drape settings and
+the placement rule. Default cache: ``$TORCHGARMENT_CACHE/clothing_basis``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import torch
+
+from torchgarment.errors import InputError
+from torchgarment.io.atomic import atomic_path
+from torchgarment.options import OptionEnum
+from torchgarment.sim.drape import DrapeSettings
+from torchgarment.structures.garment_mesh import GarmentMesh
+
+FORMAT = "torchgarment.clothing_basis/1"
+PLACEMENT_VERSION = "1"
+"""Version of the placement rule (part of the cache key)."""
+
+
+class Interpolation(OptionEnum):
+    """How the basis drapes turn into per-weight garment displacements (see the module docstring)."""
+
+    LINEAR = "linear"
+    PIECEWISE = "piecewise"
+
+
+@dataclass
+class BasisSettings:
+    """Settings of :func:`build_basis`.
+
+    Attributes:
+        k: number of PCA components to fit clothes for; None: the smallest k reaching ``variance``.
+        variance: variance target used when ``k`` is None (e.g. 0.95, 0.99).
+        c: the example bodies sit at ``+-c`` standard deviations along each component.
+        drape: simulator settings of every basis drape (``edge_length`` meshes a pattern).
+    """
+
+    k: int | None = None
+    variance: float = 0.95
+    c: float = 1.0
+    drape: DrapeSettings = field(default_factory=DrapeSettings)
+
+    def validate(self) -> None:
+        if not (isinstance(self.c, (int, float)) and math.isfinite(self.c) and 0 < self.c <= 4):
+            raise InputError(f"BasisSettings.c must be in (0, 4] standard deviations, got {self.c!r}")
+        if self.k is not None and (not isinstance(self.k, int) or self.k < 0):
+            raise InputError(f"BasisSettings.k must be a non-negative integer or None, got {self.k!r}")
+        if not 0 < self.variance <= 1:
+            raise InputError(f"BasisSettings.variance must be in (0, 1], got {self.variance}")
+        self.drape.validate()
+
+
+@dataclass
+class BodyFrame:
+    """What the placement rule needs of a body: stature ``height`` and panel depth ``depth`` (metres)."""
+
+    height: float
+    depth: float
+
+    @classmethod
+    def of(cls, vertices: torch.Tensor, faces: torch.Tensor) -> "BodyFrame":
+        """Measure a body (:func:`measure_body`; about 0.4 s)."""
+        from torchgarment.body.measure import measure_body
+
+        m = measure_body(vertices.detach().cpu().double(), faces.cpu()).to_dict()
+        return cls(m["height"], max(m["bust"], m["underbust"], m["waist"], m["hips"]) / (2.0 * math.pi))
+
+
+def place_for_body(x: torch.Tensor, reference: BodyFrame, body: BodyFrame) -> torch.Tensor:
+    """(V, 3) garment positions placed for ``reference`` re-placed for ``body`` (see the module docstring)."""
+    sy = body.height / reference.height
+    sxz = body.depth / reference.depth
+    scale = torch.tensor([sxz, sy, sxz], dtype=x.dtype, device=x.device)
+    return x * scale
+
+
+def mesh_hash(mesh: GarmentMesh) -> str:
+    """SHA-256 of a garment mesh's placed positions, rest positions, faces and seams (float64/int64)."""
+    h = hashlib.sha256()
+    for t in (mesh.x.double(), mesh.p.double() if mesh.p is not None else torch.zeros(0), mesh.faces.long(),
+              mesh.seam_pairs.long(), mesh.panel_ids.long() if mesh.panel_ids is not None else torch.zeros(0)):
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    h.update(json.dumps(list(mesh.panel_names)).encode())
+    return h.hexdigest()
+
+
+def _settings_description(settings: DrapeSettings) -> dict:
+    return json.loads(json.dumps(asdict(settings), default=str, sort_keys=True))
+
+
+def basis_cache_dir() -> Path:
+    """Default folder of clothing bases: ``$TORCHGARMENT_CACHE/clothing_basis`` or ``~/.cache/torchgarment/...``."""
+    from torchgarment.body.cache import cache_root
+
+    return cache_root() / "clothing_basis"
+
+
+@dataclass
+class ClothingBasis:
+    """A garment fitted to the PCA example bodies.
+
+    Attributes:
+        mean: (Vg, 3) garment draped on the mean body, metres.
+        plus, minus: (k, Vg, 3) garments draped on ``mean +- c sigma_i component_i``.
+        steps: (k,) weight offsets ``h_i = c sigma_i`` of those bodies, metres.
+        garment: the garment mesh (topology, rest shape and seams; ``x`` = the mean-body drape).
+        pca_fingerprint: :meth:`BodyPCA.fingerprint` of the body model the basis belongs to.
+        key: cache key. name: garment name.
+        metrics: per drape (``"mean"``, ``"plus_i"``, ``"minus_i"``): the drape's metrics (converged, ok,
+            min_sdf_mm, seconds, ...).
+    """
+
+    mean: torch.Tensor
+    plus: torch.Tensor
+    minus: torch.Tensor
+    steps: torch.Tensor
+    garment: GarmentMesh
+    pca_fingerprint: str
+    key: str = ""
+    name: str = ""
+    metrics: dict = field(default_factory=dict)
+
+    @property
+    def k(self) -> int:
+        return int(self.steps.shape[0])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.mean.shape[0])
+
+    def deltas(self, interpolation: Interpolation | str = Interpolation.PIECEWISE,
+               k: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Garment displacement per unit weight for positive and negative weights, each (k, Vg, 3).
+
+        For ``"linear"`` both are the central difference ``(g+ - g-) / (2 h)``.
+        """
+        k = self.k if k is None else int(k)
+        if not 0 <= k <= self.k:
+            raise InputError(f"the clothing basis has {self.k} components, asked for {k}")
+        h = self.steps[:k, None, None]
+        if Interpolation.resolve(interpolation) is Interpolation.LINEAR:
+            g = (self.plus[:k] - self.minus[:k]) / (2.0 * h)
+            return g, g
+        return (self.plus[:k] - self.mean) / h, (self.mean - self.minus[:k]) / h
+
+    def evaluate(self, weights: torch.Tensor, interpolation: Interpolation | str = Interpolation.PIECEWISE
+                 ) -> torch.Tensor:
+        """Garment(s) for (k',) or (B, k') weights, k' <= k (a reference implementation; batched use:
+        :class:`torchgarment.datadriven.online.OnlineFitter`). Returns (Vg, 3) or (B, Vg, 3)."""
+        w = torch.as_tensor(weights, dtype=self.mean.dtype, device=self.mean.device)
+        w2 = w if w.ndim == 2 else w[None]
+        gp, gm = self.deltas(interpolation, w2.shape[1])
+        out = self.mean + torch.einsum("bk,kvc->bvc", w2.clamp_min(0.0), gp) \
+            + torch.einsum("bk,kvc->bvc", w2.clamp_max(0.0), gm)
+        return out if w.ndim == 2 else out[0]
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "ClothingBasis":
+        def cast(t: torch.Tensor) -> torch.Tensor:
+            return t.to(device=device, dtype=dtype)
+
+        return replace(self, mean=cast(self.mean), plus=cast(self.plus), minus=cast(self.minus), steps=cast(self.steps),
+                       garment=self.garment.to(device=device, dtype=dtype))
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the basis to one ``.pt`` file atomically."""
+        g = self.garment
+        payload = {
+            "format": FORMAT, "mean": self.mean.cpu(), "plus": self.plus.cpu(), "minus": self.minus.cpu(),
+            "steps": self.steps.cpu(), "pca_fingerprint": self.pca_fingerprint, "key": self.key, "name": self.name,
+            "metrics_json": json.dumps(self.metrics, default=str),
+            "garment": {"x": g.x.cpu(), "faces": g.faces.cpu(), "p": None if g.p is None else g.p.cpu(),
+                        "panel_ids": None if g.panel_ids is None else g.panel_ids.cpu(),
+                        "panel_names": list(g.panel_names), "seam_pairs": g.seam_pairs.cpu()},
+        }
+        with atomic_path(path) as tmp:
+            torch.save(payload, tmp)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, dtype: torch.dtype | None = None,
+             device: torch.device | str | None = None) -> "ClothingBasis":
+        """Read a basis written by :meth:`save`; :class:`InputError` if missing or of another format."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"clothing basis {path} does not exist")
+        try:
+            p = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - unreadable file is bad input
+            raise InputError(f"{path} is not a readable clothing basis: {exc}") from None
+        if not isinstance(p, dict) or p.get("format") != FORMAT:
+            raise InputError(f"{path} is not a torchgarment clothing basis (format {FORMAT})")
+        gd = p["garment"]
+        garment = GarmentMesh(gd["x"], gd["faces"], p=gd["p"], panel_ids=gd["panel_ids"],
+                              panel_names=gd["panel_names"], seam_pairs=gd["seam_pairs"])
+        basis = cls(p["mean"], p["plus"], p["minus"], p["steps"], garment, p["pca_fingerprint"], p["key"], p["name"],
+                    json.loads(p["metrics_json"]))
+        return basis.to(device=device, dtype=dtype)
+
+
+def _as_garment_mesh(garment, settings: DrapeSettings) -> GarmentMesh:  # noqa: ANN001
+    if isinstance(garment, GarmentMesh):
+        return garment.to(dtype=torch.float64, device="cpu")
+    from torchgarment.pattern.spec import SewingPattern
+
+    if isinstance(garment, SewingPattern):
+        from torchgarment.pattern.meshing import mesh_pattern
+
+        return mesh_pattern(garment, settings.edge_length, dtype=torch.float64)
+    raise InputError(f"a clothing basis needs a SewingPattern or a GarmentMesh, got {type(garment).__name__}")
+
+
+def basis_key(pca, mesh: GarmentMesh, settings: BasisSettings) -> str:  # noqa: ANN001 - BodyPCA
+    """Cache key of a basis: hash of the body model, garment, c, drape settings and placement rule.
+
+    ``k`` is not part of it: the drapes along component ``i`` do not depend on how many components are kept,
+    so a basis for a larger k reuses those of a smaller one (the assembled basis is ``basis_k<k>.pt``).
+    """
+    desc = {"format": FORMAT, "pca": pca.fingerprint(), "garment": mesh_hash(mesh), "c": float(settings.c), "drape": _settings_description(settings.drape), "placement": PLACEMENT_VERSION}
+    return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:24]
+
+
+def sample_names(k: int) -> list[str]:
+    """Names of the 2k + 1 basis drapes, in build order."""
+    return ["mean"] + [f"{s}_{i}" for i in range(k) for s in ("plus", "minus")]
+
+
+def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor, reference: BodyFrame,
+                  settings: DrapeSettings, frame: BodyFrame | None = None):  # noqa: ANN201 - DrapeResult
+    """Drape the garment (placed for ``reference``) on one body after re-placing it (:func:`place_for_body`).
+
+    Args:
+        mesh: garment mesh, positions placed for the reference body.
+        vertices: (V, 3) body vertices, metres. faces: (F, 3) body faces.
+        reference: frame of the body the garment is placed for.
+        settings: drape settings. frame: the body's frame if already measured.
+
+    Returns:
+        the :class:`~torchgarment.sim.drape.DrapeResult`.
+    """
+    from torchgarment.body.body import Body
+    from torchgarment.sim.drape import drape
+
+    frame = frame if frame is not None else BodyFrame.of(vertices, faces)
+    placed = mesh.with_positions(place_for_body(mesh.x, reference, frame))
+    body = Body(vertices=vertices.detach().cpu().double(), faces=faces.cpu().long())
+    return drape(placed, body, settings=settings)
+
+
+def build_basis(
+    pca,  # noqa: ANN001 - BodyPCA
+    garment,  # noqa: ANN001 - SewingPattern | GarmentMesh
+    settings: BasisSettings | None = None,
+    *,
+    name: str = "",
+    cache_dir: str | os.PathLike | None = None,
+    progress: bool = True,
+) -> ClothingBasis:
+    """Fit a garment to the PCA example bodies with the simulator (resumable, cached).
+
+    Args:
+        pca: the :class:`~torchgarment.datadriven.pca.BodyPCA` body model.
+        garment: a :class:`SewingPattern` (meshed at ``settings.drape.edge_length``) or a sewn
+            :class:`GarmentMesh`, placed around the mean body (e.g. drafted from its measurements).
+        settings: k (or a variance target), c and drape settings.
+        name: garment name stored in the basis.
+        cache_dir: root of the cache (default :func:`basis_cache_dir`).
+        progress: tqdm bar over the 2k + 1 drapes.
+
+    Returns:
+        the :class:`ClothingBasis` (also written to ``<cache>/<key>/basis_k<k>.pt``).
+
+    Raises:
+        InputError: bad settings, a garment that is not a pattern/mesh, or k larger than the model's.
+    """
+    from tqdm import tqdm
+
+    settings = replace(settings) if settings is not None else BasisSettings()
+    settings.validate()
+    mesh = _as_garment_mesh(garment, settings.drape)
+    k = pca.k_for_variance(settings.variance) if settings.k is None else settings.k
+    if k > pca.num_components:
+        raise InputError(f"the body model has {pca.num_components} components, asked for k={k}")
+    key = basis_key(pca, mesh, settings)
+    folder = Path(cache_dir) if cache_dir is not None else basis_cache_dir()
+    folder = folder / key
+    final = folder / f"basis_k{k}.pt"
+    if final.is_file():
+        return ClothingBasis.load(final)
+    pca64 = pca.to(device="cpu", dtype=torch.float64)
+    faces = pca64.faces
+    reference = BodyFrame.of(pca64.mean, faces)
+    names = sample_names(k)
+    results: dict[str, torch.Tensor] = {}
+    metrics: dict[str, dict] = {}
+    bar = tqdm(names, desc=f"clothing basis {name or 'garment'} (k={k})", disable=not progress)
+    for sample in bar:
+        path = folder / f"{sample}.pt"
+        if path.is_file():
+            entry = torch.load(path, map_location="cpu", weights_only=True)
+            results[sample], metrics[sample] = entry["x"], json.loads(entry["metrics_json"])
+            continue
+        if sample == "mean":
+            verts = pca64.mean
+        else:
+            sign, i = sample.split("_")
+            verts = pca64.sample_body(int(i), settings.c if sign == "plus" else -settings.c)
+        t0 = time.perf_counter()
+        result = drape_on_body(mesh, verts, faces, reference, settings.drape)
+        m = {key_: result.metrics[key_] for key_ in ("vertices", "iterations", "converged", "ok", "min_sdf_mm",
+                                                    "inside_vertices", "max_seam_gap_mm", "residual")}
+        m["seconds"] = time.perf_counter() - t0
+        bar.set_postfix(last=f"{sample} {m['seconds']:.0f}s {'ok' if m['ok'] else 'NOT ok'}", refresh=False)
+        with atomic_path(path) as tmp:
+            torch.save({"x": result.x.detach().cpu().double(), "metrics_json": json.dumps(m)}, tmp)
+        results[sample], metrics[sample] = result.x.detach().cpu().double(), m
+    plus = torch.stack([results[f"plus_{i}"] for i in range(k)]) if k else torch.zeros(0, mesh.num_vertices, 3,
+                                                                                       dtype=torch.float64)
+    minus = torch.stack([results[f"minus_{i}"] for i in range(k)]) if k else torch.zeros_like(plus)
+    steps = settings.c * pca64.sigmas[:k].clone()
+    basis = ClothingBasis(results["mean"], plus, minus, steps, mesh.with_positions(results["mean"]),
+                          pca64.fingerprint(), key, name, metrics)
+    basis.save(final)
+    return basis

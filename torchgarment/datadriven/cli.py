@@ -1,0 +1,260 @@
+"""The ``torchgarment pca`` subcommands: build a data-driven garment model, fit it to a customer's body.
+
+* ``torchgarment pca build --garment NAME|--pattern P --bodies N --out MODEL_DIR``: sample N anny adults
+  (or read ``--dataset`` meshes), fit the PCA body model, drape the garment on the mean and the
+  ``+-c sigma`` example bodies (Gillies et al. 2004) and write ``pca.pt``, ``basis.pt`` and ``model.json``.
+* ``torchgarment pca fit --model MODEL_DIR --body B.obj --out DIR``: project the body (same topology as the
+  model) to weights, evaluate the garment, optionally push it out of the body, and write ``garment.obj`` and
+  ``metrics.json`` (seconds per step, weights, penetrations).
+
+The lead wires it into :mod:`torchgarment.cli` with::
+
+    from torchgarment.datadriven.cli import add_pca_parser
+    add_pca_parser(sub)        # sets func=cmd_pca_build / cmd_pca_fit on the two sub-subcommands
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from torchgarment.errors import InputError
+
+MODEL_FORMAT = "torchgarment.pca_garment_model/1"
+
+
+def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the ``pca`` subcommand (with ``build`` and ``fit``) to ``subparsers``."""
+    from torchgarment.datadriven.basis import Interpolation
+    from torchgarment.sim.drape import DrapeSettings
+
+    d = DrapeSettings()
+    p = subparsers.add_parser(
+        "pca", help="data-driven garment fitting (Gillies et al. 2004): build a model, fit a body",
+        description="PCA body model + parallel clothing basis draped offline; online fitting by a weighted sum.")
+    sub = p.add_subparsers(dest="pca_command", required=True)
+
+    b = sub.add_parser(
+        "build", help="sample bodies, fit the PCA body model and drape the clothing basis",
+        description="Sample N anny adults (or read --dataset), fit the PCA body model, drape the garment on the "
+                    "mean body and on mean +- c sigma_i along each kept component, and write pca.pt, basis.pt and "
+                    "model.json into MODEL_DIR. Drapes are cached and resumable (--cache).")
+    g = b.add_mutually_exclusive_group(required=True)
+    g.add_argument("--garment", metavar="NAME", help="a library garment, drafted for the mean body's measurements")
+    g.add_argument("--pattern", metavar="P", help="a pattern file (.json GarmentCode or .dxf), placed as in the file")
+    src = b.add_mutually_exclusive_group(required=True)
+    src.add_argument("--bodies", type=int, metavar="N", help="number of random anny adults to sample")
+    src.add_argument("--dataset", metavar="PATH", help="a saved body dataset (.pt) or a folder of meshes (OBJ/PLY) "
+                                                       "of one topology")
+    b.add_argument("--population", default="female", help="anny adults to sample: female or male (default female)")
+    b.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    b.add_argument("--k", type=int, default=None, help="components to drape (default: reach --variance)")
+    b.add_argument("--variance", type=float, default=0.95, help="variance target when --k is not given (default 0.95)")
+    b.add_argument("--c", type=float, default=1.0, help="example bodies at +-c standard deviations (default 1)")
+    b.add_argument("--edge-length", type=float, default=d.edge_length, metavar="M",
+                   help=f"garment triangle edge length in metres (default {d.edge_length})")
+    b.add_argument("--voxel", type=float, default=d.voxel_size, metavar="M",
+                   help=f"body SDF voxel size in metres (default {d.voxel_size})")
+    b.add_argument("--cache", metavar="DIR", help="clothing-basis cache folder (default $TORCHGARMENT_CACHE/"
+                                                  "clothing_basis)")
+    b.add_argument("--out", required=True, metavar="MODEL_DIR", help="output model folder")
+    b.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
+    b.set_defaults(func=cmd_pca_build)
+
+    f = sub.add_parser(
+        "fit", help="fit a built model's garment to a body",
+        description="Project a body (same topology as the model's bodies) to PCA weights, evaluate the garment "
+                    "as mean + sum_i w_i G_i, optionally push vertices out of the body, and write garment.obj and "
+                    "metrics.json (seconds per step, weights, penetrations).")
+    f.add_argument("--model", required=True, metavar="MODEL_DIR", help="folder written by `pca build`")
+    f.add_argument("--body", required=True, metavar="B", help="body mesh file (OBJ, PLY, ...) of the model's topology")
+    f.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    f.add_argument("--k", type=int, default=None, help="components to use (default: all of the basis)")
+    f.add_argument("--interpolation", default=Interpolation.PIECEWISE.value,
+                   choices=[m.value for m in Interpolation], help="basis interpolation (default piecewise)")
+    f.add_argument("--push-out", action="store_true", help="move vertices inside the body out along the SDF gradient")
+    f.add_argument("--margin", type=float, default=1e-3, metavar="M", help="push-out clearance (default 0.001 m)")
+    f.add_argument("--voxel", type=float, default=0.005, metavar="M",
+                   help="voxel size of the body SDF for penetration counts and the push-out (default 0.005)")
+    f.set_defaults(func=cmd_pca_fit)
+    return p
+
+
+def _write_json(path: Path, data: dict) -> None:
+    from torchgarment.io.atomic import atomic_open
+
+    with atomic_open(path) as fh:
+        json.dump(data, fh, indent=2)
+        fh.write("\n")
+
+
+def _dataset(args: argparse.Namespace):  # noqa: ANN202 - BodyDataset
+    from torchgarment.datadriven.dataset import BodyDataset
+
+    if args.bodies is not None:
+        if args.bodies < 3:
+            raise InputError(f"--bodies must be at least 3, got {args.bodies}")
+        from torchgarment.body.anny_phenotype import PhenotypeRanges
+
+        ranges = PhenotypeRanges.for_population(args.population)
+        return BodyDataset.from_anny(args.bodies, seed=args.seed, ranges=ranges)
+    path = Path(args.dataset)
+    if path.is_dir():
+        files = sorted(q for q in path.iterdir() if q.suffix.lower() in (".obj", ".ply", ".stl", ".off", ".glb"))
+        if len(files) < 3:
+            raise InputError(f"--dataset {path}: needs at least 3 mesh files, found {len(files)}")
+        return BodyDataset.from_meshes(files)
+    return BodyDataset.load(path)
+
+
+def _garment(args: argparse.Namespace, pca):  # noqa: ANN001, ANN202 - (SewingPattern, name, info)
+    if args.garment is not None:
+        from torchgarment.body.measure import measure_body
+        from torchgarment.pattern.library import draft, list_garments
+
+        if args.garment not in list_garments():
+            raise InputError(f"--garment {args.garment}: not a library garment ({', '.join(list_garments())})")
+        m = measure_body(pca.mean.detach().cpu().double(), pca.faces.cpu()).to_dict()
+        request = {k: m[k] for k in ("height", "bust", "underbust", "waist", "hips")}
+        return draft(args.garment, request), args.garment, {"drafted_for_mean_body": request}
+    from torchgarment.pattern.files import load_pattern_file
+
+    pattern = load_pattern_file(args.pattern)
+    return pattern, pattern.name or Path(args.pattern).stem, {"pattern_file": str(args.pattern)}
+
+
+def cmd_pca_build(args: argparse.Namespace) -> int:
+    """Run ``torchgarment pca build``; returns the exit code."""
+    from torchgarment.datadriven.basis import BasisSettings, build_basis
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.io.staging import staged_output
+    from torchgarment.sim.drape import DrapeSettings
+
+    settings = BasisSettings(k=args.k, variance=args.variance, c=args.c,
+                             drape=DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel))
+    settings.validate()
+    t0 = time.perf_counter()
+    dataset = _dataset(args)
+    t_data = time.perf_counter()
+    pca = BodyPCA.fit(dataset)
+    if args.k is not None and args.k > pca.num_components:
+        raise InputError(f"--k {args.k}: the body model of {len(dataset)} bodies has only {pca.num_components} "
+                         "components")
+    pattern, name, info = _garment(args, pca)
+    t_pca = time.perf_counter()
+    basis = build_basis(pca, pattern, settings, name=name, cache_dir=args.cache, progress=not args.no_progress)
+    t_basis = time.perf_counter()
+    ratio = pca.explained_variance_ratio
+    model = {
+        "format": MODEL_FORMAT, "garment": name, **info, "bodies": len(dataset), "source": dataset.source,
+        "topology": dataset.topology, "seed": args.seed if args.bodies is not None else None,
+        "population": args.population if args.bodies is not None else None,
+        "k": basis.k, "c": settings.c, "variance_target": settings.variance if args.k is None else None,
+        "explained_variance": float(ratio[: basis.k].sum()) if basis.k else 0.0,
+        "k_for_95": pca.k_for_variance(0.95), "k_for_99": pca.k_for_variance(0.99),
+        "garment_vertices": basis.num_vertices, "basis_key": basis.key, "pca_fingerprint": basis.pca_fingerprint,
+        "drapes": basis.metrics, "all_drapes_ok": all(m.get("ok", False) for m in basis.metrics.values()),
+        "seconds": {"dataset": t_data - t0, "pca": t_pca - t_data, "basis": t_basis - t_pca,
+                    "total": time.perf_counter() - t0},
+        "edge_length": args.edge_length, "voxel_size": args.voxel,
+    }
+    with staged_output(args.out) as stage:
+        pca.save(stage / "pca.pt")
+        basis.save(stage / "basis.pt")
+        _write_json(stage / "model.json", model)
+    bad = [n for n, m in basis.metrics.items() if not m.get("ok", False)]
+    print(f"pca build {name}: {len(dataset)} bodies, k={basis.k} ({100 * model['explained_variance']:.1f} % of the "
+          f"variance), {basis.num_vertices} garment vertices, {len(basis.metrics)} drapes"
+          + (f" ({len(bad)} not ok: {', '.join(bad)})" if bad else " (all ok)")
+          + f", {model['seconds']['total']:.1f} s -> {args.out}")
+    return 0
+
+
+def load_model(model_dir: str | Path):  # noqa: ANN201 - (BodyPCA, ClothingBasis, dict)
+    """Read a folder written by ``pca build``: (PCA, basis, model.json contents).
+
+    Raises:
+        InputError: a missing folder or file, or a basis that does not belong to the PCA model.
+    """
+    from torchgarment.datadriven.basis import ClothingBasis
+    from torchgarment.datadriven.pca import BodyPCA
+
+    folder = Path(model_dir)
+    if not folder.is_dir():
+        raise InputError(f"--model {folder}: no such folder (write one with `torchgarment pca build`)")
+    for n in ("pca.pt", "basis.pt", "model.json"):
+        if not (folder / n).is_file():
+            raise InputError(f"--model {folder}: missing {n} (not a `torchgarment pca build` folder)")
+    try:
+        info = json.loads((folder / "model.json").read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{folder / 'model.json'}: not valid JSON ({exc})") from None
+    pca = BodyPCA.load(folder / "pca.pt")
+    basis = ClothingBasis.load(folder / "basis.pt")
+    if basis.pca_fingerprint != pca.fingerprint():
+        raise InputError(f"--model {folder}: basis.pt was built for another body model than pca.pt")
+    return pca, basis, info
+
+
+def cmd_pca_fit(args: argparse.Namespace) -> int:
+    """Run ``torchgarment pca fit``; returns the exit code."""
+    import torch
+
+    from torchgarment.body.load import load_body
+    from torchgarment.datadriven.online import OnlineFitter, push_out
+    from torchgarment.io.mesh import save_obj
+    from torchgarment.io.staging import staged_output
+    from torchgarment.sdf import BodySDF, SDFSettings
+
+    if not args.margin >= 0:
+        raise InputError(f"--margin must be >= 0, got {args.margin}")
+    t0 = time.perf_counter()
+    pca, basis, info = load_model(args.model)
+    if not Path(args.body).is_file():
+        raise InputError(f"--body {args.body}: no such file")
+    body = load_body(args.body)
+    if body.num_vertices != pca.num_vertices or body.faces.shape != pca.faces.shape \
+            or not torch.equal(body.faces.long(), pca.faces.long()):
+        raise InputError(f"--body {args.body}: {body.num_vertices} vertices / {body.faces.shape[0]} faces, but the "
+                         f"model's bodies have {pca.num_vertices} / {pca.faces.shape[0]} of topology "
+                         f"{pca.topology or '(unnamed)'}: the body must have the model's topology (same vertices "
+                         "and faces in the same order)")
+    name = basis.name or "garment"
+    fitter = OnlineFitter(pca, {name: basis}, k=args.k, interpolation=args.interpolation)
+    t_load = time.perf_counter()
+    w = fitter.weights(body.vertices)
+    t_w = time.perf_counter()
+    x = fitter.fit(w)[name]
+    t_fit = time.perf_counter()
+    sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=args.voxel))
+    t_sdf = time.perf_counter()
+    with torch.no_grad():
+        phi = sdf(x)
+    pen = {"inside_vertices": int((phi < 0).sum()), "min_sdf_mm": 1e3 * float(phi.min())}
+    seconds = {"load": t_load - t0, "weights": t_w - t_load, "fit": t_fit - t_w, "sdf": t_sdf - t_fit}
+    if args.push_out:
+        res = push_out(x, sdf, margin=args.margin)
+        x = res.x
+        seconds["push_out"] = res.seconds
+        pen.update(pushed_vertices=res.moved, inside_after_push_out=res.inside_after,
+                   min_sdf_after_push_out_mm=1e3 * res.min_phi)
+    seconds["total"] = time.perf_counter() - t0
+    res_rec = pca.reconstruction_error(body.vertices, fitter.k)
+    metrics = {"model": str(args.model), "body": str(args.body), "garment": name, "k": fitter.k,
+               "interpolation": fitter.interpolation.value, "seconds": seconds,
+               "weights": [float(v) for v in w], "weights_in_sigmas": [float(v) for v in w / pca.sigmas[: fitter.k]],
+               "penetrations": pen, "garment_vertices": int(x.shape[0]),
+               "body_reconstruction_error_mm": {"mean": 1e3 * float(res_rec["mean"][0]),
+                                                "max": 1e3 * float(res_rec["max"][0])},
+               "voxel_size": args.voxel}
+    with staged_output(args.out) as stage:
+        welded, _ = basis.garment.with_positions(x.detach()).welded()
+        save_obj(stage / "garment.obj", welded.x, welded.faces)
+        _write_json(stage / "metrics.json", metrics)
+    print(f"pca fit {name}: k={fitter.k}, weights {seconds['weights'] * 1e3:.2f} ms, "
+          f"fit {seconds['fit'] * 1e3:.2f} ms, "
+          f"{pen['inside_vertices']} vertices inside the body"
+          + (f" ({pen['inside_after_push_out']} after push-out)" if args.push_out else "") + f" -> {args.out}")
+    return 0

@@ -1,0 +1,187 @@
+"""Online step of Gillies et al. 2004: weights once per customer, then every garment by a weighted sum.
+
+The retailer's flow (paper, section 3): when a customer registers, their body is projected once onto the PCA
+components (:meth:`OnlineFitter.weights`, ``3 M N`` multiply-adds); every catalogue garment is then
+``g_0 + sum_i w_i G_i`` (:meth:`OnlineFitter.fit`), for many customers and many garments in one matrix
+product over the concatenated vertices of all garments. Garments may end slightly inside a body (the linear model is an
+approximation); :func:`push_out` moves such vertices out along the body SDF's gradient, timed separately
+since it needs the customer's SDF.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import torch
+
+from torchgarment.datadriven.basis import ClothingBasis, Interpolation
+from torchgarment.errors import InputError
+
+
+class OnlineFitter:
+    """A body model and the clothing bases of a catalogue, stacked for batched online fitting.
+
+    Args:
+        pca: the :class:`~torchgarment.datadriven.pca.BodyPCA` every basis was built on.
+        bases: garment name -> :class:`ClothingBasis` (or a list, named by their ``name``).
+        k: components to use (default: the smallest k of the bases).
+        interpolation: ``"piecewise"`` (exact at every basis drape) or ``"linear"`` (central differences).
+        device, dtype: where the stacked tensors live (default: the model's).
+
+    Raises:
+        InputError: a basis built for another body model, or k larger than a basis has.
+    """
+
+    def __init__(self, pca, bases, k: int | None = None,  # noqa: ANN001 - BodyPCA, dict | list
+                 interpolation: Interpolation | str = Interpolation.PIECEWISE,
+                 device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> None:
+        if isinstance(bases, ClothingBasis):
+            bases = [bases]
+        if not isinstance(bases, dict):
+            bases = {b.name or f"garment_{i}": b for i, b in enumerate(bases)}
+        if not bases:
+            raise InputError("no clothing bases given")
+        fp = pca.fingerprint()
+        for n, b in bases.items():
+            if b.pca_fingerprint != fp:
+                raise InputError(f"clothing basis {n!r} was built for another body model (fingerprint "
+                                 f"{b.pca_fingerprint[:12]} != {fp[:12]})")
+        device = device if device is not None else pca.device
+        dtype = dtype if dtype is not None else pca.dtype
+        kmax = min(b.k for b in bases.values())
+        self.k = kmax if k is None else int(k)
+        if not 0 <= self.k <= kmax:
+            raise InputError(f"k must be in [0, {kmax}] (the smallest basis), got {k}")
+        self.interpolation = Interpolation.resolve(interpolation)
+        self.pca = pca.to(device=device, dtype=dtype)
+        self.names = list(bases)
+        self.sizes = [bases[n].num_vertices for n in self.names]
+        self.offsets = [0]
+        for s in self.sizes:
+            self.offsets.append(self.offsets[-1] + s)
+        gp, gm = zip(*(bases[n].deltas(self.interpolation, self.k) for n in self.names))
+        self.mean = torch.cat([bases[n].mean for n in self.names]).to(device=device, dtype=dtype)  # (Vt, 3)
+        n3 = 3 * self.offsets[-1]
+        self.delta_plus = torch.cat(gp, dim=1).to(device=device, dtype=dtype).reshape(self.k, n3)  # (k, 3 Vt)
+        self.delta_minus = torch.cat(gm, dim=1).to(device=device, dtype=dtype).reshape(self.k, n3)
+        self.linear = self.interpolation is Interpolation.LINEAR
+        self.garments = {n: bases[n].garment for n in self.names}
+        # the body model's components, flattened, for the projection
+        self._components = self.pca.components[: self.k].reshape(self.k, 3 * self.pca.num_vertices)
+        self._mean_body = self.pca.mean.reshape(-1)
+
+    @property
+    def total_vertices(self) -> int:
+        return self.offsets[-1]
+
+    def weights(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Weights of customers' bodies (once per customer): (V, 3) -> (k,), (B, V, 3) -> (B, k), metres.
+
+        Raises:
+            MeshError: a body of another topology.
+        """
+        v = self.pca.check_vertices(vertices, "customer body")
+        w = (v.reshape(v.shape[0], -1) - self._mean_body) @ self._components.T
+        return w if vertices.ndim == 3 else w[0]
+
+    def fit_all(self, weights: torch.Tensor, chunk: int = 16) -> torch.Tensor:
+        """Every garment for every customer: (B, k) weights -> (B, Vt, 3), garments concatenated along the
+        vertex axis in :attr:`names` order (slice with :attr:`offsets`). (k,) -> (Vt, 3).
+
+        One matrix product ``mean + W G`` (two for ``"piecewise"``: positive and negative weights) per chunk
+        of ``chunk`` customers, written into one preallocated output: the chunks keep the written rows in
+        cache (measured on 256 customers x 30K vertices: about 3.5x faster than one product over the batch).
+        Weights that require grad take a differentiable einsum path instead.
+        """
+        w = torch.as_tensor(weights, device=self.mean.device, dtype=self.mean.dtype)
+        if w.ndim not in (1, 2) or w.shape[-1] != self.k:
+            raise InputError(f"weights must be (k,) or (B, k) with k = {self.k} (the fitter's k), got {tuple(w.shape)}")
+        w2 = w if w.ndim == 2 else w[None]
+        flat = self.mean.reshape(-1)
+        if w2.requires_grad:
+            if self.linear:
+                out = flat + torch.einsum("bk,kn->bn", w2, self.delta_plus)
+            else:
+                out = flat + torch.einsum("bk,kn->bn", w2.clamp_min(0.0), self.delta_plus) \
+                    + torch.einsum("bk,kn->bn", w2.clamp_max(0.0), self.delta_minus)
+        else:
+            out = torch.empty(w2.shape[0], flat.shape[0], dtype=flat.dtype, device=flat.device)
+            pos = w2 if self.linear else w2.clamp_min(0.0)
+            c = max(int(chunk), 1)
+            for i in range(0, w2.shape[0], c):
+                rows = out[i:i + c]
+                torch.addmm(flat, pos[i:i + c], self.delta_plus, out=rows)
+                if not self.linear:
+                    rows.addmm_(w2[i:i + c].clamp_max(0.0), self.delta_minus)
+        out = out.reshape(w2.shape[0], self.total_vertices, 3)
+        return out if w.ndim == 2 else out[0]
+
+    def fit(self, weights: torch.Tensor, garments: list[str] | None = None) -> dict[str, torch.Tensor]:
+        """Garments for customers: name -> (B, Vg, 3) (or (Vg, 3) for (k,) weights).
+
+        Args:
+            weights: (k,) or (B, k) from :meth:`weights`.
+            garments: names to return (default all); all are computed in one einsum anyway.
+        """
+        names = self.names if garments is None else list(garments)
+        unknown = [n for n in names if n not in self.names]
+        if unknown:
+            raise InputError(f"unknown garment(s) {unknown}; this fitter has {', '.join(self.names)}")
+        x = self.fit_all(weights)
+        out = {}
+        for n in names:
+            i = self.names.index(n)
+            out[n] = x[..., self.offsets[i]:self.offsets[i + 1], :]
+        return out
+
+
+@dataclass
+class PushOutResult:
+    """Outcome of :func:`push_out`.
+
+    Attributes:
+        x: (V, 3) positions after the push-out.
+        moved: vertices that were moved (phi below the margin at the start).
+        inside_before, inside_after: vertices with ``phi < 0`` before and after.
+        min_phi: smallest ``phi`` after, metres.
+        seconds: wall time of the push-out (the SDF is built beforehand, timed by the caller).
+    """
+
+    x: torch.Tensor
+    moved: int
+    inside_before: int
+    inside_after: int
+    min_phi: float
+    seconds: float
+
+
+def push_out(x: torch.Tensor, sdf, margin: float = 1e-3, iterations: int = 5) -> PushOutResult:  # noqa: ANN001
+    """Move garment vertices that are inside (or within ``margin`` of) a body out along the SDF gradient.
+
+    Each iteration sets ``x <- x + (margin - phi) n`` for the vertices with ``phi < margin``, with ``n`` the
+    normalized SDF gradient; a few iterations absorb the grid's interpolation error.
+
+    Args:
+        x: (V, 3) garment positions, metres (detached; the push-out is not differentiated).
+        sdf: the body's :class:`~torchgarment.sdf.BodySDF` (anything with ``value_and_gradient``).
+        margin: target clearance, metres (>= 0).
+        iterations: at most this many passes (stops once every vertex clears the margin).
+    """
+    if not margin >= 0:
+        raise InputError(f"push-out margin must be >= 0, got {margin}")
+    t0 = time.perf_counter()
+    y = x.detach().clone()
+    phi, grad = sdf.value_and_gradient(y)
+    inside_before = int((phi < 0).sum())
+    moved = phi < margin
+    for _ in range(iterations):
+        low = phi < margin
+        if not bool(low.any()):
+            break
+        n = grad[low] / torch.linalg.vector_norm(grad[low], dim=1, keepdim=True).clamp_min(1e-12)
+        y[low] = y[low] + (margin - phi[low])[:, None] * n
+        phi, grad = sdf.value_and_gradient(y)
+        moved |= low
+    return PushOutResult(y, int(moved.sum()), inside_before, int((phi < 0).sum()), float(phi.min()),
+                         time.perf_counter() - t0)
