@@ -1,0 +1,133 @@
+"""End-to-end retargeting: zero intersections, positive distance, metrics, multi-layer."""
+
+from __future__ import annotations
+
+import math
+
+import ipctk
+import numpy as np
+import pytest
+import torch
+
+from torchgarment.errors import InputError
+from torchgarment.retarget.avatars import toy_case
+from torchgarment.retarget.inputs import problem_from_arrays
+from torchgarment.retarget.pipeline import (
+    RetargetSettings,
+    check_result,
+    layer_problem,
+    retarget,
+)
+
+
+def _problem(**kw):
+    c = toy_case(**kw)
+    return problem_from_arrays(c.garment_vertices, c.garment_faces, c.source_skeleton, c.target_vertices,
+                               c.target_faces, c.target_skeleton, source_avatar=(c.source_vertices, c.source_faces))
+
+
+def _ipctk_checks(garment, faces, avatar, avatar_faces):
+    """Independent ipctk checks in the target frame: garment+avatar (avatar-avatar ignored) and garment alone."""
+    n = garment.shape[0]
+    gf = faces.numpy().astype(np.int32)
+    v = np.asfortranarray(np.concatenate([garment.numpy(), avatar.numpy()]))
+    f = np.concatenate([gf, avatar_faces.numpy().astype(np.int32) + n])
+    mesh = ipctk.CollisionMesh(v, ipctk.edges(f), f)
+    mesh.can_collide = ipctk.make_static_obstacle_filter(n)
+    gv = np.asfortranarray(garment.numpy())
+    gmesh = ipctk.CollisionMesh(gv, ipctk.edges(gf), gf)
+    col = ipctk.NormalCollisions()
+    col.build(mesh, v, 0.05)
+    dmin = math.sqrt(col.compute_minimum_distance(mesh, v)) if len(col) else math.inf
+    return bool(ipctk.has_intersections(mesh, v)), bool(ipctk.has_intersections(gmesh, gv)), dmin
+
+
+@pytest.fixture(scope="module")
+def toy_result(tmp_path_factory):
+    p = _problem(target_scale=1.3, target_offset=(2.0, -1.0, 0.5))  # a bigger avatar elsewhere
+    log = tmp_path_factory.mktemp("tb")
+    return p, retarget(p, progress=False, log_dir=log), log
+
+
+def test_toy_retarget_is_intersection_free(toy_result):
+    p, r, _ = toy_result
+    av = p.to_work.inverse(p.avatar_vertices)
+    inter_av, inter_self, dmin = _ipctk_checks(r.garment_vertices, r.garment_faces, av, p.avatar_faces)
+    assert not inter_av and not inter_self
+    assert dmin > 0
+    m = r.metrics
+    assert m["intersections"] == 0 and m["min_distance_mm"] > 0 and m["t_snap"] <= 1.0
+    # the garment moved with the avatar (target frame: scaled 1.3 and offset)
+    assert torch.allclose(r.garment_vertices.mean(0), p.to_work.inverse(r.work_vertices).mean(0))
+    assert float((r.garment_vertices.mean(0) - av.mean(0)).norm()) < 0.3
+    for key in ("seconds", "newton_iterations", "grad_norm", "distortion_mean", "distortion_max", "terms"):
+        assert key in m
+    assert set(m["terms"]) == {"surf", "pos", "curve", "contact", "fit"}
+    assert r.distortion.shape == (r.garment_faces.shape[0],) and float(r.distortion.min()) >= 0
+    assert m["distortion_max"] >= m["distortion_mean"] > 0
+
+
+def test_tensorboard_scalars_written(toy_result):
+    _, r, log = toy_result
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    ea = EventAccumulator(str(log))
+    ea.Reload()
+    tags = set(ea.Tags()["scalars"])
+    for tag in ("inflate/t", "inflate/alpha", "inflate/term/surf", "fit/min_distance", "fit/term/fit"):
+        assert tag in tags
+    ts = [e.value for e in ea.Scalars("inflate/t")]
+    assert ts[-1] > ts[0]
+    assert len(r.history) == r.metrics["newton_iterations"]
+
+
+@pytest.mark.slow
+def test_fit_weight_controls_tightness():
+    p = _problem()
+    loose = retarget(p, RetargetSettings(w_fit=0.0), progress=False)
+    tight = retarget(p, RetargetSettings(w_fit=20.0), progress=False)
+    from torchgarment.sdf.build import SDFSettings
+    from torchgarment.sdf.grid import BodySDF
+
+    sdf = BodySDF.from_mesh(p.avatar_vertices, p.avatar_faces, SDFSettings(voxel_size=0.01))
+    m = p.fit_mask
+    gap = lambda r: float(sdf(r.work_vertices[m]).abs().mean())  # noqa: E731
+    assert gap(tight) < gap(loose)
+    assert loose.metrics["intersections"] == tight.metrics["intersections"] == 0
+
+
+def test_multilayer_second_garment_over_first(toy_result):
+    p, inner, _ = toy_result
+    c = toy_case(target_scale=1.3, target_offset=(2.0, -1.0, 0.5))
+    from torchgarment.retarget.avatars import tube_mesh
+
+    ov, of = tube_mesh(0.34, 0.34, -0.1, 1.15, 24, 9)
+    p2 = problem_from_arrays(ov, of, c.source_skeleton, c.target_vertices, c.target_faces, c.target_skeleton,
+                             source_avatar=(c.source_vertices, c.source_faces))
+    lp = layer_problem(p2, inner.garment_vertices, inner.garment_faces)
+    assert lp.avatar_vertices.shape[0] == p2.avatar_vertices.shape[0] + inner.garment_vertices.shape[0]
+    outer = retarget(lp, progress=False)
+    assert outer.metrics["intersections"] == 0
+    # independent check: outer vs (avatar + inner garment) and outer alone
+    av = torch.cat([c.target_vertices, inner.garment_vertices])
+    af = torch.cat([c.target_faces, inner.garment_faces + c.target_vertices.shape[0]])
+    inter_av, inter_self, dmin = _ipctk_checks(outer.garment_vertices, outer.garment_faces, av, af)
+    assert not inter_av and not inter_self and dmin > 0
+
+
+def test_check_result_detects_intersection():
+    c = toy_case()
+    # a garment pushed through the avatar's side
+    x = c.garment_vertices.clone()
+    x[:, 0] *= 1.6
+    chk = check_result(x, c.garment_faces, c.target_vertices, c.target_faces, 0.002)
+    assert chk["intersects_avatar"] and chk["intersections"] >= 1
+
+
+def test_settings_validation():
+    with pytest.raises(InputError):
+        RetargetSettings(w_fit=-1.0)
+    with pytest.raises(InputError):
+        RetargetSettings(step_bound="nope")
+    with pytest.raises(InputError):
+        RetargetSettings(broad_phase="Nope")

@@ -1,0 +1,875 @@
+"""Objectives of intersection-free garment retargeting (Huang et al. 2025, section 3.4).
+
+Every term is an ``nn.Module`` whose ``forward(x, t)`` returns a scalar tensor differentiable by autograd in the
+garment positions ``x`` (N, 3) and the inflation parameter ``t`` (a 0-d tensor; Step 2 interpolates the avatar
+and the skeleton with it, Step 3 holds it at 1). The projected-Newton solver additionally asks each term for a
+sparse Hessian over the ``3 N + 1`` unknowns ``q = [x.flatten(), t]`` with every per-element Hessian positive
+semi-definite (:meth:`RetargetTerm.hessian`). The shape terms are sums of squared residuals, so their
+per-element Hessians are Gauss-Newton ``2 w J^T J`` (PSD by construction, exact where the residuals vanish,
+i.e. at the source shape; cheaper than an eigen-projection of the full Hessian); the barrier's come from ipctk
+with per-pair PSD clamping:
+
+* :class:`SurfaceShape` L_surf: deformation difference of adjacent triangles on the vector joining their
+  opposite vertices, area weighted (eq. 2). Per-pair 12 x 12 Gauss-Newton Hessians from closed-form
+  residual Jacobians (PSD by construction).
+* :class:`Positional` L_pos: barycentric coordinate of boundary vertices along their nearest bone; the
+  skeleton joints are ``(1 - t) J_source + t J_target`` (eq. 3). Per-vertex 4 x 4 blocks over (x_i, t).
+* :class:`Fit` L_fit: squared avatar SDF at the fit vertices (eq. 4, lumped areas), Gauss-Newton Hessian.
+* :class:`CurveShape` L_curve: discrete curvature and torsion of polylines (eq. 5 and the torsion term).
+* :class:`Contact` L_contact: IPC barrier (ipctk) of garment-avatar and garment-self pairs, the avatar being
+  ``(1 - t) V_shrunk + t V_full``; ipctk's per-pair PSD-clamped Hessians, chained to (x, t).
+
+Lengths are in the units of ``x``; the pipeline runs in a canonical frame where the avatar is 1.7 units tall
+(human scale in metres), so the paper's constants (dhat = 2 mm) apply unchanged.
+
+Surface-shape invariance: with the triangle basis ``[e1, e2, n / sqrt|n|]`` (``n = e1 x e2``) the deformation of
+a triangle maps source to current exactly for any similarity (rotation, translation, uniform scale), so
+L_surf vanishes under every similarity, and under every affine map for pairs whose four vertices are coplanar
+(e.g. a flat panel). A general 3D affine map of a curved surface has no triangle-local representative out of
+the plane, so there L_surf is only small, not zero (the component of the opposite-vertex vector along the
+normal is mapped by the normal's scaling, not by the unknown affine map).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+import torch
+from torch import nn
+
+from torchgarment.errors import InputError, MeshError
+
+# ---------------------------------------------------------------------------------------------- mesh helpers
+
+
+def adjacent_triangle_pairs(faces: np.ndarray) -> np.ndarray:
+    """Pairs of triangles sharing an interior edge as vertex quadruples.
+
+    Args:
+        faces: (F, 3) int triangles.
+
+    Returns:
+        (P, 6) int64 rows ``(v1, v2, v3, v4, f1, f2)``: ``f1 = (v1, v2, v3)`` up to rotation and
+        ``f2`` holds ``v2, v1, v4``; the shared edge is ``v1 v2``. Non-manifold edges (3+ faces) pair their
+        first two faces.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    nf = f.shape[0]
+    he = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])  # (3F, 2) directed half-edges
+    opp = np.concatenate([f[:, 2], f[:, 0], f[:, 1]])
+    face = np.tile(np.arange(nf), 3)
+    key = np.sort(he, axis=1)
+    order = np.lexsort((face, key[:, 1], key[:, 0]))
+    ks = key[order]
+    same = np.all(ks[1:] == ks[:-1], axis=1)
+    first = np.r_[True, ~same]  # first half-edge of each undirected edge
+    i = np.nonzero(same & first[:-1])[0]  # position of a first half-edge followed by a second one
+    a, b = order[i], order[i + 1]
+    v1, v2 = he[a, 0], he[a, 1]
+    return np.stack([v1, v2, opp[a], opp[b], face[a], face[b]], axis=1)
+
+
+def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
+    """Closed boundary loops of a triangle mesh, each an ordered vertex array (first vertex not repeated).
+
+    Args:
+        faces: (F, 3) int triangles (consistently oriented).
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    he = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = np.sort(he, axis=1)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    bnd = he[cnt[inv.reshape(-1)] == 1]
+    nxt: dict[int, list[int]] = {}
+    for a, b in bnd.tolist():  # boundary edges only (O(sqrt(F)) of them)
+        nxt.setdefault(a, []).append(b)
+    loops = []
+    while nxt:
+        start = next(iter(nxt))
+        loop, v = [start], start
+        while True:
+            outs = nxt.get(v)
+            if not outs:
+                break
+            w = outs.pop()
+            if not outs:
+                del nxt[v]
+            if w == start:
+                break
+            loop.append(w)
+            v = w
+        if len(loop) >= 3:
+            loops.append(np.asarray(loop, dtype=np.int64))
+    return loops
+
+
+def vertex_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(N,) lumped (one third of the incident triangle areas) vertex areas."""
+    v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
+    fa = 0.5 * torch.linalg.cross(v1 - v0, v2 - v0, dim=-1).norm(dim=-1)
+    out = torch.zeros(vertices.shape[0], dtype=vertices.dtype, device=vertices.device)
+    for k in range(3):
+        out.index_add_(0, faces[:, k], fa / 3.0)
+    return out
+
+
+def mean_incident_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(N,) average length of the edges at each vertex."""
+    e = torch.as_tensor(np.unique(np.sort(np.asarray(ipctk.edges(faces.cpu().numpy().astype(np.int32))), 1), axis=0),
+                        device=vertices.device, dtype=torch.long)
+    ln = (vertices[e[:, 0]] - vertices[e[:, 1]]).norm(dim=-1)
+    s = torch.zeros(vertices.shape[0], dtype=vertices.dtype, device=vertices.device)
+    c = torch.zeros_like(s)
+    for k in range(2):
+        s.index_add_(0, e[:, k], ln)
+        c.index_add_(0, e[:, k], torch.ones_like(ln))
+    return s / c.clamp_min(1)
+
+
+# ---------------------------------------------------------------------------------------------- Hessian helpers
+
+
+def element_hessians(fn: Callable[..., torch.Tensor], z: torch.Tensor, *consts: torch.Tensor) -> torch.Tensor:
+    """Per-element Hessians (E, d, d) of a batched element function ``fn(z (E, d), *consts) -> (E,)``.
+
+    Elements are independent, so d double-backward passes of the summed gradient give every element's Hessian
+    at once (cheaper than vmap over a functorch hessian).
+    """
+    z = z.detach().clone().requires_grad_(True)
+    with torch.enable_grad():
+        v = fn(z, *consts)
+        (g,) = torch.autograd.grad(v.sum(), z, create_graph=True)
+        cols = [torch.autograd.grad(g[:, j].sum(), z, retain_graph=j + 1 < z.shape[1], allow_unused=True)[0]
+                for j in range(z.shape[1])]
+    cols = [torch.zeros_like(z) if c is None else c for c in cols]
+    return torch.stack(cols, dim=2).detach()
+
+
+def element_gauss_newton(res_fn: Callable[..., torch.Tensor], z: torch.Tensor, weights: torch.Tensor,
+                         *consts: torch.Tensor) -> torch.Tensor:
+    """Gauss-Newton Hessians ``2 w J^T J`` (E, d, d) of ``sum_e w_e |r_e|^2`` for residuals ``res_fn(z, *consts)``
+    of shape (E,) or (E, R); PSD by construction. One backward pass per residual component."""
+    z = z.detach().clone().requires_grad_(True)
+    with torch.enable_grad():
+        r = res_fn(z, *consts)
+        r = r[:, None] if r.ndim == 1 else r
+        rows = [torch.autograd.grad(r[:, i].sum(), z, retain_graph=i + 1 < r.shape[1])[0] for i in range(r.shape[1])]
+    j = torch.stack(rows, dim=1).detach()  # (E, R, d)
+    return 2.0 * weights[:, None, None] * (j.transpose(1, 2) @ j)
+
+
+def project_psd(h: torch.Tensor) -> torch.Tensor:
+    """Clamp the negative eigenvalues of a batch of symmetric matrices (E, d, d) to zero."""
+    h = 0.5 * (h + h.transpose(-1, -2))
+    lam, q = torch.linalg.eigh(h)
+    return (q * lam.clamp_min(0.0).unsqueeze(-2)) @ q.transpose(-1, -2)
+
+
+def scatter_hessian(blocks: torch.Tensor, dofs: torch.Tensor, n: int) -> sp.csr_matrix:
+    """Assemble element Hessians (E, d, d) on global unknowns ``dofs`` (E, d) into an (n, n) CSR matrix."""
+    d = dofs.shape[1]
+    rows = dofs[:, :, None].expand(-1, d, d).reshape(-1).cpu().numpy()
+    cols = dofs[:, None, :].expand(-1, d, d).reshape(-1).cpu().numpy()
+    vals = blocks.detach().reshape(-1).to("cpu", torch.float64).numpy()
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+
+
+def vertex_dofs(idx: torch.Tensor) -> torch.Tensor:
+    """(E, k) vertex indices -> (E, 3k) unknown indices ``3 v + c``."""
+    ar = torch.arange(3, device=idx.device)
+    return (3 * idx[:, :, None] + ar).reshape(idx.shape[0], -1)
+
+
+class RetargetTerm(nn.Module):
+    """Base of the retargeting objectives.
+
+    Subclasses implement ``forward(x, t)`` and ``hessian(x, t)``. ``uses_t`` says whether the value depends on
+    the inflation parameter.
+    """
+
+    name = "term"
+    uses_t = False
+
+    def hessian(self, x: torch.Tensor, t: torch.Tensor) -> sp.csr_matrix:  # pragma: no cover - abstract
+        """(3N + 1, 3N + 1) PSD-projected Hessian over ``[x.flatten(), t]``."""
+        raise NotImplementedError
+
+    def per_element(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:  # pragma: no cover - optional
+        """Per-element values (for diagnostics)."""
+        raise NotImplementedError
+
+
+def _t_tensor(t, ref: torch.Tensor) -> torch.Tensor:
+    return t if isinstance(t, torch.Tensor) else torch.tensor(float(t), dtype=ref.dtype, device=ref.device)
+
+
+# ---------------------------------------------------------------------------------------------- L_surf
+
+
+def _tri_basis(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) columns [b - a, c - a, n / sqrt|n|] of a triangle (n = e1 x e2)."""
+    e1, e2 = b - a, c - a
+    n = torch.linalg.cross(e1, e2, dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-300).sqrt()
+    return torch.stack([e1, e2, n], dim=-1)
+
+
+def _surf_pair(z: torch.Tensor, k1: torch.Tensor, k2: torch.Tensor) -> torch.Tensor:
+    """(P,) l_surf of pairs: z (P, 12) = v1, v2, v3, v4; k_i (P, 3) = B_i^s^-1 xhat."""
+    v = z.reshape(-1, 4, 3)
+    b1 = _tri_basis(v[:, 0], v[:, 1], v[:, 2])
+    b2 = _tri_basis(v[:, 1], v[:, 0], v[:, 3])
+    r = (b1 @ k1[..., None] - b2 @ k2[..., None])[..., 0]
+    return (r * r).sum(-1)
+
+
+class SurfaceShape(RetargetTerm):
+    """L_surf = sum over adjacent triangle pairs of (source area of both) * |tau_1 xhat - tau_2 xhat|^2.
+
+    ``xhat`` is the unit source vector between the two opposite vertices and ``tau_i`` the deformation of
+    triangle i (see the module docstring for its basis). Zero at the source shape.
+
+    Args:
+        source_vertices: (N, 3) source garment positions.
+        faces: (F, 3) long garment triangles.
+    """
+
+    name = "surf"
+
+    def __init__(self, source_vertices: torch.Tensor, faces: torch.Tensor):
+        super().__init__()
+        pairs = adjacent_triangle_pairs(faces.cpu().numpy())
+        if pairs.shape[0] == 0:
+            raise MeshError("the garment has no pair of adjacent triangles")
+        dev, dt = source_vertices.device, source_vertices.dtype
+        p = torch.as_tensor(pairs, device=dev)
+        vs = source_vertices.detach()
+        v1, v2, v3, v4 = (vs[p[:, k]] for k in range(4))
+        b1 = _tri_basis(v1, v2, v3)
+        b2 = _tri_basis(v2, v1, v4)
+        x = v4 - v3
+        xl = x.norm(dim=-1, keepdim=True)
+        if bool((xl <= 0).any()) or bool((torch.linalg.det(b1).abs() <= 0).any()) \
+                or bool((torch.linalg.det(b2).abs() <= 0).any()):
+            raise MeshError("the source garment has degenerate triangles (zero area) next to a shared edge")
+        xhat = x / xl
+        k1 = torch.linalg.solve(b1, xhat)
+        k2 = torch.linalg.solve(b2, xhat)
+        fa = 0.5 * torch.linalg.cross(vs[faces[:, 1]] - vs[faces[:, 0]], vs[faces[:, 2]] - vs[faces[:, 0]],
+                                      dim=-1).norm(dim=-1)
+        w = fa[p[:, 4]] + fa[p[:, 5]]
+        self.register_buffer("quads", p[:, :4].contiguous())
+        self.register_buffer("pair_faces", p[:, 4:].contiguous())
+        self.register_buffer("k1", k1.to(dt))
+        self.register_buffer("k2", k2.to(dt))
+        self.register_buffer("weights", w.to(dt))
+        self.num_faces = int(faces.shape[0])
+
+    def per_element(self, x: torch.Tensor, t=None) -> torch.Tensor:
+        """(P,) unweighted l_surf of every adjacent pair."""
+        z = x[self.quads].reshape(-1, 12)
+        return _surf_pair(z, self.k1, self.k2)
+
+    def forward(self, x: torch.Tensor, t=None) -> torch.Tensor:  # noqa: D102
+        return (self.weights * self.per_element(x)).sum()
+
+    def triangle_distortion(self, x: torch.Tensor) -> torch.Tensor:
+        """(F,) per-triangle distortion: mean unweighted l_surf of the pairs a triangle belongs to."""
+        l = self.per_element(x).detach()
+        s = torch.zeros(self.num_faces, dtype=x.dtype, device=x.device)
+        c = torch.zeros_like(s)
+        for k in range(2):
+            s.index_add_(0, self.pair_faces[:, k], l)
+            c.index_add_(0, self.pair_faces[:, k], torch.ones_like(l))
+        return s / c.clamp_min(1)
+
+    def residual_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Residuals r = tau_1 xhat - tau_2 xhat (P, 3) and their Jacobians (P, 3, 12) in closed form."""
+        v = x.detach()[self.quads]  # (P, 4, 3)
+        k1, k2 = self.k1, self.k2
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+
+        def normal_part(a, b, c):
+            # ntilde = n / sqrt|n|, n = (b - a) x (c - a); d ntilde / d(a, b, c) as (P, 3, 9)
+            e1, e2 = b - a, c - a
+            n = torch.linalg.cross(e1, e2, dim=-1)
+            ln = n.norm(dim=-1).clamp_min(1e-300)
+            nh = n / ln[:, None]
+            dn_dnt = (eye - 0.5 * nh[:, :, None] * nh[:, None, :]) / ln.sqrt()[:, None, None]
+            dn_de1 = -_skew(e2)
+            dn_de2 = _skew(e1)
+            j1 = dn_dnt @ dn_de1
+            j2 = dn_dnt @ dn_de2
+            return n / ln.sqrt()[:, None], torch.cat([-(j1 + j2), j1, j2], dim=2)
+
+        v1, v2, v3, v4 = v[:, 0], v[:, 1], v[:, 2], v[:, 3]
+        nt1, jn1 = normal_part(v1, v2, v3)  # wrt (v1, v2, v3)
+        nt2, jn2 = normal_part(v2, v1, v4)  # wrt (v2, v1, v4)
+        r = (k1[:, 0:1] * (v2 - v1) + k1[:, 1:2] * (v3 - v1) + k1[:, 2:3] * nt1
+             - k2[:, 0:1] * (v1 - v2) - k2[:, 1:2] * (v4 - v2) - k2[:, 2:3] * nt2)
+        P = v.shape[0]
+        J = torch.zeros(P, 3, 12, dtype=x.dtype, device=x.device)
+        a0, a1, b0, b1 = k1[:, 0], k1[:, 1], k2[:, 0], k2[:, 1]
+        # linear parts: coefficient of v1, v2, v3, v4 times the identity
+        c = torch.stack([-a0 - a1 - b0, a0 + b0 + b1, a1, -b1], dim=1)  # (P, 4)
+        J += torch.einsum("pk,ij->pikj", c, eye).reshape(P, 3, 12)
+        J[:, :, 0:9] += k1[:, 2, None, None] * jn1
+        jn2s = k2[:, 2, None, None] * jn2
+        J[:, :, 3:6] -= jn2s[:, :, 0:3]
+        J[:, :, 0:3] -= jn2s[:, :, 3:6]
+        J[:, :, 9:12] -= jn2s[:, :, 6:9]
+        return r, J
+
+    def hessian(self, x: torch.Tensor, t=None) -> sp.csr_matrix:  # noqa: D102
+        """Gauss-Newton Hessian ``2 w J^T J`` per pair (PSD by construction; exact at the source shape, where
+        the residuals vanish)."""
+        _, J = self.residual_jacobian(x)
+        h = 2.0 * self.weights[:, None, None] * (J.transpose(1, 2) @ J)
+        return scatter_hessian(h, vertex_dofs(self.quads), 3 * x.shape[0] + 1)
+
+
+def _skew(a: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) matrices with ``_skew(a) @ b = a x b``."""
+    z = torch.zeros_like(a[..., 0])
+    return torch.stack([torch.stack([z, -a[..., 2], a[..., 1]], -1),
+                        torch.stack([a[..., 2], z, -a[..., 0]], -1),
+                        torch.stack([-a[..., 1], a[..., 0], z], -1)], -2)
+
+
+# ---------------------------------------------------------------------------------------------- L_pos
+
+
+def nearest_bone(points: torch.Tensor, joints: torch.Tensor, bones: torch.Tensor) -> torch.Tensor:
+    """(P,) index of the bone (segment) closest to each point."""
+    a, b = joints[bones[:, 0]], joints[bones[:, 1]]  # (B, 3)
+    ab = b - a
+    u = ((points[:, None, :] - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-300)
+    u = u.clamp(0.0, 1.0)
+    d = (points[:, None, :] - (a + u[..., None] * ab)).norm(dim=-1)
+    return d.argmin(dim=1)
+
+
+def _pos_residual(z: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """(K,) w - w_s of vertices: z (K, 4) = (x, t); c (K, 13) = a_s, b_s, a_t, b_t, w_s."""
+    x, t = z[:, :3], z[:, 3:4]
+    a = c[:, 0:3] + t * (c[:, 6:9] - c[:, 0:3])
+    b = c[:, 3:6] + t * (c[:, 9:12] - c[:, 3:6])
+    ab = b - a
+    return ((x - a) * ab).sum(-1) / (ab * ab).sum(-1) - c[:, 12]
+
+
+def _pos_vertex(z: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """(K,) l_pos of vertices: z (K, 4) = (x, t); c (K, 13) = a_s, b_s, a_t, b_t, w_s."""
+    x, t = z[:, :3], z[:, 3:4]
+    a = c[:, 0:3] + t * (c[:, 6:9] - c[:, 0:3])
+    b = c[:, 3:6] + t * (c[:, 9:12] - c[:, 3:6])
+    ab = b - a
+    w = ((x - a) * ab).sum(-1) / (ab * ab).sum(-1)
+    return (w - c[:, 12]) ** 2
+
+
+class Positional(RetargetTerm):
+    """L_pos = sum over boundary vertices of (mean source edge length) * (w_source - w)^2.
+
+    ``w`` is the (unclamped) barycentric coordinate of the vertex projected on the line of its nearest source
+    bone (among the bones of positive length in both skeletons), whose joints move as
+    ``(1 - t) J_source + t J_target``.
+
+    Args:
+        source_vertices: (N, 3) source garment positions.
+        faces: (F, 3) long triangles.
+        source_joints / target_joints: (J, 3) skeleton joints (same bones).
+        bones: (B, 2) long joint pairs.
+        vertices: (K,) long constrained vertices; default: the garment boundary.
+    """
+
+    name = "pos"
+    uses_t = True
+
+    def __init__(self, source_vertices: torch.Tensor, faces: torch.Tensor, source_joints: torch.Tensor,
+                 target_joints: torch.Tensor, bones: torch.Tensor, vertices: torch.Tensor | None = None):
+        super().__init__()
+        if vertices is None:
+            loops = boundary_loops(faces.cpu().numpy())
+            vertices = torch.as_tensor(np.unique(np.concatenate(loops)) if loops else np.zeros(0, np.int64),
+                                       device=source_vertices.device)
+        vs = source_vertices.detach()
+        self.register_buffer("vertices", vertices.long())
+        if bones.shape[0] == 0:
+            raise InputError("the skeleton has no bones")
+        # bones of (near) zero length in either skeleton (e.g. a root bone) have no barycentric coordinate
+        ls = (source_joints[bones[:, 1]] - source_joints[bones[:, 0]]).norm(dim=-1)
+        lt = (target_joints[bones[:, 1]] - target_joints[bones[:, 0]]).norm(dim=-1)
+        usable = torch.nonzero((ls > 1e-4 * ls.max()) & (lt > 1e-4 * lt.max())).reshape(-1)
+        if usable.numel() == 0:
+            raise InputError("the skeletons have no bone of positive length")
+        bone = usable[nearest_bone(vs[self.vertices], source_joints, bones[usable])] if len(self.vertices) else \
+            torch.zeros(0, dtype=torch.long, device=vs.device)
+        ja, jb = bones[bone, 0], bones[bone, 1]
+        a_s, b_s, a_t, b_t = source_joints[ja], source_joints[jb], target_joints[ja], target_joints[jb]
+        ab = b_s - a_s
+        w_s = ((vs[self.vertices] - a_s) * ab).sum(-1) / (ab * ab).sum(-1)
+        self.register_buffer("consts", torch.cat([a_s, b_s, a_t, b_t, w_s[:, None]], dim=1).to(vs.dtype))
+        self.register_buffer("weights", mean_incident_edge_length(vs, faces)[self.vertices])
+        self.register_buffer("bone", bone)
+
+    def _z(self, x, t):
+        t = _t_tensor(t, x)
+        return torch.cat([x[self.vertices], t.expand(len(self.vertices), 1)], dim=1)
+
+    def forward(self, x: torch.Tensor, t) -> torch.Tensor:  # noqa: D102
+        if len(self.vertices) == 0:
+            return x.sum() * 0.0
+        return (self.weights * _pos_vertex(self._z(x, t), self.consts)).sum()
+
+    def hessian(self, x: torch.Tensor, t) -> sp.csr_matrix:  # noqa: D102
+        n = 3 * x.shape[0] + 1
+        if len(self.vertices) == 0:
+            return sp.csr_matrix((n, n))
+        h = element_gauss_newton(_pos_residual, self._z(x.detach(), _t_tensor(t, x).detach()), self.weights,
+                                 self.consts)
+        dofs = torch.cat([vertex_dofs(self.vertices[:, None]),
+                          torch.full((len(self.vertices), 1), n - 1, device=x.device)], dim=1)
+        return scatter_hessian(h, dofs, n)
+
+
+# ---------------------------------------------------------------------------------------------- L_fit
+
+
+class Fit(RetargetTerm):
+    """L_fit = sum over fit vertices of A_i ((D(x_i) - offset) / ell)^2, D the avatar's signed distance.
+
+    The integral of eq. 4 with lumped source vertex areas ``A_i``; divided by ``ell^2`` (``fit_length``, 1 cm
+    at human scale by default in the pipeline) so that the weight reads as "one ell of gap costs like a unit
+    distortion of the same area". ``offset`` (the pipeline uses dhat) puts the fit's optimum just outside the
+    barrier's activation distance instead of on the avatar surface (the paper's D^2), so that the fit does not
+    push the garment into the barrier; the visible difference is dhat (2 mm at human scale).
+    Gauss-Newton Hessian ``2 A_i / ell^2 grad D grad D^T`` (PSD).
+
+    Args:
+        sdf: a callable with ``value_and_gradient(x) -> (D (K,), grad (K, 3))`` and differentiable ``sdf(x)``
+            (a :class:`~torchgarment.sdf.grid.BodySDF`).
+        source_vertices: (N, 3); faces: (F, 3) long; mask: (N,) bool fit vertices; fit_length: ell > 0.
+        offset: target signed distance (>= 0).
+    """
+
+    name = "fit"
+
+    def __init__(self, sdf: nn.Module, source_vertices: torch.Tensor, faces: torch.Tensor, mask: torch.Tensor,
+                 fit_length: float, offset: float = 0.0):
+        super().__init__()
+        if not fit_length > 0:
+            raise InputError(f"fit_length must be positive, got {fit_length}")
+        if not (math.isfinite(offset) and offset >= 0):
+            raise InputError(f"fit offset must be >= 0, got {offset}")
+        self.offset = float(offset)
+        self.sdf = sdf
+        idx = torch.nonzero(mask.to(torch.bool), as_tuple=False).reshape(-1)
+        self.register_buffer("vertices", idx)
+        self.register_buffer("weights", vertex_areas(source_vertices.detach(), faces)[idx] / fit_length ** 2)
+
+    def forward(self, x: torch.Tensor, t=None) -> torch.Tensor:  # noqa: D102
+        if len(self.vertices) == 0:
+            return x.sum() * 0.0
+        d = self.sdf(x[self.vertices].to(self.sdf.dtype)).to(x.dtype) - self.offset
+        return (self.weights * d * d).sum()
+
+    def hessian(self, x: torch.Tensor, t=None) -> sp.csr_matrix:  # noqa: D102
+        n = 3 * x.shape[0] + 1
+        if len(self.vertices) == 0:
+            return sp.csr_matrix((n, n))
+        _, g = self.sdf.value_and_gradient(x.detach()[self.vertices].to(self.sdf.dtype))
+        g = g.to(x.dtype)
+        h = 2.0 * self.weights[:, None, None] * g[:, :, None] * g[:, None, :]
+        return scatter_hessian(h, vertex_dofs(self.vertices[:, None]), n)
+
+
+# ---------------------------------------------------------------------------------------------- L_curve
+
+
+def _unit(v: torch.Tensor) -> torch.Tensor:
+    return v / v.norm(dim=-1, keepdim=True)
+
+
+def _curvature(z: torch.Tensor) -> torch.Tensor:
+    """(T,) alpha = -e_{i-1}^ . e_i^ of vertex triples z (T, 9)."""
+    v = z.reshape(-1, 3, 3)
+    return -(_unit(v[:, 1] - v[:, 0]) * _unit(v[:, 2] - v[:, 1])).sum(-1)
+
+
+def _torsion(z: torch.Tensor) -> torch.Tensor:
+    """(Q, 2) (beta, gamma) of vertex quadruples z (Q, 12): edges e_{i-1}, e_i, e_{i+1}."""
+    v = z.reshape(-1, 4, 3)
+    ep, ei, en = _unit(v[:, 1] - v[:, 0]), _unit(v[:, 2] - v[:, 1]), _unit(v[:, 3] - v[:, 2])
+    pn = en - (ei * en).sum(-1, keepdim=True) * ei
+    pp = -ep + (ei * ep).sum(-1, keepdim=True) * ei
+    beta = (pn * pp).sum(-1)
+    gamma = (torch.linalg.cross(pn, pp, dim=-1) * ei).sum(-1)
+    return torch.stack([beta, gamma], dim=-1)
+
+
+def _curv_res(z: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return _curvature(z) - target
+
+
+def _tors_res(z: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return _torsion(z) - target
+
+
+def polyline_elements(curves: list[np.ndarray], closed: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex triples (curvature) and quadruples (torsion) of polylines.
+
+    With ``closed`` every curve is a loop (a repeated first index at the end is dropped); otherwise open
+    polylines (curvature at interior vertices, torsion at interior edges).
+
+    Returns:
+        (T, 3) int64 triples and (Q, 4) int64 quadruples.
+    """
+    tri, quad = [], []
+    for c in curves:
+        c = np.asarray(c, dtype=np.int64).reshape(-1)
+        if closed and c.shape[0] > 3 and c[0] == c[-1]:
+            c = c[:-1]
+        m = c.shape[0]
+        if m < 3:
+            continue
+        if closed:
+            i = np.arange(m)
+            tri.append(np.stack([c[(i - 1) % m], c[i], c[(i + 1) % m]], 1))
+            if m >= 4:
+                quad.append(np.stack([c[(i - 1) % m], c[i], c[(i + 1) % m], c[(i + 2) % m]], 1))
+        else:
+            tri.append(np.stack([c[:-2], c[1:-1], c[2:]], 1))
+            if m >= 4:
+                quad.append(np.stack([c[:-3], c[1:-2], c[2:-1], c[3:]], 1))
+    t = np.concatenate(tri) if tri else np.zeros((0, 3), np.int64)
+    q = np.concatenate(quad) if quad else np.zeros((0, 4), np.int64)
+    return t, q
+
+
+class CurveShape(RetargetTerm):
+    """L_curve = L_curvature + L_torsion over closed loops (boundaries) and extra curves.
+
+    Curvature ``alpha_i = -e^_{i-1} . e^_i`` per vertex, torsion ``(beta_i, gamma_i)`` per edge (the paper's
+    projected-edge dot and triple products), each compared with the source value and weighted by the mean
+    source length of the adjacent edges. Invariant to rotation, translation and uniform scale; not to
+    anisotropic scale.
+
+    Args:
+        source_vertices: (N, 3); curves: vertex index arrays (loops; a repeated first index is dropped).
+        closed: treat the curves as closed loops (the paper's boundaries and seam loops) or open polylines.
+    """
+
+    name = "curve"
+
+    def __init__(self, source_vertices: torch.Tensor, curves: list, closed: bool = True):
+        super().__init__()
+        vs = source_vertices.detach()
+        n = vs.shape[0]
+        cs = []
+        for c in curves:
+            a = np.asarray(c.cpu() if isinstance(c, torch.Tensor) else c, dtype=np.int64).reshape(-1)
+            if a.size and (a.min() < 0 or a.max() >= n):
+                raise InputError(f"a curve indexes vertices outside [0, {n})")
+            cs.append(a)
+        tri, quad = polyline_elements(cs, closed)
+        dev = vs.device
+        tri_t = torch.as_tensor(tri, device=dev)
+        quad_t = torch.as_tensor(quad, device=dev)
+        for name, e in (("triples", tri_t), ("quads", quad_t)):
+            self.register_buffer(name, e)
+        seg = lambda i, j: (vs[j] - vs[i]).norm(dim=-1)  # noqa: E731
+        if len(tri_t) and bool((seg(tri_t[:, 0], tri_t[:, 1]) <= 0).any() | (seg(tri_t[:, 1], tri_t[:, 2]) <= 0).any()):
+            raise InputError("a curve has two consecutive coincident vertices")
+        wt = 0.5 * (seg(tri_t[:, 0], tri_t[:, 1]) + seg(tri_t[:, 1], tri_t[:, 2])) if len(tri_t) else vs.new_zeros(0)
+        wq = 0.5 * (seg(quad_t[:, 0], quad_t[:, 1]) + seg(quad_t[:, 1], quad_t[:, 2])) if len(quad_t) else vs.new_zeros(0)
+        self.register_buffer("w_curv", wt)
+        self.register_buffer("w_tors", wq)
+        self.register_buffer("alpha_s", _curvature(vs[tri_t].reshape(-1, 9)) if len(tri_t) else vs.new_zeros(0))
+        self.register_buffer("bg_s", _torsion(vs[quad_t].reshape(-1, 12)) if len(quad_t) else vs.new_zeros(0, 2))
+
+    def forward(self, x: torch.Tensor, t=None) -> torch.Tensor:  # noqa: D102
+        e = x.sum() * 0.0
+        if len(self.triples):
+            a = _curvature(x[self.triples].reshape(-1, 9))
+            e = e + (self.w_curv * (a - self.alpha_s) ** 2).sum()
+        if len(self.quads):
+            bg = _torsion(x[self.quads].reshape(-1, 12))
+            e = e + (self.w_tors[:, None] * (bg - self.bg_s) ** 2).sum()
+        return e
+
+    def hessian(self, x: torch.Tensor, t=None) -> sp.csr_matrix:  # noqa: D102
+        n = 3 * x.shape[0] + 1
+        h = sp.csr_matrix((n, n))
+        xd = x.detach()
+        if len(self.triples):
+            hb = element_gauss_newton(_curv_res, xd[self.triples].reshape(-1, 9), self.w_curv, self.alpha_s)
+            h = h + scatter_hessian(hb, vertex_dofs(self.triples), n)
+        if len(self.quads):
+            hb = element_gauss_newton(_tors_res, xd[self.quads].reshape(-1, 12), self.w_tors, self.bg_s)
+            h = h + scatter_hessian(hb, vertex_dofs(self.quads), n)
+        return h
+
+
+# ---------------------------------------------------------------------------------------------- L_contact
+
+
+class _ContactFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, t: torch.Tensor, term: "Contact") -> torch.Tensor:  # noqa: D102
+        e, gx, gt = term.value_grad_np(x, t)
+        ctx.save_for_backward(torch.as_tensor(gx, dtype=x.dtype, device=x.device),
+                              torch.as_tensor(gt, dtype=x.dtype, device=x.device))
+        return torch.as_tensor(e, dtype=x.dtype, device=x.device)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):  # noqa: D102
+        gx, gt = ctx.saved_tensors
+        return g * gx, g * gt, None
+
+
+@dataclass
+class ContactStats:
+    """Diagnostics of one contact evaluation: pairs within dhat and the minimum distance (units of x)."""
+
+    num_pairs: int
+    min_distance: float
+
+
+class Contact(RetargetTerm):
+    """IPC barrier (ipctk) over garment-self and garment-avatar pairs.
+
+    ipctk evaluates the barrier on squared distances, ``b = -(d^2 - dhat^2)^2 ln(d^2 / dhat^2)`` (the IPC
+    convention), a monotone reparametrisation of the paper's ``-(d - dhat)^2 ln(d / dhat)`` with the same
+    support (0, dhat) and the same blow-up at 0; the adaptive stiffness absorbs the different scale.
+
+    One ipctk CollisionMesh holds the garment (first N vertices) and the avatar; avatar-avatar pairs are
+    filtered out (the avatar may be messy: self-intersecting, degenerate). The avatar is
+    ``shrunk + t (full - shrunk)``, so the term depends on ``t`` (Step 2); with ``shrunk`` None the avatar is
+    fixed at ``full`` (Step 3, multi-layer). The energy is ``kappa * sum_k b(d_k)`` with ``kappa``
+    (:attr:`stiffness`) chosen adaptively with ipctk's initial_barrier_stiffness / update_barrier_stiffness.
+
+    Args:
+        garment_rest: (N, 3) garment rest positions (adjacency). garment_faces: (F, 3) long.
+        avatar_full: (A, 3) avatar at t = 1. avatar_faces: (G, 3) long. avatar_shrunk: (A, 3) at t = 0 or None.
+        dhat: activation distance. stiffness: initial kappa.
+        broad_phase: an ipctk broad-phase class name ("HashGrid", "LBVH", "SweepAndPrune", "BruteForce").
+        cull_radius: when given (>= 4 dhat), the collision mesh keeps only the avatar faces that may lie within
+            this distance of the garment (see :meth:`_recull`), re-culled whenever the garment or the avatar
+            has moved by half of it; every query stays exact because dropped faces are farther than
+            cull_radius / 2 > dhat. The broad phase cost then follows the garment's neighbourhood instead of
+            the whole (subdivided) avatar. :meth:`prepare_step` makes a step's CCD valid.
+    """
+
+    name = "contact"
+
+    def __init__(self, garment_rest: torch.Tensor, garment_faces: torch.Tensor, avatar_full: torch.Tensor,
+                 avatar_faces: torch.Tensor, avatar_shrunk: torch.Tensor | None, dhat: float,
+                 stiffness: float = 1.0, broad_phase: str = "LBVH", cull_radius: float | None = None):
+        super().__init__()
+        if not (math.isfinite(dhat) and dhat > 0):
+            raise InputError(f"dhat must be positive, got {dhat}")
+        if cull_radius is not None and not cull_radius >= 4 * dhat:
+            raise InputError(f"cull_radius must be at least 4 dhat = {4 * dhat:.3g}, got {cull_radius}")
+        self.uses_t = avatar_shrunk is not None
+        n = garment_rest.shape[0]
+        self._gf = garment_faces.cpu().numpy().astype(np.int32)
+        self._af_all = avatar_faces.cpu().numpy().astype(np.int32)
+        full = avatar_full.detach().to("cpu", torch.float64).numpy()
+        self.num_garment = int(n)
+        self.dhat = float(dhat)
+        self.cull_radius = None if cull_radius is None else float(cull_radius)
+        self._garment_rest = garment_rest.detach().to("cpu", torch.float64).numpy()
+        self._full_all = full
+        self._delta_all = (full - avatar_shrunk.detach().to("cpu", torch.float64).numpy()) if self.uses_t else \
+            np.zeros_like(full)
+        self._shrunk_all = full - self._delta_all
+        self._delta_max = float(np.sqrt((self._delta_all ** 2).sum(1)).max(initial=0.0))
+        self._bp_name = broad_phase
+        self.stiffness = float(stiffness)
+        self.max_stiffness = float(stiffness)
+        self.bbox_diagonal = float(ipctk.world_bbox_diagonal_length(np.concatenate([self._garment_rest, full])))
+        self.last_stats = ContactStats(0, math.inf)
+        self.num_culls = 0
+        self._ref_x: np.ndarray | None = None
+        self._ref_t = 0.0
+        self._set_subset(np.arange(full.shape[0]), self._af_all)
+
+    # ------------------------------------------------------------------ avatar culling
+    def _set_subset(self, verts: np.ndarray, faces: np.ndarray) -> None:
+        """Use avatar vertices ``verts`` and faces ``faces`` (indices into all avatar vertices)."""
+        n = self.num_garment
+        remap = np.full(self._full_all.shape[0], -1, dtype=np.int64)
+        remap[verts] = np.arange(verts.shape[0])
+        af = remap[faces].astype(np.int32).reshape(-1, 3)
+        self._full = self._full_all[verts]
+        self._delta = self._delta_all[verts]
+        self._shrunk = self._shrunk_all[verts]
+        allf = np.asfortranarray(np.concatenate([self._gf, af + n]), dtype=np.int32)
+        rest = np.asfortranarray(np.concatenate([self._garment_rest, self._full]))
+        self.mesh = ipctk.CollisionMesh(rest, ipctk.edges(allf), allf)
+        self.mesh.can_collide = ipctk.make_static_obstacle_filter(n)
+        self._cache_key: bytes | None = None
+        self._cache_col = None
+
+    def _motion(self, xn: np.ndarray, t: float) -> float:
+        """Largest garment + avatar displacement since the last cull (units of x)."""
+        if self._ref_x is None:
+            return math.inf
+        return float(np.sqrt(((xn - self._ref_x) ** 2).sum(1)).max(initial=0.0)) + abs(t - self._ref_t) * self._delta_max
+
+    def _recull(self, xn: np.ndarray, t: float) -> None:
+        """Keep the avatar faces that may come within ``cull_radius`` of the garment at (xn, t).
+
+        A point p of an avatar face F and a point q of a garment triangle T satisfy
+        ``|p - q| >= |v - w| - |p - v| - |q - w| >= dnear(v) - L_F - L_T`` for every vertex v of F (w the vertex
+        of T nearest... any vertex of T; dnear the distance from v to the nearest garment vertex; L the longest
+        edge of a triangle bounds the distance from a vertex to any point of it). F is dropped only when
+        ``max_v dnear(v) - L_F - L_g > cull_radius`` (L_g the longest garment edge), so every dropped face is
+        farther than cull_radius from the garment.
+        """
+        from scipy.spatial import cKDTree
+
+        r = self.cull_radius
+        a = self._shrunk_all + t * self._delta_all if self.uses_t else self._full_all
+        dnear, _ = cKDTree(xn).query(a, k=1)
+        fa = a[self._af_all]  # (G, 3, 3)
+        le_f = np.sqrt(((fa - fa[:, [1, 2, 0]]) ** 2).sum(-1)).max(1)
+        ga = xn[self._gf]
+        le_g = float(np.sqrt(((ga - ga[:, [1, 2, 0]]) ** 2).sum(-1)).max(initial=0.0))
+        keep = dnear[self._af_all].max(1) - le_f - le_g <= r
+        faces = self._af_all[keep]
+        self._set_subset(np.unique(faces.reshape(-1)), faces)
+        self._ref_x, self._ref_t = xn.copy(), float(t)
+        self.num_culls += 1
+
+    def _ensure(self, xn: np.ndarray, t: float) -> None:
+        """Re-cull when the motion since the last cull could bring a dropped face within cull_radius / 2."""
+        if self.cull_radius is not None and self._motion(xn, t) > 0.5 * self.cull_radius:
+            self._recull(xn, t)
+
+    def prepare_step(self, x: torch.Tensor | np.ndarray, t: float, dx: np.ndarray, dt: float) -> float:
+        """Make the culled mesh valid along ``(x + a dx, t + a dt)`` and return the largest valid ``a <= 1``.
+
+        Along the returned range every dropped face stays farther than cull_radius / 2 from the garment, so a
+        CCD or distance query on the culled mesh is exact for the segment. Without culling returns 1.
+        """
+        if self.cull_radius is None:
+            return 1.0
+        xn = x.detach().to("cpu", torch.float64).numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+        step = float(np.sqrt((dx * dx).sum(1)).max(initial=0.0)) + abs(dt) * self._delta_max
+        budget = 0.5 * self.cull_radius
+        if self._motion(xn, t) + step > budget:
+            self._recull(xn, t)
+        return 1.0 if step <= budget else budget / step
+
+    @property
+    def stiffness(self) -> float:
+        """kappa (energy units of the other terms per barrier unit)."""
+        return self._kappa
+
+    @stiffness.setter
+    def stiffness(self, value: float) -> None:
+        if not (math.isfinite(value) and value > 0):
+            raise InputError(f"barrier stiffness must be positive, got {value}")
+        self._kappa = float(value)
+        self._potential = ipctk.BarrierPotential(self.dhat, self._kappa, False)
+
+    def broad_phase(self):
+        """A fresh ipctk broad phase object."""
+        return getattr(ipctk, self._bp_name)()
+
+    def positions(self, x: torch.Tensor | np.ndarray, t: float, ensure: bool = True) -> np.ndarray:
+        """(N + A', 3) collision-mesh positions (Fortran order) for garment ``x`` and inflation ``t``.
+
+        With culling the avatar part holds the kept vertices; ``ensure`` re-culls first when needed.
+        """
+        xn = x.detach().to("cpu", torch.float64).numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+        if ensure:
+            self._ensure(xn, float(t))
+        return np.asfortranarray(np.concatenate([xn, self.avatar_at(t)]))
+
+    def avatar_at(self, t: float) -> np.ndarray:
+        """(A', 3) positions of the avatar vertices in the collision mesh at ``t``."""
+        return self._full if not self.uses_t or float(t) == 1.0 else self._shrunk + float(t) * self._delta
+
+    def collisions(self, xa: np.ndarray) -> "ipctk.NormalCollisions":
+        """Pairs closer than dhat at collision-mesh positions ``xa`` (cached on the last positions)."""
+        key = xa.tobytes()
+        if self._cache_key == key:
+            return self._cache_col
+        col = ipctk.NormalCollisions()
+        col.build(self.mesh, xa, self.dhat, 0.0, self.broad_phase())
+        self._cache_key, self._cache_col = key, col
+        return col
+
+    def _tval(self, t) -> float:
+        return float(t.detach()) if isinstance(t, torch.Tensor) else float(t)
+
+    def value_grad_np(self, x: torch.Tensor, t) -> tuple[float, np.ndarray, float]:
+        """Energy, gradient (N, 3) in x and derivative in t."""
+        xa = self.positions(x, self._tval(t))
+        col = self.collisions(xa)
+        e = float(self._potential(col, self.mesh, xa))
+        if math.isnan(e):
+            e = math.inf
+        g = np.asarray(self._potential.gradient(col, self.mesh, xa)).reshape(-1, 3)
+        n = self.num_garment
+        gt = float((g[n:] * self._delta).sum()) if self.uses_t else 0.0
+        self.last_stats = ContactStats(len(col), self._min_distance(col, xa))
+        return e, g[:n], gt
+
+    def _min_distance(self, col, xa) -> float:
+        return math.sqrt(max(float(col.compute_minimum_distance(self.mesh, xa)), 0.0)) if len(col) else math.inf
+
+    def forward(self, x: torch.Tensor, t) -> torch.Tensor:  # noqa: D102
+        t = _t_tensor(t, x)
+        if torch.is_grad_enabled() and (x.requires_grad or t.requires_grad):
+            return _ContactFn.apply(x, t, self)
+        return torch.as_tensor(self.value_np(x, t), dtype=x.dtype, device=x.device)
+
+    def value_np(self, x: torch.Tensor, t) -> float:
+        """Energy only (+inf when two primitives touch)."""
+        xa = self.positions(x, self._tval(t))
+        e = float(self._potential(self.collisions(xa), self.mesh, xa))
+        return math.inf if math.isnan(e) else e
+
+    def unit_barrier_gradient(self, x: torch.Tensor, t) -> np.ndarray:
+        """(3N + 1,) gradient of the barrier sum with kappa = 1 over [x, t]."""
+        xa = self.positions(x, self._tval(t))
+        g = np.asarray(ipctk.BarrierPotential(self.dhat, 1.0, False).gradient(
+            self.collisions(xa), self.mesh, xa)).reshape(-1, 3)
+        n = self.num_garment
+        gt = float((g[n:] * self._delta).sum()) if self.uses_t else 0.0
+        return np.r_[g[:n].reshape(-1), gt]
+
+    def hessian(self, x: torch.Tensor, t) -> sp.csr_matrix:  # noqa: D102
+        xa = self.positions(x, self._tval(t))
+        h = sp.csr_matrix(self._potential.hessian(self.collisions(xa), self.mesh, xa,
+                                                  ipctk.PSDProjectionMethod.CLAMP))
+        n3 = 3 * self.num_garment
+        hxx = h[:n3, :n3]
+        if not self.uses_t:
+            return sp.block_diag([hxx, sp.csr_matrix((1, 1))], format="csr")
+        d = self._delta.reshape(-1)
+        hxt = np.asarray(h[:n3, n3:] @ d).reshape(-1, 1)
+        htt = float(d @ (h[n3:, n3:] @ d))
+        return sp.bmat([[hxx, sp.csr_matrix(hxt)], [sp.csr_matrix(hxt.T), sp.csr_matrix([[htt]])]], format="csr")
+
+    def min_distance(self, x: torch.Tensor, t, max_distance: float) -> float:
+        """Smallest garment-self / garment-avatar distance within ``max_distance`` (+inf if none)."""
+        xa = self.positions(x, self._tval(t))
+        col = ipctk.NormalCollisions()
+        col.build(self.mesh, xa, float(max_distance), 0.0, self.broad_phase())
+        return self._min_distance(col, xa)
+
+    def has_intersections(self, x: torch.Tensor, t) -> bool:
+        """Whether garment triangles cross each other or the avatar (avatar-avatar crossings ignored)."""
+        xa = self.positions(x, self._tval(t))  # may re-cull: take self.mesh afterwards
+        return bool(ipctk.has_intersections(self.mesh, xa, self.broad_phase()))
