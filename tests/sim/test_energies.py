@@ -311,6 +311,34 @@ def test_range_limited_barrier_scalar_derivatives():
         BodyBarrier(sdf, 1, dhat=1e-3, offset=2e-3)
 
 
+def test_lazy_barrier_matches_full_queries(sphere_sdf):
+    """The lazy range-limited barrier (SDF sampled only where a vertex may be within dhat) gives the same
+    energy, gradient and Hessian diagonal as sampling every vertex, along a random walk towards the body, and
+    samples fewer vertices once most are far."""
+    x = _shell_points(400, 0.303, 0.5, seed=7)
+    lazy = BodyBarrier(sphere_sdf, x.shape[0], dhat=0.02, lazy=True)
+    full = BodyBarrier(sphere_sdf, x.shape[0], dhat=0.02, lazy=False)
+    gen = torch.Generator().manual_seed(8)
+    counts = []
+    for _ in range(25):
+        step = 0.004 * torch.randn(x.shape, dtype=torch.float64, generator=gen) - 0.002 * x / x.norm(dim=1,
+                                                                                                     keepdim=True)
+        x = x + step
+        x = full.project_feasible(x)
+        El, gl, hl = lazy.value_grad_hessian_diagonal(x)
+        Ef, gf, hf = full.value_grad_hessian_diagonal(x)
+        counts.append(lazy.last_query_count)
+        assert float(El) == pytest.approx(float(Ef), rel=1e-12, abs=1e-15)
+        torch.testing.assert_close(gl, gf, rtol=1e-12, atol=1e-15)
+        torch.testing.assert_close(hl, hf, rtol=1e-12, atol=1e-12)
+        # the lazy phi is a lower bound of the true one, so the step bound stays safe
+        dx = 0.01 * torch.randn(x.shape, dtype=torch.float64, generator=gen)
+        a = lazy.max_step(x, dx)
+        assert bool((sphere_sdf(x + a * dx) > 0).all())
+    assert full.last_query_count == x.shape[0]
+    assert max(counts[1:]) < 0.5 * x.shape[0]  # most vertices start 3-20 cm away
+
+
 def test_barrier_body_sdf_gradient(sphere_sdf):
     x = _shell_points(200, 0.31, 0.36, seed=4)
     term = BodyBarrier(sphere_sdf, x.shape[0])

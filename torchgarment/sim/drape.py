@@ -304,7 +304,7 @@ def drape(
     if settings.barrier_mu is not None:
         final_mat.barrier_mu = float(settings.barrier_mu)
     scene = Scene(mesh, body_sdf=sdf, effects=base | {Effect.GRAVITY}, material=final_mat)
-    weight = float(mesh.rest_face_areas.sum()) * mat.density * mat.gravity if mesh.p is not None else 0.0
+    weight = float(mesh.rest_face_areas.abs().sum()) * mat.density * mat.gravity if mesh.p is not None else 0.0
     settle_settings = SolveSettings(rtol=settings.rtol, atol=settings.atol_weight * weight,
                                     max_iterations=settings.max_iterations, max_displacement=settings.max_displacement)
     model = scene.build()
