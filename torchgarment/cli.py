@@ -237,6 +237,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_drape_parser(sub)
 
+    from torchgarment.adjust.cli import add_adjust_parser
+    from torchgarment.datadriven.cli import add_pca_parser
+    from torchgarment.retarget.cli import add_retarget_parser
+
+    add_adjust_parser(sub)
+    add_retarget_parser(sub)
+    add_pca_parser(sub)
+
     p = sub.add_parser("demo", help="run the main job on built-in defaults",
                        description="Make bodies of two chart sizes, draft a garment for each, mesh it, place it "
                                    "around the body, and write renders, patterns and measurements.")

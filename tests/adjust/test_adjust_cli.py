@@ -1,0 +1,60 @@
+"""The ``torchgarment adjust`` subcommand (torchgarment.adjust.cli): outputs and bad input."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+import torch
+
+from torchgarment.adjust.cli import add_adjust_parser, cmd_adjust
+from torchgarment.errors import InputError
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="torchgarment")
+    add_adjust_parser(parser.add_subparsers(dest="command"))
+    return parser.parse_args(["adjust", *argv])
+
+
+def test_adjust_writes_every_output(tmp_path, capsys):
+    out = tmp_path / "out"
+    args = _parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", str(out),
+                   "--iterations", "4", "--exact-interval", "2", "--edge-length", "0.05", "--voxel", "0.01",
+                   "--no-progress"])
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        assert args.func(args) == 0
+    finally:
+        torch.set_num_threads(n)
+    for name in ("pattern.json", "pattern.svg", "pattern.dxf", "garment_base.obj", "garment_target.obj",
+                 "target_before.png", "target_after.png", "overlay.png", "metrics.json"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    m = json.loads((out / "metrics.json").read_text())
+    for key in ("objective_initial", "objective_final", "reduction_percent", "terms", "max_boundary_displacement_mm",
+                "iterations", "seconds", "seconds_per_iteration", "closure_calls"):
+        assert key in m, key
+    assert m["iterations"] == 4 and m["objective_final"] <= m["objective_initial"]
+    assert set(m["terms"]) == {"base", "initial", "final"}
+    assert any(p.name.startswith("events.out.tfevents") for p in (out / "logs").iterdir())
+    from torchgarment.pattern.garmentcode import load_pattern
+
+    assert set(load_pattern(out / "pattern.json").panels) == {"front", "back"} or len(
+        load_pattern(out / "pattern.json").panels) >= 2
+    assert "reduction" in capsys.readouterr().out
+
+
+def test_bad_input(tmp_path):
+    with pytest.raises(InputError, match="not a library garment"):
+        cmd_adjust(_parse(["--garment", "cape", "--base-size", "12", "--target-size", "20", "--out", str(tmp_path)]))
+    with pytest.raises(InputError, match="neither a chart size"):
+        cmd_adjust(_parse(["--garment", "straight_skirt", "--base-body", "nope.obj", "--target-size", "20",
+                           "--out", str(tmp_path)]))
+    with pytest.raises(InputError, match="iterations"):
+        cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
+                           "--out", str(tmp_path), "--iterations", "-1"]))
+    with pytest.raises(SystemExit):
+        _parse(["--garment", "straight_skirt", "--base-size", "12", "--out", str(tmp_path)])  # no target
+    assert not any(tmp_path.iterdir())

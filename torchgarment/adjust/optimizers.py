@@ -1,0 +1,557 @@
+"""Optimizers of the pattern parameters, each a ``torch.optim.Optimizer`` with ``step(closure)`` (Wang 2018, sec. 7).
+
+Every closure call is a cloth solve (and usually an adjoint solve), so every optimizer counts them in
+``closure_calls``. A closure with attribute ``cacheable = True`` (an exact evaluation, see
+:meth:`~torchgarment.adjust.inexact.AdjustProblem.closure`) is not called again at the last two points it was
+called at: their values and gradients are reused (the accepted line-search point, and the start point after a
+failed line search; re-solving there from another warm start could find another equilibrium).
+
+* :class:`PreconditionedGD` (``"pgd"``, the paper's method): ``q <- q - s P^-1 grad`` with ``P`` the constant
+  approximate Hessian of the regularizers (:meth:`AdjustObjective.regularizer_hessian`), factorized once with
+  SuperLU. With ``line_search=True`` the step ``s`` is found by Armijo backtracking (and grown after an
+  accepted step); with ``False`` it is the fixed ``lr`` (Algorithm 1 controls it).
+* :class:`LBFGS` (``"lbfgs"``): L-BFGS two-loop recursion with a trust-capped Armijo line search.
+* :class:`GaussNewton` (``"gn"``): ``(J^T H J + R) d = -grad`` by preconditioned CG (``P = R``, Steihaug stop at
+  negative curvature), products from :meth:`AdjustProblem.gauss_newton_product` (a tangent and an adjoint solve
+  each), then Armijo backtracking.
+* :class:`FixedPoint` (``"fixed-point"``): the fixed-point method of Bartle et al. 2016 as Wang 2018 implement it
+  on a mass-spring model (section 8.1): no gradient; every spring's rest vector is scaled by
+  ``|target edge| / |simulated edge|`` and the pattern is refit to these edge vectors in the least-squares
+  sense; the boundary of the refit pattern becomes the new ``q``.
+
+Example::
+
+    opt = make_optimizer("pgd", [q], preconditioner=objective.regularizer_hessian())
+    for _ in range(50):
+        opt.step(problem.closure(q, exact=True))
+    opt.closure_calls
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+
+from torchgarment.errors import InputError
+from torchgarment.options import OptionEnum
+from torchgarment.sim.diff import NonConvergenceError
+from torchgarment.sim.solvers import NonFiniteError
+
+Closure = Callable[[], torch.Tensor]
+
+
+class OptimizerKind(OptionEnum):
+    """Optimizers by name."""
+
+    PGD = "pgd"
+    LBFGS = "lbfgs"
+    GN = "gn"
+    FIXED_POINT = "fixed-point"
+
+    @classmethod
+    def aliases(cls) -> dict[str, str]:
+        return {"preconditioned": "pgd", "l-bfgs": "lbfgs", "gauss-newton": "gn", "fixed_point": "fixed-point",
+                "fixedpoint": "fixed-point", "bartle": "fixed-point"}
+
+
+def _flat_params(params: list[torch.Tensor]) -> torch.Tensor:
+    return torch.cat([p.detach().reshape(-1) for p in params])
+
+
+def _flat_grads(params: list[torch.Tensor]) -> torch.Tensor:
+    return torch.cat([(torch.zeros_like(p) if p.grad is None else p.grad.detach()).reshape(-1) for p in params])
+
+
+def _set_flat(params: list[torch.Tensor], flat: torch.Tensor) -> None:
+    k = 0
+    with torch.no_grad():
+        for p in params:
+            n = p.numel()
+            p.copy_(flat[k:k + n].view_as(p))
+            k += n
+
+
+class _Counting:
+    """Mixin: counts closure calls and reuses the last cacheable evaluation at an unchanged point."""
+
+    closure_calls: int
+    _cache: list | None
+
+    def _init_counting(self) -> None:
+        self.closure_calls = 0
+        self.failed_calls = 0
+        self._cache = None
+
+    def _all_params(self) -> list[torch.Tensor]:
+        return [p for g in self.param_groups for p in g["params"]]  # type: ignore[attr-defined]
+
+    def _counted(self, closure: Closure) -> Closure:
+        cacheable = bool(getattr(closure, "cacheable", False))
+        params = self._all_params()
+
+        def fn() -> torch.Tensor:
+            flat = _flat_params(params)
+            for entry in (self._cache or []) if cacheable else []:
+                if torch.equal(entry[0], flat):
+                    _, loss, grads = entry
+                    for p, g in zip(params, grads):
+                        p.grad = None if g is None else g.clone()
+                    return loss.clone()
+            try:
+                with torch.enable_grad():
+                    loss = closure()
+            except (NonConvergenceError, NonFiniteError):
+                # a trial pattern the simulator cannot solve (e.g. a step far too long): an infinite objective
+                # that line searches reject; the problem has restored its simulation state
+                self.closure_calls += 1
+                self.failed_calls += 1
+                for p in params:
+                    p.grad = torch.zeros_like(p)
+                return torch.tensor(math.inf, dtype=params[0].dtype)
+            self.closure_calls += 1
+            loss_t = torch.as_tensor(loss).detach()
+            if cacheable:  # the last two points: a failed line search returns to the one before the trials
+                entry = (flat, loss_t.clone(), [None if p.grad is None else p.grad.detach().clone() for p in params])
+                self._cache = ([entry] + list(self._cache or []))[:2]
+            else:
+                self._cache = None
+            return loss_t
+
+        return fn
+
+    def _check_finite(self, loss: torch.Tensor) -> float:
+        v = float(loss)
+        if math.isnan(v):
+            raise InputError("the objective is NaN at the current parameters")
+        return v
+
+
+class _PrecondSolve:
+    """``v -> P^-1 v`` with a sparse SPD ``P`` (n, n) factorized once by SuperLU (float64, CPU)."""
+
+    def __init__(self, P: scipy.sparse.spmatrix, n: int) -> None:
+        if not scipy.sparse.issparse(P) and not isinstance(P, np.ndarray):
+            raise InputError(f"the preconditioner must be a scipy sparse matrix or an array, got {type(P).__name__}")
+        P = scipy.sparse.csc_matrix(P, dtype=np.float64)
+        if P.shape != (n, n):
+            raise InputError(f"the preconditioner must be ({n}, {n}) for {n} parameters, got {P.shape}")
+        try:
+            self.lu = scipy.sparse.linalg.splu(P)
+        except RuntimeError as exc:
+            raise InputError(f"the preconditioner is singular ({exc}); the fixing regularizer keeps it positive "
+                             f"definite: give it a positive weight") from exc
+        self.P = P
+
+    def solve(self, v: torch.Tensor) -> torch.Tensor:
+        y = self.lu.solve(v.detach().to("cpu", torch.float64).numpy())
+        return torch.from_numpy(y).to(device=v.device, dtype=v.dtype)
+
+    def matvec(self, v: torch.Tensor) -> torch.Tensor:
+        y = self.P @ v.detach().to("cpu", torch.float64).numpy()
+        return torch.from_numpy(y).to(device=v.device, dtype=v.dtype)
+
+
+def _trust(t: float, d: torch.Tensor, max_move: float | None) -> float:
+    """``t`` capped so that no parameter moves more than ``max_move`` (metres) along ``d``."""
+    dmax = float(d.abs().max()) if d.numel() else 0.0
+    if dmax == 0.0:
+        return 0.0 if math.isinf(t) else t
+    if max_move is None:
+        return t
+    return min(t, max_move / dmax)
+
+
+def _armijo(fn: Closure, params: list[torch.Tensor], x0: torch.Tensor, f0: float, g0: torch.Tensor,
+            d: torch.Tensor, t: float, c: float, shrink: float, max_backtracks: int) -> tuple[float, float, bool]:
+    """Backtracking along ``d`` from ``x0``: returns ``(t, f(x0 + t d), accepted)``; on failure restores ``x0``."""
+    slope = float(torch.dot(g0, d))
+    for _ in range(max_backtracks):
+        _set_flat(params, x0 + t * d)
+        f = float(fn())
+        if math.isfinite(f) and f <= f0 + c * t * slope:
+            return t, f, True
+        t *= shrink
+    _set_flat(params, x0)
+    return t, f0, False
+
+
+class PreconditionedGD(_Counting, torch.optim.Optimizer):
+    """Preconditioned gradient descent ``q <- q - s P^-1 grad`` (the paper's method; see the module docstring).
+
+    Args:
+        params: the parameters (usually ``[q]``, q (B, 2)); flattened in order, so ``P`` is (n, n) over them.
+        preconditioner: sparse SPD (n, n), e.g. :meth:`AdjustObjective.regularizer_hessian`; None = identity
+            (plain gradient descent).
+        lr: the step length ``s`` (initial trial step with a line search).
+        line_search: Armijo backtracking (True) or the fixed step ``lr`` (False, one closure call per step).
+        armijo: sufficient-decrease constant. shrink: backtracking factor. grow: ``lr`` factor after an
+            accepted step (line search only). max_backtracks: trials per step.
+    """
+
+    needs_gradient = True
+
+    def __init__(self, params: Iterable[torch.Tensor], preconditioner=None, *, lr: float = 1.0,  # noqa: ANN001
+                 line_search: bool = True, armijo: float = 1e-4, shrink: float = 0.5, grow: float = 2.0,
+                 max_backtracks: int = 20, max_move: float | None = 0.01) -> None:
+        if not lr > 0:
+            raise InputError(f"lr must be > 0, got {lr}")
+        if math.isinf(lr) and max_move is None:
+            raise InputError("an unbounded step (lr = inf) needs a trust length max_move")
+        super().__init__(params, {"lr": float(lr)})
+        self._init_counting()
+        n = sum(p.numel() for p in self._all_params())
+        self.precond = None if preconditioner is None else _PrecondSolve(preconditioner, n)
+        self.line_search, self.armijo, self.shrink, self.grow = bool(line_search), armijo, shrink, grow
+        self.max_backtracks = int(max_backtracks)
+        self.max_move = None if max_move is None else float(max_move)
+        self.last_step_length = 0.0
+
+    def direction(self, g: torch.Tensor) -> torch.Tensor:
+        """``-P^-1 g``."""
+        return -(g if self.precond is None else self.precond.solve(g))
+
+    @torch.no_grad()
+    def step(self, closure: Closure) -> torch.Tensor:  # type: ignore[override]
+        """One iteration; returns the objective at the starting point."""
+        if closure is None:
+            raise InputError("PreconditionedGD.step needs a closure")
+        fn = self._counted(closure)
+        params = self._all_params()
+        loss = fn()
+        f0 = self._check_finite(loss)
+        if not math.isfinite(f0):  # the simulator failed here (see _counted): no direction, no move
+            self.last_step_length = 0.0
+            return loss
+        g = _flat_grads(params)
+        d = self.direction(g)
+        x0 = _flat_params(params)
+        group = self.param_groups[0]
+        t0 = _trust(group["lr"], d, self.max_move)
+        if not self.line_search:
+            _set_flat(params, x0 + t0 * d)
+            self.last_step_length = t0
+            return loss
+        if float(torch.dot(g, d)) >= 0.0:
+            self.last_step_length = 0.0
+            return loss
+        t, _, ok = _armijo(fn, params, x0, f0, g, d, t0, self.armijo, self.shrink, self.max_backtracks)
+        self.last_step_length = t if ok else 0.0
+        group["lr"] = t * self.grow if ok else t
+        return loss
+
+
+class LBFGS(_Counting, torch.optim.Optimizer):
+    """L-BFGS (torch.optim.LBFGS's two-loop recursion and curvature-pair memory) with a safeguarded line search.
+
+    torch's strong-Wolfe search extrapolates trial steps up to 10x, far outside what a cloth solve starting
+    from the previous equilibrium can follow; here every trial is capped so that no parameter moves more than
+    ``max_move`` metres, and the step is accepted by Armijo backtracking. The initial inverse Hessian is
+    ``(s^T y / y^T y) I`` (torch's scaling) or, with a preconditioner ``P`` (the regularizer Hessian, as the
+    paper combines L-BFGS with its preconditioning), ``(s^T y / y^T P^-1 y) P^-1``; the first iteration is a
+    (preconditioned) gradient step of length ``max_move``. A curvature pair is kept only when
+    ``s^T y > 1e-10 |s| |y|``.
+
+    Args:
+        params: the parameters. preconditioner: sparse SPD (n, n) or None.
+        lr: initial trial step (1 = the quasi-Newton step). history_size: memory.
+        max_move: trust length in metres (None = no cap). armijo, shrink, max_backtracks: line search.
+    """
+
+    needs_gradient = True
+
+    def __init__(self, params: Iterable[torch.Tensor], preconditioner=None, *, lr: float = 1.0,  # noqa: ANN001
+                 history_size: int = 10, max_move: float | None = 0.01, armijo: float = 1e-4, shrink: float = 0.5,
+                 max_backtracks: int = 20) -> None:
+        if not lr > 0 or history_size < 1:
+            raise InputError("LBFGS needs lr > 0 and history_size >= 1")
+        super().__init__(params, {"lr": float(lr)})
+        self._init_counting()
+        n = sum(p.numel() for p in self._all_params())
+        self.precond = None if preconditioner is None else _PrecondSolve(preconditioner, n)
+        self.history_size = int(history_size)
+        self.max_move = None if max_move is None else float(max_move)
+        self.armijo, self.shrink, self.max_backtracks = armijo, shrink, int(max_backtracks)
+        self.last_step_length = 0.0
+
+    def _memory(self) -> dict:
+        return self.state[self._all_params()[0]]
+
+    def _direction(self, g: torch.Tensor, mem: dict) -> torch.Tensor:
+        S, Y = mem.get("s", []), mem.get("y", [])
+        h0 = (lambda v: v) if self.precond is None else self.precond.solve  # noqa: E731
+        if not S:
+            pg = h0(g)
+            gm = float(pg.abs().max())
+            scale = (self.max_move / gm) if (self.max_move is not None and gm > 0) else 1.0 / max(
+                float(pg.abs().sum()), 1e-300)
+            return -scale * pg
+        qv = g.clone()
+        alphas = []
+        for s_, y_ in zip(reversed(S), reversed(Y)):
+            rho = 1.0 / float(torch.dot(y_, s_))
+            a = rho * float(torch.dot(s_, qv))
+            alphas.append((a, rho))
+            qv = qv - a * y_
+        gamma = float(torch.dot(S[-1], Y[-1])) / float(torch.dot(Y[-1], h0(Y[-1])))
+        r = gamma * h0(qv)
+        for (s_, y_), (a, rho) in zip(zip(S, Y), reversed(alphas)):
+            b = rho * float(torch.dot(y_, r))
+            r = r + (a - b) * s_
+        return -r
+
+    @torch.no_grad()
+    def step(self, closure: Closure) -> torch.Tensor:  # type: ignore[override]
+        """One L-BFGS iteration with Armijo backtracking; returns the objective at the starting point."""
+        if closure is None:
+            raise InputError("LBFGS.step needs a closure")
+        fn = self._counted(closure)
+        params = self._all_params()
+        loss = fn()
+        f0 = self._check_finite(loss)
+        if not math.isfinite(f0):  # the simulator failed here (see _counted): no direction, no move
+            self.last_step_length = 0.0
+            return loss
+        g = _flat_grads(params)
+        x0 = _flat_params(params)
+        mem = self._memory()
+        if "x_prev" in mem:
+            s_, y_ = x0 - mem["x_prev"], g - mem["g_prev"]
+            sy = float(torch.dot(s_, y_))
+            if sy > 1e-10 * float(torch.linalg.vector_norm(s_)) * float(torch.linalg.vector_norm(y_)):
+                mem.setdefault("s", []).append(s_)
+                mem.setdefault("y", []).append(y_)
+                if len(mem["s"]) > self.history_size:
+                    mem["s"].pop(0)
+                    mem["y"].pop(0)
+        d = self._direction(g, mem)
+        if float(torch.dot(g, d)) >= 0.0:  # lost curvature information: restart from the gradient
+            mem["s"], mem["y"] = [], []
+            d = self._direction(g, mem)
+        mem["x_prev"], mem["g_prev"] = x0.clone(), g.clone()
+        t0 = _trust(self.param_groups[0]["lr"], d, self.max_move)
+        t, _, ok = _armijo(fn, params, x0, f0, g, d, t0, self.armijo, self.shrink, self.max_backtracks)
+        self.last_step_length = t if ok else 0.0
+        return loss
+
+
+class GaussNewton(_Counting, torch.optim.Optimizer):
+    """Gauss-Newton with CG on ``J^T H J + R`` (module docstring); needs the problem's Jacobian products.
+
+    Args:
+        params: ``[q]``.
+        problem: an object with ``gauss_newton_product(v (B, 2)) -> (B, 2)`` valid at the point of the last
+            closure call (:class:`~torchgarment.adjust.inexact.AdjustProblem`).
+        preconditioner: the regularizer Hessian ``R`` (n, n) sparse SPD: added to the system (it is part of the
+            objective but the products of the problem only hold the costs when ``include_regularizer``), and
+            used as CG's preconditioner.
+        include_regularizer: add ``R v`` to each product. The problem's products already hold the regularizers
+            when they are part of the objective module; then keep False.
+        lr: initial trial step. cg_iterations: CG budget per step (each a tangent + adjoint solve).
+        cg_rtol: CG relative residual tolerance. armijo, shrink, max_backtracks: line search.
+    """
+
+    needs_gradient = True
+
+    def __init__(self, params: Iterable[torch.Tensor], problem, preconditioner=None, *,  # noqa: ANN001
+                 include_regularizer: bool = False, lr: float = 1.0, cg_iterations: int = 10,
+                 cg_rtol: float = 1e-2, armijo: float = 1e-4, shrink: float = 0.5, max_backtracks: int = 20,
+                 max_move: float | None = 0.01) -> None:
+        super().__init__(params, {"lr": float(lr)})
+        self._init_counting()
+        if not hasattr(problem, "gauss_newton_product"):
+            raise InputError("GaussNewton needs a problem with gauss_newton_product(v)")
+        self.problem = problem
+        n = sum(p.numel() for p in self._all_params())
+        self.precond = None if preconditioner is None else _PrecondSolve(preconditioner, n)
+        if include_regularizer and self.precond is None:
+            raise InputError("include_regularizer needs the regularizer Hessian as preconditioner")
+        self.include_regularizer = bool(include_regularizer)
+        self.cg_iterations, self.cg_rtol = int(cg_iterations), float(cg_rtol)
+        self.armijo, self.shrink, self.max_backtracks = armijo, shrink, int(max_backtracks)
+        self.max_move = None if max_move is None else float(max_move)
+        self.last_cg_iterations = 0
+        self.last_step_length = 0.0
+
+    def _product(self, v: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+        hv = self.problem.gauss_newton_product(v.view(shape)).reshape(-1).to(v.dtype)
+        if self.include_regularizer:
+            hv = hv + self.precond.matvec(v)
+        return hv
+
+    def _cg(self, g: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+        """Preconditioned CG for ``A d = -g``, stopped at negative curvature (Steihaug) or the budget."""
+        d = torch.zeros_like(g)
+        r = -g.clone()
+        z = r if self.precond is None else self.precond.solve(r)
+        pdir = z.clone()
+        rz = float(torch.dot(r, z))
+        r0 = float(torch.linalg.vector_norm(r))
+        k = 0
+        for k in range(1, self.cg_iterations + 1):
+            ap = self._product(pdir, shape)
+            curv = float(torch.dot(pdir, ap))
+            if not curv > 0.0:
+                if k == 1:
+                    d = z.clone()  # preconditioned steepest descent
+                k -= 1
+                break
+            a = rz / curv
+            d = d + a * pdir
+            r = r - a * ap
+            if float(torch.linalg.vector_norm(r)) <= self.cg_rtol * r0:
+                break
+            z = r if self.precond is None else self.precond.solve(r)
+            rz_new = float(torch.dot(r, z))
+            pdir = z + (rz_new / rz) * pdir
+            rz = rz_new
+        self.last_cg_iterations = k
+        return d
+
+    @torch.no_grad()
+    def step(self, closure: Closure) -> torch.Tensor:  # type: ignore[override]
+        """One Gauss-Newton step with Armijo backtracking; returns the objective at the starting point."""
+        if closure is None:
+            raise InputError("GaussNewton.step needs a closure")
+        fn = self._counted(closure)
+        params = self._all_params()
+        if len(params) != 1:
+            raise InputError("GaussNewton optimizes a single parameter tensor q")
+        loss = fn()
+        last_q = getattr(self.problem, "last_q", None)
+        if last_q is not None and not torch.equal(last_q, params[0].detach()):
+            # a cached value: the problem's linearization is at another point; evaluate here again
+            self._cache = None
+            loss = fn()
+        f0 = self._check_finite(loss)
+        if not math.isfinite(f0):  # the simulator failed here (see _counted): no direction, no move
+            self.last_step_length = 0.0
+            return loss
+        g = _flat_grads(params)
+        d = self._cg(g, params[0].shape)
+        if float(torch.dot(g, d)) >= 0.0:
+            d = -(g if self.precond is None else self.precond.solve(g))
+        x0 = _flat_params(params)
+        group = self.param_groups[0]
+        t, _, ok = _armijo(fn, params, x0, f0, g, d, _trust(group["lr"], d, self.max_move), self.armijo,
+                           self.shrink, self.max_backtracks)
+        self.last_step_length = t if ok else 0.0
+        return loss
+
+
+class FixedPoint(_Counting, torch.optim.Optimizer):
+    """The fixed-point pattern update of Bartle et al. 2016 (the baseline of Wang 2018, section 8.1).
+
+    Each step simulates the current pattern (one closure call, no gradient needed), scales every pattern edge
+    ``e = p_j - p_i`` by ``r_e = |x~_j - x~_i| / |x_j - x_i|`` (target over simulated 3D length: a spring
+    stretched too much in the simulation gets a longer rest length), and refits the whole pattern to the scaled
+    edge vectors: ``p' = argmin sum_e |p'_j - p'_i - r_e e|^2 + eps |p' - p|^2`` (a graph Laplacian system,
+    factorized once). The update is relaxed by ``lr``: ``q <- q + lr (p'_B - q)``.
+
+    Args:
+        params: ``[q]`` (B, 2).
+        problem: an object with ``last_x`` (V, 3) and ``last_p`` (V, 2) of the last closure call.
+        edges: (E, 2) long pattern edges (the springs).
+        boundary_index: (B,) long pattern vertex of each row of ``q``.
+        x_target: (V, 3) target garment in metres (the transferred garment of the positional cost).
+        lr: relaxation in (0, 1]. eps: anchoring weight (relative) that fixes the translation null space.
+    """
+
+    needs_gradient = False
+
+    def __init__(self, params: Iterable[torch.Tensor], problem, edges: torch.Tensor,  # noqa: ANN001
+                 boundary_index: torch.Tensor, x_target: torch.Tensor, *, lr: float = 1.0, eps: float = 1e-6) -> None:
+        if not 0.0 < lr <= 1.0:
+            raise InputError(f"FixedPoint lr (relaxation) must lie in (0, 1], got {lr}")
+        super().__init__(params, {"lr": float(lr)})
+        self._init_counting()
+        self.problem = problem
+        e = edges.detach().cpu().numpy().astype(np.int64)
+        V = int(x_target.shape[0])
+        if e.ndim != 2 or e.shape[1] != 2 or (e.size and (e.min() < 0 or e.max() >= V)):
+            raise InputError(f"edges must be (E, 2) vertex indices below {V}")
+        self.edges = edges.detach().to(torch.long)
+        self.boundary_index = boundary_index.detach().to(torch.long)
+        self.x_target = x_target.detach()
+        E = e.shape[0]
+        D = scipy.sparse.csr_matrix((np.r_[np.ones(E), -np.ones(E)], (np.r_[np.arange(E), np.arange(E)],
+                                                                        np.r_[e[:, 1], e[:, 0]])), shape=(E, V))
+        self.D = D
+        self.eps = float(eps) * float(np.mean(np.asarray((D.T @ D).diagonal())))
+        self.lu = scipy.sparse.linalg.splu((D.T @ D + self.eps * scipy.sparse.eye(V)).tocsc())
+
+    def refit(self, p: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """The refit pattern p' (V, 2) for the current pattern ``p`` (V, 2) and simulation ``x`` (V, 3)."""
+        i, j = self.edges[:, 0], self.edges[:, 1]
+        dev, dt = p.device, p.dtype
+        xt = self.x_target.to(device=dev, dtype=dt)
+        lt = torch.linalg.vector_norm(xt[j] - xt[i], dim=1)
+        ls = torch.linalg.vector_norm(x[j] - x[i], dim=1).clamp_min(torch.finfo(dt).tiny)
+        target = ((p[j] - p[i]) * (lt / ls)[:, None]).to("cpu", torch.float64).numpy()
+        rhs = self.D.T @ target + self.eps * p.detach().to("cpu", torch.float64).numpy()
+        return torch.from_numpy(self.lu.solve(rhs)).to(device=dev, dtype=dt)
+
+    @torch.no_grad()
+    def step(self, closure: Closure) -> torch.Tensor:  # type: ignore[override]
+        """One fixed-point update; returns the objective at the starting point."""
+        if closure is None:
+            raise InputError("FixedPoint.step needs a closure")
+        params = self._all_params()
+        if len(params) != 1:
+            raise InputError("FixedPoint optimizes a single parameter tensor q")
+        q = params[0]
+        group = self.param_groups[0]
+        loss = self._counted(closure)()
+        if not math.isfinite(float(loss)):
+            # the last update gave a pattern the simulator cannot solve: go back to the previous pattern (whose
+            # simulation is still the problem's last one) and halve the relaxation
+            prev = self.state[q].get("q_prev")
+            if prev is None or group["lr"] < 1e-3:
+                raise InputError("the fixed-point iteration reached patterns the simulator cannot solve")
+            q.copy_(prev)
+            group["lr"] *= 0.5
+            loss = self.state[q]["f_prev"].clone()
+        self.state[q]["q_prev"], self.state[q]["f_prev"] = q.detach().clone(), loss.detach().clone()
+        p_new = self.refit(self.problem.last_p, self.problem.last_x)
+        q_new = p_new[self.boundary_index.to(p_new.device)]
+        q.add_(group["lr"] * (q_new.to(q.dtype) - q))
+        return loss
+
+
+def make_optimizer(kind: "str | OptimizerKind", params: list[torch.Tensor], *, preconditioner=None,  # noqa: ANN001
+                   problem=None, lr: float | None = None, line_search: bool = True,  # noqa: ANN001
+                   edges: torch.Tensor | None = None, boundary_index: torch.Tensor | None = None,
+                   x_target: torch.Tensor | None = None) -> torch.optim.Optimizer:
+    """Build an optimizer by name (:class:`OptimizerKind`).
+
+    Args:
+        kind: ``"pgd"``, ``"lbfgs"``, ``"gn"`` or ``"fixed-point"``.
+        params: ``[q]``.
+        preconditioner: regularizer Hessian (pgd, gn).
+        problem: the :class:`AdjustProblem` (gn, fixed-point).
+        lr: step length / relaxation (default 1).
+        line_search: pgd's Armijo line search (False inside Algorithm 1).
+        edges, boundary_index, x_target: fixed-point's pattern edges, boundary map and target garment.
+    """
+    k = OptimizerKind.resolve(kind)
+    lr = 1.0 if lr is None else float(lr)
+    if math.isinf(lr) and k != OptimizerKind.PGD:
+        lr = 1.0
+    if k == OptimizerKind.PGD:
+        return PreconditionedGD(params, preconditioner, lr=lr, line_search=line_search)
+    if k == OptimizerKind.LBFGS:
+        return LBFGS(params, preconditioner, lr=lr)
+    if k == OptimizerKind.GN:
+        if problem is None:
+            raise InputError("the gn optimizer needs the problem (for Jacobian products)")
+        return GaussNewton(params, problem, preconditioner, lr=lr)
+    if problem is None or edges is None or boundary_index is None or x_target is None:
+        raise InputError("the fixed-point optimizer needs problem, edges, boundary_index and x_target")
+    return FixedPoint(params, problem, edges, boundary_index, x_target, lr=min(lr, 1.0))
+
+
+__all__ = ["FixedPoint", "GaussNewton", "LBFGS", "OptimizerKind", "PreconditionedGD", "make_optimizer"]

@@ -1,0 +1,595 @@
+"""Sewing-pattern adjustment end to end (Wang et al. 2018): :func:`adjust`.
+
+1. drape the base garment on the base body (:func:`torchgarment.sim.drape.drape`);
+2. transfer it to the target body (Eq. 15, :func:`~torchgarment.adjust.transfer.transfer_deformation`);
+3. initialize (section 7): with ``x`` held at the transferred garment, minimize stretching plus regularizers
+   (``AdjustObjective.initialization_objective``) by L-BFGS; the full objective of the initialized pattern is
+   reported against the base pattern's (the paper sees 1/6 to 1/10);
+4. optimize with the chosen optimizer: ``pgd`` runs Algorithm 1 (inexact simulations, long-range backtracking,
+   :class:`~torchgarment.adjust.inexact.InexactRunner`) unless ``inexact=False``; ``lbfgs``, ``gn`` and
+   ``fixed-point`` evaluate exactly (their line searches / updates need true equilibria). The result is the best
+   exactly evaluated pattern, never worse than the start of step 4.
+
+Every iteration records the objective, each term, the step length, ``S`` and the wall time (TensorBoard
+scalars under ``log_dir``); a tqdm bar shows progress; Ctrl-C (KeyboardInterrupt) writes a resumable checkpoint
+(``checkpoint_dir/adjust.pt``, atomic) before re-raising, and ``resume=True`` continues from it.
+
+Objective numbers: ``objective_base`` is the objective of the base pattern on the target body, ``objective_initial``
+that of the initialized pattern (the start of the optimization, the reference of ``reduction_percent`` as in the
+paper's Table 1) and ``objective_final`` that of the result.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchgarment.adjust.inexact import AdjustProblem, InexactRunner, InexactSettings, IterationRecord
+from torchgarment.adjust.optimizers import OptimizerKind, make_optimizer
+from torchgarment.errors import InputError, PatternError
+from torchgarment.sim.drape import DrapeSettings, drape
+from torchgarment.sim.scene import Effect, Scene
+from torchgarment.sim.solvers import SolverKind, SolveSettings
+from torchgarment.structures.garment_mesh import GarmentMesh
+
+CHECKPOINT_NAME = "adjust.pt"
+"""File name of the resumable checkpoint inside ``checkpoint_dir``."""
+
+
+@dataclass
+class AdjustSettings:
+    """Settings of :func:`adjust`.
+
+    Attributes:
+        optimizer: ``"pgd"`` (default, the paper's), ``"lbfgs"``, ``"gn"`` or ``"fixed-point"``.
+        iterations: outer iterations of the optimizer (paper: 256-512).
+        inexact: run Algorithm 1 (pgd only; the other optimizers always evaluate exactly).
+        inner_iterations: initial ``S`` (solver iterations per inexact outer iteration).
+        exact_interval: ``M``, outer iterations between exact checks (paper: 32).
+        inner_solver: solver of the S-iteration simulations (``"newton"``: S Newton steps).
+        solver: solver of the exact simulations.
+        step: step length ``s`` (``lr``) of the optimizer; None = pgd: unbounded (every step is capped by
+            ``max_move``, so the first steps move the boundary by ``max_move``; long-range backtracking then
+            shrinks it), the others 1 (the quasi-Newton / Gauss-Newton step, the fixed point's full update).
+        max_move: largest move of a boundary vertex per step in metres (caps the steps of pgd, gn and
+            L-BFGS).
+        weights: cost coefficients (an ``AdjustObjective`` ``CostWeights``); None = its defaults.
+        initialize: run the section-7 initialization.
+        init_iterations: L-BFGS iterations of the initialization.
+        edge_length: triangle edge length in metres when a pattern is given.
+        voxel_size: body SDF voxel size in metres.
+        drape: settings of the base drape; None = ``DrapeSettings(edge_length, voxel_size)``.
+        atol_weight: exact-solve force tolerance as a fraction of the garment's weight (as the drape's).
+        max_solver_iterations: iteration budget of an exact solve.
+        band: blending band ``B`` of the deformation transfer in metres; None = its default.
+        checkpoint_every: also write a checkpoint every this many iterations (0 = only on Ctrl-C).
+    """
+
+    optimizer: OptimizerKind = OptimizerKind.PGD
+    iterations: int = 256
+    inexact: bool = True
+    inner_iterations: int = 2
+    exact_interval: int = 32
+    inner_solver: SolverKind = SolverKind.NEWTON
+    solver: SolverKind = SolverKind.NEWTON
+    step: float | None = None
+    max_move: float = 0.005
+    weights: object | None = None
+    initialize: bool = True
+    init_iterations: int = 100
+    edge_length: float = 0.03
+    voxel_size: float = 0.005
+    drape: DrapeSettings | None = None
+    atol_weight: float = 1e-3
+    max_solver_iterations: int = 100
+    band: float | None = None
+    checkpoint_every: int = 0
+
+    def validate(self) -> None:
+        """Normalize option names and raise :class:`InputError` for out-of-range values."""
+        self.optimizer = OptimizerKind.resolve(self.optimizer)
+        self.inner_solver = SolverKind.resolve(self.inner_solver)
+        self.solver = SolverKind.resolve(self.solver)
+        checks = [
+            (self.iterations >= 0, "iterations must be >= 0"),
+            (self.inner_iterations >= 1 and self.exact_interval >= 1, "inner_iterations/exact_interval must be >= 1"),
+            ((self.step is None or self.step > 0) and self.max_move > 0, "step and max_move must be > 0"),
+            (self.init_iterations >= 0, "init_iterations must be >= 0"),
+            (self.edge_length > 0 and self.voxel_size > 0, "edge_length and voxel_size must be > 0"),
+            (self.atol_weight > 0 and self.max_solver_iterations >= 1, "atol_weight and max_solver_iterations"),
+            (self.checkpoint_every >= 0, "checkpoint_every must be >= 0"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise InputError(f"invalid AdjustSettings: {msg}")
+
+
+@dataclass
+class AdjustResult:
+    """Outcome of :func:`adjust`.
+
+    Attributes:
+        pattern: the adjusted :class:`SewingPattern` (None when a mesh was given).
+        base_pattern: the input pattern (None when a mesh was given).
+        mesh_base: the base garment draped on the base body (``p`` the base pattern).
+        mesh_target: the adjusted garment on the target body (``p`` the adjusted pattern, ``x`` its equilibrium).
+        x_transfer: (V, 3) the transferred garment (the target of the positional cost).
+        x_base_on_target: (V, 3) the equilibrium of the base pattern on the target body (the "before").
+        q_base, q: (B, 2) base and adjusted boundary vertices in metres.
+        boundary_index: (B,) the pattern vertex of each boundary row.
+        metrics: JSON-serializable numbers (see :func:`adjust`).
+        records: one :class:`IterationRecord` per outer iteration.
+        term_history: per iteration, each term's value (at the iteration's evaluation).
+    """
+
+    pattern: object | None
+    base_pattern: object | None
+    mesh_base: GarmentMesh
+    mesh_target: GarmentMesh
+    x_transfer: torch.Tensor
+    x_base_on_target: torch.Tensor
+    q_base: torch.Tensor
+    q: torch.Tensor
+    boundary_index: torch.Tensor
+    metrics: dict
+    records: list[IterationRecord] = field(default_factory=list)
+    term_history: list[dict[str, float]] = field(default_factory=list)
+
+
+# ---------------------------------------------------------------------------------------------- pattern output
+def _cubic_fit(pts: np.ndarray) -> np.ndarray:
+    """Inner control points (2, 2) of the cubic Bezier through the end points closest to ``pts`` (m, 2)."""
+    a, b = pts[0], pts[-1]
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    t = np.concatenate([[0.0], np.cumsum(seg)]) / max(seg.sum(), 1e-300)
+    b1, b2 = 3 * (1 - t) ** 2 * t, 3 * (1 - t) * t**2
+    rhs = pts - np.outer((1 - t) ** 3, a) - np.outer(t**3, b)
+    A = np.stack([b1, b2], axis=1)
+    ctrl, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    return ctrl
+
+
+def pattern_from_mesh(pattern, mesh: GarmentMesh, p: torch.Tensor, edge_length: float,  # noqa: ANN001
+                      line_tolerance: float = 2e-4):
+    """The sewing pattern whose outline passes through the boundary vertices of ``p``.
+
+    ``mesh`` must be ``mesh_pattern(pattern, edge_length)`` (the boundary of each panel is its first vertices,
+    edge by edge). Each edge keeps its index, end vertices and stitches; its shape becomes a line when the
+    adjusted samples lie within ``line_tolerance`` metres of the chord and the base edge was a line, else a cubic
+    Bezier fitted by least squares (chord-length parameters). Panel placement is kept.
+
+    Args:
+        pattern: the base :class:`SewingPattern`.
+        mesh: its mesh. p: (V, 2) adjusted rest positions. edge_length: the meshing edge length.
+
+    Returns:
+        ``(pattern, max_fit_error_m)``.
+    """
+    from torchgarment.pattern.meshing import edge_segment_counts
+    from torchgarment.pattern.spec import Edge, EdgeKind, Panel, SewingPattern
+
+    counts = edge_segment_counts(pattern, edge_length)
+    P = p.detach().cpu().double().numpy()
+    vp = mesh.vertex_panel_ids.cpu().numpy()
+    names = list(mesh.panel_names) if mesh.panel_names is not None else list(pattern.panels)
+    panels, worst = {}, 0.0
+    for name, panel in pattern.panels.items():
+        if name not in names:
+            raise PatternError(f"panel {name!r} is not in the mesh")
+        k = names.index(name)
+        where = np.nonzero(vp == k)[0]
+        off = int(where.min())
+        n = counts[name]
+        starts = off + np.concatenate([[0], np.cumsum(n)])
+        nb = int(starts[-1] - off)
+        verts = P[starts[:-1]]
+        edges = []
+        for i, e in enumerate(panel.edges):
+            idx = np.arange(starts[i], starts[i] + n[i] + 1)
+            idx[-1] = off if i == len(panel.edges) - 1 else idx[-1]
+            if int(idx.max()) >= off + nb + (0 if i < len(panel.edges) - 1 else 1):
+                raise PatternError(f"panel {name!r}: boundary indexing does not match the mesh")
+            pts = P[idx]
+            a, b = pts[0], pts[-1]
+            d = b - a
+            chord = float(np.linalg.norm(d))
+            off_chord = np.abs((pts - a) @ np.array([-d[1], d[0]])) / max(chord, 1e-300)
+            if e.kind is EdgeKind.LINE and float(off_chord.max()) <= line_tolerance:
+                edges.append(Edge(i, (i + 1) % len(panel.edges), EdgeKind.LINE, label=e.label))
+                worst = max(worst, float(off_chord.max()))
+                continue
+            ctrl = _cubic_fit(pts)
+            perp = np.array([-d[1], d[0]])
+            M = np.stack([d, perp], axis=1)
+            rel = np.linalg.solve(M, (ctrl - a).T).T
+            new = Edge(i, (i + 1) % len(panel.edges), EdgeKind.CUBIC, controls=rel, label=e.label)
+            curve = new.evaluate(a, b, np.linspace(0, 1, 200))
+            err = float(np.min(np.linalg.norm(pts[:, None, :] - curve[None], axis=2), axis=1).max())
+            worst = max(worst, err)
+            edges.append(new)
+        panels[name] = Panel(name, verts, edges, translation=panel.translation.copy(),
+                             rotation=panel.rotation.copy(), label=panel.label, notches=list(panel.notches),
+                             grainline=panel.grainline.copy())
+    out = SewingPattern(pattern.name, panels, list(pattern.stitches), dict(pattern.metadata))
+    return out, worst
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _target_sdf(body, voxel: float, dtype: torch.dtype, device):  # noqa: ANN001, ANN202
+    from torchgarment.sdf import BodySDF, SDFSampling, SDFSettings
+
+    if isinstance(body, BodySDF):
+        return body
+    sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=voxel), device=device, dtype=dtype)
+    return sdf.with_sampling(SDFSampling.QUADRATIC)
+
+
+def _initialize(objective, param, q_base: torch.Tensor, iterations: int) -> torch.Tensor:  # noqa: ANN001
+    """Section 7: minimize ``objective.initialization_objective(param(q))`` over q by L-BFGS (no simulation)."""
+    q = q_base.detach().clone().requires_grad_(True)
+    if iterations == 0:
+        return q.detach()
+    opt = torch.optim.LBFGS([q], lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
+                            tolerance_grad=1e-12, tolerance_change=1e-15)
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        f = objective.initialization_objective(param(q))
+        f.backward()
+        return f
+
+    opt.step(closure)
+    return q.detach()
+
+
+def _terms(objective, x: torch.Tensor, p: torch.Tensor) -> dict[str, float]:  # noqa: ANN001
+    with torch.no_grad():
+        return {k: float(v) for k, v in objective.term_values(x, p).items()}
+
+
+def _save_checkpoint(directory: Path, state: dict) -> Path:
+    from torchgarment.io.atomic import atomic_path
+
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / CHECKPOINT_NAME
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+    return path
+
+
+class _Logger:
+    """TensorBoard scalars (when ``log_dir``) and a tqdm bar (when ``progress``)."""
+
+    def __init__(self, log_dir, progress: bool, total: int, initial: int) -> None:  # noqa: ANN001
+        self.writer = None
+        if log_dir is not None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(log_dir=str(log_dir))
+        self.bar = None
+        if progress:
+            import sys
+
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=initial, desc="adjust", unit="it", file=sys.stderr, leave=False)
+
+    def log(self, rec: IterationRecord, terms: dict[str, float]) -> None:
+        if self.writer is not None:
+            k = rec.iteration
+            self.writer.add_scalar("objective", rec.objective, k)
+            self.writer.add_scalar("objective_exact" if rec.exact else "objective_inexact", rec.objective, k)
+            for name, v in terms.items():
+                self.writer.add_scalar(f"terms/{name}", v, k)
+            self.writer.add_scalar("step_length", rec.step, k)
+            self.writer.add_scalar("step_norm_m", rec.step_norm, k)
+            self.writer.add_scalar("S", rec.inner_iterations, k)
+            self.writer.add_scalar("wall_time_s", rec.seconds, k)
+            self.writer.add_scalar("closure_calls", rec.closure_calls, k)
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix(f=f"{rec.objective:.4g}", S=rec.inner_iterations, refresh=False)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.flush()
+            self.writer.close()
+        if self.bar is not None:
+            self.bar.close()
+
+
+# ---------------------------------------------------------------------------------------------- adjust
+@dataclass
+class AdjustSetup:
+    """Everything before the optimization (steps 1-3 of the module docstring), reusable by several optimizers.
+
+    Attributes:
+        settings: the settings used.
+        pattern: the input :class:`SewingPattern` (None for a mesh).
+        mesh_base: the base garment draped on the base body.
+        base_drape_metrics: the drape's metrics.
+        x_transfer: (V, 3) transferred garment.
+        param: the :class:`BoundaryParametrization`.
+        objective: the :class:`AdjustObjective`.
+        model: the simulation model on the target body.
+        exact_settings: settings of exact solves.
+        q_base: (B, 2) base boundary. x_base_on_target: (V, 3) base pattern's equilibrium on the target body.
+        objective_base, terms_base: objective and terms of the base pattern on the target body.
+        q_init: (B, 2) initialized boundary; objective_initial, terms_initial its objective and terms;
+        x_init: (V, 3) its equilibrium. initialization_used: whether it beat the base pattern.
+        timings: seconds of each stage.
+    """
+
+    settings: AdjustSettings
+    pattern: object | None
+    mesh_base: GarmentMesh
+    base_drape_metrics: dict
+    x_transfer: torch.Tensor
+    param: torch.nn.Module
+    objective: torch.nn.Module
+    model: torch.nn.Module
+    exact_settings: SolveSettings
+    q_base: torch.Tensor
+    x_base_on_target: torch.Tensor
+    objective_base: float
+    terms_base: dict
+    q_init: torch.Tensor
+    x_init: torch.Tensor
+    objective_initial: float
+    terms_initial: dict
+    initialization_used: bool
+    timings: dict = field(default_factory=dict)
+
+    def new_problem(self, x_start: torch.Tensor | None = None) -> AdjustProblem:
+        """A fresh :class:`AdjustProblem` warm-started at ``x_start`` (default: the initialized equilibrium)."""
+        s = self.settings
+        return AdjustProblem(self.model, self.param, self.objective, self.x_init if x_start is None else x_start,
+                             exact_settings=replace(self.exact_settings), solver=s.solver,
+                             inexact_solver=s.inner_solver)
+
+
+def prepare(
+    pattern_or_mesh,  # noqa: ANN001 - SewingPattern | GarmentMesh
+    base_body,  # noqa: ANN001 - Body
+    target_body,  # noqa: ANN001 - Body
+    settings: AdjustSettings | None = None,
+    *,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> AdjustSetup:
+    """Steps 1-3: base drape, transfer, parametrization/objective/simulation, base objective, initialization.
+
+    Args: see :func:`adjust`.
+    """
+    from torchgarment.adjust.objective import AdjustObjective
+    from torchgarment.adjust.parametrization import BoundaryParametrization
+    from torchgarment.adjust.transfer import transfer_deformation
+    from torchgarment.pattern.spec import SewingPattern
+
+    settings = replace(settings) if settings is not None else AdjustSettings()
+    settings.validate()
+    if not isinstance(pattern_or_mesh, (SewingPattern, GarmentMesh)):
+        raise InputError(f"adjust takes a SewingPattern or a GarmentMesh, got {type(pattern_or_mesh).__name__}")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    dset = settings.drape if settings.drape is not None else DrapeSettings(edge_length=settings.edge_length,
+                                                                           voxel_size=settings.voxel_size)
+    settings.drape = dset
+    base = drape(pattern_or_mesh, base_body, settings=dset, dtype=dtype, device=device)
+    mesh_base = base.mesh
+    timings["drape_seconds"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    kw = {} if settings.band is None else {"band": settings.band}
+    x_transfer = transfer_deformation(base.x, base_body, target_body, **kw).to(dtype=dtype, device=mesh_base.device)
+    timings["transfer_seconds"] = time.perf_counter() - t1
+
+    t1 = time.perf_counter()
+    param = BoundaryParametrization(mesh_base, dtype=dtype, device=mesh_base.device)
+    objective = AdjustObjective(mesh_base, base_body, target_body, param, settings.weights, x_transfer=x_transfer)
+    sdf = _target_sdf(target_body, dset.voxel_size, dtype, mesh_base.device)
+    mat = replace(dset.material)
+    if mesh_base.seam_pairs.shape[0] and dset.final_sew_stiffness is not None:
+        mat.sew_stiffness = float(dset.final_sew_stiffness)
+    if dset.barrier_mu is not None:
+        mat.barrier_mu = float(dset.barrier_mu)
+    effects = {Effect.STRETCH, Effect.BEND, Effect.GRAVITY, Effect.BODY_BARRIER}
+    if mesh_base.seam_pairs.shape[0]:
+        effects.add(Effect.SEW)
+    model = Scene(mesh_base.with_positions(x_transfer), body_sdf=sdf, effects=effects, material=mat).build()
+    weight = float(mesh_base.rest_face_areas.abs().sum()) * mat.density * mat.gravity
+    exact = SolveSettings(rtol=0.0, atol=settings.atol_weight * weight, max_iterations=settings.max_solver_iterations)
+    problem = AdjustProblem(model, param, objective, x_transfer, exact_settings=exact, solver=settings.solver,
+                            inexact_solver=settings.inner_solver)
+    q_base = param.initial().detach()
+    timings["setup_seconds"] = time.perf_counter() - t1
+
+    t1 = time.perf_counter()
+    # the first solves start from the transferred garment, far from equilibrium: the drape's settle budget
+    problem.exact_settings = replace(exact, max_iterations=max(exact.max_iterations, dset.max_iterations))
+    ev = problem.evaluate(q_base, exact=True, need_grad=False)
+    f_base, terms_base = ev.objective, problem.term_values()
+    x_before = problem.x.clone()
+    q_init, x_init, f_init, terms_init, init_used = q_base, x_before, f_base, terms_base, False
+    if settings.initialize:
+        q_try = _initialize(objective, param, q_base, settings.init_iterations)
+        problem.reset_state(x_transfer)
+        ev = problem.evaluate(q_try, exact=True, need_grad=False)
+        if ev.objective < f_base:
+            q_init, x_init, f_init, terms_init, init_used = q_try, problem.x.clone(), ev.objective, \
+                problem.term_values(), True
+    problem.exact_settings = exact
+    timings["initialization_seconds"] = time.perf_counter() - t1
+    pattern = pattern_or_mesh if isinstance(pattern_or_mesh, SewingPattern) else None
+    return AdjustSetup(settings, pattern, mesh_base, dict(base.metrics), x_transfer, param, objective, model, exact,
+                       q_base, x_before, f_base, terms_base, q_init, x_init, f_init, terms_init, init_used, timings)
+
+
+def optimize(
+    setup: AdjustSetup,
+    settings: AdjustSettings | None = None,
+    *,
+    log_dir: str | Path | None = None,
+    checkpoint_dir: str | Path | None = None,
+    progress: bool = True,
+    resume: bool = False,
+    callback=None,  # noqa: ANN001 - Callable[[IterationRecord, dict], None]
+) -> AdjustResult:
+    """Step 4 on a prepared setup, with a fresh simulation state (see :func:`adjust`).
+
+    Args:
+        setup: from :func:`prepare`.
+        settings: optimizer settings (optimizer, iterations, inexact, S, M, step, max_move, checkpoint_every);
+            default ``setup.settings``.
+        log_dir, checkpoint_dir, progress, resume: see :func:`adjust`.
+        callback: ``callback(record, terms)`` after every outer iteration.
+    """
+    settings = replace(settings) if settings is not None else replace(setup.settings)
+    settings.validate()
+    ckpt_path = None if checkpoint_dir is None else Path(checkpoint_dir) / CHECKPOINT_NAME
+    if resume and (ckpt_path is None or not ckpt_path.is_file()):
+        raise InputError(f"resume=True but there is no checkpoint {ckpt_path}")
+    problem = setup.new_problem()
+    problem.solver = SolverKind.resolve(settings.solver)
+    problem.inexact_solver = SolverKind.resolve(settings.inner_solver)
+    q = setup.q_init.detach().clone().requires_grad_(True)
+    kind = settings.optimizer
+    use_inexact = settings.inexact and kind == OptimizerKind.PGD
+    opt = make_optimizer(kind, [q], preconditioner=setup.objective.regularizer_hessian(), problem=problem,
+                         lr=settings.step if settings.step is not None else (
+                             math.inf if kind == OptimizerKind.PGD else 1.0), line_search=not use_inexact, edges=setup.mesh_base.edges,
+                         boundary_index=setup.param.boundary_index, x_target=setup.x_transfer)
+    if hasattr(opt, "max_move"):
+        opt.max_move = settings.max_move
+    runner = InexactRunner(problem, opt, q, InexactSettings(
+        inner_iterations=settings.inner_iterations, exact_interval=settings.exact_interval, exact=not use_inexact))
+    term_history: list[dict[str, float]] = []
+    if resume:
+        state = torch.load(ckpt_path, weights_only=False)
+        runner.load_state_dict(state["runner"])
+        term_history = list(state["term_history"])
+
+    def checkpoint_state() -> dict:
+        return {"runner": runner.state_dict(), "term_history": term_history, "optimizer": kind.value,
+                "objective_initial": setup.objective_initial}
+
+    logger = _Logger(log_dir, progress, settings.iterations, runner.iteration)
+
+    def on_iteration(rec: IterationRecord) -> None:
+        terms = problem.term_values()
+        term_history.append(terms)
+        logger.log(rec, terms)
+        if callback is not None:
+            callback(rec, terms)
+        if ckpt_path is not None and settings.checkpoint_every and rec.iteration % settings.checkpoint_every == 0:
+            _save_checkpoint(ckpt_path.parent, checkpoint_state())
+
+    try:
+        run = runner.run(settings.iterations, on_iteration)
+    except KeyboardInterrupt:
+        if ckpt_path is not None:
+            _save_checkpoint(ckpt_path.parent, checkpoint_state())
+        raise
+    finally:
+        logger.close()
+    opt_seconds = runner.state_dict()["seconds"]
+
+    param, objective, mesh_base = setup.param, setup.objective, setup.mesh_base
+    with torch.no_grad():
+        p_new = param(run.q).detach()
+    terms_final = _terms(objective, run.x, p_new)
+    mesh_target = GarmentMesh(run.x, mesh_base.faces, p=p_new, panel_ids=mesh_base.panel_ids,
+                              panel_names=mesh_base.panel_names, seam_pairs=mesh_base.seam_pairs)
+    pattern_out, fit_error = None, None
+    if setup.pattern is not None:
+        pattern_out, fit_error = pattern_from_mesh(setup.pattern, mesh_base, p_new, setup.settings.drape.edge_length)
+    disp = torch.linalg.vector_norm(run.q - setup.q_base, dim=1)
+    n_it = max(run.iterations, 1)
+    f_base, f_init = setup.objective_base, setup.objective_initial
+    bd = setup.base_drape_metrics
+    metrics = {
+        "optimizer": kind.value,
+        "inexact": use_inexact,
+        "vertices": mesh_base.num_vertices,
+        "boundary_vertices": int(setup.q_base.shape[0]),
+        "objective_base": f_base,
+        "objective_initial": f_init,
+        "objective_final": run.objective,
+        "initialization_used": setup.initialization_used,
+        "initialization_ratio": f_init / f_base if f_base > 0 else math.nan,
+        "reduction_percent": 100.0 * (1.0 - run.objective / f_init) if f_init > 0 else 0.0,
+        "reduction_vs_base_percent": 100.0 * (1.0 - run.objective / f_base) if f_base > 0 else 0.0,
+        "terms": {"base": setup.terms_base, "initial": setup.terms_initial, "final": terms_final},
+        "max_boundary_displacement_mm": 1e3 * float(disp.max()) if disp.numel() else 0.0,
+        "mean_boundary_displacement_mm": 1e3 * float(disp.mean()) if disp.numel() else 0.0,
+        "iterations": run.iterations,
+        "seconds": opt_seconds,
+        "seconds_per_iteration": opt_seconds / n_it,
+        "closure_calls": int(getattr(opt, "closure_calls", 0)),
+        "failed_closure_calls": int(getattr(opt, "failed_calls", 0)),
+        "sim_iterations": problem.sim_iterations,
+        "factorizations": problem.factorizations,
+        "exact_evaluations": problem.exact_evaluations,
+        "backtracks": run.backtracks,
+        "stopped": run.stopped,
+        "base_drape_ok": bool(bd.get("ok", False)),
+        "base_drape": {k: bd.get(k) for k in ("residual", "min_sdf_mm", "max_seam_gap_mm", "converged")},
+        "pattern_fit_error_mm": None if fit_error is None else 1e3 * fit_error,
+        **setup.timings,
+    }
+    return AdjustResult(pattern=pattern_out, base_pattern=setup.pattern, mesh_base=mesh_base,
+                        mesh_target=mesh_target, x_transfer=setup.x_transfer, x_base_on_target=setup.x_base_on_target,
+                        q_base=setup.q_base, q=run.q, boundary_index=param.boundary_index, metrics=metrics,
+                        records=run.records, term_history=term_history)
+
+
+def adjust(
+    pattern_or_mesh,  # noqa: ANN001 - SewingPattern | GarmentMesh
+    base_body,  # noqa: ANN001 - Body
+    target_body,  # noqa: ANN001 - Body
+    settings: AdjustSettings | None = None,
+    *,
+    log_dir: str | Path | None = None,
+    checkpoint_dir: str | Path | None = None,
+    progress: bool = True,
+    resume: bool = False,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> AdjustResult:
+    """Adjust a sewing pattern made for ``base_body`` to ``target_body`` (see the module docstring).
+
+    Args:
+        pattern_or_mesh: a :class:`SewingPattern` (meshed at ``settings.edge_length``) or a meshed
+            :class:`GarmentMesh` with ``p``, panels and seams (then no pattern is returned).
+        base_body: the body the pattern fits (a :class:`~torchgarment.body.Body`).
+        target_body: the body to fit, same topology as ``base_body`` (the transfer maps triangle to triangle).
+        settings: :class:`AdjustSettings`.
+        log_dir: TensorBoard folder (scalars per iteration); None = no logs.
+        checkpoint_dir: where Ctrl-C (and ``checkpoint_every``) writes ``adjust.pt``; None = no checkpoints.
+        progress: tqdm bar on stderr.
+        resume: continue the optimization from ``checkpoint_dir/adjust.pt`` (same input and settings expected;
+            steps 1-3 are recomputed, they are deterministic).
+        dtype, device: of the computation.
+
+    Returns:
+        The :class:`AdjustResult`; ``metrics`` holds ``objective_base``, ``objective_initial``,
+        ``objective_final``, ``reduction_percent``, ``reduction_vs_base_percent``, ``terms`` (base, initial,
+        final), ``max_boundary_displacement_mm``, ``iterations``, ``seconds`` (optimization),
+        ``seconds_per_iteration``, ``closure_calls``, ``sim_iterations``, ``backtracks``, ``exact_evaluations``
+        and the timings of each stage (``total_seconds`` included).
+
+    Raises:
+        InputError: bad settings or input; ``resume`` without a checkpoint.
+    """
+    t0 = time.perf_counter()
+    if resume and (checkpoint_dir is None or not (Path(checkpoint_dir) / CHECKPOINT_NAME).is_file()):
+        raise InputError(f"resume=True but there is no checkpoint in {checkpoint_dir}")
+    setup = prepare(pattern_or_mesh, base_body, target_body, settings, dtype=dtype, device=device)
+    result = optimize(setup, log_dir=log_dir, checkpoint_dir=checkpoint_dir, progress=progress, resume=resume)
+    result.metrics["total_seconds"] = time.perf_counter() - t0
+    return result
