@@ -22,7 +22,7 @@ def test_adjust_writes_every_output(tmp_path, capsys):
     out = tmp_path / "out"
     args = _parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", str(out),
                    "--iterations", "4", "--exact-interval", "2", "--edge-length", "0.05", "--voxel", "0.01",
-                   "--no-progress"])
+                   "--log-dir", str(tmp_path / "tb"), "--no-progress"])
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -38,7 +38,7 @@ def test_adjust_writes_every_output(tmp_path, capsys):
         assert key in m, key
     assert m["iterations"] == 4 and m["objective_final"] <= m["objective_initial"]
     assert set(m["terms"]) == {"base", "initial", "final"}
-    assert any(p.name.startswith("events.out.tfevents") for p in (out / "logs").iterdir())
+    assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "tb").iterdir())
     from torchgarment.pattern.garmentcode import load_pattern
 
     assert set(load_pattern(out / "pattern.json").panels) == {"front", "back"} or len(

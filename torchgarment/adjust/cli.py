@@ -5,7 +5,7 @@ Writes to ``--out DIR`` (staged: nothing is published unless the run succeeds): 
 (adjusted garment on the target body), ``target_before.png`` / ``target_after.png`` (the base and the adjusted
 pattern simulated on the target body, coloured by the difference of their stretch ratio to the base drape's,
 like the paper's Fig. 8), ``overlay.png`` (old and new pattern) and ``metrics.json``. TensorBoard scalars go to
-``DIR/logs`` during the run; Ctrl-C leaves ``DIR/checkpoint/adjust.pt`` and ``--resume`` continues from it.
+``logs/adjust/<run>`` (``--log-dir``) during the run; Ctrl-C leaves ``DIR/checkpoint/adjust.pt`` and ``--resume`` continues from it.
 
 The lead wires it into :mod:`torchgarment.cli` with::
 
@@ -35,7 +35,7 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
         description="Drape the pattern on the base body, transfer the garment to the target body and optimize the "
                     "pattern so that the garment fits the target body as the base garment fits the base body. "
                     "Writes pattern.json/.svg/.dxf, garment_base.obj, garment_target.obj, renders, overlay.png and "
-                    "metrics.json; TensorBoard logs under DIR/logs.")
+                    "metrics.json; TensorBoard scalars under logs/adjust/<run> (--log-dir).")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--pattern", metavar="P", help="a pattern file (.json GarmentCode or .dxf) or a library name")
     src.add_argument("--garment", metavar="NAME", help="a library garment, drafted for the base size")
@@ -62,6 +62,8 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     p.add_argument("--exact", action="store_true", help="exact simulation at every iteration (no Algorithm 1)")
     p.add_argument("--no-init", action="store_true", help="skip the section-7 initialization")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint/adjust.pt")
+    p.add_argument("--log-dir", metavar="DIR",
+                   help="TensorBoard folder (default logs/adjust/<garment>-<base>-to-<target>-<time>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_adjust)
     return p
@@ -174,7 +176,11 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     if device.type != "cpu":
         base_body, target_body = base_body.to(device), target_body.to(device)
     out = Path(args.out)
-    result = adjust(pattern, base_body, target_body, settings, log_dir=out / "logs",
+    import time
+
+    run = f"{pattern.name}-{base_name}-to-{target_name}-{time.strftime('%Y%m%d-%H%M%S')}".replace(" ", "_").replace("/", "_")
+    log_dir = Path(args.log_dir) if args.log_dir else Path("logs") / "adjust" / run
+    result = adjust(pattern, base_body, target_body, settings, log_dir=log_dir,
                     checkpoint_dir=out / "checkpoint", progress=not args.no_progress, resume=args.resume,
                     device=device)
     title = f"{pattern.name}: {base_name} -> {target_name}"

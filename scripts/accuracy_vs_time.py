@@ -1,0 +1,581 @@
+"""What accuracy costs in time: every garment-fitting method of torchgarment against a converged reference drape.
+
+For ``--bodies`` held-out anny adults (sampled with seed ``--seed + 1000``, the convention of
+``scripts/pca_heldout.py``) one garment pattern, drafted from the measurements of the PCA mean body of
+``--train`` training bodies, is fitted to each body by:
+
+* ``pca k=<k>``: the data-driven fit (Gillies et al. 2004): weights of the body in the PCA body model, then
+  ``mean garment + sum_i w_i G_i`` (piecewise interpolation) from a clothing basis draped offline on the mean and
+  the +-1 sigma example bodies; ``pca k=<kmax>+push`` adds the SDF push-out of vertices inside the body;
+* ``sim e=<edge> tol=<atol>``: the simulator (:func:`torchgarment.sim.drape.drape`) at several mesh edge lengths
+  and settle tolerances (``atol_weight``: the residual force 2-norm over the garment's weight); the setting at the
+  methods' edge length and the default tolerance 1e-3 is *draping the unadjusted base pattern*;
+* ``retarget``: intersection-free retargeting (Huang et al. 2025) of the garment draped on the mean-phenotype
+  anny body (rigged, the source) onto each held-out body (rigged with the same phenotype);
+* ``adjust <optimizer> <inexact|exact> it=<n>``: sewing-pattern adjustment (Wang et al. 2018) of the pattern from
+  the mean-phenotype body to each held-out body (the result is the adjusted pattern's equilibrium).
+
+Reference per body: the same pattern meshed finer (``--ref-edge``) draped with a finer SDF (``--ref-voxel``) to a
+tolerance ten times tighter than the default (``atol_weight`` 1e-4), placed by the same rule as every drape here
+(:func:`torchgarment.datadriven.basis.drape_on_body`). References and the clothing basis are cached on disk.
+
+Metrics per method and body (the garments have different meshes, so distances are **point-to-surface**: from
+every vertex of the method's garment to the welded reference surface, ``igl.point_mesh_squared_distance``):
+``mean_mm``/``max_mm``; waist and hip ease (garment girth minus body girth, mm, both measured by
+:func:`torchgarment.body.measure.section_girths` — convex-hull perimeter of the section loop — on the body's own
+waist/hip planes from :func:`~torchgarment.body.measure.find_section_planes`; the garment is welded first; when
+the natural waist lies above the reference garment's top, as for a skirt whose waistband settles lower, the waist
+plane is moved down to 1 cm below the lowest point of its upper boundary and the body re-measured there, i.e. the "waist" ease is the ease at
+the waistband; NaN when a plane misses a garment) and their absolute difference from the
+reference's ease (``waist_ease_err_mm``, ``hip_ease_err_mm``); ``inside``: garment vertices with exact signed
+distance < 0 to the body mesh (``igl.signed_distance``, winding-number sign). ``seconds``: wall time of the
+method on that body (online part only); ``offline_seconds``: one-off work shared by all bodies (the clothing
+basis; the retarget source drape), reported apart. Body measurements used to place panels are taken once per
+body and not timed (about 0.4 s).
+
+Methods whose module fails to import or whose run raises are skipped with a printed reason (never faked).
+
+Outputs under ``--out`` (default ``out/accuracy_vs_time``): ``accuracy_vs_time.csv`` (one row per method setting
+and body), ``pareto.png`` (mean error vs median seconds, log x, one marker per setting, Pareto front drawn),
+``summary.json``; TensorBoard scalars under ``--log-dir/<run>`` (default ``logs/accuracy_vs_time/<time>``).
+
+Examples::
+
+    python scripts/accuracy_vs_time.py --quick                      # smoke run, 1 body, a few minutes
+    python scripts/accuracy_vs_time.py --bodies 3 --train 30        # the study (about an hour on 2 cores)
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import io
+import json
+import math
+import statistics
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from torchgarment.io.atomic import atomic_path  # noqa: E402
+
+CSV_COLUMNS = ("method", "setting", "body", "seconds", "offline_seconds", "mean_mm", "max_mm", "inside",
+               "waist_ease_mm", "hip_ease_mm", "waist_ease_err_mm", "hip_ease_err_mm", "vertices", "note")
+"""Columns of the CSV, in order (rows may carry more keys: they are appended after these)."""
+
+
+# ----------------------------------------------------------------------------------------------------------
+# small pure helpers (tested in tests/test_accuracy_vs_time_script.py)
+# ----------------------------------------------------------------------------------------------------------
+
+
+def pareto_front(times: list[float], errors: list[float]) -> list[int]:
+    """Indices of the non-dominated points (less time and less error are better), sorted by time.
+
+    A point is dominated when another is at most as slow and at most as wrong, and strictly better in one.
+    Points with a non-finite time or error are never on the front.
+
+    Args:
+        times: seconds per point. errors: error per point (same length).
+
+    Returns:
+        the indices on the Pareto front, fastest first (errors then strictly decrease).
+    """
+    if len(times) != len(errors):
+        raise ValueError(f"times and errors differ in length ({len(times)} vs {len(errors)})")
+    ok = [i for i in range(len(times)) if math.isfinite(times[i]) and math.isfinite(errors[i])]
+    ok.sort(key=lambda i: (times[i], errors[i]))
+    front: list[int] = []
+    best = math.inf
+    for i in ok:
+        if errors[i] < best:
+            front.append(i)
+            best = errors[i]
+    return front
+
+
+def write_csv(rows: list[dict], path: str | Path) -> list[str]:
+    """Write rows (dicts) to a CSV atomically: :data:`CSV_COLUMNS` first, then any other keys in order met.
+
+    Floats are written with 6 significant digits; missing values are empty.
+
+    Returns:
+        the header written.
+    """
+    header = [c for c in CSV_COLUMNS if any(c in r for r in rows)]
+    for r in rows:
+        header += [k for k in r if k not in header]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=header, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(buf.getvalue())
+    return header
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    """One summary per method setting (in order of first appearance): median seconds, mean of ``mean_mm``, max of
+    ``max_mm``, mean ``inside``, mean absolute ease errors, offline seconds, number of bodies."""
+    out: dict[str, dict] = {}
+    for r in rows:
+        out.setdefault(r["setting"], {"method": r["method"], "setting": r["setting"], "_rows": []})["_rows"].append(r)
+
+    def nanmean(vals: list[float]) -> float:
+        v = [x for x in vals if isinstance(x, (int, float)) and math.isfinite(x)]
+        return statistics.mean(v) if v else math.nan
+
+    res = []
+    for s in out.values():
+        rs = s.pop("_rows")
+        s.update({
+            "bodies": len(rs),
+            "median_seconds": statistics.median(r["seconds"] for r in rs),
+            "offline_seconds": max(r.get("offline_seconds", 0.0) for r in rs),
+            "mean_mm": nanmean([r["mean_mm"] for r in rs]),
+            "max_mm": max(r["max_mm"] for r in rs),
+            "inside": nanmean([r["inside"] for r in rs]),
+            "waist_ease_err_mm": nanmean([r.get("waist_ease_err_mm", math.nan) for r in rs]),
+            "hip_ease_err_mm": nanmean([r.get("hip_ease_err_mm", math.nan) for r in rs]),
+        })
+        res.append(s)
+    return res
+
+
+def format_table(summary: list[dict], front: set[str]) -> str:
+    """The printed table (one line per setting; ``*`` marks the Pareto front)."""
+    lines = [f"{'setting':<34} {'n':>2} {'med s':>9} {'offl s':>7} {'mean mm':>8} {'max mm':>8} {'inside':>7} "
+             f"{'waist':>7} {'hip':>7}  (ease errors in mm; * = Pareto front)"]
+    for s in summary:
+        lines.append(f"{s['setting']:<34} {s['bodies']:>2} {s['median_seconds']:>9.4g} {s['offline_seconds']:>7.0f} "
+                     f"{s['mean_mm']:>8.2f} {s['max_mm']:>8.2f} {s['inside']:>7.1f} {s['waist_ease_err_mm']:>7.1f} "
+                     f"{s['hip_ease_err_mm']:>7.1f}{'  *' if s['setting'] in front else ''}")
+    return "\n".join(lines)
+
+
+def plot_pareto(summary: list[dict], path: str | Path, title: str) -> None:
+    """Mean error (mm) vs median seconds per setting (log x), one marker per setting, Pareto front as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    markers = {"pca": "o", "sim": "s", "retarget": "^", "adjust": "D"}
+    fig, ax = plt.subplots(figsize=(8.5, 5.5))
+    for method in dict.fromkeys(s["method"] for s in summary):
+        ss = [s for s in summary if s["method"] == method]
+        ax.scatter([s["median_seconds"] for s in ss], [s["mean_mm"] for s in ss], marker=markers.get(method, "x"),
+                   s=48, label=method, zorder=3)
+        for s in ss:
+            ax.annotate(s["setting"], (s["median_seconds"], s["mean_mm"]), fontsize=7, xytext=(4, 3),
+                        textcoords="offset points")
+    idx = pareto_front([s["median_seconds"] for s in summary], [s["mean_mm"] for s in summary])
+    if idx:
+        ax.step([summary[i]["median_seconds"] for i in idx], [summary[i]["mean_mm"] for i in idx], where="post",
+                color="k", lw=1.2, ls="--", label="Pareto front", zorder=2)
+    ax.set_xscale("log")
+    ax.set_xlabel("median wall time per body (s, online part)")
+    ax.set_ylabel("mean point-to-surface distance to reference (mm)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# metrics
+# ----------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class BodyCase:
+    """One held-out body with everything the metrics need."""
+
+    index: int
+    vertices: torch.Tensor  # (V, 3) float64
+    faces: torch.Tensor  # (F, 3) long
+    frame: object  # BodyFrame
+    planes: dict  # waist / hips SectionPlane
+    girths: dict[str, float]  # body girths, metres
+    phenotype: dict
+    ref_vertices: np.ndarray | None = None  # welded reference garment
+    ref_faces: np.ndarray | None = None
+    ref_ease: dict[str, float] = field(default_factory=dict)
+    waist_lowered_mm: float = 0.0  # how far the waist plane was moved down to the waistband
+
+
+def garment_ease(case: BodyCase, vertices: torch.Tensor, faces: torch.Tensor) -> dict[str, float]:
+    """Garment girth minus body girth at the body's waist and hip planes, metres (NaN where the plane misses)."""
+    from torchgarment.body.measure import section_girths
+    from torchgarment.errors import TorchGarmentError
+
+    out = {}
+    for name, plane in case.planes.items():
+        try:
+            g = float(section_girths(vertices.detach().double(), faces.long(), {name: plane})[name])
+            out[name] = g - case.girths[name]
+        except (TorchGarmentError, ValueError, IndexError):
+            out[name] = math.nan
+    return out
+
+
+def _top_boundary_height(vertices: torch.Tensor, faces: torch.Tensor) -> float:
+    """Lowest height (m) of the garment's upper boundary (boundary vertices above the garment's mid-height): a
+    horizontal plane below it cuts the garment in closed loops all around, even when the waistband is tilted."""
+    f = faces.long()
+    e = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).sort(dim=1).values
+    uniq, counts = torch.unique(e, dim=0, return_counts=True)
+    b = torch.unique(uniq[counts == 1])
+    y = vertices[b, 1]
+    mid = 0.5 * float(vertices[:, 1].max() + vertices[:, 1].min())
+    return float(y[y > mid].min()) if bool((y > mid).any()) else float(vertices[:, 1].max())
+
+
+def _lower_waist_plane(case: BodyCase, garment_top: float, below: float = 0.01) -> None:
+    """Move the waist plane down to ``garment_top - below`` when the body's natural waist lies above the draped
+    garment (a skirt's waistband sits lower), and re-measure the body there: the "waist" ease is then the ease at
+    the waistband, on the same plane for the body, the reference and every method."""
+    from dataclasses import replace
+
+    from torchgarment.body.measure import section_girths
+
+    plane = case.planes["waist"]
+    y = garment_top - below
+    if float(plane.point[1]) <= y:
+        return
+    point, seed = plane.point.clone(), plane.seed.clone()
+    point[1] = y
+    seed[1] = y
+    case.planes["waist"] = replace(plane, point=point, seed=seed)
+    case.girths["waist"] = float(section_girths(case.vertices, case.faces, {"waist": case.planes["waist"]})["waist"])
+    case.waist_lowered_mm = 1e3 * (float(plane.point[1]) - y)
+
+
+def welded(vertices: torch.Tensor, mesh) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: ANN001 - GarmentMesh
+    """(V', 3), (F', 3) of a sewn garment mesh at ``vertices`` with its seams welded."""
+    w, _ = mesh.with_positions(vertices.detach().double()).welded()
+    return w.x.detach(), w.faces
+
+
+def evaluate(case: BodyCase, x: torch.Tensor, wv: torch.Tensor, wf: torch.Tensor) -> dict:
+    """Metrics of one fitted garment: ``x`` (N, 3) all its vertices; ``wv, wf`` its welded surface (ease)."""
+    import igl
+
+    p = np.ascontiguousarray(x.detach().double().cpu().numpy())
+    d2, _, _ = igl.point_mesh_squared_distance(p, case.ref_vertices, case.ref_faces)
+    d = np.sqrt(np.maximum(d2, 0.0)) * 1e3
+    bv = np.ascontiguousarray(case.vertices.numpy())
+    bf = np.ascontiguousarray(case.faces.numpy().astype(np.int64))
+    sd = igl.signed_distance(p, bv, bf)[0]
+    ease = garment_ease(case, wv, wf)
+    return {
+        "mean_mm": float(d.mean()), "max_mm": float(d.max()), "inside": int((sd < 0).sum()),
+        "waist_ease_mm": 1e3 * ease.get("waist", math.nan), "hip_ease_mm": 1e3 * ease.get("hips", math.nan),
+        "waist_ease_err_mm": 1e3 * abs(ease.get("waist", math.nan) - case.ref_ease.get("waist", math.nan)),
+        "hip_ease_err_mm": 1e3 * abs(ease.get("hips", math.nan) - case.ref_ease.get("hips", math.nan)),
+        "vertices": int(p.shape[0]),
+    }
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the study
+# ----------------------------------------------------------------------------------------------------------
+
+
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--bodies", type=int, default=3, help="held-out bodies (default 3)")
+    ap.add_argument("--garment", default="straight_skirt", help="library garment (default straight_skirt)")
+    ap.add_argument("--train", type=int, default=30, help="training bodies of the PCA model (default 30)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the training bodies (held-out: seed + 1000)")
+    ap.add_argument("--kmax", type=int, default=2, help="largest PCA k (2 kmax + 1 basis drapes; default 2)")
+    ap.add_argument("--hip-ease", type=float, default=0.06, help="hip ease of skirt drafts (default 0.06 m)")
+    ap.add_argument("--edge", type=float, default=0.05, help="methods' garment edge length, m (default 0.05)")
+    ap.add_argument("--voxel", type=float, default=0.01, help="methods' SDF voxel, m (default 0.01)")
+    ap.add_argument("--ref-edge", type=float, default=0.035, help="reference edge length, m (default 0.035)")
+    ap.add_argument("--ref-voxel", type=float, default=0.005, help="reference SDF voxel, m (default 0.005)")
+    ap.add_argument("--quick", action="store_true", help="smallest settings (a smoke run of a few minutes)")
+    ap.add_argument("--skip", nargs="*", default=[], choices=("pca", "sim", "retarget", "adjust"),
+                    help="methods to leave out")
+    ap.add_argument("--out", default="out/accuracy_vs_time", help="output folder")
+    ap.add_argument("--log-dir", default="logs/accuracy_vs_time", help="TensorBoard root (run = a time stamp)")
+    ap.add_argument("--cache", default=None, help="cache folder (default $TORCHGARMENT_CACHE/clothing_basis)")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.bodies, args.train, args.kmax = min(args.bodies, 1), min(args.train, 12), min(args.kmax, 1)
+        args.edge, args.voxel, args.ref_edge, args.ref_voxel = 0.08, 0.01, 0.06, 0.0075
+    if args.bodies < 1 or args.train < 2 or args.kmax < 0:
+        ap.error("--bodies >= 1, --train >= 2 and --kmax >= 0 are required")
+    return args
+
+
+def _method_settings(args: argparse.Namespace) -> dict[str, list]:
+    """The settings swept per method (quick: the smallest)."""
+    if args.quick:
+        return {
+            "sim": [(args.edge, 1e-3, 500), (args.edge, 1e-1, 500)],
+            "adjust": [("pgd", True, 2)],
+        }
+    return {
+        # (edge length, atol_weight, settle iteration budget); (edge, 1e-3) = the unadjusted base pattern drape
+        "sim": [(args.edge, 1e-3, 500), (args.edge, 1e-2, 500), (args.edge, 1e-1, 500), (args.edge * 1.4, 1e-3, 500)],
+        # (optimizer, inexact, outer iterations)
+        "adjust": [("pgd", True, 4), ("pgd", True, 16), ("pgd", False, 4)],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linear script
+    args = _parse(argv)
+    torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
+    from tqdm import tqdm
+
+    from torchgarment.body.anny_phenotype import body_from_phenotype
+    from torchgarment.body.measure import find_section_planes, measure_body, section_girths
+    from torchgarment.datadriven.basis import BasisSettings, BodyFrame, basis_cache_dir, build_basis, drape_on_body
+    from torchgarment.datadriven.basis import mesh_hash
+    from torchgarment.datadriven.dataset import BodyDataset
+    from torchgarment.datadriven.online import OnlineFitter, push_out
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.errors import InputError
+    from torchgarment.pattern.library import draft
+    from torchgarment.pattern.meshing import mesh_pattern
+    from torchgarment.sdf import BodySDF, SDFSettings
+    from torchgarment.sim.drape import DrapeSettings
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    run = time.strftime("%Y%m%d-%H%M%S") + ("-quick" if args.quick else "")
+    cache = Path(args.cache) if args.cache else basis_cache_dir()
+    sweeps = _method_settings(args)
+    skipped: dict[str, str] = {}
+
+    # -- data, PCA model, pattern -----------------------------------------------------------------------------
+    train = BodyDataset.from_anny(args.train, seed=args.seed)
+    held = BodyDataset.from_anny(args.bodies, seed=args.seed + 1000)
+    pca = BodyPCA.fit(train)
+    kmax = min(args.kmax, pca.num_components)
+    m = measure_body(pca.mean, pca.faces).to_dict()
+    req = {k: m[k] for k in ("height", "bust", "underbust", "waist", "hips")}
+    pattern = draft(args.garment, req, **({"hip_ease": args.hip_ease} if "skirt" in args.garment else {}))
+    mean_frame = BodyFrame.of(pca.mean, pca.faces)
+    mesh = mesh_pattern(pattern, args.edge)
+    ref_mesh = mesh_pattern(pattern, args.ref_edge)
+    ref_settings = DrapeSettings(edge_length=args.ref_edge, voxel_size=args.ref_voxel, atol_weight=1e-4,
+                                 max_iterations=1500)
+    print(f"{args.garment}: methods {mesh.num_vertices} vertices (edge {args.edge} m, voxel {args.voxel} m), "
+          f"reference {ref_mesh.num_vertices} vertices (edge {args.ref_edge} m, voxel {args.ref_voxel} m, "
+          f"atol_weight 1e-4); {args.train} training / {args.bodies} held-out bodies", flush=True)
+
+    # -- held-out bodies and references (cached) --------------------------------------------------------------
+    cases: list[BodyCase] = []
+    for i in range(len(held)):
+        v = held.vertices[i].double()
+        planes = find_section_planes(v, held.faces, names=("waist", "hips"))
+        girths = {k: float(g) for k, g in section_girths(v, held.faces, planes).items()}
+        cases.append(BodyCase(i, v, held.faces.long(), BodyFrame.of(v, held.faces), planes, girths,
+                              dict(held.params[i])))
+    tag = hashlib.sha256(held.vertices.double().numpy().tobytes() + mesh_hash(ref_mesh).encode()
+                         + json.dumps([args.ref_voxel, 1e-4, 1500]).encode()).hexdigest()[:20]
+    ref_dir = cache / f"accuracy-reference-{tag}"
+    ref_rows = []
+    for case in tqdm(cases, desc="reference drapes"):
+        path = ref_dir / f"body_{case.index:03d}.pt"
+        if path.is_file():
+            e = torch.load(path, map_location="cpu", weights_only=True)
+        else:
+            t = time.perf_counter()
+            r = drape_on_body(ref_mesh, case.vertices, case.faces, mean_frame, ref_settings, frame=case.frame)
+            e = {"x": r.x.detach().double(), "metrics_json": json.dumps(
+                {"ok": r.ok, "converged": r.converged, "residual": r.metrics["residual"],
+                 "seconds": time.perf_counter() - t})}
+            with atomic_path(path) as tmp:
+                torch.save(e, tmp)
+        info = json.loads(e["metrics_json"])
+        wv, wf = welded(e["x"], ref_mesh)
+        _lower_waist_plane(case, _top_boundary_height(wv, wf))
+        case.ref_vertices = np.ascontiguousarray(wv.numpy())
+        case.ref_faces = np.ascontiguousarray(wf.numpy().astype(np.int64))
+        ease = garment_ease(case, wv, wf)
+        case.ref_ease = ease
+        ref_rows.append({"body": case.index, **info, "waist_plane_lowered_mm": case.waist_lowered_mm,
+                         "waist_ease_mm": 1e3 * ease["waist"],
+                         "hip_ease_mm": 1e3 * ease["hips"]})
+    for r in ref_rows:
+        print(f"reference body {r['body']}: {'ok' if r['ok'] else 'NOT ok'} converged={r['converged']} "
+              f"{r['seconds']:.0f} s, waist(band) ease {r['waist_ease_mm']:.0f} mm (plane "
+              f"lowered {r['waist_plane_lowered_mm']:.0f} mm), hip ease {r['hip_ease_mm']:.0f} mm")
+
+    rows: list[dict] = []
+
+    def record(method: str, setting: str, case: BodyCase, seconds: float, offline: float, x: torch.Tensor,
+               wv: torch.Tensor, wf: torch.Tensor, note: str = "") -> None:
+        rows.append({"method": method, "setting": setting, "body": case.index, "seconds": float(seconds),
+                     "offline_seconds": float(offline), **evaluate(case, x, wv, wf), "note": note})
+
+    # -- simulator sweep (incl. the unadjusted base pattern) --------------------------------------------------
+    if "sim" not in args.skip:
+        for edge, atol, iters in sweeps["sim"]:
+            gm = mesh if edge == args.edge else mesh_pattern(pattern, edge)
+            st = DrapeSettings(edge_length=edge, voxel_size=args.voxel, atol_weight=atol, max_iterations=iters)
+            name = f"sim e={edge * 100:.3g}cm tol={atol:g}"
+            for case in tqdm(cases, desc=name):
+                BodySDF.cached(case.vertices, case.faces, SDFSettings(voxel_size=args.voxel))  # SDF build not timed
+                t = time.perf_counter()
+                r = drape_on_body(gm, case.vertices, case.faces, mean_frame, st, frame=case.frame)
+                sec = time.perf_counter() - t
+                wv, wf = welded(r.x, gm)
+                record("sim", name, case, sec, 0.0, r.x, wv, wf,
+                       f"{'ok' if r.ok else 'NOT ok'} it={r.metrics['iterations']}")
+
+    # -- data-driven PCA fit ----------------------------------------------------------------------------------
+    if "pca" not in args.skip:
+        try:
+            t = time.perf_counter()
+            basis = build_basis(pca, mesh, BasisSettings(k=kmax, drape=DrapeSettings(
+                edge_length=args.edge, voxel_size=args.voxel)), name=args.garment, cache_dir=cache)
+            t_basis = time.perf_counter() - t
+            offline = sum(float(mm.get("seconds", 0.0)) for mm in basis.metrics.values())
+            print(f"clothing basis: {2 * kmax + 1} drapes, {offline:.0f} s of drapes ({t_basis:.0f} s this run)")
+            hv = held.vertices.double()
+            for k in range(kmax + 1):
+                fitter = OnlineFitter(pca, {args.garment: basis}, k=k)
+                fitter.fit(fitter.weights(hv[:1]))  # warm-up (first-call allocations)
+                reps = 20
+                t = time.perf_counter()
+                for _ in range(reps):
+                    xs = fitter.fit(fitter.weights(hv))[args.garment]
+                sec = (time.perf_counter() - t) / (reps * len(cases))
+                for case in cases:
+                    x = xs[case.index]
+                    wv, wf = welded(x, mesh)
+                    record("pca", f"pca k={k}", case, sec, offline, x, wv, wf)
+                if k == kmax:
+                    for case in cases:
+                        sdf = BodySDF.cached(case.vertices, case.faces, SDFSettings(voxel_size=args.voxel))
+                        t = time.perf_counter()
+                        po = push_out(xs[case.index], sdf)
+                        sec_po = time.perf_counter() - t
+                        wv, wf = welded(po.x, mesh)
+                        record("pca", f"pca k={k}+push", case, sec + sec_po, offline, po.x, wv, wf,
+                               f"push-out {sec_po * 1e3:.1f} ms (SDF cached)")
+        except Exception as exc:  # noqa: BLE001 - skip the method with its reason, never fake it
+            skipped["pca"] = f"{type(exc).__name__}: {exc}"
+            traceback.print_exc()
+
+    # -- the mean-phenotype source body (retarget and adjust) -------------------------------------------------
+    need_source = any(mth not in args.skip for mth in ("retarget", "adjust"))
+    source = None
+    if need_source:
+        keys = [k for k in train.params[0] if isinstance(train.params[0][k], (int, float))]
+        mean_pheno = {k: float(np.mean([p[k] for p in train.params])) for k in keys}
+        source = body_from_phenotype(mean_pheno)
+        targets = [body_from_phenotype(c.phenotype) for c in cases]
+        for c, tb in zip(cases, targets, strict=True):
+            dv = float((tb.vertices - c.vertices).abs().max())
+            if dv > 1e-5:
+                print(f"note: rigged body {c.index} differs from the data set body by {dv * 1e3:.2f} mm (max)")
+
+    # -- retargeting ------------------------------------------------------------------------------------------
+    if "retarget" not in args.skip:
+        try:
+            from torchgarment.retarget.inputs import problem_from_bodies
+            from torchgarment.retarget.pipeline import RetargetSettings, retarget
+
+            t = time.perf_counter()
+            src_frame = BodyFrame.of(source.vertices, source.faces)
+            r0 = drape_on_body(mesh, source.vertices, source.faces, mean_frame,
+                               DrapeSettings(edge_length=args.edge, voxel_size=args.voxel), frame=src_frame)
+            offline = time.perf_counter() - t
+            gv, gf = welded(r0.x, mesh)
+            print(f"retarget source drape on the mean-phenotype body: {offline:.0f} s, {'ok' if r0.ok else 'NOT ok'}")
+            for case, tb in tqdm(list(zip(cases, targets, strict=True)), desc="retarget"):
+                t = time.perf_counter()
+                prob = problem_from_bodies(gv, gf, source, tb)
+                note = ""
+                try:
+                    res = retarget(prob, RetargetSettings(), progress=False)
+                except InputError as exc:
+                    if "touches the garment" not in str(exc):
+                        raise
+                    # the Step-1 sanity check found a zero garment-skeleton distance; the final intersection
+                    # check of retarget() still guards the result, so retry without the Step-1 check (noted)
+                    print(f"retarget body {case.index}: {exc}; retrying with check_shrink=False")
+                    note = "check_shrink=False"
+                    res = retarget(prob, RetargetSettings(check_shrink=False), progress=False)
+                sec = time.perf_counter() - t
+                x = res.garment_vertices.detach().double()
+                record("retarget", "retarget", case, sec, offline, x, x, res.garment_faces, note)
+        except Exception as exc:  # noqa: BLE001
+            skipped["retarget"] = f"{type(exc).__name__}: {exc}"
+            traceback.print_exc()
+
+    # -- pattern adjustment -----------------------------------------------------------------------------------
+    if "adjust" not in args.skip:
+        try:
+            from torchgarment.adjust.pipeline import AdjustSettings, adjust
+
+            for opt, inexact, iters in sweeps["adjust"]:
+                name = f"adjust {opt} {'inexact' if inexact else 'exact'} it={iters}"
+                for case, tb in tqdm(list(zip(cases, targets, strict=True)), desc=name):
+                    st = AdjustSettings(optimizer=opt, inexact=inexact, iterations=iters, edge_length=args.edge,
+                                        voxel_size=args.voxel)
+                    t = time.perf_counter()
+                    res = adjust(pattern, source, tb, st, progress=False)
+                    sec = time.perf_counter() - t
+                    x = res.mesh_target.x.detach().double()
+                    wv, wf = welded(x, res.mesh_target)
+                    record("adjust", name, case, sec, 0.0, x, wv, wf,
+                           f"reduction {res.metrics.get('reduction_percent', math.nan):.0f}%")
+        except Exception as exc:  # noqa: BLE001
+            skipped["adjust"] = f"{type(exc).__name__}: {exc}"
+            traceback.print_exc()
+
+    if not rows:
+        print("no method produced a result", file=sys.stderr)
+        return 1
+
+    # -- outputs ----------------------------------------------------------------------------------------------
+    write_csv(rows, out / "accuracy_vs_time.csv")
+    summary = summarize(rows)
+    idx = pareto_front([s["median_seconds"] for s in summary], [s["mean_mm"] for s in summary])
+    front = {summary[i]["setting"] for i in idx}
+    title = (f"{args.garment}, {len(cases)} held-out bodies, methods {mesh.num_vertices} v / reference "
+             f"{ref_mesh.num_vertices} v")
+    plot_pareto(summary, out / "pareto.png", title)
+    with atomic_path(out / "summary.json") as tmp:
+        Path(tmp).write_text(json.dumps({"args": vars(args), "references": ref_rows, "summary": summary,
+                                         "pareto_front": sorted(front), "skipped": skipped}, indent=2) + "\n")
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(str(Path(args.log_dir) / run))
+    for r in rows:
+        for key in ("mean_mm", "max_mm", "inside", "seconds", "waist_ease_err_mm", "hip_ease_err_mm"):
+            writer.add_scalar(f"{r['setting']}/{key}", float(r[key]), r["body"])
+    for s in summary:
+        for key in ("median_seconds", "mean_mm", "max_mm", "inside"):
+            writer.add_scalar(f"summary/{key}/{s['setting']}", float(s[key]), 0)
+    writer.close()
+    print(format_table(summary, front))
+    for mth, why in skipped.items():
+        print(f"skipped {mth}: {why}")
+    print(f"wrote {out / 'accuracy_vs_time.csv'}, {out / 'pareto.png'}, {out / 'summary.json'}; "
+          f"TensorBoard {Path(args.log_dir) / run}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
