@@ -382,3 +382,28 @@ def test_real_skirt_scene_both_solvers():
     x_pol, info_pol = solve(model, x_gd, SolveSettings(rtol=0.0, max_iterations=10), solver="newton")
     # measured: Newton lowers it by 1.3% (the soft hem modes are far from converged at rtol 1e-4)
     assert abs(info_pol.energy_history[-1] - info_gd.energy_history[-1]) < 0.03 * abs(info_gd.energy_history[-1])
+
+
+def test_seam_block_inverse_is_the_exact_6x6_block_inverse():
+    """Each disjoint seam pair is preconditioned by the exact inverse of [[A, -kI], [-kI, B]]; other vertices by
+    their 3x3 block inverse."""
+    from torchgarment.sim.solvers.chebyshev import jacobi_inverse, seam_block_inverse
+
+    gen = torch.Generator().manual_seed(3)
+    V, k = 10, 1e5
+    m = torch.randn(V, 3, 3, dtype=torch.float64, generator=gen)
+    h = m @ m.transpose(1, 2) + 0.5 * torch.eye(3, dtype=torch.float64)  # soft cloth blocks, PD
+    pairs = torch.tensor([[0, 5], [2, 7]])
+    h[pairs.flatten()] += k * torch.eye(3, dtype=torch.float64)  # the seam springs' own diagonal
+    base = jacobi_inverse(h, Preconditioner.BLOCK, 0.0)
+    inv = seam_block_inverse(h, base, pairs, k, 0.0)
+    g = torch.randn(V, 3, dtype=torch.float64, generator=gen)
+    out = inv.apply(g)
+    dense = torch.zeros(3 * V, 3 * V, dtype=torch.float64)
+    for v in range(V):
+        dense[3 * v:3 * v + 3, 3 * v:3 * v + 3] = h[v]
+    for i, j in pairs.tolist():
+        dense[3 * i:3 * i + 3, 3 * j:3 * j + 3] = -k * torch.eye(3, dtype=torch.float64)
+        dense[3 * j:3 * j + 3, 3 * i:3 * i + 3] = -k * torch.eye(3, dtype=torch.float64)
+    expected = torch.linalg.solve(dense, g.reshape(-1)).view(V, 3)
+    torch.testing.assert_close(out, expected, rtol=1e-7, atol=1e-12)

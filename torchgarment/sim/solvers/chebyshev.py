@@ -101,8 +101,87 @@ def jacobi_inverse(diag_blocks: torch.Tensor, kind: Preconditioner, floor: float
     return inv.view(V, 3, 3)
 
 
-def apply_inverse(dinv: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """``D^-1 g`` for block (V, 3, 3) or scalar (V, 3) inverses; ``g: (V, 3)``."""
+class SeamBlockInverse:
+    """Block-Jacobi inverse in which each seam pair ``(i, j)`` is one 6x6 block.
+
+    A sewing spring of stiffness ``k`` couples its two vertices by ``-k I``; with 3x3 blocks each vertex sees
+    ``A = A0 + k I`` alone, so the pair's common motion (governed by the soft cloth ``A0 + B0``) gets steps
+    ``k`` times too small and GD stalls once seams are stiff. The 6x6 block ``[[A, -k I], [-k I, B]]`` is
+    inverted exactly through its Schur complement: ``u = S^-1 (g_i + k B^-1 g_j)``, ``v = B^-1 (g_j + k u)`` with
+    ``S = A - k^2 B^-1``.
+
+    Attributes:
+        base: (V, 3, 3) 3x3 block inverses (used for every vertex not in a seam block).
+        i, j: (P,) long vertices of the seam blocks.
+        s_inv, b_inv: (P, 3, 3) ``S^-1`` and ``B^-1``.
+        k: the spring constant in N/m.
+    """
+
+    def __init__(self, base: torch.Tensor, i: torch.Tensor, j: torch.Tensor, s_inv: torch.Tensor,
+                 b_inv: torch.Tensor, k: float) -> None:
+        self.base, self.i, self.j, self.s_inv, self.b_inv, self.k = base, i, j, s_inv, b_inv, float(k)
+
+    def apply(self, g: torch.Tensor) -> torch.Tensor:
+        """``P^-1 g`` for ``g: (V, 3)``."""
+        out = torch.bmm(self.base, g.unsqueeze(-1)).squeeze(-1)
+        if self.i.numel():
+            gi, gj = g.index_select(0, self.i), g.index_select(0, self.j)
+            bg = torch.bmm(self.b_inv, gj.unsqueeze(-1)).squeeze(-1)
+            u = torch.bmm(self.s_inv, (gi + self.k * bg).unsqueeze(-1)).squeeze(-1)
+            v = bg + self.k * torch.bmm(self.b_inv, u.unsqueeze(-1)).squeeze(-1)
+            out.index_copy_(0, self.i, u)
+            out.index_copy_(0, self.j, v)
+        return out
+
+
+def seam_pairs(model) -> tuple[torch.Tensor, float] | None:  # noqa: ANN001
+    """The seam pairs ``(P, 2)`` that belong to no other pair, and the sewing stiffness, of a model's ``sew`` term;
+    None without one."""
+    term = None
+    for t in getattr(model, "terms", ()):
+        if getattr(t, "name", None) == "sew" and hasattr(t, "pairs") and hasattr(t, "stiffness"):
+            term = t
+    if term is None or term.pairs.numel() == 0:
+        return None
+    pairs = term.pairs
+    counts = torch.bincount(pairs.flatten(), minlength=int(pairs.max()) + 1)
+    keep = (counts[pairs[:, 0]] == 1) & (counts[pairs[:, 1]] == 1)
+    return pairs[keep], float(term.stiffness)
+
+
+def seam_block_inverse(diag_blocks: torch.Tensor, base: torch.Tensor, pairs: torch.Tensor, k: float,
+                       floor: float) -> SeamBlockInverse:
+    """The :class:`SeamBlockInverse` of the Hessian diagonal blocks ``(V, 3, 3)`` (which include each seam
+    spring's ``k I``) for disjoint seam ``pairs`` ``(P, 2)``; pairs whose 6x6 block is not positive definite keep
+    their 3x3 inverses from ``base``."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    eye = torch.eye(3, dtype=diag_blocks.dtype, device=diag_blocks.device)
+    f = floor * float(diag_blocks.diagonal(dim1=1, dim2=2).abs().mean())
+    sym = 0.5 * (diag_blocks + diag_blocks.transpose(1, 2))
+    a, b = sym.index_select(0, i) + f * eye, sym.index_select(0, j) + f * eye
+    lb, info_b = torch.linalg.cholesky_ex(b)
+    b_inv = torch.cholesky_inverse(lb)
+    s = a - (k * k) * b_inv
+    s = 0.5 * (s + s.transpose(1, 2))
+    ls, info_s = torch.linalg.cholesky_ex(s)
+    ok = (info_b == 0) & (info_s == 0)
+    if not bool(ok.all()):
+        i, j, ls, b_inv = i[ok], j[ok], ls[ok], b_inv[ok]
+    return SeamBlockInverse(base, i, j, torch.cholesky_inverse(ls), b_inv, k)
+
+
+def _preconditioner(model, h: torch.Tensor, settings: SolveSettings, seams):  # noqa: ANN001, ANN202
+    """Jacobi inverse of the diagonal blocks ``h``, with seam blocks when asked for and available."""
+    dinv = jacobi_inverse(h, settings.preconditioner, settings.diagonal_floor)
+    if seams is None or settings.preconditioner != Preconditioner.BLOCK:
+        return dinv
+    return seam_block_inverse(h, dinv, seams[0], seams[1], settings.diagonal_floor)
+
+
+def apply_inverse(dinv: "torch.Tensor | SeamBlockInverse", g: torch.Tensor) -> torch.Tensor:
+    """``D^-1 g`` for block (V, 3, 3), scalar (V, 3) or seam-block inverses; ``g: (V, 3)``."""
+    if isinstance(dinv, SeamBlockInverse):
+        return dinv.apply(g)
     if dinv.dim() == 2:
         return dinv * g
     return torch.bmm(dinv, g.unsqueeze(-1)).squeeze(-1)
@@ -151,7 +230,8 @@ def solve_gd_chebyshev(
     with torch.no_grad():
         x = x0.detach().clone()
         e, g, gn, h = evaluate_with_diagonal(model, x, 0, "initial state")
-        dinv = jacobi_inverse(h, settings.preconditioner, settings.diagonal_floor)
+        seams = seam_pairs(model) if settings.seam_blocks else None
+        dinv = _preconditioner(model, h, settings, seams)
         info.residual_history.append(gn)
         info.energy_history.append(e)
         tol = tolerance(settings, gn)
@@ -184,7 +264,7 @@ def solve_gd_chebyshev(
             k += 1
             if k % settings.diagonal_interval == 0:
                 e, g, gn, h = evaluate_with_diagonal(model, x, k)
-                dinv = jacobi_inverse(h, settings.preconditioner, settings.diagonal_floor)
+                dinv = _preconditioner(model, h, settings, seams)
             else:
                 e, g, gn = evaluate(model, x, k)
             if gn <= tol:
@@ -195,7 +275,7 @@ def solve_gd_chebyshev(
                     # energy went up since the checkpoint: roll back, shrink the step, restart Chebyshev
                     x, e, g, gn = ckpt
                     x_prev, omega, since_restart = None, 1.0, 0
-                    dinv = jacobi_inverse(model.hessian_diagonal(x), settings.preconditioner, settings.diagonal_floor)
+                    dinv = _preconditioner(model, model.hessian_diagonal(x), settings, seams)
                     alpha *= settings.step_decrease
                     info.restarts += 1
                     if alpha < settings.min_step:

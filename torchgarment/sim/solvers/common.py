@@ -76,6 +76,9 @@ class SolveSettings:
             restart Chebyshev).
         diagonal_interval: recompute the Hessian diagonal every this many iterations (1 = every iteration).
         preconditioner: BLOCK (3x3 block Jacobi) or SCALAR (diagonal Jacobi).
+        seam_blocks: with BLOCK, precondition each seam pair (two vertices joined by a sewing spring, each in no
+            other pair) with its exact 6x6 block instead of two 3x3 blocks, so that stiff seams do not freeze
+            the pair's common motion (see :func:`~torchgarment.sim.solvers.chebyshev.seam_block_inverse`).
         diagonal_floor: relative floor of the preconditioner, times the mean Hessian diagonal, so that
             vertices without stiffness do not get infinite steps.
         safeguard: how GD keeps barriers finite (MAX_STEP or PROJECT).
@@ -102,6 +105,7 @@ class SolveSettings:
     check_interval: int = 8
     diagonal_interval: int = 1
     preconditioner: Preconditioner = Preconditioner.BLOCK
+    seam_blocks: bool = True
     diagonal_floor: float = 1e-8
     safeguard: Safeguard = Safeguard.MAX_STEP
     max_displacement: float | None = 0.01
