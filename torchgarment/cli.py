@@ -158,7 +158,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Two bodies of the chart, a skirt drafted for each, placed around its body, rendered."""
+    """Two bodies of the chart, a skirt drafted for each, placed around its body, rendered; then the first size's
+    pattern adjusted to the last size's body (Wang 2018) unless ``--no-adjust``."""
     from torchgarment.body import Body
     from torchgarment.body.size_chart import list_sizes
     from torchgarment.io.mesh import save_obj
@@ -189,6 +190,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
                   f"waist {measured['waist'] * 100:.1f} cm, hips {measured['hips'] * 100:.1f} cm; "
                   f"{args.garment}: {info['panels']} panels, {info.get('vertices', 0)} vertices "
                   f"({summary['sizes'][size]['seconds']:.1f} s)")
+        if not args.no_adjust and len(chosen) >= 2:
+            from torchgarment.adjust.demo import run_adjust_demo
+
+            print(f"adjusting the {args.garment} pattern from size {chosen[0]} to size {chosen[-1]} "
+                  f"(Wang 2018) ...", flush=True)
+            metrics = run_adjust_demo(stage / "adjust", base_size=chosen[0], target_size=chosen[-1],
+                                      garment=args.garment, progress=True)
+            summary["adjust"] = {k: metrics[k] for k in ("objective_initial", "objective_final",
+                                                         "reduction_percent", "seconds") if k in metrics}
+            print(f"adjust: objective {metrics['objective_initial']:.4g} -> {metrics['objective_final']:.4g} "
+                  f"({metrics['reduction_percent']:.1f} % reduction) in {metrics['seconds']:.1f} s")
         _write_json(stage / "summary.json", summary)
     print(f"demo outputs in {args.out}")
     return 0
@@ -247,10 +259,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="run the main job on built-in defaults",
                        description="Make bodies of two chart sizes, draft a garment for each, mesh it, place it "
-                                   "around the body, and write renders, patterns and measurements.")
+                                   "around the body, and write renders, patterns and measurements; then adjust the first "
+                                   "size's pattern to the last size's body (Wang 2018) and write its outputs under adjust/.")
     p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder (default: demo_out)")
     p.add_argument("--sizes", nargs="+", metavar="S", help="chart sizes (default: two from the chart)")
     p.add_argument("--garment", default="straight_skirt", help="library garment (default: straight_skirt)")
+    p.add_argument("--no-adjust", action="store_true",
+                   help="skip adjusting the pattern from the first size to the last (a few minutes)")
     p.set_defaults(func=cmd_demo)
     return parser
 

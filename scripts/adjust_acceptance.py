@@ -1,0 +1,364 @@
+"""Acceptance checks of sewing-pattern adjustment (issue 4, Wang et al. 2018) at a coarse resolution.
+
+Every case drafts a library garment for chart size 12, adjusts it with :func:`torchgarment.adjust.pipeline.adjust`
+(pgd, Algorithm 1) and measures the adjusted pattern. Resolution (documented, coarse to fit 2 CPU cores): 5 cm
+triangle edges (``--edge-length``), 10 mm SDF voxels (``--voxel``), ``--iterations`` outer iterations (default 32,
+``--quick`` 16), exact check every 8 iterations. ``--quick``: straight skirt only, sizes 20 and 6 (cached bodies).
+
+1. Manufactured solution: target body = base body scaled uniformly by s (1.05, 0.95) about its feet centre
+   (vertices, skeleton joints and landmarks scaled). Per panel the adjusted boundary vertices are compared with s
+   times the base boundary vertices after removing a rigid motion (2D Procrustes without scale); reported in mm
+   and in % of the panel size (the base panel's bounding-box diagonal). The unadjusted pattern's deviation is
+   reported as the reference (what the adjustment has to recover).
+2. Grading: straight skirt (and T-shirt unless ``--quick``) from size 12 to chart sizes up and down. The width of
+   a panel at a construction line is the distance between the line's two corner vertices of the pattern (skirt:
+   waist = the ends of the waist edges, hip = the side-seam corners between ``side_low`` and ``side_hip``; T-shirt:
+   bust = the underarm corners, waist = the corners between ``side_low`` and ``side_up``), summed over panels,
+   i.e. the pattern's girth at that line. Its change from the base pattern is compared with the chart's girth
+   difference (:func:`torchgarment.body.size_chart.chart_row`); the discrepancy is in cm.
+3. Hips-only change: the base body with x, z of the torso vertices scaled about the hip axis by ``1 + a w(y)``,
+   ``w`` a cos^2 bump equal to 1 at the hip landmark height and 0 at the waist landmark and at the thigh landmark
+   (arms and hands, by skin weight, excluded). Reported: hip-width change, largest move of the side-seam boundary
+   vertices and the largest move of the waistband boundary vertices (waist edges), in mm. A row with the target
+   equal to the base body (amount 0) is the control: what the adjustment moves when nothing should change.
+
+Run: ``python scripts/adjust_acceptance.py [--quick] [--json FILE]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ACCEPT_MS_PERCENT = 1.0
+ACCEPT_GRADING_CM = 1.0
+ACCEPT_WAISTBAND_MM = 2.0
+
+# construction line -> (first edge label: its start vertex, second edge label: its end vertex)
+SKIRT_LINES = {"waist": ("waist_r", "waist_l"), "hips": ("side_hip_r", "side_hip_l")}
+TSHIRT_LINES = {"bust": ("armhole_r", "armhole_l"), "waist": ("side_up_r", "side_up_l")}
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def procrustes_deviation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances of ``a`` to ``b`` after the best rigid motion (rotation + translation, no scale) of ``a``.
+
+    Args:
+        a, b: (N, 2) corresponding points.
+
+    Returns:
+        (N,) distances ``|R a_i + t - b_i|`` for the least-squares ``R`` (proper rotation), ``t``.
+    """
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 2:
+        raise ValueError(f"procrustes_deviation needs two (N, 2) arrays, got {a.shape} and {b.shape}")
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    A, B = a - ca, b - cb
+    u, _, vt = np.linalg.svd(A.T @ B)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    R = (u @ np.diag([1.0, d]) @ vt).T  # maps A onto B: B ~ A R^T
+    return np.linalg.norm(A @ R.T - B, axis=1)
+
+
+def line_width(panel, first: str, second: str) -> float:  # noqa: ANN001 - Panel
+    """Distance between the start vertex of the edge labelled ``first`` and the end vertex of ``second`` (m)."""
+    labels = [e.label for e in panel.edges]
+    if first not in labels or second not in labels:
+        raise KeyError(f"panel {panel.name!r} has no edges {first!r}/{second!r}")
+    a = panel.edge_endpoints(labels.index(first))[0]
+    b = panel.edge_endpoints(labels.index(second))[1]
+    return float(np.linalg.norm(np.asarray(b) - np.asarray(a)))
+
+
+def pattern_line_widths(pattern, lines: dict[str, tuple[str, str]]) -> dict[str, float]:  # noqa: ANN001
+    """Per construction line, the sum over the panels that have both edges of :func:`line_width` (m)."""
+    out = {}
+    for name, (first, second) in lines.items():
+        total, found = 0.0, False
+        for panel in pattern.panels.values():
+            labels = {e.label for e in panel.edges}
+            if first in labels and second in labels:
+                total += line_width(panel, first, second)
+                found = True
+        if not found:
+            raise KeyError(f"pattern {pattern.name!r}: no panel has edges {first!r} and {second!r}")
+        out[name] = total
+    return out
+
+
+def edges_length(pattern, labels: tuple[str, ...]) -> float:  # noqa: ANN001
+    """Total length (m) of the edges with these labels over all panels (e.g. the waistband's girth)."""
+    total = sum(p.edge_length(i) for p in pattern.panels.values() for i, e in enumerate(p.edges) if e.label in labels)
+    if total == 0.0:
+        raise KeyError(f"pattern {pattern.name!r} has no edges labelled {labels}")
+    return float(total)
+
+
+def boundary_vertex_labels(pattern, mesh, edge_length: float) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
+    """Mesh vertex indices of every panel edge's boundary samples (end points included) and their edge labels.
+
+    Uses the meshing convention of :func:`torchgarment.pattern.meshing.mesh_pattern`: a panel's boundary is its
+    first vertices, edge by edge.
+
+    Returns:
+        ``(vertex, label)``: (M,) int array and (M,) object array (a corner appears once per adjacent edge).
+    """
+    from torchgarment.pattern.meshing import edge_segment_counts
+
+    counts = edge_segment_counts(pattern, edge_length)
+    vp = mesh.vertex_panel_ids.cpu().numpy()
+    names = list(mesh.panel_names)
+    verts, labels = [], []
+    for name, panel in pattern.panels.items():
+        off = int(np.nonzero(vp == names.index(name))[0].min())
+        n = counts[name]
+        starts = np.concatenate([[0], np.cumsum(n)])
+        nb = int(starts[-1])
+        for i, e in enumerate(panel.edges):
+            idx = off + (np.arange(starts[i], starts[i] + n[i] + 1) % nb)
+            verts.append(idx)
+            labels.append(np.full(idx.shape, e.label, dtype=object))
+    return np.concatenate(verts), np.concatenate(labels)
+
+
+def scaled_body(body, s: float):  # noqa: ANN001, ANN201 - Body -> Body
+    """``body`` scaled uniformly by ``s`` about its feet centre (mean x, min y, mean z of the vertices)."""
+    from torchgarment.body import Body
+    from torchgarment.body.skeleton import Skeleton
+
+    v = body.vertices
+    c = torch.stack([v[:, 0].mean(), v[:, 1].min(), v[:, 2].mean()])
+    sk = None
+    if body.skeleton is not None:
+        sk = Skeleton(c + s * (body.skeleton.joints - c), body.skeleton.bones.clone(), list(body.skeleton.names))
+    return Body(vertices=c + s * (v - c), faces=body.faces.clone(), skeleton=sk,
+                skin_weights=None if body.skin_weights is None else body.skin_weights.clone(),
+                landmarks={k: c + s * (x - c) for k, x in body.landmarks.items()},
+                params={"derived": "scaled", "scale": s})
+
+
+def hip_weight(y: torch.Tensor, y_hip: float, y_waist: float, y_thigh: float) -> torch.Tensor:
+    """cos^2 bump: 1 at ``y_hip``, 0 at and beyond ``y_waist`` (above) and ``y_thigh`` (below)."""
+    up = ((y - y_hip) / (y_waist - y_hip)).clamp(0.0, 1.0)
+    down = ((y_hip - y) / (y_hip - y_thigh)).clamp(0.0, 1.0)
+    t = torch.where(y >= y_hip, up, down)
+    return torch.cos(0.5 * math.pi * t) ** 2
+
+
+ARM_KEYS = ("arm", "wrist", "finger", "metacarpal", "shoulder", "clavicle")
+
+
+def hips_body(body, amount: float):  # noqa: ANN001, ANN201 - Body -> Body
+    """``body`` with the hips enlarged: x, z scaled by ``1 + amount * w(y)`` about the hip landmark's vertical
+    axis (:func:`hip_weight` between the waist and thigh landmarks), arm/hand vertices (skin weight) unchanged."""
+    from torchgarment.body import Body
+
+    lm = body.landmarks
+    v = body.vertices
+    w = hip_weight(v[:, 1], float(lm["hips"][1]), float(lm["waist"][1]), float(lm["thigh"][1]))
+    if body.skin_weights is not None and body.skeleton is not None and body.skeleton.names:
+        arm = torch.tensor([any(k in n for k in ARM_KEYS) for n in body.skeleton.names], device=v.device)
+        w = w * (1.0 - body.skin_weights[arm].sum(dim=0).clamp(0.0, 1.0))
+    c = lm["hips"]
+    f = 1.0 + amount * w
+    nv = v.clone()
+    nv[:, 0] = c[0] + f * (v[:, 0] - c[0])
+    nv[:, 2] = c[2] + f * (v[:, 2] - c[2])
+    return Body(vertices=nv, faces=body.faces.clone(), skeleton=body.skeleton,
+                skin_weights=body.skin_weights, landmarks=dict(body.landmarks),
+                params={"derived": "hips", "amount": amount})
+
+
+def girth(body, name: str) -> float:  # noqa: ANN001
+    """A body's measured girth (m), :meth:`Body.measurements` (``"waist"``, ``"hips"``, ``"bust"``)."""
+    m = body.measurements()
+    return float(getattr(m, name))
+
+
+# ---------------------------------------------------------------------------------------------- cases
+def _run(pattern, base, target, settings):  # noqa: ANN001, ANN202
+    from torchgarment.adjust.pipeline import adjust
+
+    return adjust(pattern, base, target, settings, progress=False)
+
+
+def _summary(res) -> dict:  # noqa: ANN001
+    m = res.metrics
+    return {k: m.get(k) for k in ("objective_base", "objective_initial", "objective_final", "reduction_percent",
+                                  "initialization_used", "stopped", "backtracks", "max_boundary_displacement_mm",
+                                  "total_seconds")}
+
+
+def manufactured(pattern, base, s: float, settings) -> dict:  # noqa: ANN001
+    res = _run(pattern, base, scaled_body(base, s), settings)
+    bidx = res.boundary_index.cpu().numpy()
+    vp = res.mesh_base.vertex_panel_ids.cpu().numpy()[bidx]
+    pb = res.mesh_base.p.detach().cpu().double().numpy()[bidx]
+    pn = res.mesh_target.p.detach().cpu().double().numpy()[bidx]
+    panels = {}
+    for k, name in enumerate(res.mesh_base.panel_names):
+        m = vp == k
+        size = float(np.linalg.norm(pb[m].max(axis=0) - pb[m].min(axis=0)))
+        dev = procrustes_deviation(pn[m], s * pb[m])
+        ref = procrustes_deviation(pb[m], s * pb[m])
+        panels[name] = {"size_mm": 1e3 * size, "max_mm": 1e3 * dev.max(), "mean_mm": 1e3 * dev.mean(),
+                        "max_percent": 100 * dev.max() / size, "mean_percent": 100 * dev.mean() / size,
+                        "unadjusted_max_mm": 1e3 * ref.max(), "unadjusted_mean_mm": 1e3 * ref.mean()}
+    worst = max(p["max_percent"] for p in panels.values())
+    return {"scale": s, "panels": panels, "max_percent": worst, "pass": worst <= ACCEPT_MS_PERCENT,
+            "adjust": _summary(res)}
+
+
+def grading(garment: str, base_size: str, target_size: str, base, settings) -> dict:  # noqa: ANN001
+    from torchgarment.body import Body
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+
+    lines = SKIRT_LINES if "skirt" in garment else TSHIRT_LINES
+    row_b, row_t = chart_row(base_size), chart_row(target_size)
+    pattern = draft(garment, row_b)
+    res = _run(pattern, base, Body.from_size(target_size), settings)
+    w0, w1 = pattern_line_widths(pattern, lines), pattern_line_widths(res.pattern, lines)
+    wd = pattern_line_widths(draft(garment, row_t), lines)
+    out = {"garment": garment, "from": base_size, "to": target_size, "lines": {},
+           "adjust": _summary(res)}
+    for line in lines:
+        chart = 100 * (row_t[line] - row_b[line])
+        change = 100 * (w1[line] - w0[line])
+        out["lines"][line] = {"chart_cm": chart, "pattern_change_cm": change, "drafted_change_cm":
+                              100 * (wd[line] - w0[line]), "discrepancy_cm": change - chart}
+    if "skirt" in garment:  # the waistband's length along the (possibly curved) waist edges, reported only
+        wb = [edges_length(p, ("waist_r", "waist_l")) for p in (pattern, res.pattern)]
+        out["waistband_length_change_cm"] = 100 * (wb[1] - wb[0])
+    out["max_discrepancy_cm"] = max(abs(v["discrepancy_cm"]) for v in out["lines"].values())
+    out["pass"] = out["max_discrepancy_cm"] <= ACCEPT_GRADING_CM
+    return out
+
+
+def hips_only(pattern, base, amount: float, settings) -> dict:  # noqa: ANN001
+    target = hips_body(base, amount)
+    res = _run(pattern, base, target, settings)
+    verts, labels = boundary_vertex_labels(pattern, res.mesh_base, settings.edge_length)
+    pb = res.mesh_base.p.detach().cpu().double().numpy()
+    pn = res.mesh_target.p.detach().cpu().double().numpy()
+    disp = np.linalg.norm(pn - pb, axis=1)
+    waist = np.isin(labels, ["waist_r", "waist_l"])
+    side = np.array([str(x).startswith(("side_hip", "side_low")) for x in labels])
+    w0, w1 = pattern_line_widths(pattern, SKIRT_LINES), pattern_line_widths(res.pattern, SKIRT_LINES)
+    hb, ht = girth(base, "hips"), girth(target, "hips")
+    waist_mm = 1e3 * float(disp[verts[waist]].max())
+    inner = np.setdiff1d(verts[waist], verts[side])  # waistband without its corners on the side seams
+    return {"amount": amount, "body_hips_change_mm": 1e3 * (ht - hb),
+            "hip_width_change_mm": 1e3 * (w1["hips"] - w0["hips"]),
+            "waist_width_change_mm": 1e3 * (w1["waist"] - w0["waist"]),
+            "side_seam_max_move_mm": 1e3 * float(disp[verts[side]].max()),
+            "waistband_max_move_mm": waist_mm, "pass": waist_mm <= ACCEPT_WAISTBAND_MM,
+            "waistband_interior_max_move_mm": 1e3 * float(disp[inner].max()) if inner.size else math.nan,
+            "body_waist_change_mm": 1e3 * (girth(target, "waist") - girth(base, "waist")),
+            "adjust": _summary(res)}
+
+
+# ---------------------------------------------------------------------------------------------- main
+def print_tables(results: dict) -> None:
+    """Print the acceptance tables of a ``results`` dict (as written by ``--json``)."""
+    st = results["settings"]
+    print(f"resolution: {st['edge_length'] * 100:.0f} cm edges, {st['voxel_size'] * 1e3:.0f} mm voxels, "
+          f"{st['optimizer']}, {st['iterations']} iterations")
+    print("\n1. manufactured solution (straight skirt, deviation from s * base outline after a rigid motion)")
+    print(f"{'s':>5} {'panel':>12} {'size mm':>8} {'max mm':>7} {'mean mm':>8} {'max %':>6} {'mean %':>7} "
+          f"{'unadj. max mm':>13}  pass")
+    for r in results["manufactured"]:
+        for name, p in r["panels"].items():
+            print(f"{r['scale']:5.2f} {name:>12} {p['size_mm']:8.0f} {p['max_mm']:7.1f} {p['mean_mm']:8.1f} "
+                  f"{p['max_percent']:6.2f} {p['mean_percent']:7.2f} {p['unadjusted_max_mm']:13.1f}  "
+                  f"{'yes' if r['pass'] else 'NO'}")
+    print("\n2. grading from size 12 (pattern girth change vs chart girth change, cm)")
+    print(f"{'garment':>15} {'to':>3} {'line':>6} {'chart':>7} {'pattern':>8} {'drafted':>8} {'error':>7}  pass")
+    for r in results["grading"]:
+        for line, v in r["lines"].items():
+            print(f"{r['garment']:>15} {r['to']:>3} {line:>6} {v['chart_cm']:7.2f} {v['pattern_change_cm']:8.2f} "
+                  f"{v['drafted_change_cm']:8.2f} {v['discrepancy_cm']:7.2f}  {'yes' if r['pass'] else 'NO'}")
+        if "waistband_length_change_cm" in r:
+            print(f"{'':>15} {r['to']:>3} waistband length (along the waist edges) change "
+                  f"{r['waistband_length_change_cm']:.2f} cm")
+    print("\n3. hips-only change (straight skirt, mm)")
+    for r in results["hips_only"]:
+        print(f"amount {r['amount']:.3f}: body hips {r['body_hips_change_mm']:+.1f}, pattern hip width "
+              f"{r['hip_width_change_mm']:+.1f}, waist width {r['waist_width_change_mm']:+.1f}, side seam max move "
+              f"{r['side_seam_max_move_mm']:.1f}, waistband max move {r['waistband_max_move_mm']:.1f} "
+              f"(<= {ACCEPT_WAISTBAND_MM} mm: {'yes' if r['pass'] else 'NO'}), without its corners "
+              f"{r.get('waistband_interior_max_move_mm', math.nan):.1f}, body waist "
+              f"{r.get('body_waist_change_mm', math.nan):+.1f}")
+    print("\nadjust runs: objective base -> initialized -> final, init used, stop reason, seconds")
+    for sec in ("manufactured", "grading", "hips_only"):
+        for r in results[sec]:
+            a = r["adjust"]
+            tag = r.get("scale", r.get("amount"))
+            tag = f"{r['garment']} {r['to']}" if tag is None else tag
+            print(f"{sec:>12} {tag!s:>18}: {a['objective_base']:.4g} -> {a['objective_initial']:.4g} -> "
+                  f"{a['objective_final']:.4g}, {a['initialization_used']}, {a['stopped']}, "
+                  f"{a['total_seconds']:.0f} s")
+    print(f"\ntotal {results['seconds']:.0f} s")
+
+
+def main(argv: list[str] | None = None) -> int:
+    from tqdm import tqdm
+
+    from torchgarment.adjust.pipeline import AdjustSettings
+    from torchgarment.body import Body
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="skirt only, sizes 20 and 6 (cached bodies), 16 iterations")
+    ap.add_argument("--iterations", type=int, default=None, help="outer iterations (default 32, --quick 16)")
+    ap.add_argument("--edge-length", type=float, default=0.05, help="triangle edge length in metres (default 0.05)")
+    ap.add_argument("--voxel", type=float, default=0.01, help="body SDF voxel size in metres (default 0.01)")
+    ap.add_argument("--hips", type=float, default=0.10,
+                    help="hips-only enlargement factor (default 0.10, about +9 cm hip girth: more than the skirt's "
+                         "4 cm hip ease); a 0.0 row (target = base body) is run as the noise-floor control")
+    ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    it = args.iterations if args.iterations is not None else (16 if args.quick else 32)
+    settings = AdjustSettings(edge_length=args.edge_length, voxel_size=args.voxel, iterations=it, exact_interval=8)
+    base = Body.from_size("12")
+    skirt = draft("straight_skirt", chart_row("12"))
+    sizes = ["20", "6"] if args.quick else ["16", "20", "8", "6"]
+    garments = ["straight_skirt"] if args.quick else ["straight_skirt", "tshirt"]
+    jobs = [("ms", s) for s in (1.05, 0.95)] + [("grade", (g, t)) for g in garments for t in sizes] + \
+        [("hips", 0.0), ("hips", args.hips)]
+    results = {"settings": {"edge_length": settings.edge_length, "voxel_size": settings.voxel_size,
+                            "iterations": it, "optimizer": "pgd", "exact_interval": settings.exact_interval},
+               "manufactured": [], "grading": [], "hips_only": []}
+    t0 = time.perf_counter()
+    for kind, arg in tqdm(jobs, desc="acceptance", unit="case", file=sys.stderr):
+        if kind == "ms":
+            results["manufactured"].append(manufactured(skirt, base, arg, replace(settings)))
+        elif kind == "grade":
+            results["grading"].append(grading(arg[0], "12", arg[1], base, replace(settings)))
+        else:
+            results["hips_only"].append(hips_only(skirt, base, arg, replace(settings)))
+    results["seconds"] = time.perf_counter() - t0
+
+    print_tables(results)
+    if args.json is not None:
+        from torchgarment.io.atomic import atomic_open
+
+        with atomic_open(args.json) as f:
+            json.dump(results, f, indent=2, default=float)
+            f.write("\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

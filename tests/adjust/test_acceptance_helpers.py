@@ -1,0 +1,159 @@
+"""Helpers of scripts/adjust_acceptance.py: Procrustes deviation, pattern widths, boundary labels, derived bodies."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "adjust_acceptance.py"
+
+
+@pytest.fixture(scope="module")
+def acc():
+    spec = importlib.util.spec_from_file_location("adjust_acceptance", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    try:
+        spec.loader.exec_module(mod)
+        yield mod
+    finally:
+        sys.modules.pop(spec.name, None)
+
+
+def _rot(a: float) -> np.ndarray:
+    return np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+
+
+def test_procrustes_removes_rigid_motion_exactly(acc):
+    rng = np.random.default_rng(0)
+    b = rng.normal(size=(40, 2))
+    a = b @ _rot(0.7).T + np.array([3.0, -2.0])
+    assert acc.procrustes_deviation(a, b).max() < 1e-12
+
+
+def test_procrustes_on_rotated_and_scaled_outline(acc):
+    # a rectangle outline rotated, translated and scaled by 1.05, compared with the unscaled one: no scale is
+    # removed, so the deviation is exactly the (centred) scaling's displacement 0.05 * |p - centroid|
+    t = np.linspace(0.0, 1.0, 11)[:-1]
+    w, h = 0.5, 0.6
+    b = np.concatenate([np.stack([w * t, 0 * t], 1), np.stack([w + 0 * t, h * t], 1),
+                        np.stack([w * (1 - t), h + 0 * t], 1), np.stack([0 * t, h * (1 - t)], 1)])
+    a = 1.05 * (b @ _rot(-1.2).T) + np.array([0.3, 0.1])
+    d = acc.procrustes_deviation(a, b)
+    expected = 0.05 * np.linalg.norm(b - b.mean(axis=0), axis=1)
+    np.testing.assert_allclose(d, expected, atol=1e-12)
+    # and a scaled target is matched exactly
+    assert acc.procrustes_deviation(a, 1.05 * b).max() < 1e-12
+    with pytest.raises(ValueError, match="N, 2"):
+        acc.procrustes_deviation(a, b[:-1])
+
+
+def test_procrustes_never_reflects(acc):
+    b = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 1.0]])
+    a = b * np.array([-1.0, 1.0])  # mirror image: a rotation cannot match it
+    assert acc.procrustes_deviation(a, b).max() > 0.1
+
+
+def _rect_pattern(w: float, h: float, angle: float = 0.0):
+    from torchgarment.pattern.spec import Edge, EdgeKind, Panel, SewingPattern
+
+    v = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]]) @ _rot(angle).T
+    labels = ["hem", "side_r", "waist", "side_l"]
+    edges = [Edge(i, (i + 1) % 4, EdgeKind.LINE, label=labels[i]) for i in range(4)]
+    return SewingPattern("rect", {"p": Panel("p", v, edges), "q": Panel("q", 2 * v, edges)}, [], {})
+
+
+def test_pattern_width_on_rectangle_panels(acc):
+    pat = _rect_pattern(0.4, 0.6, angle=0.3)
+    assert acc.line_width(pat.panels["p"], "waist", "waist") == pytest.approx(0.4, abs=1e-12)
+    assert acc.line_width(pat.panels["p"], "side_r", "side_r") == pytest.approx(0.6, abs=1e-12)
+    # hem start (0, 0) to waist end (0, h): the left side
+    assert acc.line_width(pat.panels["p"], "hem", "waist") == pytest.approx(0.6, abs=1e-12)
+    w = acc.pattern_line_widths(pat, {"waist": ("waist", "waist"), "hem": ("hem", "hem")})
+    assert w["waist"] == pytest.approx(0.4 + 0.8, abs=1e-12) and w["hem"] == pytest.approx(1.2, abs=1e-12)
+    with pytest.raises(KeyError):
+        acc.pattern_line_widths(pat, {"x": ("armhole_r", "armhole_l")})
+
+
+def test_skirt_widths_match_the_draft(acc):
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+
+    w = acc.pattern_line_widths(draft("straight_skirt", chart_row("12")), acc.SKIRT_LINES)
+    w2 = acc.pattern_line_widths(draft("straight_skirt", chart_row("20")), acc.SKIRT_LINES)
+    # the draft adds a constant ease: the pattern girths grow exactly as the chart's
+    assert w2["hips"] - w["hips"] == pytest.approx(chart_row("20")["hips"] - chart_row("12")["hips"], abs=1e-9)
+    assert w2["waist"] - w["waist"] == pytest.approx(chart_row("20")["waist"] - chart_row("12")["waist"], abs=1e-9)
+    assert chart_row("12")["hips"] < w["hips"] < chart_row("12")["hips"] + 0.1
+
+
+def test_boundary_vertex_labels(acc):
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+    from torchgarment.pattern.meshing import mesh_pattern
+
+    pattern = draft("straight_skirt", chart_row("12"))
+    mesh = mesh_pattern(pattern, 0.05)
+    verts, labels = acc.boundary_vertex_labels(pattern, mesh, 0.05)
+    p = mesh.p.numpy()
+    waist = verts[np.isin(labels, ["waist_r", "waist_l"])]
+    # every waistband sample lies on the waist line (y = top of the panel), both corners included
+    top = p[:, 1].max()
+    assert np.allclose(p[waist, 1], top, atol=1e-9) and len(np.unique(waist)) >= 6
+    hem = verts[np.isin(labels, ["hem_r", "hem_l"])]
+    assert np.allclose(p[hem, 1], p[:, 1].min(), atol=1e-9)
+
+
+def test_hip_weight_bump(acc):
+    y = torch.tensor([0.5, 0.75, 0.8, 0.84, 0.95, 1.055, 1.2], dtype=torch.float64)
+    w = acc.hip_weight(y, 0.84, 1.055, 0.75)
+    w = w.tolist()
+    assert w[3] == pytest.approx(1.0) and w[0] == pytest.approx(0.0, abs=1e-15)
+    assert w[1] == pytest.approx(0.0, abs=1e-15) and w[5] == pytest.approx(0.0, abs=1e-15)
+    assert w[6] == pytest.approx(0.0, abs=1e-15) and 0.1 < w[2] < 0.9 and 0.1 < w[4] < 0.9
+
+
+def test_demo_rejects_bad_input(tmp_path):
+    from torchgarment.adjust.demo import run_adjust_demo
+    from torchgarment.errors import InputError
+
+    with pytest.raises(InputError, match="chart size"):
+        run_adjust_demo(tmp_path, target_size="99")
+    with pytest.raises(InputError, match="library garment"):
+        run_adjust_demo(tmp_path, garment="kilt")
+    with pytest.raises(InputError, match="positive"):
+        run_adjust_demo(tmp_path, edge_length=0.0)
+    with pytest.raises(InputError, match="iterations"):
+        run_adjust_demo(tmp_path, iterations=-1)
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_demo_end_to_end(tmp_path):
+    from torchgarment.adjust.demo import run_adjust_demo
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        m = run_adjust_demo(tmp_path / "demo", iterations=4, progress=False)
+    finally:
+        torch.set_num_threads(n)
+    for name in ("pattern.json", "pattern.svg", "pattern.dxf", "garment_base.obj", "garment_target.obj",
+                 "target_before.png", "target_after.png", "overlay.png", "metrics.json"):
+        assert (tmp_path / "demo" / name).is_file(), name
+    assert m["iterations"] == 4 and m["objective_final"] <= m["objective_initial"]
+    assert m["garment"] == "straight_skirt" and m["target_size"] == "20"
+
+
+def test_edges_length_on_rectangle(acc):
+    pat = _rect_pattern(0.4, 0.6, angle=0.5)
+    assert acc.edges_length(pat, ("waist",)) == pytest.approx(0.4 + 0.8, abs=1e-9)
+    assert acc.edges_length(pat, ("waist", "hem")) == pytest.approx(2.4, abs=1e-9)
+    with pytest.raises(KeyError):
+        acc.edges_length(pat, ("armhole_r",))
