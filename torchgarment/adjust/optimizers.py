@@ -130,6 +130,22 @@ class _Counting:
             raise InputError("the objective is NaN at the current parameters")
         return v
 
+    def _start(self, closure: Closure | None) -> tuple[Closure, list[torch.Tensor], torch.Tensor, float]:
+        """Common start of a step: ``(counted closure, params, loss, float loss)`` at the current point.
+
+        When the loss is infinite (the simulator failed here, see :meth:`_counted`) the caller must not move;
+        ``last_step_length`` is then set to 0.
+        """
+        if closure is None:
+            raise InputError(f"{type(self).__name__}.step needs a closure")
+        fn = self._counted(closure)
+        params = self._all_params()
+        loss = fn()
+        f0 = self._check_finite(loss)
+        if not math.isfinite(f0):
+            self.last_step_length = 0.0
+        return fn, params, loss, f0
+
 
 class _PrecondSolve:
     """``v -> P^-1 v`` with a sparse SPD ``P`` (n, n) factorized once by SuperLU (float64, CPU)."""
@@ -218,14 +234,8 @@ class PreconditionedGD(_Counting, torch.optim.Optimizer):
     @torch.no_grad()
     def step(self, closure: Closure) -> torch.Tensor:  # type: ignore[override]
         """One iteration; returns the objective at the starting point."""
-        if closure is None:
-            raise InputError("PreconditionedGD.step needs a closure")
-        fn = self._counted(closure)
-        params = self._all_params()
-        loss = fn()
-        f0 = self._check_finite(loss)
+        fn, params, loss, f0 = self._start(closure)
         if not math.isfinite(f0):  # the simulator failed here (see _counted): no direction, no move
-            self.last_step_length = 0.0
             return loss
         g = _flat_grads(params)
         d = self.direction(g)
@@ -307,14 +317,8 @@ class LBFGS(_Counting, torch.optim.Optimizer):
     @torch.no_grad()
     def step(self, closure: Closure) -> torch.Tensor:  # type: ignore[override]
         """One L-BFGS iteration with Armijo backtracking; returns the objective at the starting point."""
-        if closure is None:
-            raise InputError("LBFGS.step needs a closure")
-        fn = self._counted(closure)
-        params = self._all_params()
-        loss = fn()
-        f0 = self._check_finite(loss)
+        fn, params, loss, f0 = self._start(closure)
         if not math.isfinite(f0):  # the simulator failed here (see _counted): no direction, no move
-            self.last_step_length = 0.0
             return loss
         g = _flat_grads(params)
         x0 = _flat_params(params)
