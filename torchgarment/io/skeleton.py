@@ -34,7 +34,8 @@ _NAME = re.compile(r"^#\s*joint\s+(\d+)\s+(\S.*?)\s*$")
 _IGNORED = frozenset("vt vn vp p o g s usemtl mtllib".split())
 
 
-def _text(path: Path, what: str) -> str:
+def read_text_file(path: Path, what: str) -> str:
+    """The UTF-8 text of ``path``; :class:`InputError` (one line naming ``what``) if missing or unreadable."""
     if not path.exists():
         raise InputError(f"{what} file not found: {path}")
     if not path.is_file():
@@ -63,7 +64,7 @@ def read_skeleton_obj(
             bone graph that is not a forest.
     """
     path = Path(path)
-    text = _text(path, "skeleton")
+    text = read_text_file(path, "skeleton")
     joints: list[list[str]] = []
     bones: list[tuple[int, int]] = []
     names: dict[int, str] = {}
@@ -212,7 +213,7 @@ def read_skin_weights(
             with all-zero weights.
     """
     path = Path(path)
-    text = _text(path, "skin weights")
+    text = read_text_file(path, "skin weights")
     rows = [r for r in (line.split("#", 1)[0].split() for line in text.splitlines()) if r]
     if not rows:
         raise InputError(f"skin weights file {path} is empty")

@@ -48,7 +48,7 @@ from torchgarment.body.kinematics import check_bone_forest
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError, MeshError
 from torchgarment.io.mesh import load_mesh
-from torchgarment.io.skeleton import read_skeleton_obj, read_skin_weights, validate_skin_weights
+from torchgarment.io.skeleton import read_skeleton_obj, read_skin_weights, read_text_file, validate_skin_weights
 from torchgarment.structures.mesh_checks import check_mesh, find_unreferenced_vertices, weld_vertices
 
 __all__ = [
@@ -237,17 +237,6 @@ def automatic_fit_mask(
 # ----------------------------------------------------------------------------------------------------------
 
 
-def _read_text(path: Path, what: str) -> str:
-    if not path.exists():
-        raise InputError(f"{what} file not found: {path}")
-    if not path.is_file():
-        raise InputError(f"{what} path is not a file: {path}")
-    try:
-        return path.read_text(encoding="utf-8")
-    except (UnicodeDecodeError, OSError) as e:
-        raise InputError(f"cannot read {what} file {path}: {type(e).__name__}") from None
-
-
 def _parse_indices(tokens: list[str], count: int, where: str) -> np.ndarray:
     try:
         idx = np.array([int(t) for t in tokens], dtype=np.int64)
@@ -278,7 +267,7 @@ def read_index_list(path: str | os.PathLike, count: int, *, what: str = "no-fit"
         InputError: missing or empty file, a non-integer token or an index out of range.
     """
     path = Path(path)
-    text = _read_text(path, what)
+    text = read_text_file(path, what)
     tokens = [t for line in text.splitlines() for t in line.split("#", 1)[0].split()]
     if not tokens:
         raise InputError(f"{what} file {path} is empty (expected whitespace-separated vertex indices)")
@@ -300,7 +289,7 @@ def read_curves(path: str | os.PathLike, count: int) -> list[torch.Tensor]:
             vertices.
     """
     path = Path(path)
-    text = _read_text(path, "curves")
+    text = read_text_file(path, "curves")
     loops = []
     for number, line in enumerate(text.splitlines(), start=1):
         tokens = line.split("#", 1)[0].split()
