@@ -40,6 +40,7 @@ import torch
 
 from torchgarment.errors import InputError
 from torchgarment.io.atomic import atomic_path
+from torchgarment.io.payload import load_payload
 from torchgarment.options import OptionEnum
 from torchgarment.sim.drape import DrapeSettings
 from torchgarment.structures.garment_mesh import GarmentMesh
@@ -211,15 +212,7 @@ class ClothingBasis:
     def load(cls, path: str | os.PathLike, dtype: torch.dtype | None = None,
              device: torch.device | str | None = None) -> "ClothingBasis":
         """Read a basis written by :meth:`save`; :class:`InputError` if missing or of another format."""
-        path = Path(path)
-        if not path.is_file():
-            raise InputError(f"clothing basis {path} does not exist")
-        try:
-            p = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - unreadable file is bad input
-            raise InputError(f"{path} is not a readable clothing basis: {exc}") from None
-        if not isinstance(p, dict) or p.get("format") != FORMAT:
-            raise InputError(f"{path} is not a torchgarment clothing basis (format {FORMAT})")
+        p = load_payload(path, FORMAT, "clothing basis")
         gd = p["garment"]
         garment = GarmentMesh(gd["x"], gd["faces"], p=gd["p"], panel_ids=gd["panel_ids"],
                               panel_names=gd["panel_names"], seam_pairs=gd["seam_pairs"])

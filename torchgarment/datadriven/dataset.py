@@ -19,6 +19,7 @@ import torch
 
 from torchgarment.errors import InputError, MeshError
 from torchgarment.io.atomic import atomic_path
+from torchgarment.io.payload import load_payload
 
 FORMAT = "torchgarment.body_dataset/1"
 """Format tag stored in saved data sets."""
@@ -205,15 +206,7 @@ class BodyDataset:
         Raises:
             InputError: missing file or not a body data set.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise InputError(f"body dataset {path} does not exist")
-        try:
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - any unreadable file is bad input
-            raise InputError(f"{path} is not a readable body dataset: {exc}") from None
-        if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-            raise InputError(f"{path} is not a torchgarment body dataset (format {FORMAT})")
+        payload = load_payload(path, FORMAT, "body dataset")
         ds = cls(payload["vertices"], payload["faces"].long(), list(payload["params"]), payload["source"],
                  payload["topology"])
         return ds.to(device=device, dtype=dtype)

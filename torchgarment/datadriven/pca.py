@@ -24,6 +24,7 @@ import torch
 
 from torchgarment.errors import InputError, MeshError
 from torchgarment.io.atomic import atomic_path
+from torchgarment.io.payload import load_payload
 
 FORMAT = "torchgarment.body_pca/1"
 
@@ -228,15 +229,7 @@ class BodyPCA:
     def load(cls, path: str | os.PathLike, dtype: torch.dtype | None = None,
              device: torch.device | str | None = None) -> "BodyPCA":
         """Read a model written by :meth:`save`; :class:`InputError` if missing or not a PCA model."""
-        path = Path(path)
-        if not path.is_file():
-            raise InputError(f"PCA body model {path} does not exist")
-        try:
-            p = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - any unreadable file is bad input
-            raise InputError(f"{path} is not a readable PCA body model: {exc}") from None
-        if not isinstance(p, dict) or p.get("format") != FORMAT:
-            raise InputError(f"{path} is not a torchgarment PCA body model (format {FORMAT})")
+        p = load_payload(path, FORMAT, "PCA body model")
         model = cls(p["mean"], p["components"], p["variances"], float(p["total_variance"]), p["faces"].long(),
                     int(p["num_bodies"]), str(p["topology"]))
         return model.to(device=device, dtype=dtype)
