@@ -327,9 +327,9 @@ class _IPCContact(EnergyTerm):
             torch.as_tensor(h.data, dtype=dt, device=dev).reshape(-1, 3, 3),
         )
 
-    def hessian_diagonal(self, x: torch.Tensor) -> torch.Tensor:
-        """(V, 3, 3) diagonal blocks of the PSD-projected Hessian (N/m)."""
-        h = self._hessian_bsr(x, True)
+    def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
+        """(V, 3, 3) diagonal blocks of the (by default PSD-projected) Hessian (N/m)."""
+        h = self._hessian_bsr(x, project_psd)
         rows = np.repeat(np.arange(h.shape[0] // 3), np.diff(h.indptr))
         diag = rows == h.indices
         out = np.zeros((self.num_vertices, 3, 3))

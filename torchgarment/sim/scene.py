@@ -264,7 +264,6 @@ class SimModel(torch.nn.Module):
         self.num_vertices = int(num_vertices)
         self.device = torch.device(device)
         self.dtype = dtype
-        self._diag_fused = [hasattr(t, "value_grad_hessian_diagonal") for t in terms]
 
     @property
     def term_names(self) -> tuple[str, ...]:
@@ -323,12 +322,8 @@ class SimModel(torch.nn.Module):
         E = torch.zeros((), dtype=x.dtype, device=x.device)
         g = torch.zeros_like(x)
         h = torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device)
-        for t, fused in zip(self.terms, self._diag_fused):
-            if fused:
-                e, gt, ht = t.value_grad_hessian_diagonal(x)
-            else:
-                e, gt = t.value_and_grad(x)
-                ht = t.hessian_diagonal(x)
+        for t in self.terms:
+            e, gt, ht = t.value_grad_hessian_diagonal(x)
             E = E + e
             g.add_(gt)
             h.add_(ht)

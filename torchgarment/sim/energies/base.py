@@ -68,8 +68,15 @@ class EnergyTerm(torch.nn.Module):
             (g,) = torch.autograd.grad(e, xr)
         return e.detach(), g
 
-    def hessian_diagonal(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+    def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:  # pragma: no cover
         raise NotImplementedError
+
+    def value_grad_hessian_diagonal(
+        self, x: torch.Tensor, project_psd: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Energy, gradient and Hessian diagonal blocks in one call; terms that can share work override it."""
+        E, g = self.value_and_grad(x)
+        return E, g, self.hessian_diagonal(x, project_psd)
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:  # pragma: no cover
         raise NotImplementedError

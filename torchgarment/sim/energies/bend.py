@@ -197,13 +197,6 @@ class QuadraticBending(EnergyTerm):
         E = 0.5 * self.stiffness * torch.dot(x.reshape(-1), qx.reshape(-1))
         return E, qx.mul_(self.stiffness)
 
-    def value_grad_hessian_diagonal(
-        self, x: torch.Tensor, project_psd: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Energy, gradient and Hessian diagonal blocks in one call."""
-        E, g = self.value_and_grad(x)
-        return E, g, self.hessian_diagonal(x, project_psd)
-
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
         """(V, 3, 3) diagonal blocks ``k Q_ii I`` (constant, PSD)."""
         check_positions(x, self.num_vertices, self.name)

@@ -112,13 +112,6 @@ class Gravity(EnergyTerm):
         f = self._force(x.detach())
         return -torch.dot(f.reshape(-1), x.detach().reshape(-1)), f.neg()
 
-    def value_grad_hessian_diagonal(
-        self, x: torch.Tensor, project_psd: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Energy, gradient and (zero) Hessian diagonal blocks in one call."""
-        E, g = self.value_and_grad(x)
-        return E, g, self.hessian_diagonal(x, project_psd)
-
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
         """(V, 3, 3) zeros: the energy is linear."""
         check_positions(x, self.num_vertices, self.name)

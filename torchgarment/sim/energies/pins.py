@@ -77,13 +77,6 @@ class Pins(EnergyTerm):
         g = torch.zeros_like(x).index_put_((self.indices,), self.stiffness * d, accumulate=True)
         return 0.5 * self.stiffness * torch.dot(d.reshape(-1), d.reshape(-1)), g
 
-    def value_grad_hessian_diagonal(
-        self, x: torch.Tensor, project_psd: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Energy, gradient and Hessian diagonal blocks in one call."""
-        E, g = self.value_and_grad(x)
-        return E, g, self.hessian_diagonal(x, project_psd)
-
     def _counts(self, x: torch.Tensor) -> torch.Tensor:
         return torch.zeros(self.num_vertices, dtype=x.dtype, device=x.device).index_put_(
             (self.indices,), torch.ones_like(self.indices, dtype=x.dtype), accumulate=True)

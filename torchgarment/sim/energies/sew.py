@@ -80,13 +80,6 @@ class SewingSprings(EnergyTerm):
         S = self.pairs.shape[0]
         return (self.stiffness * torch.eye(3, dtype=x.dtype, device=x.device)).expand(S, 3, 3).contiguous()
 
-    def value_grad_hessian_diagonal(
-        self, x: torch.Tensor, project_psd: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Energy, gradient and Hessian diagonal blocks in one call."""
-        E, g = self.value_and_grad(x)
-        return E, g, self.hessian_diagonal(x, project_psd)
-
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
         """(V, 3, 3) diagonal blocks ``Y_sew * (number of seam pairs at the vertex) * I`` (always PSD)."""
         check_positions(x, self.num_vertices, self.name)
