@@ -43,69 +43,44 @@ import torch
 from torch import nn
 
 from torchgarment.errors import InputError, MeshError
+from torchgarment.structures.garment_mesh import GarmentMesh
 
 # ---------------------------------------------------------------------------------------------- mesh helpers
 
 
 def adjacent_triangle_pairs(faces: np.ndarray) -> np.ndarray:
-    """Pairs of triangles sharing an interior edge as vertex quadruples.
+    """Pairs of triangles sharing an interior edge as vertex quadruples (the mesh's hinges,
+    :attr:`GarmentMesh.hinges <torchgarment.structures.garment_mesh.GarmentMesh.hinges>`).
 
     Args:
         faces: (F, 3) int triangles.
 
     Returns:
         (P, 6) int64 rows ``(v1, v2, v3, v4, f1, f2)``: ``f1 = (v1, v2, v3)`` up to rotation and
-        ``f2`` holds ``v2, v1, v4``; the shared edge is ``v1 v2``. Non-manifold edges (3+ faces) pair their
-        first two faces.
+        ``f2`` holds ``v2, v1, v4``; the shared edge is ``v1 v2``. Edges of one face or of 3+ faces are left out.
     """
-    f = np.asarray(faces, dtype=np.int64)
-    nf = f.shape[0]
-    he = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])  # (3F, 2) directed half-edges
-    opp = np.concatenate([f[:, 2], f[:, 0], f[:, 1]])
-    face = np.tile(np.arange(nf), 3)
-    key = np.sort(he, axis=1)
-    order = np.lexsort((face, key[:, 1], key[:, 0]))
-    ks = key[order]
-    same = np.all(ks[1:] == ks[:-1], axis=1)
-    first = np.r_[True, ~same]  # first half-edge of each undirected edge
-    i = np.nonzero(same & first[:-1])[0]  # position of a first half-edge followed by a second one
-    a, b = order[i], order[i + 1]
-    v1, v2 = he[a, 0], he[a, 1]
-    return np.stack([v1, v2, opp[a], opp[b], face[a], face[b]], axis=1)
+    mesh = _topology(faces)
+    return torch.cat([mesh.hinges, mesh.hinge_faces], dim=1).numpy()
+
+
+def _topology(faces: np.ndarray) -> GarmentMesh:
+    """A GarmentMesh holding only the connectivity ``faces`` (F, 3) (positions zero), for its lazy topology."""
+    f = torch.as_tensor(np.asarray(faces, dtype=np.int64))
+    return GarmentMesh(torch.zeros(int(f.max()) + 1 if f.numel() else 0, 3, dtype=torch.float64), f)
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
-    """Closed boundary loops of a triangle mesh, each an ordered vertex array (first vertex not repeated).
+    """Closed boundary loops of a triangle mesh, each an ordered vertex array (first vertex not repeated), in face
+    orientation, longest first (:attr:`GarmentMesh.boundary_loops <torchgarment.structures.garment_mesh.
+    GarmentMesh.boundary_loops>`).
 
     Args:
         faces: (F, 3) int triangles (consistently oriented).
+
+    Raises:
+        MeshError: a boundary passes through a vertex twice (non-manifold vertex).
     """
-    f = np.asarray(faces, dtype=np.int64)
-    he = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    key = np.sort(he, axis=1)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    bnd = he[cnt[inv.reshape(-1)] == 1]
-    nxt: dict[int, list[int]] = {}
-    for a, b in bnd.tolist():  # boundary edges only (O(sqrt(F)) of them)
-        nxt.setdefault(a, []).append(b)
-    loops = []
-    while nxt:
-        start = next(iter(nxt))
-        loop, v = [start], start
-        while True:
-            outs = nxt.get(v)
-            if not outs:
-                break
-            w = outs.pop()
-            if not outs:
-                del nxt[v]
-            if w == start:
-                break
-            loop.append(w)
-            v = w
-        if len(loop) >= 3:
-            loops.append(np.asarray(loop, dtype=np.int64))
-    return loops
+    return [loop.numpy() for loop in _topology(faces).boundary_loops]
 
 
 def vertex_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
