@@ -180,6 +180,7 @@ class _IPCContact(EnergyTerm):
     """
 
     name = "ipc_contact"
+    volatile_hessian = True
 
     def __init__(
         self,

@@ -264,6 +264,11 @@ class SimModel(torch.nn.Module):
         self.num_vertices = int(num_vertices)
         self.device = torch.device(device)
         self.dtype = dtype
+        self._const_diag: tuple | None = None  # (key, (V, 3, 3)) cache of constant_hessian_diagonal
+        self._elastic_diag: torch.Tensor | None = None  # (V, 3, 3) last full diagonal of the non-volatile terms
+        #: rows (long) whose diagonal the volatile terms (barrier, contact) set in the last
+        #: :meth:`value_grad_hessian_diagonal`; None = possibly all
+        self.last_volatile_rows: torch.Tensor | None = None
 
     @property
     def term_names(self) -> tuple[str, ...]:
@@ -301,33 +306,87 @@ class SimModel(torch.nn.Module):
         E = torch.zeros((), dtype=x.dtype, device=x.device)
         g = torch.zeros_like(x)
         for t in self.terms:
-            e, gt = t.value_and_grad(x)
-            E = E + e
-            g.add_(gt)
+            E = E + t.accumulate_value_grad_hessian_diagonal(x, g, None)
         return E, g
+
+    def constant_hessian_diagonal(self, dtype: torch.dtype, device: torch.device) -> torch.Tensor | None:
+        """(V, 3, 3) sum of the Hessian diagonals of the terms whose Hessian is constant
+        (:attr:`EnergyTerm.constant_hessian`), computed once per (dtype, device, term state) and cached; None if
+        no term has a constant Hessian. Do not modify the result."""
+        const = [t for t in self.terms if t.constant_hessian]
+        if not const:
+            return None
+        key = (dtype, torch.device(device), tuple(t.state_key() for t in const))
+        cache = self._const_diag
+        if cache is None or cache[0] != key:
+            x0 = torch.zeros(self.num_vertices, 3, dtype=dtype, device=device)
+            h = torch.zeros(self.num_vertices, 3, 3, dtype=dtype, device=device)
+            for t in const:
+                h.add_(t.hessian_diagonal(x0))
+            self._const_diag = cache = (key, h)
+        return cache[1]
 
     def hessian_diagonal(self, x: torch.Tensor) -> torch.Tensor:
         """(V, 3, 3) sum of the terms' Hessian diagonal blocks (each term's default: PSD-projected)."""
         check_positions(x, self.num_vertices, "SimModel")
         x = x.detach()
-        h = torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device)
+        const = self.constant_hessian_diagonal(x.dtype, x.device)
+        h = torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device) if const is None else const.clone()
         for t in self.terms:
-            h.add_(t.hessian_diagonal(x))
+            if not t.constant_hessian:
+                h.add_(t.hessian_diagonal(x))
         return h
 
-    def value_grad_hessian_diagonal(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Energy, gradient and Hessian diagonal together; terms that can share work between them do."""
+    def value_grad_hessian_diagonal(
+        self, x: torch.Tensor, *, reuse_elastic: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Energy (), gradient (V, 3) and Hessian diagonal blocks (V, 3, 3) together.
+
+        Terms that can share work between them do; terms with a constant Hessian contribute their cached diagonal
+        (:meth:`constant_hessian_diagonal`); terms with sparse derivatives (the range-limited barrier) touch only
+        their rows.
+
+        Args:
+            x: (V, 3) positions in metres.
+            reuse_elastic: reuse the diagonal of the non-volatile terms (see
+                :attr:`~torchgarment.sim.energies.base.EnergyTerm.volatile_hessian`) from the last call made with
+                ``reuse_elastic=False`` (same dtype and device), and evaluate only the volatile terms' diagonal
+                (barriers, contact) at ``x``. The result is then the exact diagonal of the volatile terms plus a
+                slightly stale one of the elastic terms, which is what a Jacobi preconditioner needs. Falls back
+                to a full evaluation when nothing is cached.
+        """
         check_positions(x, self.num_vertices, "SimModel")
         x = x.detach()
         E = torch.zeros((), dtype=x.dtype, device=x.device)
         g = torch.zeros_like(x)
-        h = torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device)
+        cached = self._elastic_diag
+        if reuse_elastic and cached is not None and cached.dtype == x.dtype and cached.device == x.device:
+            h = cached.clone()
+            for t in self.terms:
+                E = E + t.accumulate_value_grad_hessian_diagonal(x, g, h if t.volatile_hessian else None)
+            self._record_volatile_rows()
+            return E, g, h
+        const = self.constant_hessian_diagonal(x.dtype, x.device)
+        h = torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device) if const is None else const.clone()
+        for t in self.terms:  # elastic (non-volatile) terms first, then the elastic sum is cached
+            if not t.volatile_hessian:
+                E = E + t.accumulate_value_grad_hessian_diagonal(x, g, None if t.constant_hessian else h)
+        self._elastic_diag = h.clone()
         for t in self.terms:
-            e, gt, ht = t.value_grad_hessian_diagonal(x)
-            E = E + e
-            g.add_(gt)
-            h.add_(ht)
+            if t.volatile_hessian:
+                E = E + t.accumulate_value_grad_hessian_diagonal(x, g, h)
+        self._record_volatile_rows()
         return E, g, h
+
+    def _record_volatile_rows(self) -> None:
+        """Set :attr:`last_volatile_rows` from the volatile terms' ``last_hessian_rows``."""
+        rows = [t.last_hessian_rows for t in self.terms if t.volatile_hessian]
+        if any(r is None for r in rows):
+            self.last_volatile_rows = None
+        elif not rows:
+            self.last_volatile_rows = torch.zeros(0, dtype=torch.long, device=self.device)
+        else:
+            self.last_volatile_rows = torch.cat(rows) if len(rows) > 1 else rows[0]
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
         """Block-COO Hessian of the total energy (the terms' blocks concatenated; duplicates sum)."""

@@ -76,6 +76,7 @@ class BodyBarrier(EnergyTerm):
     """
 
     name = "body_barrier"
+    volatile_hessian = True
 
     def __init__(
         self,
@@ -257,7 +258,9 @@ class BodyBarrier(EnergyTerm):
         check_positions(x, self.num_vertices, self.name)
         phi, gphi = self._phi_grad_cached(x.detach())
         if phi.numel() == 0 or float(phi.min()) > 0:
-            return self.barrier(phi).sum(), phi, gphi
+            if self.dhat is None:
+                return self.barrier(phi).sum(), phi, gphi
+            return self.barrier(phi[phi < self.dhat]).sum(), phi, gphi  # b = 0 beyond dhat
         safe = torch.where(phi > 0, phi, torch.full_like(phi, self.offset))
         return torch.full((), math.inf, dtype=phi.dtype, device=phi.device), safe, gphi
 
@@ -275,6 +278,39 @@ class BodyBarrier(EnergyTerm):
         d1, d2 = self.derivatives(safe)
         g = gphi * d1.unsqueeze(1)
         return E, g, (gphi * d2.unsqueeze(1)).unsqueeze(2) * gphi.unsqueeze(1)
+
+    def accumulate_value_grad_hessian_diagonal(
+        self, x: torch.Tensor, g: torch.Tensor, h: torch.Tensor | None, project_psd: bool = True
+    ) -> torch.Tensor:
+        """Add the gradient (and the Hessian diagonal blocks unless ``h`` is None) in place, touching only the
+        rows of vertices within ``dhat`` of the body (all rows for the unbounded barrier); return the energy."""
+        if self.dhat is None:
+            E, safe, gphi = self._evaluate(x)
+            d1, d2 = self.derivatives(safe)
+            g.add_(gphi * d1.unsqueeze(1))
+            if h is not None:
+                h.add_((gphi * d2.unsqueeze(1)).unsqueeze(2) * gphi.unsqueeze(1))
+                self.last_hessian_rows = None
+            return E
+        check_positions(x, self.num_vertices, self.name)
+        phi, gphi = self._phi_grad_cached(x.detach())
+        idx = torch.nonzero(phi < self.dhat, as_tuple=False).flatten()  # the only rows the barrier acts on
+        if h is not None:
+            self.last_hessian_rows = idx
+        if idx.numel() == 0:
+            return torch.zeros((), dtype=phi.dtype, device=phi.device)
+        pa = phi.index_select(0, idx)
+        if float(pa.min()) > 0:
+            E = self.barrier(pa).sum()
+        else:  # infeasible: +inf energy, derivatives as if at the offset (pushing out)
+            E = torch.full((), math.inf, dtype=phi.dtype, device=phi.device)
+            pa = torch.where(pa > 0, pa, torch.full_like(pa, self.offset))
+        gp = gphi.index_select(0, idx)
+        d1, d2 = self.derivatives(pa)
+        g.index_add_(0, idx, gp * d1.unsqueeze(1))
+        if h is not None:
+            h.index_add_(0, idx, (gp * d2.unsqueeze(1)).unsqueeze(2) * gp.unsqueeze(1))
+        return E
 
     def _blocks(self, safe: torch.Tensor, gphi: torch.Tensor) -> torch.Tensor:
         _, d2 = self.derivatives(safe)

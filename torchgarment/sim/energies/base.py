@@ -56,6 +56,17 @@ class EnergyTerm(torch.nn.Module):
 
     #: short name used in metrics and logs, e.g. "stretch"
     name: str = "energy"
+    #: True when the Hessian does not depend on ``x`` (quadratic or linear energies: sewing, bending, pins,
+    #: gravity); :class:`~torchgarment.sim.scene.SimModel` then computes the term's Hessian diagonal once and
+    #: reuses it (keyed on the term's stiffness, buffers and parameters) instead of every solver iteration.
+    constant_hessian: bool = False
+    #: True when the Hessian can change a lot from one solver iteration to the next (barriers and contact, whose
+    #: stiffness grows like 1/distance^2); GD-Chebyshev refreshes such terms' diagonal every iteration and may
+    #: reuse the others' (elastic terms change slowly) for ``SolveSettings.elastic_diagonal_interval`` iterations.
+    volatile_hessian: bool = False
+    #: rows (long) whose Hessian diagonal the last :meth:`accumulate_value_grad_hessian_diagonal` call with a
+    #: diagonal touched; None = possibly every row (terms with sparse derivatives set it)
+    last_hessian_rows: torch.Tensor | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -77,6 +88,27 @@ class EnergyTerm(torch.nn.Module):
         """Energy, gradient and Hessian diagonal blocks in one call; terms that can share work override it."""
         E, g = self.value_and_grad(x)
         return E, g, self.hessian_diagonal(x, project_psd)
+
+    def accumulate_value_grad_hessian_diagonal(
+        self, x: torch.Tensor, g: torch.Tensor, h: torch.Tensor | None, project_psd: bool = True
+    ) -> torch.Tensor:
+        """Add the gradient to ``g`` (V, 3) and, unless ``h`` is None, the Hessian diagonal blocks to ``h``
+        (V, 3, 3), in place; return the energy (). Terms whose derivatives are sparse (a barrier acting on a few
+        vertices) override it to touch only those rows."""
+        if h is None:
+            E, gt = self.value_and_grad(x)
+        else:
+            E, gt, ht = self.value_grad_hessian_diagonal(x, project_psd)
+            h.add_(ht)
+        g.add_(gt)
+        return E
+
+    def state_key(self) -> tuple:
+        """A key that changes whenever the term's stiffness, buffers or parameters change (in place or replaced);
+        used to cache derived data such as a constant Hessian diagonal."""
+        tensors = [*self.parameters(recurse=False), *self.buffers(recurse=False)]
+        return (getattr(self, "stiffness", None),
+                tuple((t.data_ptr(), t._version, tuple(t.shape), t.dtype, t.device) for t in tensors))
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:  # pragma: no cover
         raise NotImplementedError

@@ -64,6 +64,7 @@ class QuadraticBending(EnergyTerm):
     """
 
     name = "bend"
+    constant_hessian = True
 
     def __init__(
         self,

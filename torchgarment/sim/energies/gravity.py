@@ -52,6 +52,7 @@ class Gravity(EnergyTerm):
     """
 
     name = "gravity"
+    constant_hessian = True
 
     def __init__(
         self, masses: torch.Tensor, *, gravity: float = STANDARD_GRAVITY,

@@ -31,6 +31,7 @@ class Pins(EnergyTerm):
     """
 
     name = "pins"
+    constant_hessian = True
 
     def __init__(self, indices: torch.Tensor, targets: torch.Tensor, num_vertices: int, *,
                  stiffness: float = DEFAULT_PIN_STIFFNESS) -> None:

@@ -30,6 +30,7 @@ class SewingSprings(EnergyTerm):
     """
 
     name = "sew"
+    constant_hessian = True
 
     def __init__(self, pairs: torch.Tensor, num_vertices: int, *, stiffness: float = DEFAULT_SEW_STIFFNESS) -> None:
         """Create the springs.

@@ -15,8 +15,10 @@ and restarts the Chebyshev sequence (Wang & Yang's step-length adjustment).
 To keep barriers finite each step is either capped by ``0.9 * model.max_step`` (``Safeguard.MAX_STEP``) or
 followed by ``model.project_feasible`` (``Safeguard.PROJECT``, Wang 2018's per-vertex projection onto the body).
 
-One iteration costs one ``model.value_and_grad`` plus, every ``diagonal_interval`` iterations, one
-``model.hessian_diagonal`` and a batched 3x3 inverse, plus the safeguard (``max_step`` or ``project_feasible``).
+One iteration costs one ``model.value_and_grad`` plus, every ``diagonal_interval`` iterations (default 1), the
+Hessian diagonal and a batched 3x3 inverse, plus the safeguard (``max_step`` or ``project_feasible``). The diagonal
+of the volatile terms (barriers, contact) is evaluated at the current positions; that of the elastic terms, which
+changes slowly, every ``elastic_diagonal_interval`` iterations (default 4) and reused in between.
 """
 
 from __future__ import annotations
@@ -43,15 +45,23 @@ from torchgarment.sim.solvers.common import (
 )
 
 
-def jacobi_inverse(diag_blocks: torch.Tensor, kind: Preconditioner, floor: float) -> torch.Tensor:
+def diagonal_scale(diag_blocks: torch.Tensor) -> float:
+    """The mean absolute diagonal entry of ``diag_blocks`` (V, 3, 3): the scale of the relative floor."""
+    return float(diag_blocks.reshape(-1, 9)[:, 0::4].abs().mean()) if diag_blocks.shape[0] else 0.0
+
+
+def jacobi_inverse(diag_blocks: torch.Tensor, kind: Preconditioner, floor: float,
+                   scale: float | None = None) -> torch.Tensor:
     """Inverse of the Jacobi preconditioner.
 
     Args:
-        diag_blocks: (V, 3, 3) Hessian diagonal blocks.
+        diag_blocks: (V, 3, 3) Hessian diagonal blocks (or a subset of the rows).
         kind: BLOCK inverts each (symmetrized) 3x3 block; blocks that are not positive definite after adding
             ``floor * I`` use the inverse of their clamped scalar diagonal ``max(|H_ii|, floor)`` instead.
             SCALAR always uses the clamped scalar diagonal.
-        floor: relative floor, multiplied by the mean of the (absolute) diagonal entries.
+        floor: relative floor, multiplied by ``scale``.
+        scale: the floor's scale; None = :func:`diagonal_scale` of ``diag_blocks`` (pass the full matrix's scale
+            when inverting a subset of the rows).
 
     Returns:
         (V, 3, 3) inverse blocks for BLOCK, (V, 3) inverse diagonal for SCALAR.
@@ -64,7 +74,8 @@ def jacobi_inverse(diag_blocks: torch.Tensor, kind: Preconditioner, floor: float
     V = h.shape[0]
     hv = h.reshape(V, 9)
     dsafe = hv[:, 0::4].abs()  # (V, 3) diagonal entries
-    scale = float(dsafe.mean()) if V else 0.0
+    if scale is None:
+        scale = float(dsafe.mean()) if V else 0.0
     if not math.isfinite(scale):
         raise NonFiniteError("model.hessian_diagonal returned non-finite values")
     if scale <= 0.0:
@@ -73,32 +84,13 @@ def jacobi_inverse(diag_blocks: torch.Tensor, kind: Preconditioner, floor: float
     dsafe.clamp_min_(f)
     if kind == Preconditioner.SCALAR:
         return dsafe.reciprocal_()
-    # symmetrized block plus floor * I, inverted through the adjugate; PD tested by the leading minors.
-    # Every entry is read once into a contiguous (V,) vector (no (V, 3, 3) temporaries, no transposed copies).
-    a00, a11, a22 = hv[:, 0] + f, hv[:, 4] + f, hv[:, 8] + f
-    a01 = (hv[:, 1] + hv[:, 3]).mul_(0.5)
-    a02 = (hv[:, 2] + hv[:, 6]).mul_(0.5)
-    a12 = (hv[:, 5] + hv[:, 7]).mul_(0.5)
-    c00 = torch.mul(a11, a22).addcmul_(a12, a12, value=-1.0)
-    c01 = torch.mul(a02, a12).addcmul_(a01, a22, value=-1.0)
-    c02 = torch.mul(a01, a12).addcmul_(a02, a11, value=-1.0)
-    c11 = torch.mul(a00, a22).addcmul_(a02, a02, value=-1.0)
-    c12 = torch.mul(a01, a02).addcmul_(a00, a12, value=-1.0)
-    c22 = torch.mul(a00, a11).addcmul_(a01, a01, value=-1.0)
-    det = (a00 * c00).addcmul_(a01, c01).addcmul_(a02, c02)
-    # relative tests so that nearly singular blocks (det ~ roundoff) also fall back
-    tiny = 1e3 * torch.finfo(h.dtype).eps
-    m2 = a00 * a11
-    pd = (a00 > 0) & (c22 > tiny * m2) & (det > m2.mul_(a22).mul_(tiny))
-    all_pd = bool(pd.all())
-    scale_inv = det.reciprocal_() if all_pd else torch.where(pd, det, torch.ones_like(det)).reciprocal_()
-    inv = torch.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], dim=1).mul_(scale_inv.unsqueeze(1))
-    if not all_pd:
+    inv, pd = spd_inverse_3x3(h, shift=f)
+    if not bool(pd.all()):  # non positive-definite blocks: the clamped scalar diagonal
         bad = torch.nonzero(~pd, as_tuple=False).flatten()
         fallback = torch.zeros(bad.numel(), 9, dtype=h.dtype, device=h.device)
         fallback[:, 0::4] = dsafe[bad].reciprocal()
-        inv[bad] = fallback
-    return inv.view(V, 3, 3)
+        inv.view(V, 9)[bad] = fallback
+    return inv
 
 
 class SeamBlockInverse:
@@ -149,33 +141,111 @@ def seam_pairs(model) -> tuple[torch.Tensor, float] | None:  # noqa: ANN001
     return pairs[keep], float(term.stiffness)
 
 
+def spd_inverse_3x3(blocks: torch.Tensor, shift: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverses of the symmetric parts of ``blocks`` (N, 3, 3) plus ``shift * I`` through the adjugate (a few
+    vectorized operations; batched LAPACK calls on 3x3 matrices cost far more), and which of them are positive
+    definite (by the leading minors, relative to round-off).
+
+    Returns:
+        ``(inv, pd)``: (N, 3, 3) inverses (meaningless where not ``pd``) and an (N,) bool mask.
+    """
+    n = blocks.shape[0]
+    hv = blocks.reshape(n, 9)
+    a00, a11, a22 = hv[:, 0] + shift, hv[:, 4] + shift, hv[:, 8] + shift
+    a01 = (hv[:, 1] + hv[:, 3]).mul_(0.5)
+    a02 = (hv[:, 2] + hv[:, 6]).mul_(0.5)
+    a12 = (hv[:, 5] + hv[:, 7]).mul_(0.5)
+    c00 = torch.mul(a11, a22).addcmul_(a12, a12, value=-1.0)
+    c01 = torch.mul(a02, a12).addcmul_(a01, a22, value=-1.0)
+    c02 = torch.mul(a01, a12).addcmul_(a02, a11, value=-1.0)
+    c11 = torch.mul(a00, a22).addcmul_(a02, a02, value=-1.0)
+    c12 = torch.mul(a01, a02).addcmul_(a00, a12, value=-1.0)
+    c22 = torch.mul(a00, a11).addcmul_(a01, a01, value=-1.0)
+    det = (a00 * c00).addcmul_(a01, c01).addcmul_(a02, c02)
+    tiny = 1e3 * torch.finfo(blocks.dtype).eps
+    m2 = a00 * a11
+    pd = (a00 > 0) & (c22 > tiny * m2) & (det > m2.mul_(a22).mul_(tiny))
+    inv_det = torch.where(pd, det, torch.ones_like(det)).reciprocal_()
+    inv = torch.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], dim=1).mul_(inv_det.unsqueeze(1))
+    return inv.view(n, 3, 3), pd
+
+
 def seam_block_inverse(diag_blocks: torch.Tensor, base: torch.Tensor, pairs: torch.Tensor, k: float,
-                       floor: float) -> SeamBlockInverse:
+                       floor: float, scale: float | None = None) -> SeamBlockInverse:
     """The :class:`SeamBlockInverse` of the Hessian diagonal blocks ``(V, 3, 3)`` (which include each seam
     spring's ``k I``) for disjoint seam ``pairs`` ``(P, 2)``; pairs whose 6x6 block is not positive definite keep
-    their 3x3 inverses from ``base``."""
+    their 3x3 inverses from ``base``. ``floor * scale`` is added to the diagonal (``scale`` None: the mean
+    absolute diagonal entry of ``diag_blocks``)."""
     i, j = pairs[:, 0], pairs[:, 1]
-    eye = torch.eye(3, dtype=diag_blocks.dtype, device=diag_blocks.device)
-    f = floor * float(diag_blocks.diagonal(dim1=1, dim2=2).abs().mean())
-    sym = 0.5 * (diag_blocks + diag_blocks.transpose(1, 2))
-    a, b = sym.index_select(0, i) + f * eye, sym.index_select(0, j) + f * eye
-    lb, info_b = torch.linalg.cholesky_ex(b)
-    b_inv = torch.cholesky_inverse(lb)
-    s = a - (k * k) * b_inv
-    s = 0.5 * (s + s.transpose(1, 2))
-    ls, info_s = torch.linalg.cholesky_ex(s)
-    ok = (info_b == 0) & (info_s == 0)
+    f = floor * (diagonal_scale(diag_blocks) if scale is None else scale)
+    a, b = diag_blocks.index_select(0, i), diag_blocks.index_select(0, j)  # only the pairs' rows
+    b_inv, ok_b = spd_inverse_3x3(b, shift=f)
+    s_inv, ok_s = spd_inverse_3x3(a - (k * k) * b_inv, shift=f)
+    ok = ok_b & ok_s
     if not bool(ok.all()):
-        i, j, ls, b_inv = i[ok], j[ok], ls[ok], b_inv[ok]
-    return SeamBlockInverse(base, i, j, torch.cholesky_inverse(ls), b_inv, k)
+        i, j, s_inv, b_inv = i[ok], j[ok], s_inv[ok], b_inv[ok]
+    return SeamBlockInverse(base, i, j, s_inv, b_inv, k)
 
 
-def _preconditioner(model, h: torch.Tensor, settings: SolveSettings, seams):  # noqa: ANN001, ANN202
-    """Jacobi inverse of the diagonal blocks ``h``, with seam blocks when asked for and available."""
-    dinv = jacobi_inverse(h, settings.preconditioner, settings.diagonal_floor)
-    if seams is None or settings.preconditioner != Preconditioner.BLOCK:
-        return dinv
-    return seam_block_inverse(h, dinv, seams[0], seams[1], settings.diagonal_floor)
+class JacobiState:
+    """The GD-Chebyshev preconditioner ``D^-1`` (3x3 blocks or scalars, with seam blocks when asked for), rebuilt
+    in full or, between elastic refreshes, only on the rows whose diagonal changed.
+
+    Between two full rebuilds only the volatile terms' diagonal changes (barriers, contact; see
+    ``SimModel.value_grad_hessian_diagonal(reuse_elastic=True)``), and a range-limited barrier touches only the
+    vertices within its range, a few percent of a garment. :meth:`update` re-inverts just the rows it touches
+    now or touched at the last update (a vertex that left the barrier's range must lose its barrier
+    stiffness), keeping the floor's scale of the last full rebuild; the result equals a full rebuild up to
+    that scale.
+
+    Attributes:
+        inverse: the current inverse, for :func:`apply_inverse`.
+    """
+
+    def __init__(self, settings: SolveSettings, seams: "tuple[torch.Tensor, float] | None") -> None:
+        self.settings = settings
+        self.seams = seams if settings.preconditioner == Preconditioner.BLOCK else None
+        self.inverse: "torch.Tensor | SeamBlockInverse | None" = None
+        self._base: torch.Tensor | None = None
+        self._scale = 0.0
+        self._rows: torch.Tensor | None = None  # volatile rows of the last build or update (None: unknown)
+
+    def rebuild(self, h: torch.Tensor, rows: torch.Tensor | None = None) -> None:
+        """Invert the full diagonal ``h`` (V, 3, 3); ``rows`` (long) are the rows the volatile terms touched in
+        ``h`` (None: unknown, which makes the next :meth:`update` a full rebuild)."""
+        st = self.settings
+        self._scale = diagonal_scale(h)
+        self._base = jacobi_inverse(h, st.preconditioner, st.diagonal_floor, self._scale)
+        self._finish(h)
+        self._rows = rows
+
+    def update(self, h: torch.Tensor, rows: torch.Tensor | None) -> None:
+        """Re-invert the rows of ``h`` (V, 3, 3) touched by the volatile terms now (``rows``) or at the last
+        build; a full :meth:`rebuild` when either is unknown."""
+        if rows is None or self._rows is None or self._base is None:
+            self.rebuild(h, rows)
+            return
+        st = self.settings
+        mask = torch.zeros(h.shape[0], dtype=torch.bool, device=h.device)
+        mask[rows] = True
+        mask[self._rows] = True
+        idx = torch.nonzero(mask, as_tuple=False).flatten()
+        if idx.numel():
+            rows_h = h.index_select(0, idx)
+            if not bool(torch.isfinite(rows_h).all()):
+                raise NonFiniteError("model.hessian_diagonal returned non-finite values")
+            part = jacobi_inverse(rows_h, st.preconditioner, st.diagonal_floor, self._scale)
+            self._base.index_copy_(0, idx, part)
+            if self.seams is not None:
+                self._finish(h)
+        self._rows = rows
+
+    def _finish(self, h: torch.Tensor) -> None:
+        if self.seams is None:
+            self.inverse = self._base
+        else:
+            self.inverse = seam_block_inverse(h, self._base, self.seams[0], self.seams[1],
+                                              self.settings.diagonal_floor, self._scale)
 
 
 def apply_inverse(dinv: "torch.Tensor | SeamBlockInverse", g: torch.Tensor) -> torch.Tensor:
@@ -190,6 +260,8 @@ def apply_inverse(dinv: "torch.Tensor | SeamBlockInverse", g: torch.Tensor) -> t
 def clamp_displacement_(step: torch.Tensor, max_length: float) -> torch.Tensor:
     """Scale rows of ``step`` (V, 3) in place so that no vertex moves more than ``max_length`` metres."""
     n = torch.linalg.vector_norm(step, dim=1, keepdim=True)
+    if step.shape[0] == 0 or float(n.max()) <= max_length:
+        return step
     return step.mul_((max_length / n.clamp_min(max_length)))
 
 
@@ -230,8 +302,8 @@ def solve_gd_chebyshev(
     with torch.no_grad():
         x = x0.detach().clone()
         e, g, gn, h = evaluate_with_diagonal(model, x, 0, "initial state")
-        seams = seam_pairs(model) if settings.seam_blocks else None
-        dinv = _preconditioner(model, h, settings, seams)
+        pre = JacobiState(settings, seam_pairs(model) if settings.seam_blocks else None)
+        pre.rebuild(h, getattr(model, "last_volatile_rows", None))
         info.residual_history.append(gn)
         info.energy_history.append(e)
         tol = tolerance(settings, gn)
@@ -243,9 +315,10 @@ def solve_gd_chebyshev(
         if gn <= tol:
             info.converged, info.message = True, "converged"
 
+        elastic_interval = settings.elastic_diagonal_interval
         k = 0
         while not info.converged and k < max_iterations:
-            step = apply_inverse(dinv, g).mul_(-alpha)
+            step = apply_inverse(pre.inverse, g).mul_(-alpha)
             omega = chebyshev_weight(since_restart, omega, rho, settings.chebyshev_delay)
             if omega != 1.0 and x_prev is not None:
                 # x_new - x = omega (x + step - x_prev) + x_prev - x = omega step + (omega - 1) (x - x_prev)
@@ -263,8 +336,13 @@ def solve_gd_chebyshev(
             since_restart += 1
             k += 1
             if k % settings.diagonal_interval == 0:
-                e, g, gn, h = evaluate_with_diagonal(model, x, k)
-                dinv = _preconditioner(model, h, settings, seams)
+                reuse = k % elastic_interval != 0
+                e, g, gn, h = evaluate_with_diagonal(model, x, k, reuse_elastic=reuse)
+                rows = getattr(model, "last_volatile_rows", None)
+                if reuse:
+                    pre.update(h, rows)
+                else:
+                    pre.rebuild(h, rows)
             else:
                 e, g, gn = evaluate(model, x, k)
             if gn <= tol:
@@ -275,9 +353,10 @@ def solve_gd_chebyshev(
                     # energy went up since the checkpoint: roll back, shrink the step, restart Chebyshev
                     x, e, g, gn = ckpt
                     x_prev, omega, since_restart = None, 1.0, 0
-                    dinv = _preconditioner(model, model.hessian_diagonal(x), settings, seams)
+                    pre.rebuild(model.hessian_diagonal(x))
                     alpha *= settings.step_decrease
                     info.restarts += 1
+                    elastic_interval = 1  # a stale elastic diagonal may have caused it: fresh from now on
                     if alpha < settings.min_step:
                         info.message = f"step fell below min_step={settings.min_step:g} (energy keeps increasing)"
                         info.residual_history.append(gn)

@@ -10,6 +10,7 @@ The solvers only use the model through this interface (duck-typed, see :class:`S
 
 from __future__ import annotations
 
+import inspect
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -74,7 +75,11 @@ class SolveSettings:
         min_step: smallest allowed ``step``; the solve stops (not converged) below it.
         check_interval: iterations between energy checkpoints (energy increase -> roll back, shrink the step,
             restart Chebyshev).
-        diagonal_interval: recompute the Hessian diagonal every this many iterations (1 = every iteration).
+        diagonal_interval: rebuild the Jacobi preconditioner every this many iterations (1 = every iteration).
+        elastic_diagonal_interval: when the preconditioner is rebuilt, the diagonal of the volatile terms
+            (barriers and contact, whose stiffness changes fast) is always evaluated at the current positions;
+            that of the elastic terms (springs) only every this many iterations, and reused in between
+            (``SimModel.value_grad_hessian_diagonal(reuse_elastic=True)``). 1 = always fresh.
         preconditioner: BLOCK (3x3 block Jacobi) or SCALAR (diagonal Jacobi).
         seam_blocks: with BLOCK, precondition each seam pair (two vertices joined by a sewing spring, each in no
             other pair) with its exact 6x6 block instead of two 3x3 blocks, so that stiff seams do not freeze
@@ -104,6 +109,7 @@ class SolveSettings:
     min_step: float = 1e-6
     check_interval: int = 8
     diagonal_interval: int = 1
+    elastic_diagonal_interval: int = 4
     preconditioner: Preconditioner = Preconditioner.BLOCK
     seam_blocks: bool = True
     diagonal_floor: float = 1e-8
@@ -129,7 +135,8 @@ class SolveSettings:
             (0.0 < self.step <= 1.0, "step must lie in (0, 1]"),
             (0.0 < self.step_decrease < 1.0, "step_decrease must lie in (0, 1)"),
             (self.min_step > 0, "min_step must be > 0"),
-            (self.check_interval >= 1 and self.diagonal_interval >= 1, "check/diagonal intervals must be >= 1"),
+            (self.check_interval >= 1 and self.diagonal_interval >= 1 and self.elastic_diagonal_interval >= 1,
+             "check/diagonal intervals must be >= 1"),
             (self.diagonal_floor > 0, "diagonal_floor must be > 0"),
             (self.max_displacement is None or self.max_displacement > 0, "max_displacement must be > 0 or None"),
             (0.0 < self.armijo_c < 1.0 and 0.0 < self.backtrack < 1.0, "armijo_c and backtrack must lie in (0, 1)"),
@@ -223,15 +230,19 @@ def evaluate(model: SolverModel, x: torch.Tensor, iteration: int, what: str = ""
 
 
 def evaluate_with_diagonal(
-    model: SolverModel, x: torch.Tensor, iteration: int, what: str = ""
+    model: SolverModel, x: torch.Tensor, iteration: int, what: str = "", *, reuse_elastic: bool = False
 ) -> tuple[float, torch.Tensor, float, torch.Tensor]:
     """Like :func:`evaluate`, plus the Hessian diagonal blocks (V, 3, 3); uses the model's fused
-    ``value_grad_hessian_diagonal`` when it has one (terms share their work), else two calls."""
+    ``value_grad_hessian_diagonal`` when it has one (terms share their work), else two calls. ``reuse_elastic``
+    is passed on to models whose fused method takes it (:class:`~torchgarment.sim.scene.SimModel`)."""
     fused = getattr(model, "value_grad_hessian_diagonal", None)
     if fused is None:
         e, g, gn = evaluate(model, x, iteration, what)
         return e, g, gn, model.hessian_diagonal(x)
-    e, g, h = fused(x)
+    if reuse_elastic and _takes_reuse_elastic(fused):
+        e, g, h = fused(x, reuse_elastic=True)
+    else:
+        e, g, h = fused(x)
     ef = float(e)
     gn = float(torch.linalg.vector_norm(g))
     if not (math.isfinite(ef) and math.isfinite(gn)):
@@ -239,6 +250,14 @@ def evaluate_with_diagonal(
         bad = "energy" if not math.isfinite(ef) else "gradient"
         raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: E={ef}, |g|={gn}")
     return ef, g, gn, h
+
+
+def _takes_reuse_elastic(fn: Callable) -> bool:
+    """Whether ``fn`` accepts the keyword ``reuse_elastic``."""
+    try:
+        return "reuse_elastic" in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def checked_max_step(model: SolverModel, x: torch.Tensor, dx: torch.Tensor, iteration: int) -> float:
