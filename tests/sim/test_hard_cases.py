@@ -229,7 +229,7 @@ def test_mm_garment_scaled_to_metres_is_accepted():
 ACCEPTED_MESHES = [
     pytest.param(None, id="baseline"),
     pytest.param(set_p(1, [1e-4, 0.0]), id="short-rest-edge-0.1mm"),  # 200x shorter than the median: accepted
-    pytest.param(corner_sliver(1e-4), id="sliver-0.6deg"),  # f32 + GD: see test_sliver_float32_gd
+    pytest.param(corner_sliver(1e-4), id="sliver-0.6deg"),
     pytest.param(set_x(1, [0.0, 0.0, 0.0]), id="zero-length-3d-edge"),  # x[1] == x[0]: coincident start
     pytest.param(set_x(1, [1e-12, 0.0, 0.0]), id="near-zero-3d-edge"),
 ]
@@ -239,14 +239,8 @@ ACCEPTED_MESHES = [
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("mutate", ACCEPTED_MESHES)
 def test_degenerate_meshes_converge(mutate, dtype, solver, request):
-    if dtype == torch.float32 and solver == "gd-chebyshev":
-        # Seen: the 0.6 deg sliver stops at ~9e-4 N (10x the tolerance) and the coincident 3D edge at 1.3x the
-        # tolerance, depending on the thread count. Newton in float32 and GD in float64 converge on every case.
-        request.applymarker(pytest.mark.xfail(
-            reason="GD-Chebyshev in float32 can stop with 'step fell below min_step (energy keeps increasing)' "
-                   "or at max iterations just above the float32 force floor: its energy-increase test compares "
-                   "float32 energies whose round-off exceeds the decrease per step near convergence (fix in "
-                   "the solver: accumulate energies in float64 or allow an increase of a few eps*|E|)"))
+    """Accepted degenerate-ish meshes converge in float32 and float64 with both solvers (GD-Chebyshev compares
+    its checkpoint energies in float64, so float32 round-off does not stall it)."""
     scene = hanging_sheet(mutate, dtype=dtype)
     model = scene.build()
     # the 0.1 mm edge is a 200x stiffer spring: GD-Chebyshev gets 1.6e4x in 300 iterations (and not to the
@@ -272,11 +266,6 @@ def test_barrier_near_contact(phi0, dtype, solver, request):
     """A sheet lying ``phi0`` above the box, pinned at its corners: the start force is ``mu / phi0`` per vertex
     (1e7 N at 1e-9 m). In float32 ``0.05 + 1e-9`` rounds onto the surface: the solve must refuse that start up
     front, and after ``project_feasible`` converge like the others."""
-    if dtype == torch.float32 and solver == "gd-chebyshev":
-        # seen at phi0 = 1e-6: stops at 1.5x the tolerance after 10 restarts (same cause as below)
-        request.applymarker(pytest.mark.xfail(
-            reason="GD-Chebyshev in float32: its energy-increase test compares float32 energies whose round-off "
-                   "exceeds the decrease per step near convergence"))
     n = 6
     x, f, p = grid_sheet(n)
     x = np.stack([x[:, 0] - 0.05, np.full(n * n, 0.05 + phi0), x[:, 1] - 0.05], 1)

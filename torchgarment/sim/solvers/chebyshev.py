@@ -274,6 +274,14 @@ def chebyshev_weight(iteration: int, omega: float, rho: float, delay: int) -> fl
     return 4.0 / (4.0 - rho * rho * omega)
 
 
+def _energy_float64(model: SolverModel, x: torch.Tensor) -> float:
+    """The model's energy at ``x`` evaluated in float64 (``model.energy`` when it has one, else
+    ``value_and_grad``); the terms cast their buffers to the positions' dtype."""
+    x64 = x.detach().to(torch.float64)
+    energy = getattr(model, "energy", None)
+    return float(energy(x64) if energy is not None else model.value_and_grad(x64)[0])
+
+
 def solve_gd_chebyshev(
     model: SolverModel,
     x0: torch.Tensor,
@@ -297,7 +305,14 @@ def solve_gd_chebyshev(
     info = SolveInfo(solver=SolverKind.GD_CHEBYSHEV.value)
     rho = settings.chebyshev_rho
     alpha = settings.step
-    slack = 16.0 * torch.finfo(x0.dtype).eps
+    # Energies are compared in float64 even for a float32 solve: float32 energies carry round-off (~eps times the
+    # energy's terms) far above the decrease per iteration near convergence, which made the test below roll back
+    # good steps until the step fell below min_step. One extra float64 energy evaluation per checkpoint.
+    low_precision = x0.dtype != torch.float64
+    slack = 16.0 * torch.finfo(torch.float64).eps
+
+    def check_energy(xc: torch.Tensor, ec: float) -> float:
+        return _energy_float64(model, xc) if low_precision else ec
 
     with torch.no_grad():
         x = x0.detach().clone()
@@ -308,6 +323,7 @@ def solve_gd_chebyshev(
         info.energy_history.append(e)
         tol = tolerance(settings, gn)
         ckpt = (x, e, g, gn)
+        e_ck = check_energy(x, e)
         x_prev: torch.Tensor | None = None
         omega = 1.0
         since_restart = 0
@@ -348,8 +364,8 @@ def solve_gd_chebyshev(
             if gn <= tol:
                 info.converged, info.message = True, "converged"
             elif k % settings.check_interval == 0:
-                e_ck = ckpt[1]
-                if e > e_ck + slack * max(abs(e_ck), abs(e)):
+                e_now = check_energy(x, e)
+                if e_now > e_ck + slack * max(abs(e_ck), abs(e_now)):
                     # energy went up since the checkpoint: roll back, shrink the step, restart Chebyshev
                     x, e, g, gn = ckpt
                     x_prev, omega, since_restart = None, 1.0, 0
@@ -363,7 +379,7 @@ def solve_gd_chebyshev(
                         info.energy_history.append(e)
                         break
                 else:
-                    ckpt = (x, e, g, gn)
+                    ckpt, e_ck = (x, e, g, gn), e_now
             info.residual_history.append(gn)
             info.energy_history.append(e)
             if callback is not None and callback(k, x, gn, e) and not info.converged:
