@@ -407,11 +407,15 @@ def size6_body():
 
 
 @pytest.mark.parametrize("solver", SOLVERS)
-@pytest.mark.parametrize("part, upper, lower", [pytest.param("wrist", "lowerarm02.L", "wrist.L", id="wrist")])
-def test_sleeve_on_real_thin_body_part(size6_body, part, upper, lower, solver):
-    """A sewn tube around the real wrist (forearm to hand) of the chart's smallest body, on its
-    2.5 mm SDF: converges, and no vertex is inside the body by the exact distance to the body mesh (not only
-    by the SDF), so the SDF resolves these thin parts."""
+@pytest.mark.parametrize("part, upper, lower, height, ease", [
+    pytest.param("wrist", "lowerarm02.L", "wrist.L", 0.08, 1.35, id="wrist"),
+    # a collar band from the base of the neck upwards, below the jaw
+    pytest.param("neck", "head", "neck01", 0.045, 1.3, id="neck"),
+])
+def test_sleeve_on_real_thin_body_part(size6_body, part, upper, lower, height, ease, solver):
+    """A sewn tube around a real thin body part of the chart's smallest body (the wrist, from forearm to hand;
+    the neck, a collar band), on its 2.5 mm SDF: converges, and no vertex is inside the body by the exact
+    distance to the body mesh (not only by the SDF), so the SDF resolves these thin parts."""
     import igl
 
     body = size6_body
@@ -427,11 +431,11 @@ def test_sleeve_on_real_thin_body_part(size6_body, part, upper, lower, solver):
     v, f = body.vertices.detach().numpy(), body.faces.numpy()
     keep = (np.linalg.norm(v[f].mean(axis=1) - centre, axis=1) < 0.15)
     sdf = BodySDF.from_mesh(v, f[keep], SDFSettings(voxel_size=0.0025))
-    g = mesh_pattern(tube_pattern(radius, 0.08, gap=0.012, ease=1.35), 0.01)
+    g = mesh_pattern(tube_pattern(radius, height, gap=0.012, ease=ease), 0.01)
     rot = torch.as_tensor(_rotation_y_to(axis), dtype=torch.float64)
     x = g.x @ rot.T + torch.as_tensor(centre, dtype=torch.float64)
     g = g.with_positions(x)
-    top = torch.nonzero(g.p[:, 1] > 0.08 - 1e-6).flatten()
+    top = torch.nonzero(g.p[:, 1] > height - 1e-6).flatten()
     scene = Scene(g, body_sdf=sdf, pin_indices=top)
     model = scene.build()
     x0 = model.project_feasible(g.x)
