@@ -12,10 +12,11 @@ barrier (SDF of ``Body.from_size(--body-size)`` at ``--voxel-mm``, from the disk
 and then ``--warmup`` GD-Chebyshev iterations (some vertices close to the body, as in a real drape). Measured in
 the same process, with ``torch.set_num_threads(--threads)``:
 
-* ``ms_per_iteration``: wall time between consecutive solver callbacks (default :class:`SolveSettings`, so the
-  Hessian diagonal is recomputed every iteration): gradient, Hessian diagonal, preconditioner, Chebyshev
-  update and step bound; ``ms_per_iteration_diagonal_interval``: the same with the diagonal recomputed only
-  every ``--diagonal-interval`` iterations;
+* ``ms_per_iteration``: wall time between consecutive solver callbacks with the default :class:`SolveSettings`
+  (the preconditioner is rebuilt every iteration with the barrier's rows fresh; the springs' diagonal is
+  refreshed every ``elastic_diagonal_interval`` = 4 iterations): gradient, Hessian diagonal, preconditioner,
+  Chebyshev update and step bound; ``ms_per_iteration_diagonal_interval``: the same with the whole
+  preconditioner rebuilt only every ``--diagonal-interval`` iterations;
 * ``ms_bare_spring``: the baseline, one stretch ``value_and_grad`` (energy and gradient of the springs alone)
   on the same mesh and state;
 * per effect: ``ms_value_grad`` and ``ms_value_grad_diag`` of its term alone on fresh positions (no cache

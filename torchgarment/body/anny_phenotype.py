@@ -28,7 +28,9 @@ the published 5th-95th percentile spread (about 23 cm) of the same tables. The g
 (:data:`GIRTH_RANGES`) bracket the 5th-95th percentiles of the same report (adult waist circumference about
 75-125 cm for women, 80-130 cm for men) and of the US Army's ANSUR II survey (C. C. Gordon et al., "2012
 Anthropometric Survey of U.S. Army Personnel", NATICK/TR-15/007, 2014) for chest and buttock (hip) girths,
-widened by a few centimetres. The ``weight`` range and the girth factor were chosen by measuring the sampled
+widened by a few centimetres. (These figures are quoted from the cited reports as remembered when this module
+was written; they could not be re-checked against the reports in the offline environment it was built in, so
+treat them as approximate and check them before relying on the exact values.) The ``weight`` range and the girth factor were chosen by measuring the sampled
 bodies (:func:`torchgarment.body.measure.measure_body`). Measured on 40 default (female) samples, seed 1: stature
 mean 159.5 cm (5th-95th percentile 148.6-169.0), bust 93.7 (82.7-105.7), waist 75.6 (65.6-85.5), hips 104.0
 (93.3-116.6) cm; 39 of 40 inside :data:`GIRTH_RANGES` (one waist of 59.8 cm). Limitation: the statures match
