@@ -131,3 +131,29 @@ def test_settings_validation():
         RetargetSettings(step_bound="nope")
     with pytest.raises(InputError):
         RetargetSettings(broad_phase="Nope")
+
+
+def test_moving_a_skeleton_joint_moves_the_hem():
+    """Paper Fig. 9: the positional term keeps boundary loops at their coordinate along the nearest bone, so
+    lowering the target's hip joint lowers the hem (the loop nearest to it) while the collar stays."""
+    from torchgarment.body.skeleton import Skeleton
+
+    def run(hip_drop: float):
+        c = toy_case()
+        tj = c.target_skeleton.joints.clone()
+        tj[0, 1] -= hip_drop
+        target = Skeleton(tj, c.target_skeleton.bones.clone(), list(c.target_skeleton.names))
+        p = problem_from_arrays(c.garment_vertices, c.garment_faces, c.source_skeleton, c.target_vertices,
+                                c.target_faces, target, source_avatar=(c.source_vertices, c.source_faces))
+        r = retarget(p, progress=False)
+        assert r.metrics["intersections"] == 0
+        y = r.garment_vertices[:, 1]
+        y0 = c.garment_vertices[:, 1]
+        hem = y0 < float(y0.min()) + 1e-6
+        collar = y0 > float(y0.max()) - 1e-6
+        return float(y[hem].mean()), float(y[collar].mean())
+
+    hem_a, collar_a = run(0.0)
+    hem_b, collar_b = run(0.15)
+    assert hem_b < hem_a - 0.05, f"hem moved {1e3 * (hem_b - hem_a):.0f} mm for a 150 mm joint drop"
+    assert abs(collar_b - collar_a) < 0.5 * abs(hem_b - hem_a)
