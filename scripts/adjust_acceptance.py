@@ -327,18 +327,29 @@ def main(argv: list[str] | None = None) -> int:
                          "4 cm hip ease); a 0.0 row (target = base body) is run as the noise-floor control")
     ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    ap.add_argument("--weights", type=json.loads, default=None,
+                    help='cost weights overriding the paper\'s, as JSON, e.g. \'{"fixing": 4, "curvature": 1600}\'')
+    ap.add_argument("--only", choices=("manufactured", "grading", "hips"), nargs="+", default=None,
+                    help="run only these checks (default all)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     it = args.iterations if args.iterations is not None else (16 if args.quick else 32)
-    settings = AdjustSettings(edge_length=args.edge_length, voxel_size=args.voxel, iterations=it, exact_interval=8)
+    from torchgarment.adjust.objective import CostWeights
+
+    weights = CostWeights.from_dict(args.weights) if args.weights else None
+    settings = AdjustSettings(edge_length=args.edge_length, voxel_size=args.voxel, iterations=it, exact_interval=8,
+                              weights=weights)
     base = Body.from_size("12")
     skirt = draft("straight_skirt", chart_row("12"))
     sizes = ["20", "6"] if args.quick else ["16", "20", "8", "6"]
     garments = ["straight_skirt"] if args.quick else ["straight_skirt", "tshirt"]
     jobs = [("ms", s) for s in (1.05, 0.95)] + [("grade", (g, t)) for g in garments for t in sizes] + \
         [("hips", 0.0), ("hips", args.hips)]
+    only = set(args.only or ("manufactured", "grading", "hips"))
+    jobs = [j for j in jobs if {"ms": "manufactured", "grade": "grading", "hips": "hips"}[j[0]] in only]
     results = {"settings": {"edge_length": settings.edge_length, "voxel_size": settings.voxel_size,
-                            "iterations": it, "optimizer": "pgd", "exact_interval": settings.exact_interval},
+                            "iterations": it, "optimizer": "pgd", "exact_interval": settings.exact_interval,
+                            "weights": (weights or CostWeights()).to_dict()},
                "manufactured": [], "grading": [], "hips_only": []}
     t0 = time.perf_counter()
     for kind, arg in tqdm(jobs, desc="acceptance", unit="case", file=sys.stderr):

@@ -103,6 +103,28 @@ def test_weights_turn_terms_off_and_scale_them():
 def test_paper_default_weights():
     w = CostWeights()
     assert (w.fixing, w.curvature, w.distance, w.smoothness, w.stretching, w.positional) == (100, 1e6, 1, 0.05, 1, 100)
+    assert w.reference_edge_length is None  # the paper's coefficients as given unless asked
+
+
+def test_resolution_factors_rescale_the_regularizers():
+    """On a mesh of edge length h the regularizers are rescaled by (h_ref/h)^(1, 3, 4); at h = h_ref, or with the
+    normalization off, they are the coefficients as given."""
+    from torchgarment.adjust.objective import resolution_factors
+
+    assert resolution_factors(0.05, None) == {"fixing": 1.0, "seam": 1.0, "curvature": 1.0}
+    f = resolution_factors(0.04, 0.008)
+    assert abs(f["fixing"] - 0.2) < 1e-12 and abs(f["seam"] - 0.008) < 1e-12 and abs(f["curvature"] - 0.0016) < 1e-12
+    assert resolution_factors(0.008, 0.008) == {"fixing": 1.0, "seam": 1.0, "curvature": 1.0}
+    with pytest.raises(InputError):
+        resolution_factors(0.0, 0.008)
+    with pytest.raises(InputError):
+        CostWeights(reference_edge_length=-1.0).validate()
+    _, mesh, P = setup()
+    raw = objective()
+    norm = objective(weights=CostWeights(reference_edge_length=0.008))
+    r = 0.008 / norm.edge_length
+    assert abs(norm.regularizers["fixing"].weight - r * raw.regularizers["fixing"].weight) < 1e-9
+    assert abs(norm.regularizers["curvature"].weight - r ** 4 * raw.regularizers["curvature"].weight) < 1e-6
 
 
 def test_regularizer_hessian_is_spd_and_matches_regularizers():
@@ -113,13 +135,14 @@ def test_regularizer_hessian_is_spd_and_matches_regularizers():
     assert H.shape == (n, n)
     assert abs(H - H.T).max() < 1e-6
     ev = np.linalg.eigvalsh(H.toarray())
-    assert ev.min() >= 100.0 - 1e-6  # fixing adds delta_fix * I to PSD parts
+    fix = 100.0 * obj.resolution_factors["fixing"]  # the effective delta_fix on this mesh
+    assert ev.min() >= fix * (1 - 1e-9)  # fixing adds delta_fix * I to PSD parts
     # it is the Hessian of the regularizers at the base pattern along T-fixed directions: for a translation of a
     # panel (curvature, seam-free direction) it is delta_fix exactly
     d = torch.zeros(P.num_boundary, 2, dtype=torch.float64)
     d[:, 0] = 1.0
     v = d.reshape(-1).numpy()
-    assert float(v @ (H @ v)) == pytest.approx(100.0 * P.num_boundary, rel=1e-9)
+    assert float(v @ (H @ v)) == pytest.approx(fix * P.num_boundary, rel=1e-9)
     # without the fixing term a tiny identity keeps it positive definite
     obj0 = objective(weights=CostWeights(fixing=0.0))
     assert np.linalg.eigvalsh(obj0.regularizer_hessian().toarray()).min() > 0
