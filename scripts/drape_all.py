@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sew-solver", default="gd-chebyshev")
     ap.add_argument("--solver", default="newton")
     ap.add_argument("--sew-iterations", type=int, default=800)
-    ap.add_argument("--max-iterations", type=int, default=150)
+    ap.add_argument("--max-iterations", type=int, default=1500)
     ap.add_argument("--only", nargs="+", help="garment names to run (default all)")
     ap.add_argument("--data", type=Path, default=DATA, help="GarmentCode data folder")
     ap.add_argument("--json", type=Path, help="write all metrics to this JSON file")

@@ -141,3 +141,31 @@ def test_inflation_reaches_t1_and_keeps_garment_outside():
     radius = x[:, [0, 2]].norm(dim=1)
     assert float(radius.min()) > 0.17 * t * math.cos(math.pi / 16) - 1e-3
     assert not c.has_intersections(x, t)
+
+
+def test_newton_solve_reuses_its_factorization_through_pcg():
+    """With a FactorCache the first system is factorized; a nearby one is solved by CG preconditioned with that
+    factorization (no new factorization), to the requested relative residual, as a descent direction."""
+    import scipy.sparse as sp
+
+    from torchgarment.retarget.solver import FactorCache, _solve
+
+    rng = np.random.default_rng(0)
+    n = 300
+    a = sp.random(n, n, density=0.02, random_state=1)
+    h1 = (a @ a.T + sp.identity(n)).tocsr()
+    g = rng.standard_normal(n)
+    cache = FactorCache()
+    p1, _ = _solve(h1, g, 1e-8, cache)
+    assert cache.factorizations == 1 and cache.pcg_solves == 0
+    np.testing.assert_allclose(h1 @ p1, -g, rtol=1e-6, atol=1e-6)  # up to the 1e-8 diagonal shift
+    h2 = (h1 + 0.05 * sp.diags(rng.uniform(0.0, 1.0, n))).tocsr()  # the next Newton system, a little stiffer
+    p2, _ = _solve(h2, g, 1e-8, cache, rtol=1e-6, maxiter=50)
+    assert cache.factorizations == 1 and cache.pcg_solves == 1
+    assert float(p2 @ g) < 0
+    assert np.linalg.norm(h2 @ p2 + g) <= 1e-6 * np.linalg.norm(g) * 1.0001
+    # a system far from the cached one: CG gives up within maxiter and a fresh factorization is made
+    h3 = (h1 + 1e3 * sp.diags(rng.uniform(0.0, 1.0, n))).tocsr()
+    p3, _ = _solve(h3, g, 1e-8, cache, rtol=1e-10, maxiter=2)
+    assert cache.factorizations == 2
+    np.testing.assert_allclose(h3 @ p3, -g, rtol=1e-5, atol=1e-5)

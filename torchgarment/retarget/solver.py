@@ -168,6 +168,13 @@ class NewtonSettings:
         stiffness_distance: see ``update_stiffness`` (IPC's default is 1e-9 of the scene's diagonal).
         energy_tol: also stop (converged, reason "energy") when the energy fell by less than
             ``energy_tol * |E|`` over the last ``energy_window`` iterations; 0 disables it.
+        reuse_factorization: solve each Newton system by conjugate gradients preconditioned with the last
+            sparse LU factorization (an inexact Newton step, to relative residual ``pcg_rtol``), and factorize
+            afresh only when that takes more than ``pcg_max_iterations`` iterations or does not give a descent
+            direction. The Hessian changes little from one iteration to the next, so most iterations cost a
+            few triangular solves instead of a factorization (0.36 s at 6K garment vertices).
+        pcg_rtol: relative residual of the preconditioned CG solve.
+        pcg_max_iterations: CG iterations before a fresh factorization.
     """
 
     max_iterations: int = 100
@@ -182,11 +189,16 @@ class NewtonSettings:
     stiffness_distance: float = 0.1
     energy_tol: float = 0.0
     energy_window: int = 3
+    reuse_factorization: bool = True
+    pcg_rtol: float = 1e-2
+    pcg_max_iterations: int = 25
 
     def __post_init__(self) -> None:
         self.step_bound = StepBound.resolve(self.step_bound)
         if self.max_iterations < 0 or not self.grad_tol >= 0 or not self.step_tol >= 0:
             raise InputError("NewtonSettings: max_iterations, grad_tol and step_tol must be non-negative")
+        if not (0 < self.pcg_rtol < 1) or self.pcg_max_iterations < 1:
+            raise InputError("NewtonSettings: pcg_rtol must lie in (0, 1) and pcg_max_iterations be >= 1")
         if self.max_move is not None and not self.max_move > 0:
             raise InputError(f"NewtonSettings.max_move must be positive, got {self.max_move}")
 
@@ -249,8 +261,44 @@ def collision_free_step(contact: Contact, x0: np.ndarray, t0: float, dx: np.ndar
     return float(cand.compute_collision_free_stepsize(contact.mesh, X0, X1, 0.0, narrow))
 
 
-def _solve(h: sp.csr_matrix, g: np.ndarray, shift: float) -> tuple[np.ndarray, float]:
-    """Solve (H + mu I) p = -g, raising mu until the factorisation works and p is a descent direction."""
+class FactorCache:
+    """The last sparse LU factorization of a Newton system, reused as a CG preconditioner (see
+    :attr:`NewtonSettings.reuse_factorization`).
+
+    Attributes:
+        lu: the SuperLU object, or None. mu: its diagonal shift. factorizations, pcg_solves: counters.
+    """
+
+    def __init__(self) -> None:
+        self.lu = None
+        self.mu = 0.0
+        self.factorizations = 0
+        self.pcg_solves = 0
+
+
+def _pcg(h: sp.csr_matrix, g: np.ndarray, cache: FactorCache, rtol: float, maxiter: int) -> np.ndarray | None:
+    """``p`` with ``(H + mu I) p ~ -g`` by CG preconditioned with the cached factorization; None when CG does not
+    reach ``rtol`` within ``maxiter`` iterations or ``p`` is not a descent direction."""
+    n = h.shape[0]
+    if cache.lu is None or cache.lu.shape != (n, n):
+        return None
+    a = h + cache.mu * sp.identity(n, format="csr") if cache.mu > 0 else h
+    m = spla.LinearOperator((n, n), matvec=cache.lu.solve, dtype=np.float64)
+    p, info = spla.cg(a, -g, rtol=rtol, atol=0.0, maxiter=maxiter, M=m)
+    if info != 0 or not np.all(np.isfinite(p)) or float(p @ g) >= 0:
+        return None
+    cache.pcg_solves += 1
+    return p
+
+
+def _solve(h: sp.csr_matrix, g: np.ndarray, shift: float, cache: FactorCache | None = None,
+           rtol: float = 1e-2, maxiter: int = 25) -> tuple[np.ndarray, float]:
+    """Solve (H + mu I) p = -g, raising mu until the factorisation works and p is a descent direction. With a
+    ``cache``, first try CG preconditioned by the cached factorization, and store a fresh one in it."""
+    if cache is not None:
+        p = _pcg(h, g, cache, rtol, maxiter)
+        if p is not None:
+            return p, cache.mu
     n = h.shape[0]
     diag = np.abs(h.diagonal())
     scale = float(diag.mean()) if diag.size and diag.mean() > 0 else 1.0
@@ -263,6 +311,9 @@ def _solve(h: sp.csr_matrix, g: np.ndarray, shift: float) -> tuple[np.ndarray, f
                            options={"SymmetricMode": True})
             p = lu.solve(-g)
             if np.all(np.isfinite(p)) and float(p @ g) < 0:
+                if cache is not None:
+                    cache.lu, cache.mu = lu, mu
+                    cache.factorizations += 1
                 return p, mu
         except RuntimeError:
             pass
@@ -311,6 +362,7 @@ def projected_newton(
     bound_time = 0.0
     reason, converged, it = "max_iterations", False, 0
     shift = 1e-8
+    cache = FactorCache() if s.reuse_factorization else None
     for it in range(1, s.max_iterations + 1):
         gf = g[free]
         gn = float(np.linalg.norm(gf))
@@ -319,7 +371,7 @@ def projected_newton(
             reason, converged, it = "gradient", True, it - 1
             break
         h = objective.hessian(x, t).tocsr()[free][:, free]
-        pf, _ = _solve(h, gf, shift)
+        pf, _ = _solve(h, gf, shift, cache, s.pcg_rtol, s.pcg_max_iterations)
         p = np.zeros(n3 + 1)
         p[free] = pf
         dx = p[:n3].reshape(-1, 3)
