@@ -479,7 +479,13 @@ class InexactRunner:
         st, p, q = self.settings, self.problem, self.q
         stopped = "iteration budget"
         if self.start_objective is None:
-            ev = p.evaluate(q, exact=True, need_grad=False)
+            budget = p.exact_settings
+            # the first solve may start from a state that is not this pattern's equilibrium: a larger budget
+            p.exact_settings = replace(budget, max_iterations=4 * budget.max_iterations)
+            try:
+                ev = p.evaluate(q, exact=True, need_grad=False)
+            finally:
+                p.exact_settings = budget
             self.start_objective = ev.objective
             self.checkpoint = self._snapshot(q, ev.objective, p.x, copy.deepcopy(self.optimizer.state_dict()))
         while self.iteration < iterations:
