@@ -148,7 +148,8 @@ def test_newton_solve_reuses_its_factorization_through_pcg():
     factorization (no new factorization), to the requested relative residual, as a descent direction."""
     import scipy.sparse as sp
 
-    from torchgarment.retarget.solver import FactorCache, _solve
+    from torchgarment.retarget.solver import _solve
+    from torchgarment.sim.solvers.common import FactorCache
 
     rng = np.random.default_rng(0)
     n = 300

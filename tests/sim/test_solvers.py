@@ -407,3 +407,29 @@ def test_seam_block_inverse_is_the_exact_6x6_block_inverse():
         dense[3 * j:3 * j + 3, 3 * i:3 * i + 3] = -k * torch.eye(3, dtype=torch.float64)
     expected = torch.linalg.solve(dense, g.reshape(-1)).view(V, 3)
     torch.testing.assert_close(out, expected, rtol=1e-7, atol=1e-12)
+
+
+def test_newton_reusing_its_factorization_reaches_the_same_equilibrium(monkeypatch):
+    """SolveSettings.reuse_factorization: CG preconditioned by the last LU (inexact Newton) converges to the same
+    equilibrium as plain Newton, with fewer factorizations."""
+    import scipy.sparse.linalg
+
+    m = SpringNetModel(n=8)
+    calls = {"n": 0}
+    splu = scipy.sparse.linalg.splu
+
+    def counting(*a, **kw):  # noqa: ANN002, ANN003, ANN202
+        calls["n"] += 1
+        return splu(*a, **kw)
+
+    monkeypatch.setattr(scipy.sparse.linalg, "splu", counting)
+    st = dict(rtol=1e-10, atol=0.0, max_iterations=200)
+    xa, ia = solve(m, m.x0(), SolveSettings(**st), solver="newton")
+    plain = calls["n"]
+    calls["n"] = 0
+    xb, ib = solve(m, m.x0(), SolveSettings(reuse_factorization=True, **st), solver="newton")
+    assert ia.converged and ib.converged
+    assert calls["n"] < plain, (calls["n"], plain)
+    torch.testing.assert_close(xb, xa, rtol=0.0, atol=1e-7)
+    with pytest.raises(InputError):
+        SolveSettings(pcg_rtol=1.5).validate()

@@ -40,6 +40,7 @@ from torch import nn
 from torchgarment.errors import InputError
 from torchgarment.options import OptionEnum
 from torchgarment.retarget.objectives import Contact, RetargetTerm, _t_tensor
+from torchgarment.sim.solvers.common import FactorCache
 
 
 class StepBound(OptionEnum):
@@ -261,44 +262,14 @@ def collision_free_step(contact: Contact, x0: np.ndarray, t0: float, dx: np.ndar
     return float(cand.compute_collision_free_stepsize(contact.mesh, X0, X1, 0.0, narrow))
 
 
-class FactorCache:
-    """The last sparse LU factorization of a Newton system, reused as a CG preconditioner (see
-    :attr:`NewtonSettings.reuse_factorization`).
-
-    Attributes:
-        lu: the SuperLU object, or None. mu: its diagonal shift. factorizations, pcg_solves: counters.
-    """
-
-    def __init__(self) -> None:
-        self.lu = None
-        self.mu = 0.0
-        self.factorizations = 0
-        self.pcg_solves = 0
-
-
-def _pcg(h: sp.csr_matrix, g: np.ndarray, cache: FactorCache, rtol: float, maxiter: int) -> np.ndarray | None:
-    """``p`` with ``(H + mu I) p ~ -g`` by CG preconditioned with the cached factorization; None when CG does not
-    reach ``rtol`` within ``maxiter`` iterations or ``p`` is not a descent direction."""
-    n = h.shape[0]
-    if cache.lu is None or cache.lu.shape != (n, n):
-        return None
-    a = h + cache.mu * sp.identity(n, format="csr") if cache.mu > 0 else h
-    m = spla.LinearOperator((n, n), matvec=cache.lu.solve, dtype=np.float64)
-    p, info = spla.cg(a, -g, rtol=rtol, atol=0.0, maxiter=maxiter, M=m)
-    if info != 0 or not np.all(np.isfinite(p)) or float(p @ g) >= 0:
-        return None
-    cache.pcg_solves += 1
-    return p
-
-
 def _solve(h: sp.csr_matrix, g: np.ndarray, shift: float, cache: FactorCache | None = None,
            rtol: float = 1e-2, maxiter: int = 25) -> tuple[np.ndarray, float]:
     """Solve (H + mu I) p = -g, raising mu until the factorisation works and p is a descent direction. With a
     ``cache``, first try CG preconditioned by the cached factorization, and store a fresh one in it."""
     if cache is not None:
-        p = _pcg(h, g, cache, rtol, maxiter)
-        if p is not None:
-            return p, cache.mu
+        p = cache.solve(h, -g, rtol, maxiter)
+        if p is not None and float(p @ g) < 0:
+            return p, cache.shift
     n = h.shape[0]
     diag = np.abs(h.diagonal())
     scale = float(diag.mean()) if diag.size and diag.mean() > 0 else 1.0
@@ -312,8 +283,7 @@ def _solve(h: sp.csr_matrix, g: np.ndarray, shift: float, cache: FactorCache | N
             p = lu.solve(-g)
             if np.all(np.isfinite(p)) and float(p @ g) < 0:
                 if cache is not None:
-                    cache.lu, cache.mu = lu, mu
-                    cache.factorizations += 1
+                    cache.store(lu, mu)
                 return p, mu
         except RuntimeError:
             pass

@@ -77,6 +77,9 @@ class DrapeSettings:
             within its own weight and the total unbalanced force is negligible against gravity.
         max_iterations: iteration budget of the settle stage (a converged drape stops early; the tight
             GarmentCode pencil dress needs about 1,150 Newton iterations as its skirt slides into place).
+        reuse_factorization: the settle stage's Newton reuses its last factorization as a CG preconditioner
+            (``SolveSettings.reuse_factorization``). Measured on the straight skirt, size 12: 7,349 vertices
+            settle in 62.6 s instead of 96.8 s (138 and 136 iterations), 1,877 vertices in 5.5 s instead of 7.2 s.
         max_displacement: GD trust region per iteration in metres.
         check_interval: iterations between seam-gap checks in the sewing stage.
         max_seam_gap: largest acceptable seam gap in metres for :attr:`DrapeResult.ok`.
@@ -96,6 +99,7 @@ class DrapeSettings:
     rtol: float = 0.0
     atol_weight: float = 1.0e-3
     max_iterations: int = 1500
+    reuse_factorization: bool = True
     max_displacement: float | None = 0.01
     check_interval: int = 5
     max_seam_gap: float = 1.0e-3
@@ -307,7 +311,8 @@ def drape(
     scene = Scene(mesh, body_sdf=sdf, effects=base | {Effect.GRAVITY}, material=final_mat)
     weight = float(mesh.rest_face_areas.abs().sum()) * mat.density * mat.gravity if mesh.p is not None else 0.0
     settle_settings = SolveSettings(rtol=settings.rtol, atol=settings.atol_weight * weight,
-                                    max_iterations=settings.max_iterations, max_displacement=settings.max_displacement)
+                                    max_iterations=settings.max_iterations, max_displacement=settings.max_displacement,
+                                    reuse_factorization=settings.reuse_factorization)
     model = scene.build()
     x_start = model.project_feasible(x)
     energy_start = float(model.value_and_grad(x_start)[0])

@@ -24,6 +24,7 @@ import torch
 from torchgarment.sim.solvers.common import (
     Callback,
     CSRAssembler,
+    FactorCache,
     NonFiniteError,
     SolveInfo,
     SolverKind,
@@ -43,8 +44,10 @@ LEVENBERG_RETRIES = 8
 """Damped directions tried (``lambda`` tenfold each) before a failed line search stops the solve."""
 
 
-def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray) -> np.ndarray | None:
-    """Solve ``h y = rhs`` with SuperLU (symmetric mode); None if the factorization fails or is not finite."""
+def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, cache: FactorCache | None = None,
+                 shift: float = 0.0) -> np.ndarray | None:
+    """Solve ``h y = rhs`` with SuperLU (symmetric mode); None if the factorization fails or is not finite. With
+    a ``cache``, a successful factorization is stored in it (as one of ``h`` made with diagonal ``shift``)."""
     try:
         lu = scipy.sparse.linalg.splu(
             h.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
@@ -52,11 +55,16 @@ def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray) -> np.ndarray | No
         y = lu.solve(rhs)
     except RuntimeError:  # "Factor is exactly singular"
         return None
-    return y if np.all(np.isfinite(y)) else None
+    if not np.all(np.isfinite(y)):
+        return None
+    if cache is not None:
+        cache.store(lu, shift)
+    return y
 
 
 def newton_direction(
-    h: scipy.sparse.csr_matrix, g: np.ndarray, settings: SolveSettings, iteration: int
+    h: scipy.sparse.csr_matrix, g: np.ndarray, settings: SolveSettings, iteration: int,
+    cache: FactorCache | None = None,
 ) -> tuple[np.ndarray, int]:
     """A descent direction ``dx`` solving ``(H + lambda I) dx = -g``, regularizing when needed.
 
@@ -65,6 +73,8 @@ def newton_direction(
         g: (3V,) gradient (float64).
         settings: solve settings (regularization, max_regularizations).
         iteration: for error messages.
+        cache: with one, first try CG preconditioned by the cached factorization
+            (``settings.reuse_factorization``), and keep every fresh factorization in it.
 
     Returns:
         ``(dx, retries)``: the direction (3V,) and how many regularized factorizations were needed.
@@ -72,14 +82,18 @@ def newton_direction(
     Raises:
         NonFiniteError: no descent direction was found after ``max_regularizations`` retries.
     """
-    dx = sparse_solve(h, -g)
+    if cache is not None:
+        dx = cache.solve(h, -g, settings.pcg_rtol, settings.pcg_max_iterations)
+        if dx is not None and float(g @ dx) < 0.0:
+            return dx, 0
+    dx = sparse_solve(h, -g, cache)
     if dx is not None and float(g @ dx) < 0.0:
         return dx, 0
     scale = float(np.abs(h.diagonal()).mean()) or 1.0
     eye = scipy.sparse.identity(h.shape[0], format="csr", dtype=np.float64)
     lam = settings.regularization * scale
     for retry in range(1, settings.max_regularizations + 1):
-        dx = sparse_solve((h + lam * eye).tocsr(), -g)
+        dx = sparse_solve((h + lam * eye).tocsr(), -g, cache, lam)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, retry
         lam *= 10.0
@@ -124,6 +138,7 @@ def solve_newton(
 
         k = 0
         damping = 0.0  # Levenberg damping carried between iterations (0: plain projected Newton)
+        cache = FactorCache() if settings.reuse_factorization else None
         while not info.converged and k < max_iterations:
             k += 1
             h = assembler.assemble(model.hessian_blocks(x, project_psd=settings.project_psd))
@@ -135,7 +150,7 @@ def solve_newton(
             trial = 0
             while not accepted and trial <= LEVENBERG_RETRIES:
                 hk = h if damping == 0.0 else (h + scipy.sparse.diags(damping * diag, format="csr")).tocsr()
-                dx64, retries = newton_direction(hk, g64, settings, k)
+                dx64, retries = newton_direction(hk, g64, settings, k, cache if damping == 0.0 else None)
                 info.restarts += retries
                 slope = float(g64 @ dx64)  # < 0
                 dx = torch.from_numpy(dx64).to(device=x.device, dtype=x.dtype).reshape(x.shape)
