@@ -16,6 +16,7 @@ import warnings
 
 import torch
 
+from torchgarment.adjust.linear_map import StoredTransposeMatmul
 from torchgarment.errors import InputError
 from torchgarment.structures.garment_mesh import GarmentMesh
 
@@ -31,20 +32,6 @@ def _csr(indptr: torch.Tensor, indices: torch.Tensor, values: torch.Tensor, shap
     with warnings.catch_warnings():  # "sparse CSR support is in beta"
         warnings.simplefilter("ignore", UserWarning)
         return torch.sparse_csr_tensor(indptr, indices, values, size=shape, check_invariants=False)
-
-
-class _SparseApply(torch.autograd.Function):
-    """``A @ x`` for a constant sparse CSR ``A``, with the stored transpose in backward (no index scatter)."""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor, A: torch.Tensor, AT: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        ctx.A, ctx.AT = A, AT
-        return A @ x
-
-    @staticmethod
-    def backward(ctx, g: torch.Tensor) -> tuple[torch.Tensor, None, None]:  # type: ignore[override]
-        # linear, so the backward is itself differentiable (double backward for Hessian-vector products)
-        return _SparseApply.apply(g.contiguous(), ctx.AT, ctx.A), None, None
 
 
 class SparseRows(torch.nn.Module):
@@ -77,7 +64,7 @@ class SparseRows(torch.nn.Module):
         A, AT = self.A, self.AT
         if A.dtype != x.dtype:
             A, AT = A.to(x.dtype), AT.to(x.dtype)
-        return _SparseApply.apply(x, A, AT)
+        return StoredTransposeMatmul.apply(x, A, AT)
 
 
 def _check(x: torch.Tensor, p: torch.Tensor | None, V: int, who: str) -> None:

@@ -45,6 +45,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
+from torchgarment.adjust.linear_map import StoredTransposeMatmul
 from torchgarment.errors import MeshError
 from torchgarment.options import OptionEnum
 from torchgarment.structures.garment_mesh import GarmentMesh
@@ -146,19 +147,6 @@ class _FactorizedMap(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g: torch.Tensor) -> tuple[torch.Tensor, None, None]:  # type: ignore[override]
         return _FactorizedMap.apply(g.contiguous(), ctx.param, not ctx.transpose), None, None
-
-
-class _ExplicitMap(torch.autograd.Function):
-    """``d_I = M d_B`` with a stored sparse (block-diagonal dense) ``M`` and its stored transpose."""
-
-    @staticmethod
-    def forward(ctx, dq: torch.Tensor, M: torch.Tensor, MT: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        ctx.M, ctx.MT = M, MT
-        return M @ dq
-
-    @staticmethod
-    def backward(ctx, g: torch.Tensor) -> tuple[torch.Tensor, None, None]:  # type: ignore[override]
-        return _ExplicitMap.apply(g.contiguous(), ctx.MT, ctx.M), None, None
 
 
 class BoundaryParametrization(torch.nn.Module):
@@ -351,7 +339,7 @@ class BoundaryParametrization(torch.nn.Module):
         if dq.shape != (self.num_boundary, 2):
             raise MeshError(f"dq must be ({self.num_boundary}, 2), got {tuple(dq.shape)}")
         if self.solve is ParametrizationSolve.EXPLICIT:
-            di = _ExplicitMap.apply(dq, self._M.to(dtype=dq.dtype), self._MT.to(dtype=dq.dtype))
+            di = StoredTransposeMatmul.apply(dq, self._M.to(dtype=dq.dtype), self._MT.to(dtype=dq.dtype))
         else:
             di = _FactorizedMap.apply(dq, self, False)
         d = torch.zeros(self.num_vertices, 2, dtype=dq.dtype, device=dq.device)
