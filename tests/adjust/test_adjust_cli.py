@@ -55,6 +55,9 @@ def test_bad_input(tmp_path):
     with pytest.raises(InputError, match="iterations"):
         cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
                            "--out", str(tmp_path), "--iterations", "-1"]))
+    with pytest.raises(InputError, match="reference_edge_length"):
+        cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
+                           "--out", str(tmp_path), "--reference-edge-length", "-1"]))
     with pytest.raises(SystemExit):
         _parse(["--garment", "straight_skirt", "--base-size", "12", "--out", str(tmp_path)])  # no target
     assert not any(tmp_path.iterdir())

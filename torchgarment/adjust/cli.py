@@ -59,6 +59,9 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
                    help=f"simulation iterations per inexact outer iteration (default {d.inner_iterations})")
     p.add_argument("--exact-interval", type=int, default=d.exact_interval, metavar="M",
                    help=f"outer iterations between exact solves (default {d.exact_interval})")
+    p.add_argument("--reference-edge-length", type=float, default=None, metavar="M",
+                   help="rescale the regularizers to the balance of a mesh of this edge length in metres (0.008: the "
+                        "paper's Table 1 dress; see CostWeights.reference_edge_length); default: coefficients as given")
     p.add_argument("--exact", action="store_true", help="exact simulation at every iteration (no Algorithm 1)")
     p.add_argument("--no-init", action="store_true", help="skip the section-7 initialization")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint/adjust.pt")
@@ -158,10 +161,14 @@ def cmd_adjust(args: argparse.Namespace) -> int:
         raise InputError(f"--iterations must be >= 0, got {args.iterations}")
     if args.device == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: CUDA is not available on this machine")
+    from torchgarment.adjust.objective import CostWeights
+
+    weights = CostWeights(reference_edge_length=args.reference_edge_length)
+    weights.validate()
     settings = AdjustSettings(optimizer=args.optimizer, iterations=args.iterations, edge_length=args.edge_length,
                               voxel_size=args.voxel, inner_iterations=args.inner_iterations,
                               exact_interval=args.exact_interval, inexact=not args.exact,
-                              initialize=not args.no_init)
+                              initialize=not args.no_init, weights=weights)
     settings.validate()
     base_spec = args.base_body if args.base_body is not None else args.base_size
     target_spec = args.target_body if args.target_body is not None else args.target_size
