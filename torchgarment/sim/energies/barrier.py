@@ -258,26 +258,22 @@ class BodyBarrier(EnergyTerm):
         check_positions(x, self.num_vertices, self.name)
         phi, gphi = self._phi_grad_cached(x.detach())
         if phi.numel() == 0 or float(phi.min()) > 0:
-            if self.dhat is None:
-                return self.barrier(phi).sum(), phi, gphi
-            return self.barrier(phi[phi < self.dhat]).sum(), phi, gphi  # b = 0 beyond dhat
+            return self.barrier(phi).sum(), phi, gphi
         safe = torch.where(phi > 0, phi, torch.full_like(phi, self.offset))
         return torch.full((), math.inf, dtype=phi.dtype, device=phi.device), safe, gphi
 
     def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Energy () in joules and analytic gradient ``b'(phi) grad phi`` (V, 3) in newtons."""
-        E, safe, gphi = self._evaluate(x)
-        d1, _ = self.derivatives(safe)
-        return E, gphi * d1.unsqueeze(1)
+        g = torch.zeros_like(x)
+        return self.accumulate_value_grad_hessian_diagonal(x, g, None), g
 
     def value_grad_hessian_diagonal(
         self, x: torch.Tensor, project_psd: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Energy, gradient and Hessian diagonal blocks sharing one SDF evaluation."""
-        E, safe, gphi = self._evaluate(x)
-        d1, d2 = self.derivatives(safe)
-        g = gphi * d1.unsqueeze(1)
-        return E, g, (gphi * d2.unsqueeze(1)).unsqueeze(2) * gphi.unsqueeze(1)
+        """Energy, gradient and Hessian diagonal blocks ``b''(phi) g g^T`` sharing one SDF evaluation."""
+        g = torch.zeros_like(x)
+        h = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype, device=x.device)
+        return self.accumulate_value_grad_hessian_diagonal(x, g, h, project_psd), g, h
 
     def accumulate_value_grad_hessian_diagonal(
         self, x: torch.Tensor, g: torch.Tensor, h: torch.Tensor | None, project_psd: bool = True

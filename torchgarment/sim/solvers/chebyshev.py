@@ -41,6 +41,7 @@ from torchgarment.sim.solvers.common import (
     checked_max_step,
     evaluate,
     evaluate_with_diagonal,
+    supports_elastic_reuse,
     tolerance,
 )
 
@@ -331,7 +332,7 @@ def solve_gd_chebyshev(
         if gn <= tol:
             info.converged, info.message = True, "converged"
 
-        elastic_interval = settings.elastic_diagonal_interval
+        elastic_interval = settings.elastic_diagonal_interval if supports_elastic_reuse(model) else 1
         k = 0
         while not info.converged and k < max_iterations:
             step = apply_inverse(pre.inverse, g).mul_(-alpha)

@@ -246,12 +246,12 @@ def evaluate_with_diagonal(
 ) -> tuple[float, torch.Tensor, float, torch.Tensor]:
     """Like :func:`evaluate`, plus the Hessian diagonal blocks (V, 3, 3); uses the model's fused
     ``value_grad_hessian_diagonal`` when it has one (terms share their work), else two calls. ``reuse_elastic``
-    is passed on to models whose fused method takes it (:class:`~torchgarment.sim.scene.SimModel`)."""
+    is passed on; only ask for it when :func:`supports_elastic_reuse` holds for the model."""
     fused = getattr(model, "value_grad_hessian_diagonal", None)
     if fused is None:
         e, g, gn = evaluate(model, x, iteration, what)
         return e, g, gn, model.hessian_diagonal(x)
-    if reuse_elastic and _takes_reuse_elastic(fused):
+    if reuse_elastic:  # callers check supports_elastic_reuse(model) once per solve
         e, g, h = fused(x, reuse_elastic=True)
     else:
         e, g, h = fused(x)
@@ -299,10 +299,14 @@ class FactorCache:
         return y
 
 
-def _takes_reuse_elastic(fn: Callable) -> bool:
-    """Whether ``fn`` accepts the keyword ``reuse_elastic``."""
+def supports_elastic_reuse(model: SolverModel) -> bool:
+    """Whether the model's fused ``value_grad_hessian_diagonal`` accepts ``reuse_elastic`` (a
+    :class:`~torchgarment.sim.scene.SimModel` does; duck-typed models need not)."""
+    fused = getattr(model, "value_grad_hessian_diagonal", None)
+    if fused is None:
+        return False
     try:
-        return "reuse_elastic" in inspect.signature(fn).parameters
+        return "reuse_elastic" in inspect.signature(fused).parameters
     except (TypeError, ValueError):
         return False
 
