@@ -18,6 +18,8 @@ import json
 import math
 import platform
 import time
+from dataclasses import replace
+from pathlib import Path
 
 import torch
 
@@ -44,13 +46,22 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--inner-iterations", type=int, default=2)
     ap.add_argument("--exact-interval", type=int, default=32)
+    ap.add_argument("--inner-solver", default="newton", choices=["newton", "gd-chebyshev"],
+                    help="solver of the S-iteration simulations")
+    ap.add_argument("--adjoint", default="direct", choices=["direct", "iterative"], help="adjoint solve")
+    ap.add_argument("--adjoint-max-iterations", type=int, default=50)
+    ap.add_argument("--reuse-factorization", action="store_true",
+                    help="Newton solves reuse their LU factorization through PCG (AdjustSettings.reuse_factorization)")
+    ap.add_argument("--setup", default=None, metavar="FILE",
+                    help="load the precomputation from FILE when it exists, else compute it and save it there "
+                         "(torch.save of the AdjustSetup; the timed optimization is unaffected)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
     from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
-    from torchgarment.io.atomic import atomic_open
+    from torchgarment.io.atomic import atomic_open, atomic_path
     from torchgarment.pattern.library import draft
 
     pattern = draft(args.garment, chart_row(args.base_size))
@@ -58,17 +69,33 @@ def main() -> None:
     print(f"{args.garment}: edge length {1e3 * edge:.1f} mm -> {n} vertices")
     base, target = Body.from_size(args.base_size), Body.from_size(args.target_size)
     settings = AdjustSettings(edge_length=edge, voxel_size=args.voxel, iterations=args.iterations,
-                              inner_iterations=args.inner_iterations, exact_interval=args.exact_interval)
+                              inner_iterations=args.inner_iterations, exact_interval=args.exact_interval,
+                              inner_solver=args.inner_solver, adjoint=args.adjoint,
+                              adjoint_max_iterations=args.adjoint_max_iterations,
+                              reuse_factorization=args.reuse_factorization)
     t0 = time.perf_counter()
-    setup = prepare(pattern, base, target, settings)
+    if args.setup and Path(args.setup).is_file():
+        setup = torch.load(args.setup, weights_only=False)
+        print(f"precomputation loaded from {args.setup}")
+    else:
+        setup = prepare(pattern, base, target, settings)
+        if args.setup:
+            with atomic_path(args.setup) as tmp:
+                torch.save(setup, tmp)
     t_prep = time.perf_counter() - t0
     print(f"precomputation {t_prep:.1f} s ({setup.timings})")
-    res = optimize(setup, progress=True)
+    res = optimize(setup, replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
+                                  exact_interval=args.exact_interval, inner_solver=args.inner_solver,
+                                  adjoint=args.adjoint, adjoint_max_iterations=args.adjoint_max_iterations),
+                   progress=True)
     m = res.metrics
     out = {
         "garment": args.garment, "vertices": m["vertices"], "boundary_vertices": m["boundary_vertices"],
         "edge_length_mm": 1e3 * edge, "iterations": m["iterations"], "threads": args.threads,
         "inner_iterations": args.inner_iterations, "exact_interval": args.exact_interval,
+        "inner_solver": args.inner_solver, "adjoint": args.adjoint, "adjoint_iterations": m["adjoint_iterations"],
+        "adjoint_max_iterations": args.adjoint_max_iterations,
+        "adjoint_factorizations": m["factorizations"],
         "total_seconds": m["seconds"], "seconds_per_iteration": m["seconds_per_iteration"],
         "target_seconds": 115.0, "meets_target": bool(m["seconds"] <= 115.0),
         "closure_calls": m["closure_calls"], "sim_iterations": m["sim_iterations"],

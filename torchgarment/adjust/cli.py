@@ -26,8 +26,10 @@ from torchgarment.errors import InputError
 
 def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``adjust`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
+    from torchgarment.adjust.inexact import AdjointSolve
     from torchgarment.adjust.optimizers import OptimizerKind
     from torchgarment.adjust.pipeline import AdjustSettings
+    from torchgarment.sim.solvers import SolverKind
 
     d = AdjustSettings()
     p = subparsers.add_parser(
@@ -59,6 +61,11 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
                    help=f"simulation iterations per inexact outer iteration (default {d.inner_iterations})")
     p.add_argument("--exact-interval", type=int, default=d.exact_interval, metavar="M",
                    help=f"outer iterations between exact solves (default {d.exact_interval})")
+    p.add_argument("--inner-solver", default=d.inner_solver.value, choices=[k.value for k in SolverKind],
+                   help=f"solver of the S-iteration simulations (default {d.inner_solver.value}; gd-chebyshev for "
+                        "large meshes)")
+    p.add_argument("--adjoint", default=d.adjoint.value, choices=[k.value for k in AdjointSolve],
+                   help=f"adjoint solve of the gradients (default {d.adjoint.value}; iterative for large meshes)")
     p.add_argument("--reference-edge-length", type=float, default=None, metavar="M",
                    help="rescale the regularizers to the balance of a mesh of this edge length in metres (0.008: the "
                         "paper's Table 1 dress; see CostWeights.reference_edge_length); default: coefficients as given")
@@ -168,6 +175,7 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     settings = AdjustSettings(optimizer=args.optimizer, iterations=args.iterations, edge_length=args.edge_length,
                               voxel_size=args.voxel, inner_iterations=args.inner_iterations,
                               exact_interval=args.exact_interval, inexact=not args.exact,
+                              inner_solver=args.inner_solver, adjoint=args.adjoint,
                               initialize=not args.no_init, weights=weights)
     settings.validate()
     base_spec = args.base_body if args.base_body is not None else args.base_size

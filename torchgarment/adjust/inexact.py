@@ -47,9 +47,28 @@ import torch
 from torch.func import functional_call, grad as func_grad, jvp as func_jvp
 
 from torchgarment.errors import InputError
-from torchgarment.sim.diff import NonConvergenceError, exact_hessian_blocks, parameter_vjp
+from torchgarment.options import OptionEnum
+from torchgarment.sim.diff import (
+    NonConvergenceError,
+    conjugate_gradients,
+    diagonal_blocks,
+    exact_hessian_blocks,
+    parameter_vjp,
+)
 from torchgarment.sim.solvers import NonFiniteError, SolveInfo, SolverKind, SolveSettings, solve
+from torchgarment.sim.solvers.chebyshev import JacobiState, seam_pairs
 from torchgarment.sim.solvers.common import CSRAssembler
+
+
+class AdjointSolve(OptionEnum):
+    """How :class:`AdjustProblem` solves the adjoint system ``K lambda = df/dx`` of a gradient."""
+
+    #: a fresh SuperLU factorization of ``K`` per evaluation: exact, cost grows fast with the mesh (1-10 s at 30K)
+    DIRECT = "direct"
+    #: conjugate gradients on ``K`` with the simulator's block-Jacobi preconditioner (3x3 blocks, seam pairs as
+    #: 6x6 blocks), warm-started from the previous adjoint and capped at ``adjoint_max_iterations``: the paper's
+    #: iterative solver (section 7); an inexact gradient, like the S-iteration simulation it pairs with
+    ITERATIVE = "iterative"
 
 
 @dataclass
@@ -89,12 +108,21 @@ class AdjustProblem:
         inexact_solver: solver of the S-iteration simulations (default: ``solver``).
         parameter: qualified name of the model parameter ``p`` is written to.
         strict: raise :class:`NonConvergenceError` when an exact solve misses its tolerance.
+        inexact_settings: solver settings of the S-iteration simulations (default: ``exact_settings``).
+        adjoint: :class:`AdjointSolve` of the gradients (``"direct"`` or ``"iterative"``); Gauss-Newton's
+            tangent solves are always direct.
+        adjoint_rtol: relative residual at which the iterative adjoint stops.
+        adjoint_max_iterations: CG iterations of an iterative adjoint (it stops there, converged or not: the
+            gradient is then inexact; Algorithm 1's exact checks and backtracking keep the run safe).
     """
 
     def __init__(self, model: torch.nn.Module, parametrization: torch.nn.Module, objective: torch.nn.Module,
                  x0: torch.Tensor, *, exact_settings: SolveSettings | None = None,
                  solver: "str | SolverKind" = SolverKind.NEWTON, inexact_solver: "str | SolverKind | None" = None,
-                 parameter: str = "stretch.p", strict: bool = True) -> None:
+                 parameter: str = "stretch.p", strict: bool = True,
+                 inexact_settings: SolveSettings | None = None,
+                 adjoint: "str | AdjointSolve" = AdjointSolve.DIRECT, adjoint_rtol: float = 1e-3,
+                 adjoint_max_iterations: int = 50) -> None:
         self.model = model
         self.param = parametrization
         self.objective = objective
@@ -103,6 +131,18 @@ class AdjustProblem:
         self.exact_settings = exact_settings if exact_settings is not None else SolveSettings(rtol=1e-6,
                                                                                               max_iterations=200)
         self.exact_settings.validate()
+        self.inexact_settings = inexact_settings
+        if inexact_settings is not None:
+            inexact_settings.validate()
+        self.adjoint = AdjointSolve.resolve(adjoint)
+        if not (0.0 < adjoint_rtol < 1.0 and int(adjoint_max_iterations) >= 1):
+            raise InputError(f"adjoint_rtol must be in (0, 1) and adjoint_max_iterations >= 1, got {adjoint_rtol}, "
+                             f"{adjoint_max_iterations}")
+        self.adjoint_rtol, self.adjoint_max_iterations = float(adjoint_rtol), int(adjoint_max_iterations)
+        self._adjoint_warm: torch.Tensor | None = None
+        self._seams = seam_pairs(model)
+        self.adjoint_iterations = 0
+        self.last_adjoint_residual = math.nan
         self.strict = bool(strict)
         term_name, _, attr = parameter.partition(".")
         try:
@@ -153,7 +193,8 @@ class AdjustProblem:
         else:
             if iterations is None or int(iterations) < 1:
                 raise InputError(f"an inexact simulation needs iterations >= 1, got {iterations}")
-            x, info = solve(self.model, self.x, self.exact_settings, solver=self.inexact_solver,
+            st = self.exact_settings if self.inexact_settings is None else self.inexact_settings
+            x, info = solve(self.model, self.x, st, solver=self.inexact_solver,
                             max_iterations=int(iterations))
         self.x = x.detach()
         self.last_info = info
@@ -185,10 +226,43 @@ class AdjustProblem:
             raise NonConvergenceError("the adjoint/tangent solve returned non-finite values")
         return torch.from_numpy(y).to(device=x.device, dtype=x.dtype).view_as(x)
 
-    def _pullback(self, q: torch.Tensor, x: torch.Tensor, p: torch.Tensor, gx: torch.Tensor, gp: torch.Tensor
-                  ) -> torch.Tensor:
-        """``(dq)^T`` of a covector ``(gx (V,3), gp (V,2))`` on ``(x, p)``: adjoint solve + parametrization vjp."""
-        lam = self._solve_k(x, gx)
+    def _solve_k_iterative(self, x: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        """``K^-1 rhs`` (V, 3) by block-Jacobi preconditioned CG, warm-started from the last adjoint.
+
+        Stops at relative residual ``adjoint_rtol``, after ``adjoint_max_iterations`` iterations, or at a
+        direction of non-positive curvature (``K`` is the unprojected Hessian: compressed springs can make it
+        indefinite), returning the current iterate.
+        """
+        blocks = exact_hessian_blocks(self.model, x)
+        K = self._assembler.assemble(blocks)
+        V = x.shape[0]
+        pre = JacobiState(SolveSettings(), None if self._seams is None else (self._seams[0].cpu(), self._seams[1]))
+        pre.rebuild(diagonal_blocks(blocks, V).to("cpu", torch.float64))
+
+        def matvec(v: torch.Tensor) -> torch.Tensor:
+            return torch.from_numpy(K @ v.numpy().reshape(-1)).view(V, 3)
+
+        b = rhs.detach().to("cpu", torch.float64).reshape(V, 3)
+        warm = self._adjoint_warm if self._adjoint_warm is not None and self._adjoint_warm.shape == b.shape else None
+        lam, k, res = conjugate_gradients(matvec, b, pre.inverse, self.adjoint_rtol, self.adjoint_max_iterations,
+                                          x0=warm, stop_at_negative_curvature=True)
+        if not bool(torch.isfinite(lam).all()):
+            raise NonConvergenceError("the iterative adjoint solve returned non-finite values")
+        self.adjoint_iterations += k
+        self.last_adjoint_residual = res
+        self._adjoint_warm = lam.clone()
+        return lam.to(device=x.device, dtype=x.dtype)
+
+    def _solve_adjoint(self, x: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        if self.adjoint is AdjointSolve.ITERATIVE:
+            return self._solve_k_iterative(x, rhs)
+        return self._solve_k(x, rhs)
+
+    def _pullback(self, q: torch.Tensor, x: torch.Tensor, p: torch.Tensor, gx: torch.Tensor, gp: torch.Tensor,
+                  *, adjoint: bool = True) -> torch.Tensor:
+        """``(dq)^T`` of a covector ``(gx (V,3), gp (V,2))`` on ``(x, p)``: adjoint solve + parametrization vjp
+        (``adjoint=False``: the direct solve, as Gauss-Newton's products need exact adjoints)."""
+        lam = self._solve_adjoint(x, gx) if adjoint else self._solve_k(x, gx)
         gp = gp + parameter_vjp(self.model, x, lam, {self.parameter: p})[self.parameter].to(gp.dtype)
         with torch.enable_grad():
             qr = q.detach().clone().requires_grad_(True)
@@ -311,7 +385,7 @@ class AdjustProblem:
             hx, hp = torch.autograd.grad(s, (xr, pr), retain_graph=True, allow_unused=True)
         hx = torch.zeros_like(dx) if hx is None else hx.detach()
         hp = torch.zeros_like(dp) if hp is None else hp.detach()
-        return self._pullback(self.last_q, self.last_x, self.last_p, hx, hp)
+        return self._pullback(self.last_q, self.last_x, self.last_p, hx, hp, adjoint=False)
 
 
 # ---------------------------------------------------------------------------------------------- Algorithm 1

@@ -228,6 +228,7 @@ class BoundaryParametrization(torch.nn.Module):
             mode = ParametrizationSolve.EXPLICIT if device.type != "cpu" and entries <= EXPLICIT_MAX_ENTRIES \
                 else ParametrizationSolve.FACTORIZED
         self.solve = mode
+        self._L_II = L_II
         self._lu = scipy.sparse.linalg.splu(L_II) if len(iidx) else None
         if mode is ParametrizationSolve.EXPLICIT:
             M = self._explicit_operator(L_II.tocsr(), panel, iidx, bidx)
@@ -252,6 +253,19 @@ class BoundaryParametrization(torch.nn.Module):
         self.register_buffer("seam_edge_pairs", torch.as_tensor(pairs_q.reshape(-1, 4), **kw))
         self.register_buffer("p_base", torch.as_tensor(p, dtype=dtype, device=device))
         self.num_vertices = V
+
+    # ------------------------------------------------------------------ pickling
+    def __getstate__(self) -> dict:
+        """Pickle without the SuperLU object (not picklable); :meth:`__setstate__` factorizes ``L_II`` again."""
+        state = super().__getstate__() if hasattr(super(), "__getstate__") else self.__dict__
+        state = dict(state)
+        state["_lu"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        super().__setstate__(state)
+        if self._L_II.shape[0]:
+            self._lu = scipy.sparse.linalg.splu(self._L_II)
 
     # ------------------------------------------------------------------ construction helpers
     def _explicit_operator(self, L_II: scipy.sparse.csr_matrix, panel: np.ndarray, iidx: np.ndarray,

@@ -83,7 +83,7 @@ from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.barrier import BodyBarrier
 from torchgarment.sim.energies.base import HessianBlocks
 from torchgarment.sim.solvers import SolveInfo, SolverKind, SolveSettings, solve
-from torchgarment.sim.solvers.chebyshev import jacobi_inverse
+from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse
 from torchgarment.sim.solvers.common import CSRAssembler, Preconditioner
 
 
@@ -164,16 +164,24 @@ def barrier_curvature_blocks(term: BodyBarrier, x: torch.Tensor) -> torch.Tensor
     x = x.detach()
     phi, _ = term.sdf.value_and_gradient(x)
     phi = phi.to(x.dtype)
+    d1 = term.derivatives(phi)[0]
+    out = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype, device=x.device)
+    # a range-limited barrier acts on the vertices within dhat only (b' = 0 beyond): difference just those
+    act = torch.nonzero(d1 != 0, as_tuple=False).flatten()
+    if act.numel() == 0:
+        return out
+    xa = x.index_select(0, act)
     step = torch.finfo(x.dtype).eps ** (1.0 / 3.0) * 1e-2
     eye = torch.eye(3, dtype=x.dtype, device=x.device)
     cols = []
     for a in range(3):
-        gp = term.sdf.value_and_gradient(x + step * eye[a])[1].to(x.dtype)
-        gm = term.sdf.value_and_gradient(x - step * eye[a])[1].to(x.dtype)
+        gp = term.sdf.value_and_gradient(xa + step * eye[a])[1].to(x.dtype)
+        gm = term.sdf.value_and_gradient(xa - step * eye[a])[1].to(x.dtype)
         cols.append((gp - gm) / (2.0 * step))
-    hphi = torch.stack(cols, dim=2)  # (V, 3, 3): column a = d grad / d x_a
+    hphi = torch.stack(cols, dim=2)  # (A, 3, 3): column a = d grad / d x_a
     hphi = 0.5 * (hphi + hphi.transpose(1, 2))
-    return hphi * term.derivatives(phi)[0][:, None, None]
+    out.index_copy_(0, act, hphi * d1.index_select(0, act)[:, None, None])
+    return out
 
 
 def exact_hessian_blocks(model: torch.nn.Module, x: torch.Tensor) -> HessianBlocks:
@@ -230,7 +238,7 @@ def check_twice_differentiable(model: torch.nn.Module, x: torch.Tensor, rtol: fl
                              f"would be wrong")
 
 
-def _diagonal_blocks(blocks: HessianBlocks, num_vertices: int) -> torch.Tensor:
+def diagonal_blocks(blocks: HessianBlocks, num_vertices: int) -> torch.Tensor:
     """(V, 3, 3) sum of the blocks with row == col."""
     on = blocks.rows == blocks.cols
     out = torch.zeros(num_vertices, 3, 3, dtype=blocks.values.dtype, device=blocks.values.device)
@@ -245,46 +253,54 @@ def _torch_csr(blocks: HessianBlocks, num_vertices: int) -> torch.Tensor:
 
 # ---------------------------------------------------------------------------------------------- linear solves
 def conjugate_gradients(
-    matvec, b: torch.Tensor, inv_diag: torch.Tensor, rtol: float, max_iterations: int
+    matvec, b: torch.Tensor, inv_diag, rtol: float, max_iterations: int, *,  # noqa: ANN001
+    x0: torch.Tensor | None = None, stop_at_negative_curvature: bool = False,
 ) -> tuple[torch.Tensor, int, float]:
     """Block-Jacobi preconditioned CG for ``K y = b``.
 
     Args:
         matvec: ``v (V, 3) -> K v (V, 3)``.
         b: (V, 3) right-hand side.
-        inv_diag: (V, 3, 3) inverse diagonal blocks (the preconditioner).
+        inv_diag: the preconditioner: (V, 3, 3) inverse diagonal blocks, or a
+            :class:`~torchgarment.sim.solvers.chebyshev.SeamBlockInverse` (seam pairs as 6x6 blocks).
         rtol: stop when ``|r| <= rtol |b|``.
         max_iterations: iteration budget.
+        x0: (V, 3) warm start (default zero).
+        stop_at_negative_curvature: return the iterate reached so far at a direction with ``p^T K p <= 0``
+            instead of raising (for inexact solves that accept an approximate answer).
 
     Returns:
         ``(y, iterations, |r| / |b|)``; the caller checks convergence.
 
     Raises:
-        NonConvergenceError: negative or zero curvature ``p^T K p <= 0`` (``K`` is not positive definite).
+        NonConvergenceError: negative or zero curvature ``p^T K p <= 0`` (``K`` is not positive definite), unless
+            ``stop_at_negative_curvature``.
     """
-    y = torch.zeros_like(b)
+    y = torch.zeros_like(b) if x0 is None else x0.detach().to(b.dtype).clone()
     bn = float(torch.linalg.vector_norm(b))
     if bn == 0.0:
-        return y, 0, 0.0
-    r = b.clone()
-    z = torch.bmm(inv_diag, r.unsqueeze(2)).squeeze(2)
+        return torch.zeros_like(b), 0, 0.0
+    r = b - matvec(y) if x0 is not None and bool(y.any()) else b.clone()
+    z = apply_inverse(inv_diag, r)
     p = z.clone()
     rz = float(torch.sum(r * z))
-    rn = bn
+    rn = float(torch.linalg.vector_norm(r))
     k = 0
     while k < max_iterations and rn > rtol * bn:
-        k += 1
         kp = matvec(p)
         pkp = float(torch.sum(p * kp))
         if not pkp > 0.0:
+            if stop_at_negative_curvature:
+                break
             raise NonConvergenceError(
-                f"adjoint CG met non-positive curvature p^T K p = {pkp:.3g} at iteration {k}: the Hessian at the "
-                f"solution is not positive definite (a saddle or an unconverged state); try the 'sparse' solver")
+                f"adjoint CG met non-positive curvature p^T K p = {pkp:.3g} at iteration {k + 1}: the Hessian at "
+                f"the solution is not positive definite (a saddle or an unconverged state); try the 'sparse' solver")
+        k += 1
         a = rz / pkp
         y.add_(p, alpha=a)
         r.add_(kp, alpha=-a)
         rn = float(torch.linalg.vector_norm(r))
-        z = torch.bmm(inv_diag, r.unsqueeze(2)).squeeze(2)
+        z = apply_inverse(inv_diag, r)
         rz_new = float(torch.sum(r * z))
         p.mul_(rz_new / rz).add_(z)
         rz = rz_new
@@ -354,7 +370,7 @@ def solve_adjoint(
 
     if product == HessianProduct.ASSEMBLED:
         blocks = exact_hessian_blocks(model, x)
-        diag = _diagonal_blocks(blocks, V)
+        diag = diagonal_blocks(blocks, V)
         if x.device.type == "cpu":  # scipy's CSR product is ~25x faster than torch's on the CPU (measured)
             Kc = CSRAssembler(V).assemble(blocks)
 
@@ -368,7 +384,7 @@ def solve_adjoint(
                 return (K @ v.reshape(-1, 1)).view(V, 3)
     else:
         check_twice_differentiable(model, x)
-        diag = _diagonal_blocks(exact_hessian_blocks(model, x), V)
+        diag = diagonal_blocks(exact_hessian_blocks(model, x), V)
         matvec = _autograd_hvp(model, x)
     inv = jacobi_inverse(diag, Preconditioner.BLOCK, 1e-10)
     n_max = max(200, 3 * V) if max_iterations is None else int(max_iterations)
