@@ -4,6 +4,11 @@
 Usage:
     python scripts/bench_adjust.py --json FILE [--vertices 30000] [--iterations 256] [--garment sheath_dress]
         [--base-size 12] [--target-size 20] [--voxel 0.005] [--threads 2] [--inner-iterations 2]
+        [--inner-solver newton|gd-chebyshev] [--adjoint direct|iterative] [--adjoint-max-iterations 50]
+        [--reuse-factorization] [--setup FILE]
+
+``--setup FILE`` saves the precomputation (base drape, transfer, initialization: minutes at 30K vertices) on the
+first run and loads it on the next ones, so that optimizer options can be compared on one setup.
 
 The garment is meshed at the edge length that gives about ``--vertices`` vertices (measured on a coarse mesh and
 scaled by the square root of the vertex ratio). As in the paper's Table 1, the timed total excludes the

@@ -208,6 +208,11 @@ def test_barrier_is_active_and_curvature_matters():
     full = full + torch.block_diag(*curv[ar])
     assert float((full - H).abs().max()) <= 1e-6 * float(H.abs().max())
     assert float(curv.abs().max()) > 1e-3 * float(H.abs().max())
+    # only vertices within the barrier's range are differenced; the others get exact zeros
+    term = model.term("body_barrier")
+    if term.dhat is not None:
+        far = phi.detach() >= term.dhat
+        assert bool(far.any()) and bool((curv[far] == 0).all())
 
 
 # ---------------------------------------------------------------------------------------------- modes and solvers

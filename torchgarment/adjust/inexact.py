@@ -8,7 +8,8 @@ vertices of the pattern (section 5)::
     f = objective(x, p)              scalar, Eq. 17
 
 and its gradient by the adjoint method (Eq. 18-19): ``K lambda = df/dx`` with ``K`` the exact unprojected
-Hessian of the simulation energy at ``x`` (SuperLU factorization), ``df/dp += -lambda^T d(grad_x E)/dp``
+Hessian of the simulation energy at ``x`` (SuperLU factorization, or with ``adjoint="iterative"`` block-Jacobi
+conjugate gradients warm-started from the previous adjoint, :class:`AdjointSolve`), ``df/dp += -lambda^T d(grad_x E)/dp``
 (matrix-free, :func:`~torchgarment.sim.diff.parameter_vjp`), ``df/dq = (dp/dq)^T df/dp`` (autograd through the
 parametrization). Simulations are warm-started from the previous state. An *exact* evaluation solves to the
 force tolerance; an *inexact* one runs ``S`` solver iterations only, and its gradient uses the adjoint at the
