@@ -91,7 +91,8 @@ def main() -> None:
     print(f"precomputation {t_prep:.1f} s ({setup.timings})")
     res = optimize(setup, replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
                                   exact_interval=args.exact_interval, inner_solver=args.inner_solver,
-                                  adjoint=args.adjoint, adjoint_max_iterations=args.adjoint_max_iterations),
+                                  adjoint=args.adjoint, adjoint_max_iterations=args.adjoint_max_iterations,
+                                  reuse_factorization=args.reuse_factorization),
                    progress=True)
     m = res.metrics
     out = {
