@@ -50,14 +50,13 @@ from torch.func import functional_call, grad as func_grad, jvp as func_jvp
 from torchgarment.errors import InputError
 from torchgarment.options import OptionEnum
 from torchgarment.sim.diff import (
+    AdjointLinearSolver,
     NonConvergenceError,
-    conjugate_gradients,
-    diagonal_blocks,
     exact_hessian_blocks,
     parameter_vjp,
+    solve_adjoint,
 )
 from torchgarment.sim.solvers import NonFiniteError, SolveInfo, SolverKind, SolveSettings, solve
-from torchgarment.sim.solvers.chebyshev import JacobiState, seam_pairs
 from torchgarment.sim.solvers.common import CSRAssembler
 
 
@@ -109,7 +108,6 @@ class AdjustProblem:
         inexact_solver: solver of the S-iteration simulations (default: ``solver``).
         parameter: qualified name of the model parameter ``p`` is written to.
         strict: raise :class:`NonConvergenceError` when an exact solve misses its tolerance.
-        inexact_settings: solver settings of the S-iteration simulations (default: ``exact_settings``).
         adjoint: :class:`AdjointSolve` of the gradients (``"direct"`` or ``"iterative"``); Gauss-Newton's
             tangent solves are always direct.
         adjoint_rtol: relative residual at which the iterative adjoint stops.
@@ -121,7 +119,6 @@ class AdjustProblem:
                  x0: torch.Tensor, *, exact_settings: SolveSettings | None = None,
                  solver: "str | SolverKind" = SolverKind.NEWTON, inexact_solver: "str | SolverKind | None" = None,
                  parameter: str = "stretch.p", strict: bool = True,
-                 inexact_settings: SolveSettings | None = None,
                  adjoint: "str | AdjointSolve" = AdjointSolve.DIRECT, adjoint_rtol: float = 1e-3,
                  adjoint_max_iterations: int = 50) -> None:
         self.model = model
@@ -132,16 +129,12 @@ class AdjustProblem:
         self.exact_settings = exact_settings if exact_settings is not None else SolveSettings(rtol=1e-6,
                                                                                               max_iterations=200)
         self.exact_settings.validate()
-        self.inexact_settings = inexact_settings
-        if inexact_settings is not None:
-            inexact_settings.validate()
         self.adjoint = AdjointSolve.resolve(adjoint)
         if not (0.0 < adjoint_rtol < 1.0 and int(adjoint_max_iterations) >= 1):
             raise InputError(f"adjoint_rtol must be in (0, 1) and adjoint_max_iterations >= 1, got {adjoint_rtol}, "
                              f"{adjoint_max_iterations}")
         self.adjoint_rtol, self.adjoint_max_iterations = float(adjoint_rtol), int(adjoint_max_iterations)
         self._adjoint_warm: torch.Tensor | None = None
-        self._seams = seam_pairs(model)
         self.adjoint_iterations = 0
         self.last_adjoint_residual = math.nan
         self.strict = bool(strict)
@@ -194,8 +187,7 @@ class AdjustProblem:
         else:
             if iterations is None or int(iterations) < 1:
                 raise InputError(f"an inexact simulation needs iterations >= 1, got {iterations}")
-            st = self.exact_settings if self.inexact_settings is None else self.inexact_settings
-            x, info = solve(self.model, self.x, st, solver=self.inexact_solver,
+            x, info = solve(self.model, self.x, self.exact_settings, solver=self.inexact_solver,
                             max_iterations=int(iterations))
         self.x = x.detach()
         self.last_info = info
@@ -228,31 +220,17 @@ class AdjustProblem:
         return torch.from_numpy(y).to(device=x.device, dtype=x.dtype).view_as(x)
 
     def _solve_k_iterative(self, x: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-        """``K^-1 rhs`` (V, 3) by block-Jacobi preconditioned CG, warm-started from the last adjoint.
-
-        Stops at relative residual ``adjoint_rtol``, after ``adjoint_max_iterations`` iterations, or at a
-        direction of non-positive curvature (``K`` is the unprojected Hessian: compressed springs can make it
-        indefinite), returning the current iterate.
-        """
-        blocks = exact_hessian_blocks(self.model, x)
-        K = self._assembler.assemble(blocks)
-        V = x.shape[0]
-        pre = JacobiState(SolveSettings(), None if self._seams is None else (self._seams[0].cpu(), self._seams[1]))
-        pre.rebuild(diagonal_blocks(blocks, V).to("cpu", torch.float64))
-
-        def matvec(v: torch.Tensor) -> torch.Tensor:
-            return torch.from_numpy(K @ v.numpy().reshape(-1)).view(V, 3)
-
-        b = rhs.detach().to("cpu", torch.float64).reshape(V, 3)
-        warm = self._adjoint_warm if self._adjoint_warm is not None and self._adjoint_warm.shape == b.shape else None
-        lam, k, res = conjugate_gradients(matvec, b, pre.inverse, self.adjoint_rtol, self.adjoint_max_iterations,
-                                          x0=warm, stop_at_negative_curvature=True)
-        if not bool(torch.isfinite(lam).all()):
-            raise NonConvergenceError("the iterative adjoint solve returned non-finite values")
-        self.adjoint_iterations += k
-        self.last_adjoint_residual = res
-        self._adjoint_warm = lam.clone()
-        return lam.to(device=x.device, dtype=x.dtype)
+        """``K^-1 rhs`` (V, 3) by block-Jacobi CG (:func:`~torchgarment.sim.diff.solve_adjoint`), warm-started
+        from the last adjoint; it stops at ``adjoint_rtol``, after ``adjoint_max_iterations`` iterations or at a
+        direction of non-positive curvature (``K`` is the unprojected Hessian), returning the iterate reached."""
+        warm = self._adjoint_warm if self._adjoint_warm is not None and self._adjoint_warm.shape == x.shape else None
+        lam, info = solve_adjoint(self.model, x, rhs, AdjointLinearSolver.CG, rtol=self.adjoint_rtol,
+                                  max_iterations=self.adjoint_max_iterations, x0=warm, require_convergence=False,
+                                  assembler=self._assembler)
+        self.adjoint_iterations += info.iterations
+        self.last_adjoint_residual = info.relative_residual
+        self._adjoint_warm = lam.detach().clone()
+        return lam
 
     def _solve_adjoint(self, x: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
         if self.adjoint is AdjointSolve.ITERATIVE:

@@ -83,7 +83,7 @@ from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.barrier import BodyBarrier
 from torchgarment.sim.energies.base import HessianBlocks
 from torchgarment.sim.solvers import SolveInfo, SolverKind, SolveSettings, solve
-from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse
+from torchgarment.sim.solvers.chebyshev import JacobiState, apply_inverse, seam_pairs
 from torchgarment.sim.solvers.common import CSRAssembler, Preconditioner
 
 
@@ -238,7 +238,7 @@ def check_twice_differentiable(model: torch.nn.Module, x: torch.Tensor, rtol: fl
                              f"would be wrong")
 
 
-def diagonal_blocks(blocks: HessianBlocks, num_vertices: int) -> torch.Tensor:
+def _diagonal_blocks(blocks: HessianBlocks, num_vertices: int) -> torch.Tensor:
     """(V, 3, 3) sum of the blocks with row == col."""
     on = blocks.rows == blocks.cols
     out = torch.zeros(num_vertices, 3, 3, dtype=blocks.values.dtype, device=blocks.values.device)
@@ -329,6 +329,9 @@ def solve_adjoint(
     hessian_product: "str | HessianProduct" = HessianProduct.ASSEMBLED,
     rtol: float = 1e-10,
     max_iterations: int | None = None,
+    x0: torch.Tensor | None = None,
+    require_convergence: bool = True,
+    assembler: CSRAssembler | None = None,
 ) -> tuple[torch.Tensor, AdjointInfo]:
     """Solve ``K lambda = rhs`` with ``K`` the exact unprojected Hessian of ``model`` at ``x``.
 
@@ -340,13 +343,21 @@ def solve_adjoint(
         hessian_product: CG's products: ``"assembled"`` or ``"autograd"``.
         rtol: CG tolerance ``|r| <= rtol |rhs|``; also the accepted residual of SPARSE (times 1e3).
         max_iterations: CG budget; None = ``max(200, 3V)``.
+        x0: (V, 3) CG warm start, e.g. the previous adjoint of a sequence of nearby solves (default zero).
+        require_convergence: False accepts CG's iterate when the budget runs out or at a direction of
+            non-positive curvature (an inexact adjoint; ``info.relative_residual`` says how inexact).
+        assembler: a :class:`CSRAssembler` reused across calls (it caches the COO -> CSR permutation).
+
+    CG is preconditioned with the simulator's block Jacobi, each seam pair of a ``sew`` term as one 6x6 block
+    (:class:`~torchgarment.sim.solvers.chebyshev.JacobiState`): stiff seams otherwise slow CG down.
 
     Returns:
         ``(lambda, info)``: (V, 3) adjoint in the dtype and device of ``x`` (loss units per newton), and an
         :class:`AdjointInfo`.
 
     Raises:
-        NonConvergenceError: CG did not reach ``rtol``, met negative curvature, or ``K`` is singular.
+        NonConvergenceError: CG did not reach ``rtol`` or met negative curvature (with ``require_convergence``),
+            or ``K`` is singular.
         InputError: AUTOGRAD products on a model that is not twice differentiable.
     """
     kind = AdjointLinearSolver.resolve(linear_solver)
@@ -356,9 +367,10 @@ def solve_adjoint(
     x = x.detach()
     rhs = rhs.detach().to(x.dtype)
     bn = float(torch.linalg.vector_norm(rhs))
+    assembler = CSRAssembler(V) if assembler is None else assembler
     if kind == AdjointLinearSolver.SPARSE:
         blocks = exact_hessian_blocks(model, x)
-        csr = CSRAssembler(V).assemble(blocks)
+        csr = assembler.assemble(blocks)
         b64 = rhs.to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
         y = _sparse_lu_solve(csr, b64)
         res = float(np.linalg.norm(csr @ y - b64)) / bn if bn > 0 else 0.0
@@ -370,9 +382,9 @@ def solve_adjoint(
 
     if product == HessianProduct.ASSEMBLED:
         blocks = exact_hessian_blocks(model, x)
-        diag = diagonal_blocks(blocks, V)
+        diag = _diagonal_blocks(blocks, V)
         if x.device.type == "cpu":  # scipy's CSR product is ~25x faster than torch's on the CPU (measured)
-            Kc = CSRAssembler(V).assemble(blocks)
+            Kc = assembler.assemble(blocks)
 
             def matvec(v: torch.Tensor) -> torch.Tensor:
                 y = Kc @ v.detach().to(torch.float64).numpy().reshape(-1)
@@ -384,12 +396,16 @@ def solve_adjoint(
                 return (K @ v.reshape(-1, 1)).view(V, 3)
     else:
         check_twice_differentiable(model, x)
-        diag = diagonal_blocks(exact_hessian_blocks(model, x), V)
+        diag = _diagonal_blocks(exact_hessian_blocks(model, x), V)
         matvec = _autograd_hvp(model, x)
-    inv = jacobi_inverse(diag, Preconditioner.BLOCK, 1e-10)
+    pre = JacobiState(SolveSettings(preconditioner=Preconditioner.BLOCK, diagonal_floor=1e-10), seam_pairs(model))
+    pre.rebuild(diag)
     n_max = max(200, 3 * V) if max_iterations is None else int(max_iterations)
-    lam, k, res = conjugate_gradients(matvec, rhs, inv, rtol, n_max)
-    if not res <= rtol:
+    lam, k, res = conjugate_gradients(matvec, rhs, pre.inverse, rtol, n_max, x0=x0,
+                                      stop_at_negative_curvature=not require_convergence)
+    if not bool(torch.isfinite(lam).all()):
+        raise NonConvergenceError("adjoint CG returned non-finite values")
+    if require_convergence and not res <= rtol:
         raise NonConvergenceError(f"adjoint CG did not converge: relative residual {res:.3g} > {rtol:g} after {k} "
                                   f"iterations; raise cg_max_iterations or use the 'sparse' solver")
     return lam, AdjointInfo(kind.value, k, res, time.perf_counter() - t0)
