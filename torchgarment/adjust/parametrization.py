@@ -257,8 +257,7 @@ class BoundaryParametrization(torch.nn.Module):
     # ------------------------------------------------------------------ pickling
     def __getstate__(self) -> dict:
         """Pickle without the SuperLU object (not picklable); :meth:`__setstate__` factorizes ``L_II`` again."""
-        state = super().__getstate__() if hasattr(super(), "__getstate__") else self.__dict__
-        state = dict(state)
+        state = self.__dict__.copy()
         state["_lu"] = None
         return state
 

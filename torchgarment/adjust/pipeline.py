@@ -362,13 +362,15 @@ class AdjustSetup:
     initialization_used: bool
     timings: dict = field(default_factory=dict)
 
-    def new_problem(self, x_start: torch.Tensor | None = None) -> AdjustProblem:
-        """A fresh :class:`AdjustProblem` warm-started at ``x_start`` (default: the initialized equilibrium)."""
-        s = self.settings
+    def new_problem(self, x_start: torch.Tensor | None = None, settings: AdjustSettings | None = None
+                    ) -> AdjustProblem:
+        """A fresh :class:`AdjustProblem` warm-started at ``x_start`` (default: the initialized equilibrium), with
+        the solvers, adjoint and factorization reuse of ``settings`` (default: ``self.settings``)."""
+        s = self.settings if settings is None else settings
         return AdjustProblem(self.model, self.param, self.objective, self.x_init if x_start is None else x_start,
-                             exact_settings=replace(self.exact_settings), solver=s.solver,
-                             inexact_solver=s.inner_solver, adjoint=s.adjoint, adjoint_rtol=s.adjoint_rtol,
-                             adjoint_max_iterations=s.adjoint_max_iterations)
+                             exact_settings=replace(self.exact_settings, reuse_factorization=s.reuse_factorization),
+                             solver=s.solver, inexact_solver=s.inner_solver, adjoint=s.adjoint,
+                             adjoint_rtol=s.adjoint_rtol, adjoint_max_iterations=s.adjoint_max_iterations)
 
 
 def prepare(
@@ -480,12 +482,7 @@ def optimize(
     ckpt_path = None if checkpoint_dir is None else Path(checkpoint_dir) / CHECKPOINT_NAME
     if resume and (ckpt_path is None or not ckpt_path.is_file()):
         raise InputError(f"resume=True but there is no checkpoint {ckpt_path}")
-    problem = setup.new_problem()
-    problem.solver = SolverKind.resolve(settings.solver)
-    problem.inexact_solver = SolverKind.resolve(settings.inner_solver)
-    problem.adjoint = AdjointSolve.resolve(settings.adjoint)
-    problem.exact_settings = replace(problem.exact_settings, reuse_factorization=settings.reuse_factorization)
-    problem.adjoint_rtol, problem.adjoint_max_iterations = settings.adjoint_rtol, settings.adjoint_max_iterations
+    problem = setup.new_problem(settings=settings)
     q = setup.q_init.detach().clone().requires_grad_(True)
     kind = settings.optimizer
     use_inexact = settings.inexact and kind == OptimizerKind.PGD
