@@ -81,6 +81,9 @@ def main() -> None:
     t0 = time.perf_counter()
     if args.setup and Path(args.setup).is_file():
         setup = torch.load(args.setup, weights_only=False)
+        if setup.mesh_base.num_vertices != n or not math.isclose(setup.settings.edge_length, edge):
+            raise SystemExit(f"error: {args.setup} holds a {setup.mesh_base.num_vertices}-vertex setup, not this "
+                             f"{n}-vertex {args.garment}; pass another --setup file")
         print(f"precomputation loaded from {args.setup}")
     else:
         setup = prepare(pattern, base, target, settings)
