@@ -157,3 +157,36 @@ def test_edges_length_on_rectangle(acc):
     assert acc.edges_length(pat, ("waist", "hem")) == pytest.approx(2.4, abs=1e-9)
     with pytest.raises(KeyError):
         acc.edges_length(pat, ("armhole_r",))
+
+
+def test_line_vertices_are_the_measured_corners(acc):
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+    from torchgarment.pattern.meshing import mesh_pattern
+
+    pattern = draft("straight_skirt", chart_row("12"))
+    mesh = mesh_pattern(pattern, 0.05)
+    p = mesh.p.numpy()
+    widths = acc.pattern_line_widths(pattern, acc.SKIRT_LINES)
+    for line, (first, second) in acc.SKIRT_LINES.items():
+        idx = acc.line_vertices(pattern, mesh, 0.05, first, second)
+        assert idx.shape == (2 * len(pattern.panels),)
+        pairs = p[idx].reshape(-1, 2, 2)
+        assert np.linalg.norm(pairs[:, 1] - pairs[:, 0], axis=1).sum() == pytest.approx(widths[line], abs=1e-9)
+    with pytest.raises(KeyError):
+        acc.line_vertices(pattern, mesh, 0.05, "armhole_r", "armhole_l")
+
+
+def test_body_girth_at_on_a_cylinder(acc):
+    import trimesh
+
+    from torchgarment.body import Body
+
+    r = 0.15
+    m = trimesh.creation.cylinder(radius=r, height=1.0, sections=64)
+    v = torch.as_tensor(m.vertices[:, [0, 2, 1]] + [0.0, 0.5, 0.0])  # Y up, from y = 0 to 1
+    f = torch.as_tensor(m.faces[:, [0, 2, 1]].copy(), dtype=torch.long)  # keep the winding outward after the swap
+    body = Body(vertices=v, faces=f, skeleton=None, skin_weights=None, landmarks={}, params={})
+    perimeter = 64 * 2 * r * math.sin(math.pi / 64)  # the inscribed 64-gon
+    for y in (0.2, 0.5, 0.83):
+        assert acc.body_girth_at(body, y) == pytest.approx(perimeter, rel=1e-9)
