@@ -15,10 +15,10 @@ triangle edges (``--edge-length``), 10 mm SDF voxels (``--voxel``), ``--iteratio
    waist = the ends of the waist edges, hip = the side-seam corners between ``side_low`` and ``side_hip``; T-shirt:
    bust = the underarm corners, waist = the corners between ``side_low`` and ``side_up``), summed over panels,
    i.e. the pattern's girth at that line. Its change from the base pattern is compared with the chart's girth
-   difference (:func:`torchgarment.body.size_chart.chart_row`); the discrepancy is in cm. Also reported, as a
-   diagnostic: ``body@line``, the bodies' own girth change at the height where the garment's line sits (the
-   line's corners in the base drape on the base body, and in the transferred garment on the target body), which
-   is what a fit-preserving adjustment follows; the fitted bodies match the chart only at their landmark planes.
+   difference (:func:`torchgarment.body.size_chart.chart_row`); the discrepancy is in cm. Also reported for the
+   skirt, as a diagnostic: ``body@band``, the bodies' own girth change at the height where the waistband sits
+   (its corners in the base drape on the base body, and in the transferred garment on the target body). A tight
+   band's fit-preserving girth follows it; the fitted bodies match the chart only at their landmark planes.
 3. Hips-only change: the base body with x, z of the torso vertices scaled about the hip axis by ``1 + a w(y)``,
    ``w`` a cos^2 bump equal to 1 at the hip landmark height and 0 at the waist landmark and at the thigh landmark
    (arms and hands, by skin weight, excluded). Reported: hip-width change, largest move of the side-seam boundary
@@ -273,15 +273,19 @@ def grading(garment: str, base_size: str, target_size: str, base, settings) -> d
     for line in lines:
         chart = 100 * (row_t[line] - row_b[line])
         change = 100 * (w1[line] - w0[line])
-        # where the garment's line actually sits: the base body's girth at the base drape's corner height against
-        # the target body's at the transferred corners' height (a diagnostic: the chart measures at landmarks)
-        idx = line_vertices(pattern, res.mesh_base, settings.edge_length, *lines[line])
-        yb, yt = float(res.mesh_base.x[idx, 1].mean()), float(res.x_transfer[idx, 1].mean())
-        at_line = 100 * (body_girth_at(target, yt) - body_girth_at(base, yb))
         out["lines"][line] = {"chart_cm": chart, "pattern_change_cm": change, "drafted_change_cm":
-                              100 * (wd[line] - w0[line]), "discrepancy_cm": change - chart,
-                              "body_at_line_cm": at_line, "discrepancy_body_at_line_cm": change - at_line,
-                              "line_height_base_m": yb, "line_height_target_m": yt}
+                              100 * (wd[line] - w0[line]), "discrepancy_cm": change - chart}
+    if "skirt" in garment:
+        # a diagnostic: the skirt's waistband is a tight band whose girth is the pattern's waist width, so a
+        # fit-preserving pattern follows the bodies' girth change where the band sits (the base drape's waist
+        # corners on the base body, the transferred ones on the target body), not at the chart's waist plane.
+        # (Lines that cross loose cloth, the hips and the bust, are set by the fullest girth below them instead.)
+        idx = line_vertices(pattern, res.mesh_base, settings.edge_length, *lines["waist"])
+        yb, yt = float(res.mesh_base.x[idx, 1].mean()), float(res.x_transfer[idx, 1].mean())
+        at_band = 100 * (body_girth_at(target, yt) - body_girth_at(base, yb))
+        out["lines"]["waist"].update({"body_at_band_cm": at_band,
+                                      "discrepancy_body_at_band_cm": out["lines"]["waist"]["pattern_change_cm"] - at_band,
+                                      "band_height_base_m": yb, "band_height_target_m": yt})
     if "skirt" in garment:  # the waistband's length along the (possibly curved) waist edges, reported only
         wb = [edges_length(p, ("waist_r", "waist_l")) for p in (pattern, res.pattern)]
         out["waistband_length_change_cm"] = 100 * (wb[1] - wb[0])
@@ -337,15 +341,15 @@ def print_tables(results: dict) -> None:
                   f"{p['max_percent']:6.2f} {p['mean_percent']:7.2f} {p['unadjusted_max_mm']:13.1f}  "
                   f"{'yes' if r['pass'] else 'NO'}")
     print("\n2. grading from size 12 (pattern girth change vs chart girth change, cm)")
-    print("   body@line: the bodies' girth change where the garment's line sits (base drape and transferred garment"
-          " heights), not at the chart's landmarks; err@line: pattern - body@line (diagnostic, not the pass test)")
+    print("   body@band (skirt waist only): the bodies' girth change at the height where the waistband sits, not at"
+          " the chart's waist plane; err@band: pattern - body@band (a diagnostic, not the pass test)")
     print(f"{'garment':>15} {'to':>3} {'line':>6} {'chart':>7} {'pattern':>8} {'drafted':>8} {'error':>7} "
-          f"{'body@line':>9} {'err@line':>8}  pass")
+          f"{'body@band':>9} {'err@band':>8}  pass")
     for r in results["grading"]:
         for line, v in r["lines"].items():
             print(f"{r['garment']:>15} {r['to']:>3} {line:>6} {v['chart_cm']:7.2f} {v['pattern_change_cm']:8.2f} "
-                  f"{v['drafted_change_cm']:8.2f} {v['discrepancy_cm']:7.2f} {v.get('body_at_line_cm', math.nan):9.2f} "
-                  f"{v.get('discrepancy_body_at_line_cm', math.nan):8.2f}  {'yes' if r['pass'] else 'NO'}")
+                  f"{v['drafted_change_cm']:8.2f} {v['discrepancy_cm']:7.2f} {v.get('body_at_band_cm', math.nan):9.2f} "
+                  f"{v.get('discrepancy_body_at_band_cm', math.nan):8.2f}  {'yes' if r['pass'] else 'NO'}")
         if "waistband_length_change_cm" in r:
             print(f"{'':>15} {r['to']:>3} waistband length (along the waist edges) change "
                   f"{r['waistband_length_change_cm']:.2f} cm")
