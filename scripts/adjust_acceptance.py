@@ -107,28 +107,37 @@ def edges_length(pattern, labels: tuple[str, ...]) -> float:  # noqa: ANN001
     return float(total)
 
 
-def boundary_vertex_labels(pattern, mesh, edge_length: float) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
-    """Mesh vertex indices of every panel edge's boundary samples (end points included) and their edge labels.
+def edge_vertex_runs(pattern, mesh, edge_length: float) -> dict[str, list[np.ndarray]]:  # noqa: ANN001
+    """Per panel, per edge (in the panel's edge order), the mesh vertex indices of the edge's boundary samples from
+    its start vertex to its end vertex (both included).
 
     Uses the meshing convention of :func:`torchgarment.pattern.meshing.mesh_pattern`: a panel's boundary is its
     first vertices, edge by edge.
-
-    Returns:
-        ``(vertex, label)``: (M,) int array and (M,) object array (a corner appears once per adjacent edge).
     """
     from torchgarment.pattern.meshing import edge_segment_counts
 
     counts = edge_segment_counts(pattern, edge_length)
     vp = mesh.vertex_panel_ids.cpu().numpy()
     names = list(mesh.panel_names)
-    verts, labels = [], []
+    runs = {}
     for name, panel in pattern.panels.items():
         off = int(np.nonzero(vp == names.index(name))[0].min())
         n = counts[name]
         starts = np.concatenate([[0], np.cumsum(n)])
         nb = int(starts[-1])
-        for i, e in enumerate(panel.edges):
-            idx = off + (np.arange(starts[i], starts[i] + n[i] + 1) % nb)
+        runs[name] = [off + (np.arange(starts[i], starts[i] + n[i] + 1) % nb) for i in range(len(panel.edges))]
+    return runs
+
+
+def boundary_vertex_labels(pattern, mesh, edge_length: float) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
+    """Mesh vertex indices of every panel edge's boundary samples (end points included) and their edge labels.
+
+    Returns:
+        ``(vertex, label)``: (M,) int array and (M,) object array (a corner appears once per adjacent edge).
+    """
+    verts, labels = [], []
+    for name, runs in edge_vertex_runs(pattern, mesh, edge_length).items():
+        for e, idx in zip(pattern.panels[name].edges, runs):
             verts.append(idx)
             labels.append(np.full(idx.shape, e.label, dtype=object))
     return np.concatenate(verts), np.concatenate(labels)
@@ -137,21 +146,11 @@ def boundary_vertex_labels(pattern, mesh, edge_length: float) -> tuple[np.ndarra
 def line_vertices(pattern, mesh, edge_length: float, first: str, second: str) -> np.ndarray:  # noqa: ANN001
     """Mesh vertex indices of a construction line's corners: per panel with both edges, the start vertex of the edge
     labelled ``first`` and the end vertex of ``second`` (the two points :func:`line_width` measures)."""
-    from torchgarment.pattern.meshing import edge_segment_counts
-
-    counts = edge_segment_counts(pattern, edge_length)
-    vp = mesh.vertex_panel_ids.cpu().numpy()
-    names = list(mesh.panel_names)
     out = []
-    for name, panel in pattern.panels.items():
-        labels = [e.label for e in panel.edges]
-        if first not in labels or second not in labels:
-            continue
-        off = int(np.nonzero(vp == names.index(name))[0].min())
-        starts = np.concatenate([[0], np.cumsum(counts[name])])
-        nb = int(starts[-1])
-        i, j = labels.index(first), labels.index(second)
-        out += [off + int(starts[i]) % nb, off + int(starts[j + 1]) % nb]
+    for name, runs in edge_vertex_runs(pattern, mesh, edge_length).items():
+        labels = [e.label for e in pattern.panels[name].edges]
+        if first in labels and second in labels:
+            out += [int(runs[labels.index(first)][0]), int(runs[labels.index(second)][-1])]
     if not out:
         raise KeyError(f"pattern {pattern.name!r}: no panel has edges {first!r} and {second!r}")
     return np.asarray(out, dtype=np.int64)
