@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -104,12 +103,12 @@ def main() -> None:
     setup = prepare(base_pattern, Body.from_size(args.base_size), Body.from_size(args.target_size), settings)
     result = optimize(setup, progress=True)
     problem = setup.new_problem(setup.x_transfer)
-    problem.exact_settings = replace(problem.exact_settings, max_iterations=setup.settings.drape.max_iterations)
+    settle = setup.settings.drape.max_iterations
     rows = {}
     for name, q in (("base", setup.q_base), ("initialized", setup.q_init),
                     ("drafted", drafted_boundary(setup, drafted, args.edge_length)), ("adjusted", result.q)):
         problem.reset_state(setup.x_transfer)
-        ev = problem.evaluate(q, exact=True, need_grad=False)
+        ev = problem.evaluate(q, exact=True, need_grad=False, max_iterations=settle)
         rows[name] = {"objective": ev.objective, "terms": problem.term_values()}
     lines = SKIRT_LINES if "skirt" in args.garment else TSHIRT_LINES
     w0 = pattern_line_widths(base_pattern, lines)

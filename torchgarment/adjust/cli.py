@@ -26,7 +26,6 @@ from torchgarment.errors import InputError
 
 def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``adjust`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
-    from torchgarment.adjust.inexact import AdjointSolve
     from torchgarment.adjust.optimizers import OptimizerKind
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.sim.solvers import SolverKind
@@ -64,8 +63,9 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     p.add_argument("--inner-solver", default=d.inner_solver.value, choices=[k.value for k in SolverKind],
                    help=f"solver of the S-iteration simulations (default {d.inner_solver.value}; gd-chebyshev for "
                         "large meshes)")
-    p.add_argument("--adjoint", default=d.adjoint.value, choices=[k.value for k in AdjointSolve],
-                   help=f"adjoint solve of the gradients (default {d.adjoint.value}; iterative for large meshes)")
+    p.add_argument("--adjoint", default="direct", choices=["direct", "iterative", "sparse", "cg"],
+                   help="adjoint solve of the gradients: direct (= sparse, the default) or iterative (= cg, for "
+                        "large meshes)")
     p.add_argument("--reference-edge-length", type=float, default=None, metavar="M",
                    help="rescale the regularizers to the balance of a mesh of this edge length in metres (0.008: the "
                         "paper's Table 1 dress; see CostWeights.reference_edge_length); default: coefficients as given")

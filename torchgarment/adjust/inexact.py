@@ -7,15 +7,16 @@ vertices of the pattern (section 5)::
     x = Sim(p)                       (V, 3) quasistatic garment on the target body (exact or S iterations)
     f = objective(x, p)              scalar, Eq. 17
 
-and its gradient by the adjoint method (Eq. 18-19): ``K lambda = df/dx`` with ``K`` the exact unprojected
-Hessian of the simulation energy at ``x`` (SuperLU factorization, or with ``adjoint="iterative"`` block-Jacobi
-conjugate gradients warm-started from the previous adjoint, :class:`AdjointSolve`), ``df/dp += -lambda^T d(grad_x E)/dp``
-(matrix-free, :func:`~torchgarment.sim.diff.parameter_vjp`), ``df/dq = (dp/dq)^T df/dp`` (autograd through the
-parametrization). Simulations are warm-started from the previous state. An *exact* evaluation solves to the
-force tolerance; an *inexact* one runs ``S`` solver iterations only, and its gradient uses the adjoint at the
-unconverged state (the paper's inexact gradient). The problem also provides Gauss-Newton products (a tangent
-solve ``K dx = -(d grad_x E / dp) dp`` and an adjoint solve per product, with the same factorization) and
-records the best exact evaluation it has seen.
+and its gradient by the adjoint method (Eq. 18-19) through the autograd Function of the simulator
+(:class:`~torchgarment.sim.diff.DifferentiableSolver`): ``f.backward()`` solves ``K lambda = df/dx`` with ``K``
+the exact unprojected Hessian of the simulation energy at ``x`` (a cached sparse factorization, or with
+``adjoint="iterative"`` block-Jacobi conjugate gradients warm-started from the previous adjoint), adds
+``-lambda^T d(grad_x E)/dp`` (matrix-free, :func:`~torchgarment.sim.diff.parameter_vjp`) to ``df/dp`` and goes
+on through the parametrization to ``df/dq``. Simulations are warm-started from the previous state. An *exact*
+evaluation solves to the force tolerance; an *inexact* one runs ``S`` solver iterations only, and its gradient
+uses the adjoint at the unconverged state (the paper's inexact gradient). The problem also provides Gauss-Newton
+products (a tangent solve ``K dx = -(d grad_x E / dp) dp`` with the cached factorization, then ``J^T`` by autograd
+back through the evaluation's graph) and records the best exact evaluation it has seen.
 
 :class:`InexactRunner` is Algorithm 1 generalized to any :class:`~torchgarment.adjust.optimizers` optimizer:
 ``S`` simulation iterations per outer iteration, an exact evaluation every ``M`` outer iterations (default
@@ -40,35 +41,13 @@ import copy
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
-import numpy as np
-import scipy.sparse.linalg
 import torch
-from torch.func import functional_call, grad as func_grad, jvp as func_jvp
 
 from torchgarment.errors import InputError
-from torchgarment.options import OptionEnum
-from torchgarment.sim.diff import (
-    AdjointLinearSolver,
-    NonConvergenceError,
-    exact_hessian_blocks,
-    parameter_vjp,
-    solve_adjoint,
-)
-from torchgarment.sim.solvers import NonFiniteError, SolveInfo, SolverKind, SolveSettings, solve
-from torchgarment.sim.solvers.common import CSRAssembler
-
-
-class AdjointSolve(OptionEnum):
-    """How :class:`AdjustProblem` solves the adjoint system ``K lambda = df/dx`` of a gradient."""
-
-    #: a fresh SuperLU factorization of ``K`` per evaluation: exact, cost grows fast with the mesh (1-10 s at 30K)
-    DIRECT = "direct"
-    #: conjugate gradients on ``K`` with the simulator's block-Jacobi preconditioner (3x3 blocks, seam pairs as
-    #: 6x6 blocks), warm-started from the previous adjoint and capped at ``adjoint_max_iterations``: the paper's
-    #: iterative solver (section 7); an inexact gradient, like the S-iteration simulation it pairs with
-    ITERATIVE = "iterative"
+from torchgarment.sim.diff import AdjointLinearSolver, DifferentiableSolver, NonConvergenceError
+from torchgarment.sim.solvers import NonFiniteError, SolveInfo, SolverKind, SolveSettings
 
 
 @dataclass
@@ -95,6 +74,11 @@ class Evaluation:
 class AdjustProblem:
     """``q -> f(Sim(param(q)), param(q))`` with adjoint gradients and Gauss-Newton products (module docstring).
 
+    The simulation is a :class:`~torchgarment.sim.diff.DifferentiableSolver` (the autograd Function
+    :class:`~torchgarment.sim.diff.QuasistaticSolve`): an evaluation builds ``p = param(q)``, ``x = solver(p)``,
+    ``f = objective(x, p)`` on the autograd graph and ``f.backward()`` produces ``df/dq`` (the adjoint solve runs
+    in the Function's backward).
+
     Args:
         model: the :class:`~torchgarment.sim.scene.SimModel` of the garment on the target body; its
             ``stretch.p`` is overwritten by every evaluation.
@@ -108,203 +92,176 @@ class AdjustProblem:
         inexact_solver: solver of the S-iteration simulations (default: ``solver``).
         parameter: qualified name of the model parameter ``p`` is written to.
         strict: raise :class:`NonConvergenceError` when an exact solve misses its tolerance.
-        adjoint: :class:`AdjointSolve` of the gradients (``"direct"`` or ``"iterative"``); Gauss-Newton's
-            tangent solves are always direct.
+        adjoint: :class:`~torchgarment.sim.diff.AdjointLinearSolver` of the gradients: ``"direct"`` (alias of
+            ``"sparse"``: a factorization per new state) or ``"iterative"`` (alias of ``"cg"``: block-Jacobi CG
+            warm-started from the previous adjoint, stopping at ``adjoint_rtol`` or after
+            ``adjoint_max_iterations``, converged or not: an inexact gradient that Algorithm 1's exact checks and
+            backtracking keep safe). Gauss-Newton's tangent solves are always direct.
         adjoint_rtol: relative residual at which the iterative adjoint stops.
-        adjoint_max_iterations: CG iterations of an iterative adjoint (it stops there, converged or not: the
-            gradient is then inexact; Algorithm 1's exact checks and backtracking keep the run safe).
+        adjoint_max_iterations: CG iterations of an iterative adjoint.
+        retain_graph: keep the autograd graph of the last evaluation until the next one (Gauss-Newton's ``J^T``
+            products go back through it); False saves its memory for optimizers that make no such products.
     """
 
     def __init__(self, model: torch.nn.Module, parametrization: torch.nn.Module, objective: torch.nn.Module,
                  x0: torch.Tensor, *, exact_settings: SolveSettings | None = None,
-                 solver: "str | SolverKind" = SolverKind.NEWTON, inexact_solver: "str | SolverKind | None" = None,
+                 solver: str | SolverKind = SolverKind.NEWTON, inexact_solver: str | SolverKind | None = None,
                  parameter: str = "stretch.p", strict: bool = True,
-                 adjoint: "str | AdjointSolve" = AdjointSolve.DIRECT, adjoint_rtol: float = 1e-3,
-                 adjoint_max_iterations: int = 50) -> None:
+                 adjoint: str | AdjointLinearSolver = AdjointLinearSolver.SPARSE, adjoint_rtol: float = 1e-3,
+                 adjoint_max_iterations: int = 50, retain_graph: bool = True) -> None:
         self.model = model
         self.param = parametrization
         self.objective = objective
-        self.solver = SolverKind.resolve(solver)
-        self.inexact_solver = self.solver if inexact_solver is None else SolverKind.resolve(inexact_solver)
-        self.exact_settings = exact_settings if exact_settings is not None else SolveSettings(rtol=1e-6,
-                                                                                              max_iterations=200)
-        self.exact_settings.validate()
-        self.adjoint = AdjointSolve.resolve(adjoint)
+        self.adjoint = AdjointLinearSolver.resolve(adjoint)
         if not (0.0 < adjoint_rtol < 1.0 and int(adjoint_max_iterations) >= 1):
             raise InputError(f"adjoint_rtol must be in (0, 1) and adjoint_max_iterations >= 1, got {adjoint_rtol}, "
                              f"{adjoint_max_iterations}")
-        self.adjoint_rtol, self.adjoint_max_iterations = float(adjoint_rtol), int(adjoint_max_iterations)
-        self._adjoint_warm: torch.Tensor | None = None
-        self.adjoint_iterations = 0
-        self.last_adjoint_residual = math.nan
-        self.strict = bool(strict)
         term_name, _, attr = parameter.partition(".")
         try:
-            self._term = model.term(term_name)
+            term = model.term(term_name)
         except Exception as exc:  # noqa: BLE001 - SimModel.term raises InputError/KeyError
             raise InputError(f"the simulation model has no term {term_name!r} for parameter {parameter!r}") from exc
-        if not hasattr(self._term, attr):
+        if not hasattr(term, attr):
             raise InputError(f"term {term_name!r} has no parameter {attr!r}")
-        self.parameter, self._attr = parameter, attr
-        self._assembler = CSRAssembler(model.num_vertices)
-        with torch.no_grad():
-            self.x = model.project_feasible(x0.detach().to(model.dtype).clone())
+        self.parameter = parameter
+        iterative = self.adjoint is AdjointLinearSolver.CG
+        settings = exact_settings if exact_settings is not None else SolveSettings(rtol=1e-6, max_iterations=200)
+        self.solver = DifferentiableSolver(
+            model, x0, settings, solver=solver, inexact_solver=inexact_solver, linear_solver=self.adjoint,
+            cg_rtol=float(adjoint_rtol) if iterative else 1e-10,
+            cg_max_iterations=int(adjoint_max_iterations) if iterative else None,
+            cg_warm_start=iterative, cg_require_convergence=not iterative, strict=strict)
+        self.retain_graph = bool(retain_graph)
         self.closure_evaluations = 0
-        self.sim_iterations = 0
         self.exact_evaluations = 0
         self.last: Evaluation | None = None
         self.last_q: torch.Tensor | None = None
         self.last_p: torch.Tensor | None = None
         self.last_x: torch.Tensor | None = None
-        self.last_info: SolveInfo | None = None
         self.best_q: torch.Tensor | None = None
         self.best_x: torch.Tensor | None = None
         self.best_objective = math.inf
-        self._lu = None
-        self._lu_key: torch.Tensor | None = None
-        self.factorizations = 0
+        self._graph: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self._hess_graph = None
 
-    # ------------------------------------------------------------------ simulation
-    @torch.no_grad()
-    def simulate(self, p: torch.Tensor, *, exact: bool, iterations: int | None = None) -> torch.Tensor:
-        """Write ``p`` into the model and solve from the current state (warm start); returns (V, 3).
+    # ------------------------------------------------------------------ state and counters
+    @property
+    def exact_settings(self) -> SolveSettings:
+        """Settings of exact solves (the solver's)."""
+        return self.solver.settings
 
-        Args:
-            p: (V, 2) rest positions in metres.
-            exact: solve to ``exact_settings``' tolerance (raising if missed and ``strict``), else run
-                ``iterations`` solver iterations (stopping early if that tolerance is met).
-            iterations: the ``S`` of an inexact solve (>= 1).
-        """
-        getattr(self._term, self._attr).copy_(p.detach().to(self.model.dtype))
-        if exact:
-            x, info = solve(self.model, self.x, self.exact_settings, solver=self.solver)
-            if not info.converged:
-                msg = (f"exact simulation did not converge: force norm {info.residual:.3g} N after {info.iterations} "
-                       f"iterations ({info.message})")
-                if self.strict:
-                    raise NonConvergenceError(msg)
-        else:
-            if iterations is None or int(iterations) < 1:
-                raise InputError(f"an inexact simulation needs iterations >= 1, got {iterations}")
-            x, info = solve(self.model, self.x, self.exact_settings, solver=self.inexact_solver,
-                            max_iterations=int(iterations))
-        self.x = x.detach()
-        self.last_info = info
-        self.sim_iterations += info.iterations
-        return self.x
+    @property
+    def x(self) -> torch.Tensor:
+        """(V, 3) the warm start of the next simulation in metres."""
+        return self.solver.state
 
     def reset_state(self, x: torch.Tensor) -> None:
         """Set the warm start (V, 3) of the next simulation (used when a run goes back to an earlier iterate)."""
-        self.x = x.detach().clone()
+        self.solver.set_state(x)
+
+    @property
+    def last_graph(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """``(q, p, x)`` of the last evaluation's autograd graph: the leaf (B, 2) whose ``grad`` holds ``df/dq``,
+        the rest positions (V, 2) and the Function's output (V, 3); None unless ``retain_graph`` and ``need_grad``."""
+        return self._graph
+
+    @property
+    def last_info(self) -> SolveInfo | None:
+        """The :class:`SolveInfo` of the last simulation."""
+        return self.solver.last_info
+
+    @property
+    def sim_iterations(self) -> int:
+        """Solver iterations spent so far."""
+        return self.solver.sim_iterations
+
+    @property
+    def factorizations(self) -> int:
+        """Sparse factorizations of the simulation Hessian so far."""
+        return self.solver.factorizations
+
+    @property
+    def adjoint_iterations(self) -> int:
+        """CG iterations of the iterative adjoints so far."""
+        return self.solver.adjoint_iterations
+
+    @property
+    def last_adjoint_residual(self) -> float:
+        """Relative residual of the last adjoint solve (nan before the first)."""
+        info = self.solver.last_adjoint_info
+        return math.nan if info is None else info.relative_residual
 
     # ------------------------------------------------------------------ evaluation
-    def _factorize(self, x: torch.Tensor):  # noqa: ANN202 - SuperLU object
-        if self._lu is not None and self._lu_key is not None and torch.equal(self._lu_key, x):
-            return self._lu
-        K = self._assembler.assemble(exact_hessian_blocks(self.model, x)).tocsc()
-        self.factorizations += 1
-        try:
-            lu = scipy.sparse.linalg.splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                          options={"SymmetricMode": True})
-        except RuntimeError as exc:
-            raise NonConvergenceError(f"the simulation Hessian is singular at the current state ({exc})") from exc
-        self._lu, self._lu_key = lu, x.detach().clone()
-        return lu
+    @torch.no_grad()
+    def simulate(self, p: torch.Tensor, *, exact: bool, iterations: int | None = None,
+                 max_iterations: int | None = None) -> torch.Tensor:
+        """Solve for the garment (V, 3) with rest positions ``p`` (V, 2) from the current state (warm start),
+        without a gradient: exactly (raising if the tolerance is missed and ``strict``) or ``iterations`` solver
+        iterations."""
+        if not exact and (iterations is None or int(iterations) < 1):
+            raise InputError(f"an inexact simulation needs iterations >= 1, got {iterations}")
+        return self.solver({self.parameter: p.detach().to(self.model.dtype)},
+                           iterations=None if exact else int(iterations), max_iterations=max_iterations)
 
-    def _solve_k(self, x: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-        b = rhs.detach().to("cpu", torch.float64).numpy().reshape(-1)
-        y = self._factorize(x).solve(b)
-        if not np.all(np.isfinite(y)):
-            raise NonConvergenceError("the adjoint/tangent solve returned non-finite values")
-        return torch.from_numpy(y).to(device=x.device, dtype=x.dtype).view_as(x)
-
-    def _solve_k_iterative(self, x: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-        """``K^-1 rhs`` (V, 3) by block-Jacobi CG (:func:`~torchgarment.sim.diff.solve_adjoint`), warm-started
-        from the last adjoint; it stops at ``adjoint_rtol``, after ``adjoint_max_iterations`` iterations or at a
-        direction of non-positive curvature (``K`` is the unprojected Hessian), returning the iterate reached."""
-        warm = self._adjoint_warm if self._adjoint_warm is not None and self._adjoint_warm.shape == x.shape else None
-        lam, info = solve_adjoint(self.model, x, rhs, AdjointLinearSolver.CG, rtol=self.adjoint_rtol,
-                                  max_iterations=self.adjoint_max_iterations, x0=warm, require_convergence=False,
-                                  assembler=self._assembler)
-        self.adjoint_iterations += info.iterations
-        self.last_adjoint_residual = info.relative_residual
-        self._adjoint_warm = lam.detach().clone()
-        return lam
-
-    def _solve_adjoint(self, x: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-        if self.adjoint is AdjointSolve.ITERATIVE:
-            return self._solve_k_iterative(x, rhs)
-        return self._solve_k(x, rhs)
-
-    def _pullback(self, q: torch.Tensor, x: torch.Tensor, p: torch.Tensor, gx: torch.Tensor, gp: torch.Tensor,
-                  *, adjoint: bool = True) -> torch.Tensor:
-        """``(dq)^T`` of a covector ``(gx (V,3), gp (V,2))`` on ``(x, p)``: adjoint solve + parametrization vjp
-        (``adjoint=False``: the direct solve, as Gauss-Newton's products need exact adjoints)."""
-        lam = self._solve_adjoint(x, gx) if adjoint else self._solve_k(x, gx)
-        gp = gp + parameter_vjp(self.model, x, lam, {self.parameter: p})[self.parameter].to(gp.dtype)
-        with torch.enable_grad():
-            qr = q.detach().clone().requires_grad_(True)
-            (gq,) = torch.autograd.grad(self.param(qr), qr, gp)
-        return gq
-
-    def evaluate(self, q: torch.Tensor, *, exact: bool, iterations: int | None = None, need_grad: bool = True
-                 ) -> Evaluation:
+    def evaluate(self, q: torch.Tensor, *, exact: bool, iterations: int | None = None, need_grad: bool = True,
+                 max_iterations: int | None = None) -> Evaluation:
         """Simulate and evaluate the objective (and its gradient) at ``q`` (B, 2).
 
         Args:
             q: (B, 2) boundary positions in metres.
             exact: exact solve (else ``iterations`` solver iterations).
             iterations: S of an inexact evaluation.
-            need_grad: compute ``df/dq`` (one adjoint solve).
+            need_grad: compute ``df/dq`` (``f.backward()``: one adjoint solve in the Function's backward).
+            max_iterations: iteration budget of an exact solve (default ``exact_settings.max_iterations``).
         """
         t0 = time.perf_counter()
         before = self.sim_iterations
-        q = q.detach()
-        x_before = self.x
-        with torch.no_grad():
-            p = self.param(q).detach()
-        try:
-            x = self.simulate(p, exact=exact, iterations=iterations)
-        except (NonConvergenceError, NonFiniteError):
-            self.x = x_before  # the next evaluation starts from the last good state
-            raise
-        self._hess_graph = None
+        if not exact and (iterations is None or int(iterations) < 1):
+            raise InputError(f"an inexact simulation needs iterations >= 1, got {iterations}")
+        self._graph, self._hess_graph = None, None
+        if need_grad and q.is_leaf and q.requires_grad:  # an optimizer's parameter: backward() fills its grad
+            qr = q
+            qr.grad = None
+        else:
+            qr = q.detach().clone().requires_grad_(need_grad)
         with torch.enable_grad():
-            xr = x.clone().requires_grad_(True)
-            pr = p.clone().requires_grad_(True)
-            f = self.objective(xr, pr)
+            p = self.param(qr)
+            x = self.solver({self.parameter: p.to(self.model.dtype)}, iterations=None if exact else int(iterations),
+                            max_iterations=max_iterations if exact else None)
+            f = self.objective(x, p)
+            fval = float(f.detach())
+            if not math.isfinite(fval):
+                raise NonConvergenceError(f"the objective is not finite ({fval}) at the current pattern")
             if need_grad:
-                gx, gp = torch.autograd.grad(f, (xr, pr), allow_unused=True)
-                gx = torch.zeros_like(x) if gx is None else gx
-                gp = torch.zeros_like(p) if gp is None else gp
-        fval = float(f.detach())
-        if not math.isfinite(fval):
-            raise NonConvergenceError(f"the objective is not finite ({fval}) at the current pattern")
-        gq = self._pullback(q, x, p, gx.detach(), gp.detach()) if need_grad else None
+                f.backward(retain_graph=self.retain_graph)
+        gq = qr.grad.detach().clone() if need_grad else None
+        if need_grad and self.retain_graph:
+            self._graph = (qr, p, x)
         info = self.last_info
+        x, p = x.detach(), p.detach()
         ev = Evaluation(fval, gq, bool(exact), self.sim_iterations - before,
                         info.residual if info is not None else math.nan, time.perf_counter() - t0)
         self.closure_evaluations += 1
-        self.last, self.last_q, self.last_p, self.last_x = ev, q.clone(), p, x
+        self.last, self.last_q, self.last_p, self.last_x = ev, q.detach().clone(), p, x
         if exact:
             self.exact_evaluations += 1
             if fval < self.best_objective:
-                self.best_objective, self.best_q, self.best_x = fval, q.clone(), x.clone()
+                self.best_objective, self.best_q, self.best_x = fval, q.detach().clone(), x.clone()
         return ev
 
     def closure(self, q: torch.Tensor, *, exact: bool, iterations: int | None = None, need_grad: bool = True
                 ) -> Callable[[], torch.Tensor]:
-        """A ``torch.optim`` closure over the leaf ``q`` (B, 2): evaluates at ``q`` and writes ``q.grad``.
+        """A ``torch.optim`` closure over the leaf ``q`` (B, 2): evaluates at ``q``; ``f.backward()`` fills
+        ``q.grad`` (when ``need_grad``).
 
         The closure has attribute ``cacheable`` (True for exact closures: re-evaluating the same ``q`` gives the
         same value, so optimizers may reuse it).
         """
+        if need_grad and not (q.is_leaf and q.requires_grad):
+            raise InputError("the closure's q must be a leaf tensor that requires grad (an optimizer's parameter)")
 
         def fn() -> torch.Tensor:
             ev = self.evaluate(q, exact=exact, iterations=iterations, need_grad=need_grad)
-            if ev.grad is not None:
-                q.grad = ev.grad.to(q.dtype).clone()
             return torch.tensor(ev.objective, dtype=q.dtype)
 
         fn.cacheable = bool(exact)  # type: ignore[attr-defined]
@@ -318,7 +275,7 @@ class AdjustProblem:
             return {k: float(v) for k, v in self.objective.term_values(self.last_x, self.last_p).items()}
 
     # ------------------------------------------------------------------ Gauss-Newton
-    def _objective_gradient_graph(self):  # noqa: ANN202
+    def _objective_gradient_graph(self) -> tuple:
         if self._hess_graph is None:
             with torch.enable_grad():
                 xr = self.last_x.clone().requires_grad_(True)
@@ -329,10 +286,11 @@ class AdjustProblem:
         return self._hess_graph
 
     def tangent(self, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(dx, dp) = (dx/dq v, dp/dq v)`` at the last evaluation: one tangent solve ``K dx = -(dg/dp) dp``.
+        """``(dx, dp) = (dx/dq v, dp/dq v)`` at the last evaluation: one tangent solve ``K dx = -(dg/dp) dp``
+        (:meth:`~torchgarment.sim.diff.DifferentiableSolver.tangent`).
 
         ``dp`` is the parametrization's difference quotient (Eq. 8 is affine in ``q``, so it is exact up to
-        rounding); ``(d grad_x E / dp) dp`` is forward-over-reverse autograd of the stretch term.
+        rounding).
         """
         if self.last_x is None:
             raise InputError("evaluate the problem before asking for Jacobian products")
@@ -343,20 +301,19 @@ class AdjustProblem:
         t = 1e-2 / scale
         with torch.no_grad():
             dp = (self.param(q + t * v) - p) / t
-        term, attr = self._term, self._attr
-
-        def gx_of(pp: torch.Tensor) -> torch.Tensor:
-            return func_grad(lambda xx: functional_call(term, {attr: pp}, (xx,)))(x)
-
-        _, dg = func_jvp(gx_of, (p,), (dp.to(p.dtype),))
-        dx = -self._solve_k(x, dg.detach())
+        dx = self.solver.tangent({self.parameter: p.to(self.model.dtype)}, {self.parameter: dp.to(self.model.dtype)})
         return dx, dp
 
     def gauss_newton_product(self, v: torch.Tensor) -> torch.Tensor:
         """``J^T H J v`` (B, 2) at the last evaluation: J = d(x, p)/dq (tangent solve), H = Hessian of the
         objective in ``(x, p)`` (autograd double backward; the SDF's curvature is dropped, which for a squared
-        distance residual is exactly the Gauss-Newton term), then an adjoint solve back to ``q``.
-        The simulator's second derivative (the first term of Eq. 20) is left out, as in Gauss-Newton."""
+        distance residual is exactly the Gauss-Newton term), then ``J^T`` by autograd back through the last
+        evaluation's graph (the adjoint solve of the Function's backward). Needs ``retain_graph`` and an
+        evaluation with ``need_grad``. The simulator's second derivative (the first term of Eq. 20) is left out,
+        as in Gauss-Newton."""
+        if self._graph is None:
+            raise InputError("Gauss-Newton products need AdjustProblem(retain_graph=True) and an evaluation "
+                             "with need_grad")
         dx, dp = self.tangent(v)
         xr, pr, gx, gp = self._objective_gradient_graph()
         with torch.enable_grad():
@@ -364,7 +321,9 @@ class AdjustProblem:
             hx, hp = torch.autograd.grad(s, (xr, pr), retain_graph=True, allow_unused=True)
         hx = torch.zeros_like(dx) if hx is None else hx.detach()
         hp = torch.zeros_like(dp) if hp is None else hp.detach()
-        return self._pullback(self.last_q, self.last_x, self.last_p, hx, hp, adjoint=False)
+        qr, p, x = self._graph
+        (gq,) = torch.autograd.grad((x, p), qr, (hx.to(x.dtype), hp.to(p.dtype)), retain_graph=True)
+        return gq.detach()
 
 
 # ---------------------------------------------------------------------------------------------- Algorithm 1
@@ -532,13 +491,8 @@ class InexactRunner:
         st, p, q = self.settings, self.problem, self.q
         stopped = "iteration budget"
         if self.start_objective is None:
-            budget = p.exact_settings
             # the first solve may start from a state that is not this pattern's equilibrium: a larger budget
-            p.exact_settings = replace(budget, max_iterations=4 * budget.max_iterations)
-            try:
-                ev = p.evaluate(q, exact=True, need_grad=False)
-            finally:
-                p.exact_settings = budget
+            ev = p.evaluate(q, exact=True, need_grad=False, max_iterations=4 * p.exact_settings.max_iterations)
             self.start_objective = ev.objective
             self.checkpoint = self._snapshot(q, ev.objective, p.x, copy.deepcopy(self.optimizer.state_dict()))
         while self.iteration < iterations:
@@ -550,7 +504,8 @@ class InexactRunner:
                               need_grad=self._needs_grad())
             first: dict[str, torch.Tensor] = {}
 
-            def closure(inner=inner, first=first) -> torch.Tensor:  # noqa: ANN001 - keeps x of the first call
+            def closure(inner: Callable[[], torch.Tensor] = inner, first: dict[str, torch.Tensor] = first
+                        ) -> torch.Tensor:  # keeps x of the first call
                 out = inner()
                 first.setdefault("x", p.x.clone())
                 return out
@@ -604,15 +559,11 @@ class InexactRunner:
         """Evaluate the current iterate exactly and return the best exact iterate."""
         p, q = self.problem, self.q
         if p.last_q is None or not torch.equal(p.last_q, q.detach()) or not (p.last is not None and p.last.exact):
-            budget = p.exact_settings
             # after inexact iterations the state can be far from equilibrium: a larger budget for this solve
-            p.exact_settings = replace(budget, max_iterations=4 * budget.max_iterations)
             try:
-                p.evaluate(q, exact=True, need_grad=False)
+                p.evaluate(q, exact=True, need_grad=False, max_iterations=4 * p.exact_settings.max_iterations)
             except (NonConvergenceError, NonFiniteError):
                 stopped = f"{stopped}; the last iterate could not be solved exactly".lstrip("; ")
-            finally:
-                p.exact_settings = budget
         assert p.best_q is not None and p.best_x is not None
         return RunResult(q=p.best_q.clone(), x=p.best_x.clone(), objective=p.best_objective,
                          objective_start=float(self.start_objective), iterations=self.iteration,

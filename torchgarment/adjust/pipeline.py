@@ -25,17 +25,28 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from torchgarment.adjust.inexact import AdjointSolve, AdjustProblem, InexactRunner, InexactSettings, IterationRecord
+from torchgarment.adjust.inexact import AdjustProblem, InexactRunner, InexactSettings, IterationRecord
 from torchgarment.adjust.optimizers import OptimizerKind, make_optimizer
 from torchgarment.errors import InputError, PatternError
+from torchgarment.sim.diff import AdjointLinearSolver
 from torchgarment.sim.drape import DrapeSettings, drape
 from torchgarment.sim.scene import Effect, Scene
 from torchgarment.sim.solvers import SolverKind, SolveSettings
 from torchgarment.structures.garment_mesh import GarmentMesh
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from torchgarment.adjust.objective import AdjustObjective
+    from torchgarment.adjust.parametrization import BoundaryParametrization
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.sdf import BodySDF
 
 CHECKPOINT_NAME = "adjust.pt"
 """File name of the resumable checkpoint inside ``checkpoint_dir``."""
@@ -66,7 +77,7 @@ class AdjustSettings:
         drape: settings of the base drape; None = ``DrapeSettings(edge_length, voxel_size)``.
         atol_weight: exact-solve force tolerance as a fraction of the garment's weight (as the drape's).
         max_solver_iterations: iteration budget of an exact solve.
-        adjoint: :class:`~torchgarment.adjust.inexact.AdjointSolve` of the gradients: ``"direct"`` (a SuperLU
+        adjoint: :class:`~torchgarment.sim.diff.AdjointLinearSolver` of the gradients: ``"direct"`` (a SuperLU
             factorization per gradient, exact) or ``"iterative"`` (block-Jacobi CG warm-started from the last
             adjoint, at most ``adjoint_max_iterations``: the large-mesh path, inexact gradients).
         adjoint_rtol, adjoint_max_iterations: stopping rule of the iterative adjoint.
@@ -97,7 +108,7 @@ class AdjustSettings:
     drape: DrapeSettings | None = None
     atol_weight: float = 1e-3
     max_solver_iterations: int = 100
-    adjoint: AdjointSolve = AdjointSolve.DIRECT
+    adjoint: AdjointLinearSolver = AdjointLinearSolver.SPARSE
     adjoint_rtol: float = 1e-3
     adjoint_max_iterations: int = 50
     reuse_factorization: bool = False
@@ -109,7 +120,7 @@ class AdjustSettings:
         self.optimizer = OptimizerKind.resolve(self.optimizer)
         self.inner_solver = SolverKind.resolve(self.inner_solver)
         self.solver = SolverKind.resolve(self.solver)
-        self.adjoint = AdjointSolve.resolve(self.adjoint)
+        self.adjoint = AdjointLinearSolver.resolve(self.adjoint)
         checks = [
             (self.iterations >= 0, "iterations must be >= 0"),
             (self.inner_iterations >= 1 and self.exact_interval >= 1, "inner_iterations/exact_interval must be >= 1"),
@@ -237,7 +248,7 @@ def pattern_from_mesh(pattern, mesh: GarmentMesh, p: torch.Tensor, edge_length: 
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-def _target_sdf(body, voxel: float, dtype: torch.dtype, device):  # noqa: ANN001, ANN202
+def _target_sdf(body: Body, voxel: float, dtype: torch.dtype, device: torch.device | str | None) -> BodySDF:
     from torchgarment.sdf import BodySDF, SDFSampling, SDFSettings
 
     if isinstance(body, BodySDF):
@@ -246,7 +257,8 @@ def _target_sdf(body, voxel: float, dtype: torch.dtype, device):  # noqa: ANN001
     return sdf.with_sampling(SDFSampling.QUADRATIC)
 
 
-def _initialize(objective, param, q_base: torch.Tensor, iterations: int) -> torch.Tensor:  # noqa: ANN001
+def _initialize(objective: AdjustObjective, param: BoundaryParametrization, q_base: torch.Tensor,
+                iterations: int) -> torch.Tensor:
     """Section 7: minimize ``objective.initialization_objective(param(q))`` over q by L-BFGS (no simulation)."""
     q = q_base.detach().clone().requires_grad_(True)
     if iterations == 0:
@@ -264,7 +276,7 @@ def _initialize(objective, param, q_base: torch.Tensor, iterations: int) -> torc
     return q.detach()
 
 
-def _terms(objective, x: torch.Tensor, p: torch.Tensor) -> dict[str, float]:  # noqa: ANN001
+def _terms(objective: AdjustObjective, x: torch.Tensor, p: torch.Tensor) -> dict[str, float]:
     with torch.no_grad():
         return {k: float(v) for k, v in objective.term_values(x, p).items()}
 
@@ -370,13 +382,14 @@ class AdjustSetup:
         return AdjustProblem(self.model, self.param, self.objective, self.x_init if x_start is None else x_start,
                              exact_settings=replace(self.exact_settings, reuse_factorization=s.reuse_factorization),
                              solver=s.solver, inexact_solver=s.inner_solver, adjoint=s.adjoint,
-                             adjoint_rtol=s.adjoint_rtol, adjoint_max_iterations=s.adjoint_max_iterations)
+                             adjoint_rtol=s.adjoint_rtol, adjoint_max_iterations=s.adjoint_max_iterations,
+                             retain_graph=s.optimizer == OptimizerKind.GN)
 
 
 def prepare(
-    pattern_or_mesh,  # noqa: ANN001 - SewingPattern | GarmentMesh
-    base_body,  # noqa: ANN001 - Body
-    target_body,  # noqa: ANN001 - Body
+    pattern_or_mesh: SewingPattern | GarmentMesh,
+    base_body: Body,
+    target_body: Body,
     settings: AdjustSettings | None = None,
     *,
     dtype: torch.dtype = torch.float64,
@@ -439,19 +452,18 @@ def prepare(
 
     t1 = time.perf_counter()
     # the first solves start from the transferred garment, far from equilibrium: the drape's settle budget
-    problem.exact_settings = replace(exact, max_iterations=max(exact.max_iterations, dset.max_iterations))
-    ev = problem.evaluate(q_base, exact=True, need_grad=False)
+    settle = max(exact.max_iterations, dset.max_iterations)
+    ev = problem.evaluate(q_base, exact=True, need_grad=False, max_iterations=settle)
     f_base, terms_base = ev.objective, problem.term_values()
     x_before = problem.x.clone()
     q_init, x_init, f_init, terms_init, init_used = q_base, x_before, f_base, terms_base, False
     if settings.initialize:
         q_try = _initialize(objective, param, q_base, settings.init_iterations)
         problem.reset_state(x_transfer)
-        ev = problem.evaluate(q_try, exact=True, need_grad=False)
+        ev = problem.evaluate(q_try, exact=True, need_grad=False, max_iterations=settle)
         if ev.objective < f_base:
             q_init, x_init, f_init, terms_init, init_used = q_try, problem.x.clone(), ev.objective, \
                 problem.term_values(), True
-    problem.exact_settings = exact
     timings["initialization_seconds"] = time.perf_counter() - t1
     pattern = pattern_or_mesh if isinstance(pattern_or_mesh, SewingPattern) else None
     return AdjustSetup(settings, pattern, mesh_base, dict(base.metrics), x_transfer, param, objective, model, exact,
@@ -466,7 +478,7 @@ def optimize(
     checkpoint_dir: str | Path | None = None,
     progress: bool = True,
     resume: bool = False,
-    callback=None,  # noqa: ANN001 - Callable[[IterationRecord, dict], None]
+    callback: Callable[[IterationRecord, dict], None] | None = None,
 ) -> AdjustResult:
     """Step 4 on a prepared setup, with a fresh simulation state (see :func:`adjust`).
 
@@ -577,9 +589,9 @@ def optimize(
 
 
 def adjust(
-    pattern_or_mesh,  # noqa: ANN001 - SewingPattern | GarmentMesh
-    base_body,  # noqa: ANN001 - Body
-    target_body,  # noqa: ANN001 - Body
+    pattern_or_mesh: SewingPattern | GarmentMesh,
+    base_body: Body,
+    target_body: Body,
     settings: AdjustSettings | None = None,
     *,
     log_dir: str | Path | None = None,

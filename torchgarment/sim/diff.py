@@ -69,14 +69,15 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 import torch
-from torch.func import functional_call
+from torch.autograd.function import FunctionCtx
+from torch.func import functional_call, grad as func_grad, jvp as func_jvp
 
 from torchgarment.errors import InputError, TorchGarmentError
 from torchgarment.options import OptionEnum
@@ -117,7 +118,12 @@ class AdjointLinearSolver(OptionEnum):
     CG = "cg"
     """Block-Jacobi preconditioned conjugate gradients over Hessian-vector products (needs ``K`` SPD)."""
     SPARSE = "sparse"
-    """Assembled sparse ``K``, SuperLU factorization (any non-singular ``K``)."""
+    """Assembled sparse ``K``, sparse direct factorization (any non-singular ``K``)."""
+
+    @classmethod
+    def aliases(cls) -> dict[str, str]:
+        """``"direct"`` means SPARSE; ``"iterative"`` means CG."""
+        return {"direct": "sparse", "iterative": "cg"}
 
 
 class HessianProduct(OptionEnum):
@@ -307,17 +313,40 @@ def conjugate_gradients(
     return y, k, rn / bn
 
 
-def _sparse_lu_solve(csr: scipy.sparse.csr_matrix, rhs: np.ndarray) -> np.ndarray:
-    try:
-        lu = scipy.sparse.linalg.splu(csr.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                      options={"SymmetricMode": True})
-        y = lu.solve(rhs)
-    except RuntimeError as exc:  # "Factor is exactly singular"
-        raise NonConvergenceError(f"adjoint sparse solve failed: the Hessian at the solution is singular ({exc}); "
-                                  f"is the garment free to move (no pins, no body)?") from exc
-    if not np.all(np.isfinite(y)):
-        raise NonConvergenceError("adjoint sparse solve returned non-finite values (singular Hessian)")
-    return y
+class _Factorization:  # TEMPORARY: replaced by torchgarment.linalg at the merge
+    def __init__(self, matrix: scipy.sparse.csr_matrix) -> None:
+        self.matrix = matrix
+        try:
+            self.lu = scipy.sparse.linalg.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                               options={"SymmetricMode": True})
+        except RuntimeError as exc:  # "Factor is exactly singular"
+            raise NonConvergenceError(f"the Hessian at the solution is singular ({exc}); is the garment free to "
+                                      f"move (no pins, no body)?") from exc
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        y = self.lu.solve(b)
+        if not np.all(np.isfinite(y)):
+            raise NonConvergenceError("sparse solve returned non-finite values (singular Hessian)")
+        return y
+
+
+class FactorizationCache:  # TEMPORARY: replaced by torchgarment.linalg at the merge
+    def __init__(self) -> None:
+        self.key: torch.Tensor | None = None
+        self.value: _Factorization | None = None
+        self.factorizations = 0
+
+    def factorize(self, key: torch.Tensor, build) -> _Factorization:  # noqa: ANN001
+        if self.value is not None and self.key is not None and self.key.shape == key.shape \
+                and torch.equal(self.key, key):
+            return self.value
+        self.value = _Factorization(build())
+        self.key = key.detach().clone()
+        self.factorizations += 1
+        return self.value
+
+    def clear(self) -> None:
+        self.key, self.value = None, None
 
 
 def solve_adjoint(
@@ -332,6 +361,7 @@ def solve_adjoint(
     x0: torch.Tensor | None = None,
     require_convergence: bool = True,
     assembler: CSRAssembler | None = None,
+    cache: FactorizationCache | None = None,
 ) -> tuple[torch.Tensor, AdjointInfo]:
     """Solve ``K lambda = rhs`` with ``K`` the exact unprojected Hessian of ``model`` at ``x``.
 
@@ -347,6 +377,8 @@ def solve_adjoint(
         require_convergence: False accepts CG's iterate when the budget runs out or at a direction of
             non-positive curvature (an inexact adjoint; ``info.relative_residual`` says how inexact).
         assembler: a :class:`CSRAssembler` reused across calls (it caches the COO -> CSR permutation).
+        cache: a :class:`FactorizationCache` keyed on ``x``: SPARSE solves at the same ``x`` (an adjoint and the
+            tangent solves of Gauss-Newton products) share one factorization.
 
     CG is preconditioned with the simulator's block Jacobi, each seam pair of a ``sew`` term as one 6x6 block
     (:class:`~torchgarment.sim.solvers.chebyshev.JacobiState`): stiff seams otherwise slow CG down.
@@ -369,11 +401,11 @@ def solve_adjoint(
     bn = float(torch.linalg.vector_norm(rhs))
     assembler = CSRAssembler(V) if assembler is None else assembler
     if kind == AdjointLinearSolver.SPARSE:
-        blocks = exact_hessian_blocks(model, x)
-        csr = assembler.assemble(blocks)
+        cache = FactorizationCache() if cache is None else cache
+        fact = cache.factorize(x, lambda: assembler.assemble(exact_hessian_blocks(model, x)))
         b64 = rhs.to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
-        y = _sparse_lu_solve(csr, b64)
-        res = float(np.linalg.norm(csr @ y - b64)) / bn if bn > 0 else 0.0
+        y = fact.solve(b64)
+        res = float(np.linalg.norm(fact.matrix @ y - b64)) / bn if bn > 0 else 0.0
         lam = torch.from_numpy(y).to(device=x.device, dtype=x.dtype).view(V, 3)
         if res > max(1e3 * rtol, 1e-6):
             raise NonConvergenceError(f"adjoint sparse solve is inaccurate: relative residual {res:.3g} "
@@ -411,7 +443,7 @@ def solve_adjoint(
     return lam, AdjointInfo(kind.value, k, res, time.perf_counter() - t0)
 
 
-def _autograd_hvp(model: torch.nn.Module, x: torch.Tensor):  # noqa: ANN202 - a closure
+def _autograd_hvp(model: torch.nn.Module, x: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
     """``v -> K v`` by double backward through ``model.energy`` (graph of the gradient built once)."""
     with torch.enable_grad():
         xr = x.detach().clone().requires_grad_(True)
@@ -479,33 +511,49 @@ def parameter_vjp(
 class QuasistaticSolve(torch.autograd.Function):
     """``x* = argmin_x E(x; theta)`` with the adjoint backward (see the module docstring).
 
-    ``forward(ctx, layer, names, *values)``: ``layer`` is the :class:`DifferentiableSolver` (it holds the model,
-    settings and warm start), ``names`` the qualified parameter names and ``values`` their tensors. Returns the
-    equilibrium (V, 3). ``backward`` solves ``K lambda = dL/dx*`` and returns ``-lambda^T d(grad E)/dtheta`` for
-    the values that need a gradient. First-order only (no double backward).
+    ``forward(ctx, layer, names, request, *values)``: ``layer`` is the :class:`DifferentiableSolver` (it holds the
+    model, settings, warm start and factorization cache), ``names`` the qualified parameter names, ``request`` the
+    :class:`SolveRequest` of this call (exact, or ``S`` solver iterations) and ``values`` the parameter tensors.
+    Returns the equilibrium (V, 3). ``backward`` solves ``K lambda = dL/dx*`` with the layer's adjoint solver
+    (:meth:`DifferentiableSolver.adjoint`) and returns ``-lambda^T d(grad E)/dtheta`` for the values that need a
+    gradient. First-order only (no double backward).
     """
 
     @staticmethod
-    def forward(ctx, layer: "DifferentiableSolver", names: tuple[str, ...], *values: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        x = layer._solve_no_grad(dict(zip(names, values)))
+    def forward(ctx: FunctionCtx, layer: DifferentiableSolver, names: tuple[str, ...],  # type: ignore[override]
+                request: SolveRequest, *values: torch.Tensor) -> torch.Tensor:
+        x = layer._solve_no_grad(dict(zip(names, values)), request)
         ctx.layer, ctx.names = layer, names
         ctx.save_for_backward(x, *values)
         return x.clone()
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_x: torch.Tensor):  # type: ignore[override]
+    def backward(ctx: FunctionCtx, grad_x: torch.Tensor) -> tuple[torch.Tensor | None, ...]:  # type: ignore[override]
         x, *values = ctx.saved_tensors
         layer: DifferentiableSolver = ctx.layer
-        want = {n: v for n, v, need in zip(ctx.names, values, ctx.needs_input_grad[2:]) if need}
+        want = {n: v for n, v, need in zip(ctx.names, values, ctx.needs_input_grad[3:]) if need}
         if not want:
-            return (None, None) + (None,) * len(values)
-        lam, info = solve_adjoint(layer.model, x, grad_x, layer.linear_solver,
-                                  hessian_product=layer.hessian_product, rtol=layer.cg_rtol,
-                                  max_iterations=layer.cg_max_iterations)
-        layer.last_adjoint_info = info
+            return (None, None, None) + (None,) * len(values)
+        lam = layer.adjoint(x, grad_x)
         grads = parameter_vjp(layer.model, x, lam, want)
-        return (None, None) + tuple(grads.get(n) for n in ctx.names)
+        return (None, None, None) + tuple(grads.get(n) for n in ctx.names)
+
+
+@dataclass(frozen=True)
+class SolveRequest:
+    """What one call of a :class:`DifferentiableSolver` solves.
+
+    Attributes:
+        iterations: None for an exact solve (to the force tolerance; a miss raises with ``strict``), else ``S``:
+            run at most ``S`` iterations of the layer's ``inexact_solver`` from the warm start (Wang 2018,
+            Algorithm 1); the result need not be an equilibrium and its gradient is the paper's inexact one (the
+            adjoint at the state reached).
+        max_iterations: iteration budget of an exact solve (None: ``settings.max_iterations``).
+    """
+
+    iterations: int | None = None
+    max_iterations: int | None = None
 
 
 # ---------------------------------------------------------------------------------------------- the layer
@@ -532,8 +580,12 @@ class DifferentiableSolver(torch.nn.Module):
         linear_solver: adjoint solver, ``"sparse"`` (default, faster on the CPU, see :func:`solve_adjoint`) or
             ``"cg"`` (:class:`AdjointLinearSolver`).
         hessian_product: CG products, ``"assembled"`` or ``"autograd"`` (:class:`HessianProduct`).
+        inexact_solver: solver of the ``S``-iteration calls (:class:`SolveRequest`; default ``solver``).
         cg_rtol: adjoint CG relative tolerance.
         cg_max_iterations: CG budget (None = ``max(200, 3V)``).
+        cg_warm_start: start each adjoint CG from the previous adjoint (a sequence of nearby solves).
+        cg_require_convergence: False accepts CG's iterate at the budget or at non-positive curvature (an inexact
+            adjoint, Wang 2018 section 7; ``last_adjoint_info.relative_residual`` says how inexact).
         truncated_steps: Newton steps unrolled in TRUNCATED mode (>= 1).
         unroll_iterations: Newton iteration budget of UNROLL mode.
         warm_start: start each solve from the last solution.
@@ -553,8 +605,11 @@ class DifferentiableSolver(torch.nn.Module):
         backward: "str | BackwardMode" = BackwardMode.ADJOINT,
         linear_solver: "str | AdjointLinearSolver" = AdjointLinearSolver.SPARSE,
         hessian_product: "str | HessianProduct" = HessianProduct.ASSEMBLED,
+        inexact_solver: "str | SolverKind | None" = None,
         cg_rtol: float = 1e-10,
         cg_max_iterations: int | None = None,
+        cg_warm_start: bool = False,
+        cg_require_convergence: bool = True,
         truncated_steps: int = 1,
         unroll_iterations: int = 100,
         warm_start: bool = True,
@@ -568,6 +623,7 @@ class DifferentiableSolver(torch.nn.Module):
         self.settings = SolveSettings(rtol=1e-8, max_iterations=200) if settings is None else settings
         self.settings.validate()
         self.solver = SolverKind.resolve(solver)
+        self.inexact_solver = self.solver if inexact_solver is None else SolverKind.resolve(inexact_solver)
         self.backward_mode = BackwardMode.resolve(backward)
         self.linear_solver = AdjointLinearSolver.resolve(linear_solver)
         self.hessian_product = HessianProduct.resolve(hessian_product)
@@ -575,6 +631,8 @@ class DifferentiableSolver(torch.nn.Module):
             raise InputError("cg_rtol must be > 0, truncated_steps and unroll_iterations >= 1")
         self.cg_rtol = float(cg_rtol)
         self.cg_max_iterations = cg_max_iterations
+        self.cg_warm_start = bool(cg_warm_start)
+        self.cg_require_convergence = bool(cg_require_convergence)
         self.truncated_steps = int(truncated_steps)
         self.unroll_iterations = int(unroll_iterations)
         self.warm_start = bool(warm_start)
@@ -583,8 +641,13 @@ class DifferentiableSolver(torch.nn.Module):
         with torch.no_grad():
             self.x_init = model.project_feasible(x0.detach().to(model.dtype).clone())
         self._x_last: torch.Tensor | None = None
+        self._adjoint_last: torch.Tensor | None = None
+        self._assembler = CSRAssembler(model.num_vertices)
+        self._factorizations = FactorizationCache()
         self.last_info: SolveInfo | None = None
         self.last_adjoint_info: AdjointInfo | None = None
+        self.sim_iterations = 0
+        self.adjoint_iterations = 0
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -595,12 +658,30 @@ class DifferentiableSolver(torch.nn.Module):
         """Forget the warm start: the next solve starts from ``x0``."""
         self._x_last = None
 
+    @property
+    def state(self) -> torch.Tensor:
+        """(V, 3) the warm start of the next solve in metres (the last solution, or ``x0``)."""
+        return self.x_init if self._x_last is None else self._x_last
+
+    def set_state(self, x: torch.Tensor) -> None:
+        """Set the warm start (V, 3) of the next solve (e.g. going back to an earlier iterate)."""
+        self._x_last = x.detach().clone()
+
+    @property
+    def factorizations(self) -> int:
+        """Sparse factorizations of ``K`` done so far (one per new state a SPARSE adjoint or tangent needs)."""
+        return self._factorizations.factorizations
+
     # ------------------------------------------------------------------ call
-    def forward(self, params: Mapping[str, torch.Tensor] | None = None, **kwargs: torch.Tensor) -> torch.Tensor:
+    def forward(self, params: Mapping[str, torch.Tensor] | None = None, *, iterations: int | None = None,
+                max_iterations: int | None = None, **kwargs: torch.Tensor) -> torch.Tensor:
         """Solve for the equilibrium with the given parameter values.
 
         Args:
             params: values by name (qualified or bare attribute name).
+            iterations: None (an exact solve) or ``S``, the iterations of an inexact one (:class:`SolveRequest`;
+                ADJOINT mode only).
+            max_iterations: the budget of an exact solve (default ``settings.max_iterations``).
             **kwargs: more values by name (``p=...``); a name may not appear in both.
 
         Returns:
@@ -611,15 +692,23 @@ class DifferentiableSolver(torch.nn.Module):
             NonConvergenceError: the forward solve missed its tolerance (``strict``).
         """
         values = self._resolve(params, kwargs)
+        if iterations is not None and int(iterations) < 1:
+            raise InputError(f"an inexact solve needs iterations >= 1, got {iterations}")
+        if max_iterations is not None and int(max_iterations) < 0:
+            raise InputError(f"max_iterations must be >= 0, got {max_iterations}")
+        request = SolveRequest(None if iterations is None else int(iterations),
+                               None if max_iterations is None else int(max_iterations))
         mode = self.backward_mode
         if mode == BackwardMode.ADJOINT:
             names = tuple(values)
-            return QuasistaticSolve.apply(self, names, *values.values())
+            return QuasistaticSolve.apply(self, names, request, *values.values())
+        if request.iterations is not None:
+            raise InputError(f"inexact solves (iterations=) need backward mode 'adjoint', not {mode.value!r}")
         if self.model.num_vertices > self.max_unroll_vertices:
             raise InputError(f"backward mode {mode.value!r} forms dense Hessians and is limited to "
                              f"{self.max_unroll_vertices} vertices; use 'adjoint'")
         if mode == BackwardMode.TRUNCATED:
-            x = self._solve_no_grad(values)
+            x = self._solve_no_grad(values, request)
             if self.truncated_steps > 1:
                 check_twice_differentiable(self.model, x)
             return self._newton_unrolled(values, x, self.truncated_steps, tol=None, differentiate_hessian=False)
@@ -675,23 +764,95 @@ class DifferentiableSolver(torch.nn.Module):
             self.model.get_parameter(slots[n].path).copy_(v.detach())
 
     def _tolerance(self) -> float:
+        if self.settings.rtol == 0.0:
+            return self.settings.atol
         _, g = self.model.value_and_grad(self.x_init)
         return max(self.settings.atol, self.settings.rtol * float(torch.linalg.vector_norm(g)))
 
     @torch.no_grad()
-    def _solve_no_grad(self, values: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """Write ``values`` into the model and solve (warm-started); raise/warn if not converged."""
+    def _solve_no_grad(self, values: Mapping[str, torch.Tensor], request: SolveRequest = SolveRequest()
+                       ) -> torch.Tensor:
+        """Write ``values`` into the model and solve (warm-started) as ``request`` asks; an exact solve raises
+        (``strict``) or warns when it misses the tolerance. The warm start only moves on success."""
         self._write(values)
         tol = self._tolerance()
         start = self._x_last if (self.warm_start and self._x_last is not None) else self.x_init
         settings = replace(self.settings, rtol=0.0, atol=tol)
-        x, info = solve(self.model, start, settings, solver=self.solver)
+        if request.iterations is not None:  # inexact: S iterations, stopping early at the tolerance
+            x, info = solve(self.model, start, settings, solver=self.inexact_solver, max_iterations=request.iterations)
+        else:
+            x, info = solve(self.model, start, settings, solver=self.solver, max_iterations=request.max_iterations)
         self.last_info = info
-        if not (info.residual <= tol):
+        self.sim_iterations += info.iterations
+        if request.iterations is None and not (info.residual <= tol):
             self._fail(f"forward solve did not converge: force norm {info.residual:.3g} N > tolerance {tol:.3g} N "
                        f"after {info.iterations} iterations ({info.message}); its gradient would be wrong")
         self._x_last = x.detach().clone()
         return x.detach()
+
+    # ------------------------------------------------------------------ linear solves at a state
+    def adjoint(self, x: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        """``lambda = K^-1 rhs`` (V, 3) at ``x`` with the layer's adjoint solver: the backward of
+        :class:`QuasistaticSolve`. SPARSE factorizations are cached on ``x`` (shared with :meth:`tangent`); CG
+        starts from the previous adjoint with ``cg_warm_start`` and accepts an unconverged iterate unless
+        ``cg_require_convergence``.
+
+        Args:
+            x: (V, 3) state in metres (an equilibrium for an exact gradient).
+            rhs: (V, 3) ``dL/dx`` in loss units per metre.
+        """
+        warm = self._adjoint_last if (self.cg_warm_start and self._adjoint_last is not None
+                                      and self._adjoint_last.shape == x.shape) else None
+        lam, info = solve_adjoint(self.model, x, rhs, self.linear_solver, hessian_product=self.hessian_product,
+                                  rtol=self.cg_rtol, max_iterations=self.cg_max_iterations, x0=warm,
+                                  require_convergence=self.cg_require_convergence, assembler=self._assembler,
+                                  cache=self._factorizations)
+        self.last_adjoint_info = info
+        self.adjoint_iterations += info.iterations
+        if self.cg_warm_start:
+            self._adjoint_last = lam.detach().clone()
+        return lam
+
+    def tangent(self, values: Mapping[str, torch.Tensor], dvalues: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """``dx = (dx*/dtheta) dtheta`` (V, 3) at the last solution: one tangent solve ``K dx = -(d grad_x E /
+        dtheta) dtheta``, with the SPARSE factorization cached on the state (the one an adjoint at the same state
+        uses), whatever the adjoint solver. ``(d grad_x E / dtheta) dtheta`` is forward-over-reverse autograd of
+        the terms that own the parameters.
+
+        Args:
+            values: the parameter values of the last solve, by name (as for :meth:`forward`).
+            dvalues: the directions ``dtheta``, by the same names, shaped like the values.
+
+        Returns:
+            (V, 3) in metres per unit of ``dtheta``.
+        """
+        if self._x_last is None:
+            raise InputError("solve before asking for a tangent")
+        x = self._x_last
+        vals = self._resolve(values, {})
+        dirs = {self._slot(k).name: v.detach() for k, v in dvalues.items()}
+        if set(dirs) != set(vals):
+            raise InputError(f"tangent directions {sorted(dirs)} do not match the values {sorted(vals)}")
+        slots = {s.name: s for s in self._slots}
+        names = tuple(vals)
+
+        def grad_x(*prim: torch.Tensor) -> torch.Tensor:
+            by_term: dict[int, dict[str, torch.Tensor]] = {}
+            for n, v in zip(names, prim):
+                by_term.setdefault(slots[n].term, {})[slots[n].attr] = v
+            total = None
+            for i, params in by_term.items():
+                term = self.model.terms[i]
+                g = func_grad(lambda xx, term=term, params=params: functional_call(term, params, (xx,)))(x)
+                total = g if total is None else total + g
+            return total
+
+        prim = tuple(vals[n].detach() for n in names)
+        tang = tuple(dirs[n].to(vals[n].dtype) for n in names)
+        _, dg = func_jvp(grad_x, prim, tang)
+        lam, _ = solve_adjoint(self.model, x, dg.detach(), AdjointLinearSolver.SPARSE, assembler=self._assembler,
+                               cache=self._factorizations)
+        return -lam
 
     def _fail(self, msg: str) -> None:
         if self.strict:
@@ -699,7 +860,7 @@ class DifferentiableSolver(torch.nn.Module):
         warnings.warn(msg, NonConvergenceWarning, stacklevel=3)
 
     # ------------------------------------------------------------------ differentiable Newton
-    def _energy_fn(self, values: Mapping[str, torch.Tensor]):  # noqa: ANN202 - a closure
+    def _energy_fn(self, values: Mapping[str, torch.Tensor]) -> Callable[[torch.Tensor], torch.Tensor]:
         slots = {s.name: s for s in self._slots}
         params = {slots[n].path: v for n, v in values.items()}
         return lambda x: functional_call(self.model, params, (x,))
@@ -786,6 +947,7 @@ SolveLayer = DifferentiableSolver
 __all__ = [
     "AdjointInfo",
     "AdjointLinearSolver",
+    "FactorizationCache",
     "BackwardMode",
     "DifferentiableSolver",
     "HessianProduct",
@@ -793,6 +955,7 @@ __all__ = [
     "NonConvergenceWarning",
     "QuasistaticSolve",
     "SolveLayer",
+    "SolveRequest",
     "barrier_curvature_blocks",
     "check_twice_differentiable",
     "conjugate_gradients",
