@@ -1,4 +1,5 @@
-"""Reporting and metrics of the accuracy-vs-time study of the fitting methods (``scripts/accuracy_vs_time.py``).
+"""Reporting and metrics of the accuracy-vs-time study of the fitting methods
+(``scripts/accuracy_vs_time.py``).
 
 * Reporting: the Pareto front of (time, error) points (:func:`pareto_front`), rows written to CSV
   (:func:`write_csv`, columns :data:`CSV_COLUMNS`), per-setting summaries (:func:`summarize`), their printed
@@ -48,8 +49,22 @@ __all__ = [
     "write_csv",
 ]
 
-CSV_COLUMNS = ("method", "setting", "body", "seconds", "offline_seconds", "mean_mm", "max_mm", "inside",
-               "waist_ease_mm", "hip_ease_mm", "waist_ease_err_mm", "hip_ease_err_mm", "vertices", "note")
+CSV_COLUMNS = (
+    "method",
+    "setting",
+    "body",
+    "seconds",
+    "offline_seconds",
+    "mean_mm",
+    "max_mm",
+    "inside",
+    "waist_ease_mm",
+    "hip_ease_mm",
+    "waist_ease_err_mm",
+    "hip_ease_err_mm",
+    "vertices",
+    "note",
+)
 """Columns of the CSV, in order (rows may carry more keys: they are appended after these)."""
 
 
@@ -105,11 +120,13 @@ def write_csv(rows: list[dict], path: str | Path) -> list[str]:
 
 
 def summarize(rows: list[dict]) -> list[dict]:
-    """One summary per method setting (in order of first appearance): median seconds, mean of ``mean_mm``, max of
-    ``max_mm``, mean ``inside``, mean absolute ease errors, offline seconds, number of bodies."""
+    """One summary per method setting (in order of first appearance): median seconds, mean of ``mean_mm``, max
+    of ``max_mm``, mean ``inside``, mean absolute ease errors, offline seconds, number of bodies."""
     out: dict[str, dict] = {}
     for r in rows:
-        out.setdefault(r["setting"], {"method": r["method"], "setting": r["setting"], "_rows": []})["_rows"].append(r)
+        out.setdefault(r["setting"], {"method": r["method"], "setting": r["setting"], "_rows": []})[
+            "_rows"
+        ].append(r)
 
     def nanmean(vals: list[float]) -> float:
         v = [x for x in vals if isinstance(x, (int, float)) and math.isfinite(x)]
@@ -118,33 +135,40 @@ def summarize(rows: list[dict]) -> list[dict]:
     res = []
     for s in out.values():
         rs = s.pop("_rows")
-        s.update({
-            "bodies": len(rs),
-            "median_seconds": statistics.median(r["seconds"] for r in rs),
-            "offline_seconds": max(r.get("offline_seconds", 0.0) for r in rs),
-            "mean_mm": nanmean([r["mean_mm"] for r in rs]),
-            "max_mm": max(r["max_mm"] for r in rs),
-            "inside": nanmean([r["inside"] for r in rs]),
-            "waist_ease_err_mm": nanmean([r.get("waist_ease_err_mm", math.nan) for r in rs]),
-            "hip_ease_err_mm": nanmean([r.get("hip_ease_err_mm", math.nan) for r in rs]),
-        })
+        s.update(
+            {
+                "bodies": len(rs),
+                "median_seconds": statistics.median(r["seconds"] for r in rs),
+                "offline_seconds": max(r.get("offline_seconds", 0.0) for r in rs),
+                "mean_mm": nanmean([r["mean_mm"] for r in rs]),
+                "max_mm": max(r["max_mm"] for r in rs),
+                "inside": nanmean([r["inside"] for r in rs]),
+                "waist_ease_err_mm": nanmean([r.get("waist_ease_err_mm", math.nan) for r in rs]),
+                "hip_ease_err_mm": nanmean([r.get("hip_ease_err_mm", math.nan) for r in rs]),
+            }
+        )
         res.append(s)
     return res
 
 
 def format_table(summary: list[dict], front: set[str]) -> str:
     """The printed table (one line per setting; ``*`` marks the Pareto front)."""
-    lines = [f"{'setting':<34} {'n':>2} {'med s':>9} {'offl s':>7} {'mean mm':>8} {'max mm':>8} {'inside':>7} "
-             f"{'waist':>7} {'hip':>7}  (ease errors in mm; * = Pareto front)"]
+    lines = [
+        f"{'setting':<34} {'n':>2} {'med s':>9} {'offl s':>7} {'mean mm':>8} {'max mm':>8} {'inside':>7} "
+        f"{'waist':>7} {'hip':>7}  (ease errors in mm; * = Pareto front)"
+    ]
     for s in summary:
-        lines.append(f"{s['setting']:<34} {s['bodies']:>2} {s['median_seconds']:>9.4g} {s['offline_seconds']:>7.0f} "
-                     f"{s['mean_mm']:>8.2f} {s['max_mm']:>8.2f} {s['inside']:>7.1f} {s['waist_ease_err_mm']:>7.1f} "
-                     f"{s['hip_ease_err_mm']:>7.1f}{'  *' if s['setting'] in front else ''}")
+        lines.append(
+            f"{s['setting']:<34} {s['bodies']:>2} {s['median_seconds']:>9.4g} {s['offline_seconds']:>7.0f} "
+            f"{s['mean_mm']:>8.2f} {s['max_mm']:>8.2f} {s['inside']:>7.1f} {s['waist_ease_err_mm']:>7.1f} "
+            f"{s['hip_ease_err_mm']:>7.1f}{'  *' if s['setting'] in front else ''}"
+        )
     return "\n".join(lines)
 
 
 def plot_pareto(summary: list[dict], path: str | Path, title: str) -> None:
-    """Mean error (mm) vs median seconds per setting (log x), one marker per setting, Pareto front as a line."""
+    """Mean error (mm) vs median seconds per setting (log x), one marker per setting, Pareto front as a
+    line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -154,15 +178,34 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str) -> None:
     fig, ax = plt.subplots(figsize=(8.5, 5.5))
     for method in dict.fromkeys(s["method"] for s in summary):
         ss = [s for s in summary if s["method"] == method]
-        ax.scatter([s["median_seconds"] for s in ss], [s["mean_mm"] for s in ss], marker=markers.get(method, "x"),
-                   s=48, label=method, zorder=3)
+        ax.scatter(
+            [s["median_seconds"] for s in ss],
+            [s["mean_mm"] for s in ss],
+            marker=markers.get(method, "x"),
+            s=48,
+            label=method,
+            zorder=3,
+        )
         for s in ss:
-            ax.annotate(s["setting"], (s["median_seconds"], s["mean_mm"]), fontsize=7, xytext=(4, 3),
-                        textcoords="offset points")
+            ax.annotate(
+                s["setting"],
+                (s["median_seconds"], s["mean_mm"]),
+                fontsize=7,
+                xytext=(4, 3),
+                textcoords="offset points",
+            )
     idx = pareto_front([s["median_seconds"] for s in summary], [s["mean_mm"] for s in summary])
     if idx:
-        ax.step([summary[i]["median_seconds"] for i in idx], [summary[i]["mean_mm"] for i in idx], where="post",
-                color="k", lw=1.2, ls="--", label="Pareto front", zorder=2)
+        ax.step(
+            [summary[i]["median_seconds"] for i in idx],
+            [summary[i]["mean_mm"] for i in idx],
+            where="post",
+            color="k",
+            lw=1.2,
+            ls="--",
+            label="Pareto front",
+            zorder=2,
+        )
     ax.set_xscale("log")
     ax.set_xlabel("median wall time per body (s, online part)")
     ax.set_ylabel("mean point-to-surface distance to reference (mm)")
@@ -209,7 +252,8 @@ class BodyCase:
 
 
 def garment_ease(case: BodyCase, vertices: torch.Tensor, faces: torch.Tensor) -> dict[str, float]:
-    """Garment girth minus body girth at the body's waist and hip planes, metres (NaN where the plane misses)."""
+    """Garment girth minus body girth at the body's waist and hip planes, metres (NaN where the plane
+    misses)."""
     out = {}
     for name, plane in case.planes.items():
         try:
@@ -222,7 +266,8 @@ def garment_ease(case: BodyCase, vertices: torch.Tensor, faces: torch.Tensor) ->
 
 def top_boundary_height(vertices: torch.Tensor, faces: torch.Tensor) -> float:
     """Lowest height (m) of the garment's upper boundary (boundary vertices above the garment's mid-height): a
-    horizontal plane below it cuts the garment in closed loops all around, even when the waistband is tilted."""
+    horizontal plane below it cuts the garment in closed loops all around, even when the waistband is
+    tilted."""
     f = faces.long()
     e = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).sort(dim=1).values
     uniq, counts = torch.unique(e, dim=0, return_counts=True)
@@ -233,9 +278,9 @@ def top_boundary_height(vertices: torch.Tensor, faces: torch.Tensor) -> float:
 
 
 def lower_waist_plane(case: BodyCase, garment_top: float, below: float = 0.01) -> None:
-    """Move the waist plane down to ``garment_top - below`` when the body's natural waist lies above the draped
-    garment (a skirt's waistband sits lower), and re-measure the body there: the "waist" ease is then the ease at
-    the waistband, on the same plane for the body, the reference and every method."""
+    """Move the waist plane down to ``garment_top - below`` when the body's natural waist lies above the
+    draped garment (a skirt's waistband sits lower), and re-measure the body there: the "waist" ease is then
+    the ease at the waistband, on the same plane for the body, the reference and every method."""
     plane = case.planes["waist"]
     y = garment_top - below
     if float(plane.point[1]) <= y:
@@ -244,7 +289,9 @@ def lower_waist_plane(case: BodyCase, garment_top: float, below: float = 0.01) -
     point[1] = y
     seed[1] = y
     case.planes["waist"] = replace(plane, point=point, seed=seed)
-    case.girths["waist"] = float(section_girths(case.vertices, case.faces, {"waist": case.planes["waist"]})["waist"])
+    case.girths["waist"] = float(
+        section_girths(case.vertices, case.faces, {"waist": case.planes["waist"]})["waist"]
+    )
     case.waist_lowered_mm = 1e3 * (float(plane.point[1]) - y)
 
 
@@ -266,8 +313,11 @@ def evaluate(case: BodyCase, x: torch.Tensor, wv: torch.Tensor, wf: torch.Tensor
     sd = igl.signed_distance(p, bv, bf)[0]
     ease = garment_ease(case, wv, wf)
     return {
-        "mean_mm": float(d.mean()), "max_mm": float(d.max()), "inside": int((sd < 0).sum()),
-        "waist_ease_mm": 1e3 * ease.get("waist", math.nan), "hip_ease_mm": 1e3 * ease.get("hips", math.nan),
+        "mean_mm": float(d.mean()),
+        "max_mm": float(d.max()),
+        "inside": int((sd < 0).sum()),
+        "waist_ease_mm": 1e3 * ease.get("waist", math.nan),
+        "hip_ease_mm": 1e3 * ease.get("hips", math.nan),
         "waist_ease_err_mm": 1e3 * abs(ease.get("waist", math.nan) - case.ref_ease.get("waist", math.nan)),
         "hip_ease_err_mm": 1e3 * abs(ease.get("hips", math.nan) - case.ref_ease.get("hips", math.nan)),
         "vertices": int(p.shape[0]),
