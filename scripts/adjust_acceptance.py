@@ -43,183 +43,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchgarment.adjust.acceptance import (
+    SKIRT_LINES,
+    TSHIRT_LINES,
+    body_girth_at,
+    boundary_vertex_labels,
+    edges_length,
+    girth,
+    hips_body,
+    line_vertices,
+    pattern_line_widths,
+    procrustes_deviation,
+    scaled_body,
+)
+
 ACCEPT_MS_PERCENT = 1.0
 ACCEPT_GRADING_CM = 1.0
 ACCEPT_WAISTBAND_MM = 2.0
-
-# construction line -> (first edge label: its start vertex, second edge label: its end vertex)
-SKIRT_LINES = {"waist": ("waist_r", "waist_l"), "hips": ("side_hip_r", "side_hip_l")}
-TSHIRT_LINES = {"bust": ("armhole_r", "armhole_l"), "waist": ("side_up_r", "side_up_l")}
-
-
-# ---------------------------------------------------------------------------------------------- helpers
-def procrustes_deviation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distances of ``a`` to ``b`` after the best rigid motion (rotation + translation, no scale) of ``a``.
-
-    Args:
-        a, b: (N, 2) corresponding points.
-
-    Returns:
-        (N,) distances ``|R a_i + t - b_i|`` for the least-squares ``R`` (proper rotation), ``t``.
-    """
-    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 2:
-        raise ValueError(f"procrustes_deviation needs two (N, 2) arrays, got {a.shape} and {b.shape}")
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    A, B = a - ca, b - cb
-    u, _, vt = np.linalg.svd(A.T @ B)
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    R = (u @ np.diag([1.0, d]) @ vt).T  # maps A onto B: B ~ A R^T
-    return np.linalg.norm(A @ R.T - B, axis=1)
-
-
-def line_width(panel, first: str, second: str) -> float:  # noqa: ANN001 - Panel
-    """Distance between the start vertex of the edge labelled ``first`` and the end vertex of ``second`` (m)."""
-    labels = [e.label for e in panel.edges]
-    if first not in labels or second not in labels:
-        raise KeyError(f"panel {panel.name!r} has no edges {first!r}/{second!r}")
-    a = panel.edge_endpoints(labels.index(first))[0]
-    b = panel.edge_endpoints(labels.index(second))[1]
-    return float(np.linalg.norm(np.asarray(b) - np.asarray(a)))
-
-
-def pattern_line_widths(pattern, lines: dict[str, tuple[str, str]]) -> dict[str, float]:  # noqa: ANN001
-    """Per construction line, the sum over the panels that have both edges of :func:`line_width` (m)."""
-    out = {}
-    for name, (first, second) in lines.items():
-        total, found = 0.0, False
-        for panel in pattern.panels.values():
-            labels = {e.label for e in panel.edges}
-            if first in labels and second in labels:
-                total += line_width(panel, first, second)
-                found = True
-        if not found:
-            raise KeyError(f"pattern {pattern.name!r}: no panel has edges {first!r} and {second!r}")
-        out[name] = total
-    return out
-
-
-def edges_length(pattern, labels: tuple[str, ...]) -> float:  # noqa: ANN001
-    """Total length (m) of the edges with these labels over all panels (e.g. the waistband's girth)."""
-    total = sum(p.edge_length(i) for p in pattern.panels.values() for i, e in enumerate(p.edges) if e.label in labels)
-    if total == 0.0:
-        raise KeyError(f"pattern {pattern.name!r} has no edges labelled {labels}")
-    return float(total)
-
-
-def edge_vertex_runs(pattern, mesh, edge_length: float) -> dict[str, list[np.ndarray]]:  # noqa: ANN001
-    """Per panel, per edge (in the panel's edge order), the mesh vertex indices of the edge's boundary samples from
-    its start vertex to its end vertex (both included).
-
-    Uses the meshing convention of :func:`torchgarment.pattern.meshing.mesh_pattern`: a panel's boundary is its
-    first vertices, edge by edge.
-    """
-    from torchgarment.pattern.meshing import edge_segment_counts
-
-    counts = edge_segment_counts(pattern, edge_length)
-    vp = mesh.vertex_panel_ids.cpu().numpy()
-    names = list(mesh.panel_names)
-    runs = {}
-    for name, panel in pattern.panels.items():
-        off = int(np.nonzero(vp == names.index(name))[0].min())
-        n = counts[name]
-        starts = np.concatenate([[0], np.cumsum(n)])
-        nb = int(starts[-1])
-        runs[name] = [off + (np.arange(starts[i], starts[i] + n[i] + 1) % nb) for i in range(len(panel.edges))]
-    return runs
-
-
-def boundary_vertex_labels(pattern, mesh, edge_length: float) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
-    """Mesh vertex indices of every panel edge's boundary samples (end points included) and their edge labels.
-
-    Returns:
-        ``(vertex, label)``: (M,) int array and (M,) object array (a corner appears once per adjacent edge).
-    """
-    verts, labels = [], []
-    for name, runs in edge_vertex_runs(pattern, mesh, edge_length).items():
-        for e, idx in zip(pattern.panels[name].edges, runs):
-            verts.append(idx)
-            labels.append(np.full(idx.shape, e.label, dtype=object))
-    return np.concatenate(verts), np.concatenate(labels)
-
-
-def line_vertices(pattern, mesh, edge_length: float, first: str, second: str) -> np.ndarray:  # noqa: ANN001
-    """Mesh vertex indices of a construction line's corners: per panel with both edges, the start vertex of the edge
-    labelled ``first`` and the end vertex of ``second`` (the two points :func:`line_width` measures)."""
-    out = []
-    for name, runs in edge_vertex_runs(pattern, mesh, edge_length).items():
-        labels = [e.label for e in pattern.panels[name].edges]
-        if first in labels and second in labels:
-            out += [int(runs[labels.index(first)][0]), int(runs[labels.index(second)][-1])]
-    if not out:
-        raise KeyError(f"pattern {pattern.name!r}: no panel has edges {first!r} and {second!r}")
-    return np.asarray(out, dtype=np.int64)
-
-
-def body_girth_at(body, y: float) -> float:  # noqa: ANN001 - Body
-    """The body's horizontal tape girth (m) at height ``y``: the convex hull of the section loop around the body's
-    vertical axis (x = z = 0, where bodies are centred), as :func:`torchgarment.body.measure.section_girths`."""
-    from torchgarment.body.measure import SectionPlane, section_girths
-
-    v = body.vertices
-    pt = torch.tensor([0.0, float(y), 0.0], dtype=v.dtype, device=v.device)
-    up = torch.tensor([0.0, 1.0, 0.0], dtype=v.dtype, device=v.device)
-    return float(section_girths(v, body.faces, {"line": SectionPlane("line", pt, up, pt)})["line"])
-
-
-def scaled_body(body, s: float):  # noqa: ANN001, ANN201 - Body -> Body
-    """``body`` scaled uniformly by ``s`` about its feet centre (mean x, min y, mean z of the vertices)."""
-    from torchgarment.body import Body
-    from torchgarment.body.skeleton import Skeleton
-
-    v = body.vertices
-    c = torch.stack([v[:, 0].mean(), v[:, 1].min(), v[:, 2].mean()])
-    sk = None
-    if body.skeleton is not None:
-        sk = Skeleton(c + s * (body.skeleton.joints - c), body.skeleton.bones.clone(), list(body.skeleton.names))
-    return Body(vertices=c + s * (v - c), faces=body.faces.clone(), skeleton=sk,
-                skin_weights=None if body.skin_weights is None else body.skin_weights.clone(),
-                landmarks={k: c + s * (x - c) for k, x in body.landmarks.items()},
-                params={"derived": "scaled", "scale": s})
-
-
-def hip_weight(y: torch.Tensor, y_hip: float, y_waist: float, y_thigh: float) -> torch.Tensor:
-    """cos^2 bump: 1 at ``y_hip``, 0 at and beyond ``y_waist`` (above) and ``y_thigh`` (below)."""
-    up = ((y - y_hip) / (y_waist - y_hip)).clamp(0.0, 1.0)
-    down = ((y_hip - y) / (y_hip - y_thigh)).clamp(0.0, 1.0)
-    t = torch.where(y >= y_hip, up, down)
-    return torch.cos(0.5 * math.pi * t) ** 2
-
-
-ARM_KEYS = ("arm", "wrist", "finger", "metacarpal", "shoulder", "clavicle")
-
-
-def hips_body(body, amount: float):  # noqa: ANN001, ANN201 - Body -> Body
-    """``body`` with the hips enlarged: x, z scaled by ``1 + amount * w(y)`` about the hip landmark's vertical
-    axis (:func:`hip_weight` between the waist and thigh landmarks), arm/hand vertices (skin weight) unchanged."""
-    from torchgarment.body import Body
-
-    lm = body.landmarks
-    v = body.vertices
-    w = hip_weight(v[:, 1], float(lm["hips"][1]), float(lm["waist"][1]), float(lm["thigh"][1]))
-    if body.skin_weights is not None and body.skeleton is not None and body.skeleton.names:
-        arm = torch.tensor([any(k in n for k in ARM_KEYS) for n in body.skeleton.names], device=v.device)
-        w = w * (1.0 - body.skin_weights[arm].sum(dim=0).clamp(0.0, 1.0))
-    c = lm["hips"]
-    f = 1.0 + amount * w
-    nv = v.clone()
-    nv[:, 0] = c[0] + f * (v[:, 0] - c[0])
-    nv[:, 2] = c[2] + f * (v[:, 2] - c[2])
-    return Body(vertices=nv, faces=body.faces.clone(), skeleton=body.skeleton,
-                skin_weights=body.skin_weights, landmarks=dict(body.landmarks),
-                params={"derived": "hips", "amount": amount})
-
-
-def girth(body, name: str) -> float:  # noqa: ANN001
-    """A body's measured girth (m), :meth:`Body.measurements` (``"waist"``, ``"hips"``, ``"bust"``)."""
-    m = body.measurements()
-    return float(getattr(m, name))
-
 
 # ---------------------------------------------------------------------------------------------- cases
 def _run(pattern, base, target, settings):  # noqa: ANN001, ANN202
@@ -279,7 +119,7 @@ def grading(garment: str, base_size: str, target_size: str, base, settings) -> d
         # fit-preserving pattern follows the bodies' girth change where the band sits (the base drape's waist
         # corners on the base body, the transferred ones on the target body), not at the chart's waist plane.
         # (Lines that cross loose cloth, the hips and the bust, are set by the fullest girth below them instead.)
-        idx = line_vertices(pattern, res.mesh_base, settings.edge_length, *lines["waist"])
+        idx = line_vertices(pattern, res.mesh_base, *lines["waist"])
         yb, yt = float(res.mesh_base.x[idx, 1].mean()), float(res.x_transfer[idx, 1].mean())
         at_band = 100 * (body_girth_at(target, yt) - body_girth_at(base, yb))
         out["lines"]["waist"].update({"body_at_band_cm": at_band,
@@ -296,7 +136,7 @@ def grading(garment: str, base_size: str, target_size: str, base, settings) -> d
 def hips_only(pattern, base, amount: float, settings) -> dict:  # noqa: ANN001
     target = hips_body(base, amount)
     res = _run(pattern, base, target, settings)
-    verts, labels = boundary_vertex_labels(pattern, res.mesh_base, settings.edge_length)
+    verts, labels = boundary_vertex_labels(pattern, res.mesh_base)
     pb = res.mesh_base.p.detach().cpu().double().numpy()
     pn = res.mesh_target.p.detach().cpu().double().numpy()
     disp = np.linalg.norm(pn - pb, axis=1)

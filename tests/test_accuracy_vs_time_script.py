@@ -1,28 +1,20 @@
-"""Smoke test of scripts/accuracy_vs_time.py: its Pareto-front, CSV and summary helpers on synthetic rows."""
+"""torchgarment.studies (the helpers of scripts/accuracy_vs_time.py): Pareto front, CSV and summaries on
+synthetic rows."""
 
 from __future__ import annotations
 
 import csv
-import importlib.util
 import math
-import sys
-from pathlib import Path
+from types import ModuleType
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "accuracy_vs_time.py"
-
 
 @pytest.fixture(scope="module")
-def avt():
-    spec = importlib.util.spec_from_file_location("accuracy_vs_time", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up there
-    try:
-        spec.loader.exec_module(mod)
-        yield mod
-    finally:
-        sys.modules.pop(spec.name, None)
+def avt() -> ModuleType:
+    from torchgarment import studies
+
+    return studies
 
 
 def test_pareto_front(avt):

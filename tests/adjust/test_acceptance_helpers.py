@@ -1,29 +1,23 @@
-"""Helpers of scripts/adjust_acceptance.py: Procrustes deviation, pattern widths, boundary labels, derived bodies."""
+"""torchgarment.adjust.acceptance (the helpers of scripts/adjust_acceptance.py): Procrustes deviation, pattern
+widths, boundary labels, derived bodies."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "adjust_acceptance.py"
+from torchgarment.errors import InputError, PatternError
 
 
 @pytest.fixture(scope="module")
-def acc():
-    spec = importlib.util.spec_from_file_location("adjust_acceptance", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    try:
-        spec.loader.exec_module(mod)
-        yield mod
-    finally:
-        sys.modules.pop(spec.name, None)
+def acc() -> ModuleType:
+    from torchgarment.adjust import acceptance
+
+    return acceptance
 
 
 def _rot(a: float) -> np.ndarray:
@@ -77,8 +71,10 @@ def test_pattern_width_on_rectangle_panels(acc):
     assert acc.line_width(pat.panels["p"], "hem", "waist") == pytest.approx(0.6, abs=1e-12)
     w = acc.pattern_line_widths(pat, {"waist": ("waist", "waist"), "hem": ("hem", "hem")})
     assert w["waist"] == pytest.approx(0.4 + 0.8, abs=1e-12) and w["hem"] == pytest.approx(1.2, abs=1e-12)
-    with pytest.raises(KeyError):
+    with pytest.raises(PatternError):
         acc.pattern_line_widths(pat, {"x": ("armhole_r", "armhole_l")})
+    with pytest.raises(PatternError):
+        acc.line_width(pat.panels["p"], "waist", "armhole_l")
 
 
 def test_skirt_widths_match_the_draft(acc):
@@ -100,7 +96,7 @@ def test_boundary_vertex_labels(acc):
 
     pattern = draft("straight_skirt", chart_row("12"))
     mesh = mesh_pattern(pattern, 0.05)
-    verts, labels = acc.boundary_vertex_labels(pattern, mesh, 0.05)
+    verts, labels = acc.boundary_vertex_labels(pattern, mesh)
     p = mesh.p.numpy()
     waist = verts[np.isin(labels, ["waist_r", "waist_l"])]
     # every waistband sample lies on the waist line (y = top of the panel), both corners included
@@ -155,7 +151,7 @@ def test_edges_length_on_rectangle(acc):
     pat = _rect_pattern(0.4, 0.6, angle=0.5)
     assert acc.edges_length(pat, ("waist",)) == pytest.approx(0.4 + 0.8, abs=1e-9)
     assert acc.edges_length(pat, ("waist", "hem")) == pytest.approx(2.4, abs=1e-9)
-    with pytest.raises(KeyError):
+    with pytest.raises(PatternError):
         acc.edges_length(pat, ("armhole_r",))
 
 
@@ -169,12 +165,16 @@ def test_line_vertices_are_the_measured_corners(acc):
     p = mesh.p.numpy()
     widths = acc.pattern_line_widths(pattern, acc.SKIRT_LINES)
     for line, (first, second) in acc.SKIRT_LINES.items():
-        idx = acc.line_vertices(pattern, mesh, 0.05, first, second)
+        idx = acc.line_vertices(pattern, mesh, first, second)
         assert idx.shape == (2 * len(pattern.panels),)
         pairs = p[idx].reshape(-1, 2, 2)
         assert np.linalg.norm(pairs[:, 1] - pairs[:, 0], axis=1).sum() == pytest.approx(widths[line], abs=1e-9)
-    with pytest.raises(KeyError):
-        acc.line_vertices(pattern, mesh, 0.05, "armhole_r", "armhole_l")
+    with pytest.raises(PatternError):
+        acc.line_vertices(pattern, mesh, "armhole_r", "armhole_l")
+    # a mesh without a layout (not made by mesh_pattern) is refused
+    plain = type(mesh)(mesh.x, mesh.faces, p=mesh.p, panel_ids=mesh.panel_ids, panel_names=mesh.panel_names)
+    with pytest.raises(InputError, match="layout"):
+        acc.line_vertices(pattern, plain, "waist_r", "waist_l")
 
 
 def test_body_girth_at_on_a_cylinder(acc):

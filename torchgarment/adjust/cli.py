@@ -1,16 +1,16 @@
-"""The ``torchgarment adjust`` subcommand: adjust a sewing pattern from a base body to a target body (Wang 2018).
+"""The ``torchgarment adjust`` subcommand: adjust a sewing pattern from a base body to a target body
+(Wang 2018).
 
-Writes to ``--out DIR`` (staged: nothing is published unless the run succeeds): ``pattern.json`` (GarmentCode),
-``pattern.svg``, ``pattern.dxf``, ``garment_base.obj`` (base garment on the base body), ``garment_target.obj``
-(adjusted garment on the target body), ``target_before.png`` / ``target_after.png`` (the base and the adjusted
-pattern simulated on the target body, coloured by the difference of their stretch ratio to the base drape's,
-like the paper's Fig. 8), ``overlay.png`` (old and new pattern) and ``metrics.json``. TensorBoard scalars go to
-``logs/adjust/<run>`` (``--log-dir``) during the run; Ctrl-C leaves ``DIR/checkpoint/adjust.pt`` and ``--resume`` continues from it.
+Writes to ``--out DIR`` (staged: nothing is published unless the run succeeds): ``pattern.json``
+(GarmentCode), ``pattern.svg``, ``pattern.dxf``, ``garment_base.obj`` (base garment on the base body),
+``garment_target.obj`` (adjusted garment on the target body), ``target_before.png`` / ``target_after.png``
+(the base and the adjusted pattern simulated on the target body, coloured by the difference of their stretch
+ratio to the base drape's, like the paper's Fig. 8), ``overlay.png`` (old and new pattern) and
+``metrics.json``. TensorBoard scalars go to ``logs/adjust/<run>`` (``--log-dir``) during the run; Ctrl-C
+leaves ``DIR/checkpoint/adjust.pt`` and ``--resume`` continues from it.
 
-The lead wires it into :mod:`torchgarment.cli` with::
-
-    from torchgarment.adjust.cli import add_adjust_parser
-    add_adjust_parser(sub)        # sets func=cmd_adjust
+:func:`add_adjust_parser` adds the subcommand to the ``torchgarment`` parser (:mod:`torchgarment.cli`) with
+:func:`cmd_adjust` as its handler; :func:`write_outputs` writes the files above from an ``AdjustResult``.
 """
 
 from __future__ import annotations

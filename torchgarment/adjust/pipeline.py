@@ -182,47 +182,50 @@ def _cubic_fit(pts: np.ndarray) -> np.ndarray:
     return ctrl
 
 
-def pattern_from_mesh(pattern, mesh: GarmentMesh, p: torch.Tensor, edge_length: float,  # noqa: ANN001
-                      line_tolerance: float = 2e-4):
+def pattern_from_mesh(pattern, mesh: GarmentMesh, p: torch.Tensor,  # noqa: ANN001, ANN201 - SewingPattern
+                      edge_length: float | None = None, line_tolerance: float = 2e-4):
     """The sewing pattern whose outline passes through the boundary vertices of ``p``.
 
-    ``mesh`` must be ``mesh_pattern(pattern, edge_length)`` (the boundary of each panel is its first vertices,
-    edge by edge). Each edge keeps its index, end vertices and stitches; its shape becomes a line when the
-    adjusted samples lie within ``line_tolerance`` metres of the chord and the base edge was a line, else a cubic
-    Bezier fitted by least squares (chord-length parameters). Panel placement is kept.
+    The vertices of each edge are read from ``mesh.layout`` (the
+    :class:`~torchgarment.structures.MeshLayout` that :func:`~torchgarment.pattern.meshing.mesh_pattern`
+    records). Each edge keeps its index, end vertices and stitches; its shape becomes a line when the
+    adjusted samples lie within ``line_tolerance`` metres of the chord and the base edge was a line, else a
+    cubic Bezier fitted by least squares (chord-length parameters). Panel placement is kept.
 
     Args:
         pattern: the base :class:`SewingPattern`.
-        mesh: its mesh. p: (V, 2) adjusted rest positions. edge_length: the meshing edge length.
+        mesh: its mesh, made by ``mesh_pattern(pattern, ...)`` (or a copy keeping its layout).
+        p: (V, 2) adjusted rest positions in metres.
+        edge_length: the meshing edge length in metres; if given, the layout's edge runs are checked against
+            :func:`~torchgarment.pattern.meshing.edge_segment_counts` at that length.
+        line_tolerance: in metres.
 
     Returns:
         ``(pattern, max_fit_error_m)``.
+
+    Raises:
+        PatternError: the mesh has no layout or is not a mesh of ``pattern``.
     """
     from torchgarment.pattern.meshing import edge_segment_counts
     from torchgarment.pattern.spec import Edge, EdgeKind, Panel, SewingPattern
 
-    counts = edge_segment_counts(pattern, edge_length)
+    layout = mesh.layout
+    if layout is None:
+        raise PatternError("pattern_from_mesh needs a mesh made by mesh_pattern (it has no layout)")
+    counts = None if edge_length is None else edge_segment_counts(pattern, edge_length)
     P = p.detach().cpu().double().numpy()
-    vp = mesh.vertex_panel_ids.cpu().numpy()
-    names = list(mesh.panel_names) if mesh.panel_names is not None else list(pattern.panels)
     panels, worst = {}, 0.0
     for name, panel in pattern.panels.items():
-        if name not in names:
+        if name not in layout.panel_names:
             raise PatternError(f"panel {name!r} is not in the mesh")
-        k = names.index(name)
-        where = np.nonzero(vp == k)[0]
-        off = int(where.min())
-        n = counts[name]
-        starts = off + np.concatenate([[0], np.cumsum(n)])
-        nb = int(starts[-1] - off)
-        verts = P[starts[:-1]]
+        runs = [r.cpu().numpy() for r in layout.runs(name)]
+        if len(runs) != len(panel.edges) or (counts is not None and
+                                             [len(r) - 1 for r in runs] != [int(c) for c in counts[name]]):
+            raise PatternError(f"panel {name!r}: the mesh's edge layout does not match the pattern")
+        verts = P[[int(r[0]) for r in runs]]
         edges = []
         for i, e in enumerate(panel.edges):
-            idx = np.arange(starts[i], starts[i] + n[i] + 1)
-            idx[-1] = off if i == len(panel.edges) - 1 else idx[-1]
-            if int(idx.max()) >= off + nb + (0 if i < len(panel.edges) - 1 else 1):
-                raise PatternError(f"panel {name!r}: boundary indexing does not match the mesh")
-            pts = P[idx]
+            pts = P[runs[i]]
             a, b = pts[0], pts[-1]
             d = b - a
             chord = float(np.linalg.norm(d))

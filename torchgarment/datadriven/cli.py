@@ -7,10 +7,9 @@
   model) to weights, evaluate the garment, optionally push it out of the body, and write ``garment.obj`` and
   ``metrics.json`` (seconds per step, weights, penetrations).
 
-The lead wires it into :mod:`torchgarment.cli` with::
-
-    from torchgarment.datadriven.cli import add_pca_parser
-    add_pca_parser(sub)        # sets func=cmd_pca_build / cmd_pca_fit on the two sub-subcommands
+:func:`add_pca_parser` adds the ``pca`` subcommand to the ``torchgarment`` parser (:mod:`torchgarment.cli`)
+with :func:`cmd_pca_build` and :func:`cmd_pca_fit` as the handlers of its two subcommands; :func:`load_model`
+reads a model folder written by ``pca build``.
 """
 
 from __future__ import annotations

@@ -10,6 +10,10 @@ must not split these boundary segments (switch ``Y``), which keeps the pairing e
 The panels stay separate in the result: seam vertices exist once per panel and ``seam_pairs`` lists the
 pairs the stitches join. Faces are oriented so that their normals, after 3D placement, point out of the
 garment (panels run counter-clockwise seen from outside, see :mod:`torchgarment.pattern.spec`).
+
+The vertex layout is recorded on the mesh (``mesh.layout``, a :class:`~torchgarment.structures.MeshLayout`):
+each panel's vertices are contiguous, in the pattern's panel order, its outline first, edge by edge, so every
+(panel, edge) maps to a run of vertices.
 """
 
 from __future__ import annotations
@@ -20,8 +24,8 @@ import numpy as np
 import torch
 
 from torchgarment.errors import InputError, MeshError, PatternError
-from torchgarment.pattern.spec import SewingPattern, StitchOrientation
-from torchgarment.structures.garment_mesh import GarmentMesh
+from torchgarment.pattern.spec import SewingPattern, Stitch, StitchOrientation
+from torchgarment.structures.garment_mesh import GarmentMesh, MeshLayout
 
 MAX_STITCH_LENGTH_RATIO = 1.5
 """Stitched edges may differ in length by this ratio (gathering); see :meth:`SewingPattern.validate`."""
@@ -75,7 +79,9 @@ def mesh_pattern(
         A :class:`GarmentMesh` with ``x`` (V, 3) placed positions, ``p`` (V, 2) panel coordinates,
         ``faces`` (F, 3), per-face ``panel_ids`` indexing ``panel_names`` (the pattern's panel order) and
         ``seam_pairs`` (S, 2): unique vertex pairs joined by the stitches, smaller index first (a corner
-        where several seams meet appears once per distinct pair; self-pairs such as a dart tip are left out).
+        where several seams meet appears once per distinct pair; self-pairs such as a dart tip are left out),
+        and its ``layout`` (:class:`~torchgarment.structures.MeshLayout`): per panel and edge, the vertices
+        sampled along the edge.
 
     Raises:
         InputError: bad ``edge_length`` or ``min_angle``.
@@ -98,7 +104,8 @@ def mesh_pattern(
     opts = f"pq{np.format_float_positional(min_angle, trim='-')}a{np.format_float_positional(max_area, trim='-')}YQ"
 
     xs, ps, fs, ids = [], [], [], []
-    edge_offsets: dict[str, np.ndarray] = {}  # panel -> (n_edges + 1,) global index of each edge's first sample
+    runs: dict[str, list[np.ndarray]] = {}  # panel -> per edge, its (n + 1,) vertices from start to end vertex
+    starts, nbs = [0], []
     offset = 0
     for k, (name, panel) in enumerate(pattern.panels.items()):
         n = counts[name]
@@ -122,34 +129,35 @@ def mesh_pattern(
         xs.append(panel.to_3d(verts))
         fs.append(tris + offset)
         ids.append(np.full(tris.shape[0], k, dtype=np.int64))
-        edge_offsets[name] = offset + np.concatenate([[0], np.cumsum(n)])
+        first = np.concatenate([[0], np.cumsum(n)])  # (n_edges + 1,) each edge's first sample; first[-1] = nb
+        runs[name] = [offset + np.arange(first[i], first[i] + n[i] + 1) % nb for i in range(len(panel.edges))]
         offset += verts.shape[0]
+        starts.append(offset)
+        nbs.append(nb)
 
-    pairs = [_stitch_pairs(edge_offsets, counts, s) for s in pattern.stitches]
+    pairs = [_stitch_pairs(runs, s) for s in pattern.stitches]
     seam = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
     seam = np.sort(seam, axis=1)
     seam = seam[seam[:, 0] != seam[:, 1]]
     seam = np.unique(seam, axis=0) if seam.shape[0] else seam.reshape(0, 2)
 
+    dev = torch.device("cpu") if device is None else torch.device(device)
+    layout = MeshLayout(
+        tuple(pattern.panels),
+        torch.as_tensor(starts, dtype=torch.long, device=dev),
+        torch.as_tensor(nbs, dtype=torch.long, device=dev),
+        tuple(tuple(torch.as_tensor(r, dtype=torch.long, device=dev) for r in runs[name]) for name in pattern.panels),
+    )
     return GarmentMesh.from_arrays(
         np.concatenate(xs), np.concatenate(fs), p=np.concatenate(ps), panel_ids=np.concatenate(ids),
-        panel_names=list(pattern.panels), seam_pairs=seam, dtype=dtype, device=device,
+        panel_names=list(pattern.panels), seam_pairs=seam, layout=layout, dtype=dtype, device=device,
     )
 
 
-def _edge_vertex_indices(edge_offsets: dict[str, np.ndarray], panel: str, edge: int) -> np.ndarray:
-    """Global vertex indices along one edge, start to end inclusive: (n + 1,)."""
-    off = edge_offsets[panel]
-    first, nxt = off[edge], off[edge + 1]
-    idx = np.arange(first, nxt + 1)
-    if edge == off.shape[0] - 2:  # last edge ends at the panel's first boundary vertex
-        idx[-1] = off[0]
-    return idx
-
-
-def _stitch_pairs(edge_offsets: dict[str, np.ndarray], counts: dict[str, np.ndarray], s) -> np.ndarray:  # noqa: ANN001
-    ia = _edge_vertex_indices(edge_offsets, s.a.panel, s.a.edge)
-    ib = _edge_vertex_indices(edge_offsets, s.b.panel, s.b.edge)
+def _stitch_pairs(runs: dict[str, list[np.ndarray]], s: Stitch) -> np.ndarray:
+    """(n + 1, 2) vertex pairs the stitch ``s`` joins, from the vertex runs of its two edges."""
+    ia = runs[s.a.panel][s.a.edge]
+    ib = runs[s.b.panel][s.b.edge]
     if ia.shape != ib.shape:  # cannot happen: edge_segment_counts equalizes both sides
         raise PatternError(f"stitch {s.a.panel}[{s.a.edge}] - {s.b.panel}[{s.b.edge}]: unequal vertex counts")
     if s.orientation is StitchOrientation.OPPOSITE:

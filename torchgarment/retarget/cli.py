@@ -6,10 +6,8 @@ Fig. 7) and ``metrics.json`` (seconds, newton_iterations, grad_norm, min_distanc
 distortion_mean / distortion_max, each term's value, ...). TensorBoard scalars go to ``--log-dir``
 (default ``logs/retarget/<garment>-on-<avatar>-<time>``).
 
-The lead wires it into :mod:`torchgarment.cli` with::
-
-    from torchgarment.retarget.cli import add_retarget_parser
-    add_retarget_parser(sub)        # sets func=cmd_retarget
+:func:`add_retarget_parser` adds the subcommand to the ``torchgarment`` parser (:mod:`torchgarment.cli`) with
+:func:`cmd_retarget` as its handler; :func:`render_result` draws ``retarget.png``.
 """
 
 from __future__ import annotations

@@ -1,6 +1,19 @@
-"""Signed distance fields of bodies: sparse narrow-band grids sampled differentiably in torch."""
+"""Signed distance fields of bodies: sparse narrow-band grids sampled differentiably in torch.
 
-from torchgarment.sdf.build import SDFGridData, SDFSettings, SignType, build_sdf_grid, exact_signed_distance, winding_number
+Re-exports :class:`BodySDF` (the sampled field, ``BodySDF.from_body`` / ``BodySDF.cached``) with its
+:class:`SDFSettings` and :class:`SDFSampling`, the grid builder :func:`build_sdf_grid` (:class:`SDFGridData`,
+:class:`SignType`), the exact queries :func:`exact_signed_distance` and :func:`winding_number`, and the disk
+cache :func:`cached_sdf`, :func:`sdf_cache_dir`, :func:`sdf_cache_key`.
+"""
+
+from torchgarment.sdf.build import (
+    SDFGridData,
+    SDFSettings,
+    SignType,
+    build_sdf_grid,
+    exact_signed_distance,
+    winding_number,
+)
 from torchgarment.sdf.cache import cached_sdf, sdf_cache_dir, sdf_cache_key
 from torchgarment.sdf.grid import BodySDF, SDFSampling
 

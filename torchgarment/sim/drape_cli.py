@@ -1,9 +1,8 @@
-"""The ``torchgarment drape`` subcommand: drape a pattern on a body and write garment.obj, drape.png, metrics.json.
+"""The ``torchgarment drape`` subcommand: drape a pattern on a body and write ``garment.obj``, ``drape.png``
+and ``metrics.json``.
 
-The lead wires it into :mod:`torchgarment.cli` with::
-
-    from torchgarment.sim.drape_cli import add_drape_parser
-    add_drape_parser(sub)        # sets func=cmd_drape
+:func:`add_drape_parser` adds the subcommand to the ``torchgarment`` parser (:mod:`torchgarment.cli`) with
+:func:`cmd_drape` as its handler.
 """
 
 from __future__ import annotations

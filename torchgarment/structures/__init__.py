@@ -1,6 +1,13 @@
-"""Mesh data structures: the garment mesh and generic triangle-mesh checks."""
+"""Mesh data structures: the garment mesh, its pattern layout and generic triangle-mesh checks.
 
-from torchgarment.structures.garment_mesh import GarmentMesh
+Re-exports :class:`GarmentMesh` (sewn or plain 3D garment mesh with lazily derived topology and geometry),
+:class:`MeshLayout` (the (panel, edge) -> vertices table of a mesh made by ``mesh_pattern``) and the
+triangle-mesh checks of :mod:`torchgarment.structures.mesh_checks`: :func:`check_mesh`, :func:`face_areas`,
+:func:`find_boundary_edges`, :func:`find_degenerate_faces`, :func:`find_misoriented_edges`,
+:func:`find_nonmanifold_edges`, :func:`find_unreferenced_vertices` and :func:`weld_vertices`.
+"""
+
+from torchgarment.structures.garment_mesh import GarmentMesh, MeshLayout
 from torchgarment.structures.mesh_checks import (
     check_mesh,
     face_areas,
@@ -14,6 +21,7 @@ from torchgarment.structures.mesh_checks import (
 
 __all__ = [
     "GarmentMesh",
+    "MeshLayout",
     "check_mesh",
     "face_areas",
     "find_boundary_edges",

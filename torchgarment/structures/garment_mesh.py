@@ -6,6 +6,11 @@ join (the simulator sews them with zero-rest-length springs). Each vertex then b
 and has a 2D rest position ``p`` in that panel's coordinates. :meth:`GarmentMesh.welded` merges the seam
 pairs for rendering and measuring. A plain 3D garment mesh (for retargeting) has only ``x`` and ``faces``.
 
+A mesh made by ``mesh_pattern`` also records its vertex layout (:class:`MeshLayout`, ``GarmentMesh.layout``):
+each panel's vertices are contiguous, its outline comes first, edge by edge, and the layout maps every
+(panel, edge) to the run of vertices sampled along that edge. Code that needs the vertices of a pattern edge
+reads them there instead of re-deriving the meshing convention.
+
 Derived data (edges, boundary loops, hinge stencils, areas, normals) is computed on first use and cached,
 pytorch3d style. The topology cache is shared (by reference) with meshes made by :meth:`GarmentMesh.with_positions`;
 geometry caches are per mesh.
@@ -16,6 +21,7 @@ editing them in place, or the caches go stale.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,6 +38,86 @@ def _as_tensor(a: Any, dtype: torch.dtype, device: torch.device | str | None, wh
         raise MeshError(f"{what} cannot be converted to a {dtype} tensor: {exc}") from exc
 
 
+@dataclass(frozen=True)
+class MeshLayout:
+    """Where a pattern's panels and edges lie in a mesh made by ``mesh_pattern``: a (panel, edge) -> vertices table.
+
+    The vertices of panel ``k`` are ``panel_starts[k]`` to ``panel_starts[k + 1] - 1``; the first
+    ``boundary_counts[k]`` of them are the panel's outline in the order of its edges (each edge's samples from
+    its start vertex, its end vertex being the next edge's first sample), then come the interior vertices.
+
+    Attributes:
+        panel_names: (P,) panel names, in mesh order (the ``panel_names`` of the mesh).
+        panel_starts: (P + 1,) long vertex index of each panel's first vertex; ``panel_starts[-1]`` is V.
+        boundary_counts: (P,) long number of outline vertices of each panel.
+        edge_runs: per panel (P entries), per edge in the panel's edge order, a (n + 1,) long tensor: the mesh
+            vertices of the edge's ``n`` boundary segments from its start vertex to its end vertex, both included
+            (the last edge ends at the panel's first vertex; consecutive runs share their corner vertex).
+    """
+
+    panel_names: tuple[str, ...]
+    panel_starts: torch.Tensor
+    boundary_counts: torch.Tensor
+    edge_runs: tuple[tuple[torch.Tensor, ...], ...]
+
+    def __post_init__(self) -> None:
+        P = len(self.panel_names)
+        if len(self.edge_runs) != P or tuple(self.panel_starts.shape) != (P + 1,) \
+                or tuple(self.boundary_counts.shape) != (P,):
+            raise MeshError(f"MeshLayout needs {P} panels of edge runs, ({P + 1},) panel_starts and ({P},) "
+                            f"boundary_counts, got {len(self.edge_runs)}, {_describe(self.panel_starts)} and "
+                            f"{_describe(self.boundary_counts)}")
+
+    @property
+    def num_vertices(self) -> int:
+        """V, the number of mesh vertices the layout describes."""
+        return int(self.panel_starts[-1])
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the index tensors."""
+        return self.panel_starts.device
+
+    def panel_index(self, panel: str) -> int:
+        """Index of the panel named ``panel`` (mesh order).
+
+        Raises:
+            MeshError: no panel of that name.
+        """
+        if panel not in self.panel_names:
+            raise MeshError(f"the mesh has no panel {panel!r} (panels: {', '.join(self.panel_names)})")
+        return self.panel_names.index(panel)
+
+    def runs(self, panel: str) -> tuple[torch.Tensor, ...]:
+        """The vertex runs of every edge of ``panel``, in its edge order: (n_e + 1,) long tensors."""
+        return self.edge_runs[self.panel_index(panel)]
+
+    def run(self, panel: str, edge: int) -> torch.Tensor:
+        """(n + 1,) long mesh vertices along edge ``edge`` of ``panel``, start to end vertex included.
+
+        Raises:
+            MeshError: unknown panel or edge index out of range.
+        """
+        runs = self.runs(panel)
+        if not 0 <= edge < len(runs):
+            raise MeshError(f"panel {panel!r} has {len(runs)} edges, no edge {edge}")
+        return runs[edge]
+
+    def boundary(self, panel: str) -> torch.Tensor:
+        """(B,) long outline vertices of ``panel`` in edge order (each corner once, the first edge's start first)."""
+        k = self.panel_index(panel)
+        start = int(self.panel_starts[k])
+        return torch.arange(start, start + int(self.boundary_counts[k]), dtype=torch.long, device=self.device)
+
+    def to(self, device: torch.device | str | None) -> MeshLayout:
+        """The layout with its index tensors on ``device`` (itself when they are there already)."""
+        if device is None or torch.device(device) == self.device:
+            return self
+        return MeshLayout(self.panel_names, self.panel_starts.to(device=device),
+                          self.boundary_counts.to(device=device),
+                          tuple(tuple(r.to(device=device) for r in runs) for runs in self.edge_runs))
+
+
 class GarmentMesh:
     """A triangle mesh of a garment, optionally with its sewing-pattern structure.
 
@@ -42,6 +128,8 @@ class GarmentMesh:
         panel_ids: (F,) long panel index of every face, or None. Per-vertex ids: :attr:`vertex_panel_ids`.
         panel_names: names of the panels, indexed by ``panel_ids``.
         seam_pairs: (S, 2) long pairs of vertices joined by stitches (empty (0, 2) without a pattern).
+        layout: the :class:`MeshLayout` of a mesh made by ``mesh_pattern`` (the vertices of each panel edge),
+            kept by copies that keep the vertices (``to``, ``clone``, ``with_positions``), None otherwise.
     """
 
     def __init__(
@@ -53,11 +141,13 @@ class GarmentMesh:
         panel_ids: torch.Tensor | None = None,
         panel_names: Sequence[str] = (),
         seam_pairs: torch.Tensor | None = None,
+        layout: MeshLayout | None = None,
     ) -> None:
         """Wrap tensors (no copy). Shapes and dtypes are checked; use :meth:`validate` for mesh quality.
 
         Raises:
-            MeshError: wrong shapes or dtypes, or tensors on different devices.
+            MeshError: wrong shapes or dtypes, tensors on different devices, or a ``layout`` of another mesh
+                (other vertex count or panel names).
         """
         if not isinstance(x, torch.Tensor) or x.ndim != 2 or x.shape[1] != 3 or not x.is_floating_point():
             raise MeshError(f"x must be a floating (V, 3) tensor, got {_describe(x)}")
@@ -77,12 +167,21 @@ class GarmentMesh:
         for name, t in (("faces", faces), ("p", p), ("panel_ids", panel_ids), ("seam_pairs", seam_pairs)):
             if t is not None and t.device != x.device:
                 raise MeshError(f"{name} is on {t.device} but x is on {x.device}")
+        if layout is not None:
+            if not isinstance(layout, MeshLayout):
+                raise MeshError(f"layout must be a MeshLayout, got {type(layout).__name__}")
+            if layout.num_vertices != V or layout.panel_names != tuple(str(n) for n in panel_names):
+                raise MeshError(f"layout describes {layout.num_vertices} vertices and panels {layout.panel_names}, "
+                                f"the mesh has {V} vertices and panels {tuple(panel_names)}")
+            if layout.device != x.device:
+                raise MeshError(f"layout is on {layout.device} but x is on {x.device}")
         self.x = x
         self.faces = faces
         self.p = p
         self.panel_ids = panel_ids
         self.panel_names = tuple(str(n) for n in panel_names)
         self.seam_pairs = seam_pairs
+        self.layout = layout
         self._cache: dict[str, Any] = {}  # geometry (depends on x / p)
         self._topo: dict[str, Any] = {}  # topology (faces only); shared by meshes made with with_positions
 
@@ -97,6 +196,7 @@ class GarmentMesh:
         panel_ids: Any = None,
         panel_names: Sequence[str] = (),
         seam_pairs: Any = None,
+        layout: MeshLayout | None = None,
         dtype: torch.dtype = torch.float64,
         device: torch.device | str | None = None,
     ) -> GarmentMesh:
@@ -106,6 +206,7 @@ class GarmentMesh:
             x: (V, 3) positions in metres. faces: (F, 3) vertex indices.
             p: optional (V, 2) rest positions. panel_ids: optional (F,) per-face panel index.
             panel_names: names indexed by ``panel_ids``. seam_pairs: optional (S, 2) vertex pairs.
+            layout: optional :class:`MeshLayout` (moved to ``device``).
             dtype: floating dtype of ``x`` and ``p``. device: target device.
         """
         return cls(
@@ -115,6 +216,7 @@ class GarmentMesh:
             panel_ids=None if panel_ids is None else _as_tensor(panel_ids, torch.long, device, "panel_ids"),
             panel_names=panel_names,
             seam_pairs=None if seam_pairs is None else _as_tensor(seam_pairs, torch.long, device, "seam_pairs"),
+            layout=None if layout is None else layout.to(device),
         )
 
     @classmethod
@@ -154,7 +256,9 @@ class GarmentMesh:
     # ------------------------------------------------------------------------------------ copies
     def _new(self, x: torch.Tensor, faces: torch.Tensor, p: torch.Tensor | None, panel_ids: torch.Tensor | None,
              seam_pairs: torch.Tensor) -> GarmentMesh:
-        return GarmentMesh(x, faces, p=p, panel_ids=panel_ids, panel_names=self.panel_names, seam_pairs=seam_pairs)
+        layout = None if self.layout is None else self.layout.to(x.device)
+        return GarmentMesh(x, faces, p=p, panel_ids=panel_ids, panel_names=self.panel_names, seam_pairs=seam_pairs,
+                           layout=layout)
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> GarmentMesh:
         """A mesh on ``device`` with floating tensors of ``dtype`` (index tensors stay long).
@@ -175,7 +279,7 @@ class GarmentMesh:
         return out
 
     def clone(self) -> GarmentMesh:
-        """A deep copy (tensors cloned, caches dropped)."""
+        """A deep copy (tensors cloned, caches dropped; the immutable ``layout`` is shared)."""
         return self._new(
             self.x.clone(), self.faces.clone(), None if self.p is None else self.p.clone(),
             None if self.panel_ids is None else self.panel_ids.clone(), self.seam_pairs.clone(),
@@ -190,7 +294,8 @@ class GarmentMesh:
             p = p.to(device=x.device, dtype=x.dtype)
         out = GarmentMesh(x, self.faces.to(x.device), p=p,
                           panel_ids=None if self.panel_ids is None else self.panel_ids.to(x.device),
-                          panel_names=self.panel_names, seam_pairs=self.seam_pairs.to(x.device))
+                          panel_names=self.panel_names, seam_pairs=self.seam_pairs.to(x.device),
+                          layout=None if self.layout is None else self.layout.to(x.device))
         out._topo = self._topo if x.device == self.device else {k: _move(v, x.device) for k, v in self._topo.items()}
         return out
 
@@ -437,7 +542,7 @@ class GarmentMesh:
         Vertices joined through chains of seam pairs (corners where several seams meet) become one vertex
         at the mean of their 3D positions (differentiable in ``x``). Faces that collapse (two corners
         merged, e.g. at a dart tip) are dropped. The result has no ``p`` (rest positions of different
-        panels do not agree) and no seam pairs; ``panel_ids`` are kept for the surviving faces.
+        panels do not agree), no seam pairs and no ``layout``; ``panel_ids`` are kept for the surviving faces.
 
         Returns:
             mesh: the welded mesh, (V', 3) positions.

@@ -1,0 +1,253 @@
+"""Measurements of the pattern-adjustment acceptance study (``scripts/adjust_acceptance.py``).
+
+* Pattern widths at construction lines: the width of a panel at a line is the distance between the start
+  vertex of one labelled edge and the end vertex of another (:func:`line_width`); summed over panels it is the
+  pattern's girth at that line (:func:`pattern_line_widths`). :data:`SKIRT_LINES` and :data:`TSHIRT_LINES`
+  name the lines of the library's straight skirt and T-shirt.
+* Mesh vertices of labelled edges and line corners, read from the mesh's
+  :class:`~torchgarment.structures.MeshLayout` (:func:`boundary_vertex_labels`, :func:`line_vertices`).
+* Rigid-motion-free deviation of 2D outlines (:func:`procrustes_deviation`).
+* Bodies: the horizontal girth at a height (:func:`body_girth_at`) and derived target bodies, uniformly scaled
+  (:func:`scaled_body`) or with enlarged hips (:func:`hips_body`, :func:`hip_weight`).
+
+Lengths are in metres.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from torchgarment.body.body import Body
+from torchgarment.body.measure import SectionPlane, section_girths
+from torchgarment.body.skeleton import Skeleton
+from torchgarment.errors import InputError, PatternError
+
+if TYPE_CHECKING:
+    from torchgarment.pattern.spec import Panel, SewingPattern
+    from torchgarment.structures.garment_mesh import GarmentMesh, MeshLayout
+
+__all__ = [
+    "ARM_KEYS",
+    "SKIRT_LINES",
+    "TSHIRT_LINES",
+    "body_girth_at",
+    "boundary_vertex_labels",
+    "edges_length",
+    "girth",
+    "hip_weight",
+    "hips_body",
+    "line_vertices",
+    "line_width",
+    "pattern_line_widths",
+    "procrustes_deviation",
+    "scaled_body",
+]
+
+SKIRT_LINES = {"waist": ("waist_r", "waist_l"), "hips": ("side_hip_r", "side_hip_l")}
+"""Construction lines of the straight skirt: line -> (label of the edge whose start vertex is the line's first
+corner, label of the edge whose end vertex is its second)."""
+TSHIRT_LINES = {"bust": ("armhole_r", "armhole_l"), "waist": ("side_up_r", "side_up_l")}
+"""Construction lines of the T-shirt, as :data:`SKIRT_LINES`."""
+ARM_KEYS = ("arm", "wrist", "finger", "metacarpal", "shoulder", "clavicle")
+"""Substrings of the skeleton bone names whose skinned vertices :func:`hips_body` leaves in place."""
+
+
+# ---------------------------------------------------------------------------------------------- outlines
+def procrustes_deviation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances of ``a`` to ``b`` after the best rigid motion (rotation + translation, no scale) of ``a``.
+
+    Args:
+        a, b: (N, 2) corresponding points.
+
+    Returns:
+        (N,) distances ``|R a_i + t - b_i|`` for the least-squares ``R`` (proper rotation), ``t``.
+
+    Raises:
+        InputError: ``a`` and ``b`` are not two (N, 2) arrays of one shape.
+    """
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 2:
+        raise InputError(f"procrustes_deviation needs two (N, 2) arrays, got {a.shape} and {b.shape}")
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    A, B = a - ca, b - cb
+    u, _, vt = np.linalg.svd(A.T @ B)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    R = (u @ np.diag([1.0, d]) @ vt).T  # maps A onto B: B ~ A R^T
+    return np.linalg.norm(A @ R.T - B, axis=1)
+
+
+# ---------------------------------------------------------------------------------------------- widths
+def line_width(panel: Panel, first: str, second: str) -> float:
+    """Distance (m) between the start vertex of the edge labelled ``first`` and the end vertex of ``second``.
+
+    Raises:
+        PatternError: the panel has no edge labelled ``first`` or ``second``.
+    """
+    labels = [e.label for e in panel.edges]
+    if first not in labels or second not in labels:
+        raise PatternError(f"panel {panel.name!r} has no edges {first!r}/{second!r}")
+    a = panel.edge_endpoints(labels.index(first))[0]
+    b = panel.edge_endpoints(labels.index(second))[1]
+    return float(np.linalg.norm(np.asarray(b) - np.asarray(a)))
+
+
+def pattern_line_widths(pattern: SewingPattern, lines: dict[str, tuple[str, str]]) -> dict[str, float]:
+    """Per construction line, the sum over the panels that have both edges of :func:`line_width` (m).
+
+    Args:
+        pattern: the pattern. lines: line name -> (first edge label, second edge label).
+
+    Raises:
+        PatternError: no panel has both edges of a line.
+    """
+    out = {}
+    for name, (first, second) in lines.items():
+        total, found = 0.0, False
+        for panel in pattern.panels.values():
+            labels = {e.label for e in panel.edges}
+            if first in labels and second in labels:
+                total += line_width(panel, first, second)
+                found = True
+        if not found:
+            raise PatternError(f"pattern {pattern.name!r}: no panel has edges {first!r} and {second!r}")
+        out[name] = total
+    return out
+
+
+def edges_length(pattern: SewingPattern, labels: tuple[str, ...]) -> float:
+    """Total length (m) of the edges with these labels over all panels (e.g. the waistband's girth).
+
+    Raises:
+        PatternError: no edge has one of these labels.
+    """
+    total = sum(p.edge_length(i) for p in pattern.panels.values() for i, e in enumerate(p.edges)
+                if e.label in labels)
+    if total == 0.0:
+        raise PatternError(f"pattern {pattern.name!r} has no edges labelled {labels}")
+    return float(total)
+
+
+# ---------------------------------------------------------------------------------------------- mesh vertices
+def _layout(mesh: GarmentMesh) -> MeshLayout:
+    if mesh.layout is None:
+        raise InputError("the mesh has no layout: make it with torchgarment.pattern.meshing.mesh_pattern")
+    return mesh.layout
+
+
+def boundary_vertex_labels(pattern: SewingPattern, mesh: GarmentMesh) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh vertex indices of every panel edge's boundary samples (end points included) and their edge labels.
+
+    Args:
+        pattern: the pattern ``mesh`` was made from. mesh: made by ``mesh_pattern`` (it has a ``layout``).
+
+    Returns:
+        ``(vertex, label)``: (M,) int array and (M,) object array (a corner appears once per adjacent edge).
+
+    Raises:
+        InputError: the mesh has no layout. MeshError: a panel of the pattern is not in the mesh.
+    """
+    layout = _layout(mesh)
+    verts, labels = [], []
+    for name, panel in pattern.panels.items():
+        for e, run in zip(panel.edges, layout.runs(name), strict=True):
+            idx = run.cpu().numpy()
+            verts.append(idx)
+            labels.append(np.full(idx.shape, e.label, dtype=object))
+    return np.concatenate(verts), np.concatenate(labels)
+
+
+def line_vertices(pattern: SewingPattern, mesh: GarmentMesh, first: str, second: str) -> np.ndarray:
+    """Mesh vertex indices of a construction line's corners.
+
+    Per panel with both edges, the start vertex of the edge labelled ``first`` and the end vertex of
+    ``second`` (the two points :func:`line_width` measures).
+
+    Args:
+        pattern: the pattern ``mesh`` was made from. mesh: made by ``mesh_pattern`` (it has a ``layout``).
+        first, second: edge labels.
+
+    Returns:
+        (2 K,) int64 array, K the number of panels with both edges, the two corners of each panel in turn.
+
+    Raises:
+        InputError: the mesh has no layout. PatternError: no panel has both edges.
+    """
+    layout = _layout(mesh)
+    out = []
+    for name, panel in pattern.panels.items():
+        labels = [e.label for e in panel.edges]
+        if first in labels and second in labels:
+            runs = layout.runs(name)
+            out += [int(runs[labels.index(first)][0]), int(runs[labels.index(second)][-1])]
+    if not out:
+        raise PatternError(f"pattern {pattern.name!r}: no panel has edges {first!r} and {second!r}")
+    return np.asarray(out, dtype=np.int64)
+
+
+# ---------------------------------------------------------------------------------------------- bodies
+def body_girth_at(body: Body, y: float) -> float:
+    """The body's horizontal tape girth (m) at height ``y`` (m).
+
+    The perimeter of the convex hull of the section loop around the body's vertical axis (x = z = 0, where
+    bodies are centred), as :func:`torchgarment.body.measure.section_girths`.
+    """
+    v = body.vertices
+    pt = torch.tensor([0.0, float(y), 0.0], dtype=v.dtype, device=v.device)
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=v.dtype, device=v.device)
+    return float(section_girths(v, body.faces, {"line": SectionPlane("line", pt, up, pt)})["line"])
+
+
+def girth(body: Body, name: str) -> float:
+    """A body's measured girth (m), :meth:`Body.measurements` (``"waist"``, ``"hips"``, ``"bust"``)."""
+    m = body.measurements()
+    return float(getattr(m, name))
+
+
+def scaled_body(body: Body, s: float) -> Body:
+    """``body`` scaled uniformly by ``s`` about its feet centre (mean x, min y, mean z of the vertices).
+
+    Vertices, skeleton joints and landmarks are scaled; faces, bones and skin weights are copied.
+    """
+    v = body.vertices
+    c = torch.stack([v[:, 0].mean(), v[:, 1].min(), v[:, 2].mean()])
+    sk = None
+    if body.skeleton is not None:
+        sk = Skeleton(c + s * (body.skeleton.joints - c), body.skeleton.bones.clone(),
+                      list(body.skeleton.names))
+    return Body(vertices=c + s * (v - c), faces=body.faces.clone(), skeleton=sk,
+                skin_weights=None if body.skin_weights is None else body.skin_weights.clone(),
+                landmarks={k: c + s * (x - c) for k, x in body.landmarks.items()},
+                params={"derived": "scaled", "scale": s})
+
+
+def hip_weight(y: torch.Tensor, y_hip: float, y_waist: float, y_thigh: float) -> torch.Tensor:
+    """cos^2 bump of the heights ``y`` (any shape, m): 1 at ``y_hip``, 0 at and beyond ``y_waist`` (above) and
+    ``y_thigh`` (below)."""
+    up = ((y - y_hip) / (y_waist - y_hip)).clamp(0.0, 1.0)
+    down = ((y_hip - y) / (y_hip - y_thigh)).clamp(0.0, 1.0)
+    t = torch.where(y >= y_hip, up, down)
+    return torch.cos(0.5 * math.pi * t) ** 2
+
+
+def hips_body(body: Body, amount: float) -> Body:
+    """``body`` with the hips enlarged: x, z scaled by ``1 + amount * w(y)`` about the hip landmark's vertical
+    axis (:func:`hip_weight` between the waist and thigh landmarks), arm/hand vertices (skin weight of the
+    bones named by :data:`ARM_KEYS`) unchanged."""
+    lm = body.landmarks
+    v = body.vertices
+    w = hip_weight(v[:, 1], float(lm["hips"][1]), float(lm["waist"][1]), float(lm["thigh"][1]))
+    if body.skin_weights is not None and body.skeleton is not None and body.skeleton.names:
+        arm = torch.tensor([any(k in n for k in ARM_KEYS) for n in body.skeleton.names], device=v.device)
+        w = w * (1.0 - body.skin_weights[arm].sum(dim=0).clamp(0.0, 1.0))
+    c = lm["hips"]
+    f = 1.0 + amount * w
+    nv = v.clone()
+    nv[:, 0] = c[0] + f * (v[:, 0] - c[0])
+    nv[:, 2] = c[2] + f * (v[:, 2] - c[2])
+    return Body(vertices=nv, faces=body.faces.clone(), skeleton=body.skeleton,
+                skin_weights=body.skin_weights, landmarks=dict(body.landmarks),
+                params={"derived": "hips", "amount": amount})
