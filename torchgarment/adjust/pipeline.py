@@ -182,8 +182,9 @@ def _cubic_fit(pts: np.ndarray) -> np.ndarray:
     return ctrl
 
 
-def pattern_from_mesh(pattern, mesh: GarmentMesh, p: torch.Tensor,  # noqa: ANN001, ANN201 - SewingPattern
-                      edge_length: float | None = None, line_tolerance: float = 2e-4):
+def pattern_from_mesh(pattern: SewingPattern, mesh: GarmentMesh, p: torch.Tensor,
+                      edge_length: float | None = None, line_tolerance: float = 2e-4
+                      ) -> tuple[SewingPattern, float]:
     """The sewing pattern whose outline passes through the boundary vertices of ``p``.
 
     The vertices of each edge are read from ``mesh.layout`` (the
@@ -545,10 +546,11 @@ def optimize(
         p_new = param(run.q).detach()
     terms_final = _terms(objective, run.x, p_new)
     mesh_target = GarmentMesh(run.x, mesh_base.faces, p=p_new, panel_ids=mesh_base.panel_ids,
-                              panel_names=mesh_base.panel_names, seam_pairs=mesh_base.seam_pairs)
+                              panel_names=mesh_base.panel_names, seam_pairs=mesh_base.seam_pairs,
+                              layout=mesh_base.layout)
     pattern_out, fit_error = None, None
     if setup.pattern is not None:
-        pattern_out, fit_error = pattern_from_mesh(setup.pattern, mesh_base, p_new, setup.settings.drape.edge_length)
+        pattern_out, fit_error = pattern_from_mesh(setup.pattern, mesh_base, p_new)
     disp = torch.linalg.vector_norm(run.q - setup.q_base, dim=1)
     n_it = max(run.iterations, 1)
     f_base, f_init = setup.objective_base, setup.objective_initial
