@@ -1,9 +1,10 @@
-"""Objective vs time and vs closure calls (cloth solves) for every pattern-adjustment optimizer (Wang 2018, Fig. 12).
+"""Objective vs time and vs closure calls (cloth solves) for every pattern-adjustment optimizer (Wang 2018,
+Fig. 12).
 
 Usage:
-    python scripts/compare_optimizers.py --out DIR [--garment straight_skirt] [--base-size 12] [--target-size 20]
-        [--edge-length 0.04] [--voxel 0.01] [--iterations 32] [--optimizers pgd pgd-exact lbfgs gn fixed-point]
-        [--threads 1]
+    python scripts/compare_optimizers.py --out DIR [--garment straight_skirt] [--base-size 12]
+        [--target-size 20] [--edge-length 0.04] [--voxel 0.01] [--iterations 32]
+        [--optimizers pgd pgd-exact lbfgs gn fixed-point] [--threads 1]
 
 The base drape, transfer and initialization are done once (:func:`torchgarment.adjust.pipeline.prepare`); each
 optimizer then starts from the same initialized pattern with a fresh simulation state. ``pgd`` is Algorithm 1
@@ -75,7 +76,7 @@ def main() -> None:
     for name in args.optimizers:
         kind, exact = (name[:-6], True) if name.endswith("-exact") else (name, False)
         s = replace(settings, optimizer=kind, inexact=not exact)
-        t0, calls = [0.0], [0]
+        calls = [0]
         rows = [(0.0, 0, setup.objective_initial, True)]
 
         def cb(rec, terms, rows=rows, calls=calls):  # noqa: ANN001
@@ -101,7 +102,8 @@ def main() -> None:
         ax.set_ylabel("objective")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
-    fig.suptitle(f"{args.garment} {args.base_size} -> {args.target_size}, {setup.mesh_base.num_vertices} vertices")
+    fig.suptitle(f"{args.garment} {args.base_size} -> {args.target_size}, {setup.mesh_base.num_vertices} "
+                 "vertices")
     fig.tight_layout()
     save_figure(fig, out / "compare_optimizers.png")
     with atomic_open(out / "compare_optimizers.json") as f:

@@ -47,7 +47,8 @@ class CheckResult:
 def _compare(analytic: torch.Tensor, fd: torch.Tensor, rtol: float, atol: float, what: str,
              raise_on_failure: bool) -> CheckResult:
     if analytic.shape != fd.shape:
-        raise InputError(f"{what}: analytic shape {tuple(analytic.shape)} != finite-difference shape {tuple(fd.shape)}")
+        raise InputError(f"{what}: analytic shape {tuple(analytic.shape)} != finite-difference shape "
+                         f"{tuple(fd.shape)}")
     err = float((analytic.double() - fd.double()).abs().max()) if fd.numel() else 0.0
     if not (err == err):  # NaN
         err = float("inf")
@@ -131,7 +132,8 @@ def check_gradient(
 
 
 def fd_hessian_columns(
-    grad_fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, columns: torch.Tensor, *, eps: float = 1e-6
+    grad_fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, columns: torch.Tensor, *,
+    eps: float = 1e-6
 ) -> torch.Tensor:
     """Central differences of a gradient: columns ``columns`` of the Hessian, float64 (N, len(columns))."""
     x0 = x.detach().to(torch.float64)

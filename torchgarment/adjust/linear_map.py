@@ -1,8 +1,8 @@
 """``A @ x`` for a constant matrix ``A`` whose transpose is stored too, as an autograd function.
 
 The backward pass is ``A^T @ g`` with the stored transpose (a CSR product, no index scatter on the CPU); it is
-itself this function, so double backward (Hessian-vector products) works. Used by the sparse cost operators and by
-the explicit parametrization map.
+itself this function, so double backward (Hessian-vector products) works. Used by the sparse cost operators
+and by the explicit parametrization map.
 """
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ import torch
 
 
 class StoredTransposeMatmul(torch.autograd.Function):
-    """``A @ x`` for constant ``A`` (R, C) and its stored transpose ``AT`` (C, R), dense or sparse; ``x``: (C, d)."""
+    """``A @ x`` for constant ``A`` (R, C) and its stored transpose ``AT`` (C, R), dense or sparse; ``x``: (C,
+    d)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, A: torch.Tensor, AT: torch.Tensor) -> torch.Tensor:  # type: ignore[override]

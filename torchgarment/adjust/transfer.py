@@ -96,7 +96,8 @@ def point_triangle_closest(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nd
     return out
 
 
-def _frames(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _frames(v: np.ndarray,
+            f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-triangle frame: v0, e1, e2, unit normal n, area."""
     v0 = v[f[:, 0]]
     e1 = v[f[:, 1]] - v0
@@ -107,7 +108,8 @@ def _frames(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     return v0, e1, e2, n, 0.5 * dbl
 
 
-def _local_coordinates(x: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray, n: np.ndarray) -> np.ndarray:
+def _local_coordinates(x: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray,
+                       n: np.ndarray) -> np.ndarray:
     """(N, 3) ``(a, b, h)`` with ``x = v0 + a e1 + b e2 + h n`` (rows matched)."""
     r = x - v0
     h = (r * n).sum(1)
@@ -202,7 +204,8 @@ def _second(x, idx, cand, a, b, c, adj, t0, d0, band, t1, d1) -> None:  # noqa: 
     d1[idx[has]] = best[has]
 
 
-def transfer_deformation(x_base: torch.Tensor, base_body: Body, target_body: Body, *, band: float = DEFAULT_BAND,
+def transfer_deformation(x_base: torch.Tensor, base_body: Body, target_body: Body, *,
+                         band: float = DEFAULT_BAND,
                          offset: OffsetScaling | str = OffsetScaling.SCALED) -> torch.Tensor:
     """Transfer a garment draped on ``base_body`` to ``target_body`` (Eq. 15).
 
@@ -228,8 +231,9 @@ def transfer_deformation(x_base: torch.Tensor, base_body: Body, target_body: Bod
     fb = base_body.faces.detach().cpu().numpy().astype(np.int64)
     ft = target_body.faces.detach().cpu().numpy().astype(np.int64)
     if vb.shape != vt.shape or fb.shape != ft.shape or not np.array_equal(fb, ft):
-        raise InputError(f"deformation transfer needs bodies of one topology: base has {vb.shape[0]} vertices and "
-                         f"{fb.shape[0]} faces, target {vt.shape[0]} and {ft.shape[0]} (or different faces)")
+        raise InputError(f"deformation transfer needs bodies of one topology: base has {vb.shape[0]} "
+                         f"vertices and {fb.shape[0]} faces, target {vt.shape[0]} and {ft.shape[0]} (or "
+                         "different faces)")
     x = x_base.detach().cpu().double().numpy()
     t0, d0, t1, d1 = two_minimum_triangles(x, vb, fb, band)
     F0 = _frames(vb, fb)

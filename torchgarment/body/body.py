@@ -52,7 +52,8 @@ class Body:
             vertices=self.vertices.to(device=device, dtype=dtype),
             faces=self.faces.to(device=device),
             skeleton=None if self.skeleton is None else self.skeleton.to(device, dtype),
-            skin_weights=None if self.skin_weights is None else self.skin_weights.to(device=device, dtype=dtype),
+            skin_weights=None if self.skin_weights is None
+            else self.skin_weights.to(device=device, dtype=dtype),
             landmarks={k: v.to(device=device, dtype=dtype) for k, v in self.landmarks.items()},
             params=dict(self.params),
         )
@@ -74,8 +75,10 @@ class Body:
         return load_body(path, skeleton=skeleton, skin_weights=skin_weights, dtype=dtype, device=device)
 
     @classmethod
-    def from_measurements(cls, *, dtype=torch.float64, device=None, cache=True, **measurements: float) -> "Body":
-        """Fit an anny body to measurements in metres; see :func:`torchgarment.body.anny_body.body_from_measurements`."""
+    def from_measurements(cls, *, dtype=torch.float64, device=None, cache=True,
+                          **measurements: float) -> "Body":
+        """Fit an anny body to measurements in metres; see
+        :func:`torchgarment.body.anny_body.body_from_measurements`."""
         from torchgarment.body.anny_body import body_from_measurements
 
         return body_from_measurements(measurements, dtype=dtype, device=device, cache=cache)

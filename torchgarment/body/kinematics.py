@@ -110,7 +110,8 @@ def joint_parents(skeleton: Skeleton) -> torch.Tensor:
     """
     num_joints = skeleton.num_joints
     if skeleton.joints.ndim != 2 or skeleton.joints.shape[1] != 3 or num_joints == 0:
-        raise InputError(f"skeleton joints must have shape (J, 3) with J > 0, got {tuple(skeleton.joints.shape)}")
+        raise InputError("skeleton joints must have shape (J, 3) with J > 0, got "
+                         f"{tuple(skeleton.joints.shape)}")
     if not torch.isfinite(skeleton.joints).all():
         raise InputError("skeleton joints must be finite")
     check_bone_forest(num_joints, skeleton.bones)
@@ -323,12 +324,14 @@ class KinematicSkeleton:
         chain = copy.deepcopy(template)
         # Set the exact float64 joint offsets (the URDF parser rounds them to float32).
         offsets = _offsets(skeleton.joints, self.parents)
-        x_frames = torch.tensor([frame_of[f"{_link(j)}_x"] for j in range(skeleton.num_joints)], dtype=torch.long)
+        x_frames = torch.tensor([frame_of[f"{_link(j)}_x"] for j in range(skeleton.num_joints)],
+                                dtype=torch.long)
         chain._static_offsets[x_frames, :3, 3] = offsets
         for j in range(skeleton.num_joints):
             k = int(x_frames[j])
             chain.joint_offsets[k] = chain._static_offsets[k][None].clone()
-            chain.find_frame(f"{_link(j)}_x").joint.offset = tf.Transform3d(pos=offsets[j], dtype=torch.float64)
+            chain.find_frame(f"{_link(j)}_x").joint.offset = tf.Transform3d(pos=offsets[j],
+                                                                            dtype=torch.float64)
         names = chain.get_joint_parameter_names()
         position = {n: i for i, n in enumerate(names)}
         dof = torch.tensor(

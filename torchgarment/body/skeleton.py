@@ -32,4 +32,5 @@ class Skeleton:
 
     def to(self, device=None, dtype=None) -> "Skeleton":
         """Return a copy on ``device`` with float tensors cast to ``dtype``."""
-        return Skeleton(self.joints.to(device=device, dtype=dtype), self.bones.to(device=device), list(self.names))
+        return Skeleton(self.joints.to(device=device, dtype=dtype), self.bones.to(device=device),
+                        list(self.names))

@@ -3,9 +3,9 @@
 The retailer's flow (paper, section 3): when a customer registers, their body is projected once onto the PCA
 components (:meth:`OnlineFitter.weights`, ``3 M N`` multiply-adds); every catalogue garment is then
 ``g_0 + sum_i w_i G_i`` (:meth:`OnlineFitter.fit`), for many customers and many garments in one matrix
-product over the concatenated vertices of all garments. Garments may end slightly inside a body (the linear model is an
-approximation); :func:`push_out` moves such vertices out along the body SDF's gradient, timed separately
-since it needs the customer's SDF.
+product over the concatenated vertices of all garments. Garments may end slightly inside a body (the linear
+model is an approximation); :func:`push_out` moves such vertices out along the body SDF's gradient, timed
+separately since it needs the customer's SDF.
 """
 
 from __future__ import annotations
@@ -96,7 +96,8 @@ class OnlineFitter:
         """
         w = torch.as_tensor(weights, device=self.mean.device, dtype=self.mean.dtype)
         if w.ndim not in (1, 2) or w.shape[-1] != self.k:
-            raise InputError(f"weights must be (k,) or (B, k) with k = {self.k} (the fitter's k), got {tuple(w.shape)}")
+            raise InputError(f"weights must be (k,) or (B, k) with k = {self.k} (the fitter's k), got "
+                             f"{tuple(w.shape)}")
         w2 = w if w.ndim == 2 else w[None]
         flat = self.mean.reshape(-1)
         if w2.requires_grad:

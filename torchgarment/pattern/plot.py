@@ -78,7 +78,8 @@ def _mesh_triangles(mesh: PanelMesh, offsets_by_name: dict[str, np.ndarray]) -> 
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
         raise InputError(f"mesh.faces must be (F, 3) integers, got shape {faces.shape} {faces.dtype}")
     if ids.shape != (faces.shape[0],) or not np.issubdtype(ids.dtype, np.integer):
-        raise InputError(f"mesh.panel_ids must be (F,) integers, got shape {ids.shape} for {faces.shape[0]} faces")
+        raise InputError(f"mesh.panel_ids must be (F,) integers, got shape {ids.shape} for {faces.shape[0]} "
+                         "faces")
     if faces.size and (faces.min() < 0 or faces.max() >= p.shape[0]):
         raise InputError(f"mesh.faces refer to vertices outside 0..{p.shape[0] - 1}")
     if ids.size and (ids.min() < 0 or ids.max() >= len(offsets)):

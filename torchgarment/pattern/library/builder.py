@@ -79,13 +79,14 @@ def mirror_half(right: Chain) -> Chain:
     return Chain(right.points + left.points[1:], right.segments + left.segments)
 
 
-def make_panel(name: str, chain: Chain, *, closed: bool = False, label: str = "") -> tuple[Panel, dict[str, int]]:
+def make_panel(name: str, chain: Chain, *, closed: bool = False,
+               label: str = "") -> tuple[Panel, dict[str, int]]:
     """Turn a chain into a panel and a map from segment label to edge index.
 
     Args:
         name: panel name.
-        chain: the outline, counter-clockwise seen from outside. If ``closed`` its last point repeats the first;
-            otherwise a final segment must not be implied (the last segment ends at the first point).
+        chain: the outline, counter-clockwise seen from outside. If ``closed`` its last point repeats the
+            first; otherwise a final segment must not be implied (the last segment ends at the first point).
         closed: whether ``chain.points[-1]`` duplicates ``chain.points[0]``.
         label: panel label.
     """
@@ -146,7 +147,8 @@ def place_back(panel: Panel, z: float, x: float = 0.0) -> Panel:
 
 def seam(pa: str, ia: dict[str, int], la: str, pb: str, ib: dict[str, int], lb: str,
          orientation: StitchOrientation = StitchOrientation.OPPOSITE) -> Stitch:
-    """A stitch between edge ``la`` of panel ``pa`` and edge ``lb`` of panel ``pb`` (labels via index maps)."""
+    """A stitch between edge ``la`` of panel ``pa`` and edge ``lb`` of panel ``pb`` (labels via index
+    maps)."""
     return Stitch(EdgeRef(pa, ia[la]), EdgeRef(pb, ib[lb]), orientation)
 
 
