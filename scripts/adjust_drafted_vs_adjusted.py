@@ -29,12 +29,17 @@ import json
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+if TYPE_CHECKING:
+    from torchgarment.adjust.pipeline import AdjustSetup
+    from torchgarment.pattern.spec import SewingPattern
 
-def drafted_boundary(setup, drafted, edge_length: float) -> torch.Tensor:  # noqa: ANN001
+
+def drafted_boundary(setup: AdjustSetup, drafted: SewingPattern, edge_length: float) -> torch.Tensor:
     """(B, 2) boundary of ``drafted`` with the base mesh's per-edge sample counts, in the row order of
     ``setup.param``, each panel moved onto the base panel by its best rigid motion."""
     from torchgarment.errors import PatternError

@@ -27,11 +27,15 @@ import sys
 import time
 import traceback
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
+if TYPE_CHECKING:
+    from torchgarment.adjust.pipeline import AdjustSettings
 
-def _row(garment: str, base_size: str, target_size: str, settings) -> dict:  # noqa: ANN001 - AdjustSettings
+
+def _row(garment: str, base_size: str, target_size: str, settings: AdjustSettings) -> dict:
     from torchgarment.adjust.objective import CostWeights
     from torchgarment.adjust.pipeline import adjust
     from torchgarment.body import Body

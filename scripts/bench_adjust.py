@@ -25,11 +25,15 @@ import platform
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
+if TYPE_CHECKING:
+    from torchgarment.pattern.spec import SewingPattern
 
-def edge_length_for(pattern, vertices: int) -> tuple[float, int]:  # noqa: ANN001
+
+def edge_length_for(pattern: SewingPattern, vertices: int) -> tuple[float, int]:
     from torchgarment.pattern.meshing import mesh_pattern
 
     e = 0.05

@@ -18,6 +18,7 @@ import argparse
 import json
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +76,7 @@ def bench_one(v: np.ndarray, f: np.ndarray, voxel_mm: float, runs: int, points: 
     }
 
 
-def _times_ms(fn, calls: int) -> tuple[float, float]:
+def _times_ms(fn: Callable[[], object], calls: int) -> tuple[float, float]:
     """(median, min) wall time of ``fn()`` in ms over ``calls`` calls after one warm-up call."""
     fn()
     times = []

@@ -39,7 +39,9 @@ import math
 import platform
 import statistics
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -49,9 +51,13 @@ from torchgarment.io.atomic import atomic_open
 from torchgarment.pattern.library import draft
 from torchgarment.pattern.meshing import mesh_pattern
 from torchgarment.sdf import BodySDF, SDFSettings
-from torchgarment.sim.scene import Effect, Scene
+from torchgarment.sim.scene import Effect, Scene, SimModel
 from torchgarment.sim.solvers import SolveSettings, solve
 from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse
+
+if TYPE_CHECKING:
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.structures.garment_mesh import GarmentMesh
 
 DEFAULT_SIZES = (5_000, 15_000, 30_000, 60_000)
 EFFECTS = (Effect.STRETCH, Effect.SEW, Effect.BEND, Effect.GRAVITY, Effect.BODY_BARRIER)
@@ -59,7 +65,7 @@ TARGET_MS_30K = 20.0
 TARGET_RATIO = 4.0
 
 
-def call_times(fn, x: torch.Tensor, calls: int) -> list[float]:  # noqa: ANN001
+def call_times(fn: Callable[[torch.Tensor], object], x: torch.Tensor, calls: int) -> list[float]:
     """Seconds of ``calls`` calls of ``fn(x)``.
 
     Every call gets its own copy of ``x`` (made before the clock starts), so that no term can reuse results
@@ -87,7 +93,7 @@ def run_interleaved(tasks: dict, rounds: int) -> dict[str, tuple[float, float]]:
     return {k: (1e3 * statistics.median(v), 1e3 * min(v)) for k, v in samples.items()}
 
 
-def mesh_with_vertices(pattern, target: int, dtype: torch.dtype):  # noqa: ANN001, ANN201
+def mesh_with_vertices(pattern: SewingPattern, target: int, dtype: torch.dtype) -> tuple[GarmentMesh, float]:
     """Mesh ``pattern`` at the edge length giving about ``target`` vertices (V ~ 1 / h^2, two corrections)."""
     h = 0.005
     mesh = mesh_pattern(pattern, h, dtype=dtype)
@@ -97,7 +103,8 @@ def mesh_with_vertices(pattern, target: int, dtype: torch.dtype):  # noqa: ANN00
     return mesh, h
 
 
-def iteration_times(model, x: torch.Tensor, settings: SolveSettings, iterations: int) -> list[float]:  # noqa: ANN001
+def iteration_times(model: SimModel, x: torch.Tensor, settings: SolveSettings,
+                    iterations: int) -> list[float]:
     """Seconds between consecutive solver callbacks (one per iteration) of a GD-Chebyshev solve from ``x``."""
     stamps: list[float] = []
 
@@ -109,13 +116,13 @@ def iteration_times(model, x: torch.Tensor, settings: SolveSettings, iterations:
     return [b - a for a, b in zip(stamps[:-1], stamps[1:])]
 
 
-def bench_size(target: int, args: argparse.Namespace, pattern, sdf: BodySDF) -> dict:  # noqa: ANN001
+def bench_size(target: int, args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF) -> dict:
     """One table row (a dict) for the size ``target``."""
     dtype = torch.float64
     mesh, h = mesh_with_vertices(pattern, target, dtype)
     settings = SolveSettings(rtol=0.0, atol=0.0)
 
-    def build(effects):  # noqa: ANN001, ANN202
+    def build(effects: Iterable[Effect]) -> SimModel:
         return Scene(mesh, body_sdf=sdf, effects=set(effects)).build()
 
     model = build(EFFECTS)

@@ -20,11 +20,20 @@ import argparse
 import json
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
-def load_case(args: argparse.Namespace):  # noqa: ANN201 - (pattern, base body, target body)
+    from torchgarment.adjust.pipeline import IterationRecord
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
+
+
+def load_case(args: argparse.Namespace) -> tuple[SewingPattern, Body, Body]:
+    """(pattern drafted for the base size, base body, target body)."""
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.pattern.library import draft
@@ -44,7 +53,7 @@ def add_case_arguments(ap: argparse.ArgumentParser, iterations: int) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
 
 
-def save_figure(fig, path: Path) -> None:  # noqa: ANN001
+def save_figure(fig: Figure, path: Path) -> None:
     from torchgarment.io.atomic import atomic_path
 
     with atomic_path(path) as tmp:
@@ -79,7 +88,8 @@ def main() -> None:
         calls = [0]
         rows = [(0.0, 0, setup.objective_initial, True)]
 
-        def cb(rec, terms, rows=rows, calls=calls):  # noqa: ANN001
+        def cb(rec: IterationRecord, terms: dict[str, float], rows: list[tuple] = rows,
+               calls: list[int] = calls) -> None:
             calls[0] += rec.closure_calls
             rows.append((rec.seconds, calls[0], rec.objective, rec.exact))
 

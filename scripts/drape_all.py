@@ -16,7 +16,13 @@ import json
 import sys
 import time
 import traceback
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
 
 LIBRARY = ["straight_skirt", "aline_skirt", "sheath_dress", "tshirt", "trousers", "bodysuit"]
 SIZES = ["6", "20"]
@@ -24,7 +30,8 @@ GARMENTCODE = [("shirt_mean", "mean_all"), ("dress_pencil", "mean_female")]
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "garmentcode"
 
 
-def _cases(data: Path, only: list[str] | None):
+def _cases(data: Path, only: list[str] | None) -> Iterator[
+        tuple[str, str, Callable[[], Body], Callable[[], SewingPattern]]]:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.pattern.library import draft
@@ -33,8 +40,8 @@ def _cases(data: Path, only: list[str] | None):
         for g in LIBRARY:
             if only and g not in only:
                 continue
-            yield g, f"size {size}", (lambda s=size: Body.from_size(s)), (lambda g=g, s=size: draft(g,
-                                                                                                    chart_row(s)))
+            yield (g, f"size {size}", (lambda s=size: Body.from_size(s)),
+                   (lambda g=g, s=size: draft(g, chart_row(s))))
     for spec, body in GARMENTCODE:
         if only and spec not in only:
             continue

@@ -34,12 +34,21 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.sdf import BodySDF
+    from torchgarment.sim.scene import Material, SimModel
+    from torchgarment.sim.solvers import SolveInfo
+    from torchgarment.structures.garment_mesh import GarmentMesh
 
-def _settle_problem(garment: str, size: str, edge_length: float):
+
+def _settle_problem(garment: str, size: str, edge_length: float
+                    ) -> tuple[Body, GarmentMesh, torch.Tensor, Material, float, float]:
     """(body, mesh, sewn x, settle Material, settle tolerance in N, weight in N)."""
     from dataclasses import replace
 
@@ -61,14 +70,15 @@ def _settle_problem(garment: str, size: str, edge_length: float):
     return body, res.mesh, res.x.detach(), mat, settings.atol_weight * weight, weight
 
 
-def _model(mesh, sdf, material):  # noqa: ANN001, ANN202
+def _model(mesh: GarmentMesh, sdf: BodySDF, material: Material) -> SimModel:
     from torchgarment.sim.scene import Effect, Scene
 
     effects = {Effect.STRETCH, Effect.SEW, Effect.BEND, Effect.GRAVITY, Effect.BODY_BARRIER}
     return Scene(mesh, body_sdf=sdf, effects=effects, material=material).build()
 
 
-def _timed_solve(model, x0, solver: str, iterations: int, atol: float):  # noqa: ANN001, ANN202
+def _timed_solve(model: SimModel, x0: torch.Tensor, solver: str, iterations: int, atol: float
+                 ) -> tuple[torch.Tensor, SolveInfo, list[tuple[float, float]]]:
     """Solve and record (seconds since start, residual) after every iteration."""
     from torchgarment.sim.solvers import SolveSettings, solve
 

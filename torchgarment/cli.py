@@ -11,9 +11,14 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 from torchgarment.errors import TorchGarmentError
+
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.render import MeshLayer
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -43,13 +48,13 @@ def _read_json_object(path: str) -> dict:
     return data
 
 
-def _body_layer(body):
+def _body_layer(body: Body) -> MeshLayer:
     from torchgarment.render import MeshLayer
 
     return MeshLayer(vertices=body.vertices, faces=body.faces, color=(0.78, 0.78, 0.80), label="body")
 
 
-def _write_body_outputs(body, stage: Path, title: str) -> dict:
+def _write_body_outputs(body: Body, stage: Path, title: str) -> dict:
     """Write body.obj, skeleton.obj, measurements.json and body.png into ``stage``; return the
     measurements."""
     from torchgarment.io.mesh import save_obj
@@ -66,13 +71,13 @@ def _write_body_outputs(body, stage: Path, title: str) -> dict:
     return measured
 
 
-def _draft_measurements_for_size(size: str):
+def _draft_measurements_for_size(size: str) -> dict[str, float]:
     from torchgarment.body.size_chart import chart_row
 
     return chart_row(size)
 
 
-def _write_pattern_outputs(pattern, stage: Path, edge_length: float | None) -> dict:
+def _write_pattern_outputs(pattern: SewingPattern, stage: Path, edge_length: float | None) -> dict:
     from torchgarment.pattern.dxf import save_dxf
     from torchgarment.pattern.garmentcode import save_pattern
     from torchgarment.pattern.plot import plot_pattern

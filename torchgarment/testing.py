@@ -15,10 +15,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.sim.energies.base import HessianBlocks
 
 
 @dataclass
@@ -196,7 +200,7 @@ def check_hessian_blocks(
     return r1, r2
 
 
-def min_eigenvalue(blocks, num_vertices: int) -> float:  # noqa: ANN001 - HessianBlocks
+def min_eigenvalue(blocks: HessianBlocks, num_vertices: int) -> float:
     """Smallest eigenvalue of the assembled (dense) block matrix, for PSD checks on small meshes."""
     H = blocks.to_sparse(num_vertices).to_dense().double()
     H = 0.5 * (H + H.T)

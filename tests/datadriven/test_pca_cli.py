@@ -22,7 +22,7 @@ def run(argv: list[str]) -> int:
     return args.func(args)
 
 
-def fake_drape(mesh, vertices, faces, reference, settings, frame=None):  # noqa: ANN001, ANN201
+def fake_drape(mesh, vertices, faces, reference, settings, frame=None):
     """Affine stand-in for the simulator (fast): the garment moves with the body's first vertices."""
     body = vertices[: mesh.num_vertices].double()
     x = basis_mod.place_for_body(mesh.x, reference, reference) + 0.1 * (body - body.mean(0))

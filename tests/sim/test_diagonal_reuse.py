@@ -32,7 +32,7 @@ def _settled_tube(iterations: int = 60):
     return model, x
 
 
-def _sum_of_terms(model, x):  # noqa: ANN001, ANN202
+def _sum_of_terms(model, x):
     E = sum(float(t.value_and_grad(x)[0]) for t in model.terms)
     g = sum(t.value_and_grad(x)[1] for t in model.terms)
     h = sum(t.hessian_diagonal(x) for t in model.terms)

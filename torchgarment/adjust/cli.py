@@ -22,8 +22,14 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.adjust.pipeline import AdjustResult
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
 
 
 def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -87,7 +93,7 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     return p
 
 
-def _load_body(spec: str, what: str):  # noqa: ANN202 - Body
+def _load_body(spec: str, what: str) -> tuple[Body, str]:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import list_sizes
 
@@ -102,7 +108,7 @@ def _load_body(spec: str, what: str):  # noqa: ANN202 - Body
     return load_body(path), path.stem
 
 
-def _load_pattern(spec: str, base_size: str | None, flag: str):  # noqa: ANN202 - SewingPattern
+def _load_pattern(spec: str, base_size: str | None, flag: str) -> SewingPattern:
     from torchgarment.body.size_chart import chart_row, list_sizes
     from torchgarment.pattern.library import draft, list_garments
 
@@ -121,7 +127,7 @@ def _load_pattern(spec: str, base_size: str | None, flag: str):  # noqa: ANN202 
     return load_pattern_file(spec)
 
 
-def _json_safe(v):  # noqa: ANN001, ANN202
+def _json_safe(v: Any) -> Any:
     if isinstance(v, dict):
         return {k: _json_safe(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
@@ -131,7 +137,7 @@ def _json_safe(v):  # noqa: ANN001, ANN202
     return v
 
 
-def write_outputs(result, stage: Path, base_body, target_body, title: str) -> None:  # noqa: ANN001
+def write_outputs(result: AdjustResult, stage: Path, base_body: Body, target_body: Body, title: str) -> None:
     """Write every output file of ``torchgarment adjust`` for an :class:`AdjustResult` into ``stage``."""
     from torchgarment.io.atomic import atomic_open
     from torchgarment.io.mesh import save_obj

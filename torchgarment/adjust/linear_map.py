@@ -7,7 +7,12 @@ and by the explicit parametrization map.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
+
+if TYPE_CHECKING:
+    from torch.autograd.function import FunctionCtx
 
 
 class StoredTransposeMatmul(torch.autograd.Function):
@@ -15,11 +20,13 @@ class StoredTransposeMatmul(torch.autograd.Function):
     d)."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, A: torch.Tensor, AT: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def forward(  # type: ignore[override]
+        ctx: FunctionCtx, x: torch.Tensor, A: torch.Tensor, AT: torch.Tensor
+    ) -> torch.Tensor:
         ctx.A, ctx.AT = A, AT
         return A @ x
 
     @staticmethod
-    def backward(ctx, g: torch.Tensor) -> tuple[torch.Tensor, None, None]:  # type: ignore[override]
+    def backward(ctx: FunctionCtx, g: torch.Tensor) -> tuple[torch.Tensor, None, None]:  # type: ignore[override]
         # linear, so the backward is itself differentiable (double backward for Hessian-vector products)
         return StoredTransposeMatmul.apply(g.contiguous(), ctx.AT, ctx.A), None, None

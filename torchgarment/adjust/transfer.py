@@ -29,6 +29,8 @@ farther than the candidates only removes a blend.)
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -36,6 +38,9 @@ from scipy.spatial import cKDTree
 from torchgarment.body.body import Body
 from torchgarment.errors import InputError
 from torchgarment.options import OptionEnum
+
+if TYPE_CHECKING:
+    import scipy.sparse
 
 DEFAULT_BAND = 0.01
 """Transition bandwidth ``B`` of Eq. 15 in metres (the paper gives no value)."""
@@ -122,7 +127,7 @@ def _local_coordinates(x: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.nda
     return np.stack([a, b, h], 1)
 
 
-def _vertex_adjacency(f: np.ndarray, num_vertices: int):  # noqa: ANN202 - scipy sparse
+def _vertex_adjacency(f: np.ndarray, num_vertices: int) -> scipy.sparse.csr_matrix:
     """(F, F) sparse boolean: triangles sharing a vertex (diagonal included)."""
     import scipy.sparse
 
@@ -167,7 +172,9 @@ def two_minimum_triangles(x: np.ndarray, v: np.ndarray, f: np.ndarray, band: flo
     return t0, d0, t1, d1
 
 
-def _second(x, idx, cand, a, b, c, adj, t0, d0, band, t1, d1) -> None:  # noqa: ANN001
+def _second(x: np.ndarray, idx: np.ndarray, cand: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,
+            adj: scipy.sparse.csr_matrix, t0: np.ndarray, d0: np.ndarray, band: float, t1: np.ndarray,
+            d1: np.ndarray) -> None:
     """Fill t1/d1 for the points ``idx`` from their candidate triangles ``cand`` (n, k)."""
     n, k = cand.shape
     owner = np.repeat(idx, k)

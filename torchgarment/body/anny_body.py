@@ -40,6 +40,8 @@ import math
 import os
 import time
 from dataclasses import asdict, dataclass
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -55,6 +57,9 @@ from torchgarment.body.measure import (
 )
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    import anny
 
 FIT_VERSION = "5"
 """Version of the fitting code; part of the cache key. Bump it whenever fitted bodies would change."""
@@ -180,7 +185,7 @@ class AnnyFit:
 
 
 @functools.lru_cache(maxsize=1)
-def load_anny_model():
+def load_anny_model() -> anny.Anny:
     """The anny model used for bodies (loaded once per process; anny caches its data on disk).
 
     Returns:
@@ -190,7 +195,7 @@ def load_anny_model():
     return anny.Anny(topology=TOPOLOGY, local_changes=list(LOCAL_CHANGES.values()), phenotypes="all")
 
 
-def _import_anny_quietly():
+def _import_anny_quietly() -> ModuleType:
     """Import anny without the banner its NVIDIA Warp dependency prints on stdout and stderr at import.
 
     anny initializes Warp at import; Warp prints a version banner (stdout) and, on machines without a CUDA
@@ -287,7 +292,7 @@ class _Shape:
     The parameter vector is ``[height, weight, muscle, proportions, cupsize, local changes of girths]``.
     """
 
-    def __init__(self, model, phenotype: dict[str, float], girths: list[str]):
+    def __init__(self, model: anny.Anny, phenotype: dict[str, float], girths: list[str]) -> None:
         self.model = model
         if tuple(model.phenotype_labels) != _PHENOTYPES:
             raise InputError(f"unexpected anny phenotype labels {list(model.phenotype_labels)}")
@@ -365,7 +370,7 @@ def _plane_motion(
 
 
 def _girth_slopes(vertices: torch.Tensor, faces: torch.Tensor, planes: dict[str, SectionPlane],
-                  eps: float = 1e-3):
+                  eps: float = 1e-3) -> torch.Tensor:
     """(G,) derivative of each girth with respect to moving its plane along the normal (central differences
     over +-eps metres), in the order of ``planes``."""
     shifted = {}
@@ -429,7 +434,7 @@ def fit_anny(measurements: dict[str, float],
     )
     x_prior = x.clone()
 
-    def residual(xv: torch.Tensor, planes) -> torch.Tensor:
+    def residual(xv: torch.Tensor, planes: dict[str, SectionPlane]) -> torch.Tensor:
         v = shape.vertices(xv)
         g = section_girths(v, faces, planes)
         meas = torch.stack([body_height(v)] + [g[n] for n in girths])
@@ -441,7 +446,7 @@ def fit_anny(measurements: dict[str, float],
     rounds = 0
     history: list[float] = []
 
-    def evaluate(xv: torch.Tensor):
+    def evaluate(xv: torch.Tensor) -> tuple[dict[str, SectionPlane], torch.Tensor, torch.Tensor]:
         """(fresh planes, their offsets (G,), true residual) of the body at xv: what measure_body reports."""
         with torch.no_grad():
             v = shape.vertices(xv)
@@ -519,7 +524,7 @@ def fit_anny(measurements: dict[str, float],
     return fit, v
 
 
-def _rig(model, x_coeffs: torch.Tensor, offset: torch.Tensor) -> tuple[Skeleton, torch.Tensor]:
+def _rig(model: anny.Anny, x_coeffs: torch.Tensor, offset: torch.Tensor) -> tuple[Skeleton, torch.Tensor]:
     """Skeleton (joints = bone heads, bones = parent links) and (J, V) skin weights of a fitted body.
 
     Joints carrying no skin weight and having no weighted descendant (the eye bones of the eyeless topology)

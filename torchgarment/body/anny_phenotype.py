@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -61,6 +62,9 @@ from torchgarment.body.anny_body import (
 from torchgarment.body.body import Body
 from torchgarment.errors import InputError
 from torchgarment.options import OptionEnum
+
+if TYPE_CHECKING:
+    import anny
 
 PHENOTYPE_NAMES: tuple[str, ...] = _PHENOTYPES
 """Anny's phenotype labels (``phenotypes="all"``), in the model's order."""
@@ -170,7 +174,7 @@ def age_from_years(years: torch.Tensor) -> torch.Tensor:
     return torch.where(years < y1, young, old)
 
 
-def _framed(model, coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _framed(model: anny.Anny, coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, V, 3) Y-up vertices in the body frame and the (B, 3) offsets subtracted (root on Y, feet at 0)."""
     with torch.no_grad():
         rest = model.get_rest_model(coeffs)
@@ -217,7 +221,7 @@ def _as_matrix(phenotypes: list[dict]) -> tuple[torch.Tensor, torch.Tensor]:
             torch.tensor(lc_rows, dtype=torch.float64).reshape(len(rows), -1))
 
 
-def _coefficients(model, pheno: torch.Tensor, lc: torch.Tensor | None = None) -> torch.Tensor:
+def _coefficients(model: anny.Anny, pheno: torch.Tensor, lc: torch.Tensor | None = None) -> torch.Tensor:
     """Blend-shape coefficients of a (B, P) phenotype batch with (B, L) local changes (in
     :data:`LOCAL_CHANGE_NAMES` order; None: none)."""
     full = pheno.new_zeros(pheno.shape[0], len(model.local_change_labels))
@@ -250,8 +254,8 @@ def vertices_from_phenotypes(phenotypes: list[dict], batch_size: int = 32) -> to
     return torch.cat(out)
 
 
-def _solve_stature(model, pheno: torch.Tensor, lc: torch.Tensor, target: torch.Tensor, iterations: int = 8
-                   ) -> torch.Tensor:
+def _solve_stature(model: anny.Anny, pheno: torch.Tensor, lc: torch.Tensor, target: torch.Tensor,
+                   iterations: int = 8) -> torch.Tensor:
     """Batched secant on the ``height`` phenotype column so that the stature (max y - min y) hits
     ``target``."""
     hi_index = PHENOTYPE_NAMES.index("height")

@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -44,7 +45,7 @@ def cache_key(description: dict) -> str:
         A 32-character hex key.
     """
 
-    def norm(x):
+    def norm(x: Any) -> Any:
         if isinstance(x, float):
             return round(x, 9)
         if isinstance(x, dict):

@@ -28,11 +28,15 @@ from __future__ import annotations
 import copy
 import enum
 from collections import OrderedDict, deque
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    import pytorch_kinematics as pk
 
 __all__ = [
     "KinematicSkeleton",
@@ -277,7 +281,7 @@ _CHAIN_TEMPLATES: "OrderedDict[tuple[int, ...], tuple[object, dict[str, int]]]" 
 _MAX_CHAIN_TEMPLATES = 8
 
 
-def _chain_template(urdf: str, parents: tuple[int, ...]):
+def _chain_template(urdf: str, parents: tuple[int, ...]) -> tuple[pk.Chain, dict[str, int]]:
     """The float64 CPU pytorch-kinematics chain of a topology and its frame index map (cached per topology).
 
     Only the static offsets of the ``joint{j}_x`` frames depend on the joint positions; callers copy the
@@ -314,7 +318,7 @@ class KinematicSkeleton:
         urdf: the URDF text loaded into the chain.
     """
 
-    def __init__(self, skeleton: Skeleton):
+    def __init__(self, skeleton: Skeleton) -> None:
         from pytorch_kinematics import transforms as tf
 
         self.skeleton = skeleton
@@ -347,7 +351,7 @@ class KinematicSkeleton:
     def num_joints(self) -> int:
         return self.skeleton.num_joints
 
-    def chain(self, dtype: torch.dtype, device: torch.device):
+    def chain(self, dtype: torch.dtype, device: torch.device | str) -> pk.Chain:
         """The pytorch-kinematics chain for ``dtype`` and ``device`` (built on first use)."""
         key = (dtype, torch.device(device))
         if key not in self._chains:

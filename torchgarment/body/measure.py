@@ -72,6 +72,7 @@ Botsch et al. on a fixed mesh topology):
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -444,7 +445,7 @@ class _Frame:
 class _Slicer:
     """Horizontal and oblique cuts of one (detached) mesh, with the body frame."""
 
-    def __init__(self, vertices: np.ndarray, topo: _Topology):
+    def __init__(self, vertices: np.ndarray, topo: _Topology) -> None:
         self.v = vertices
         self.topo = topo
         y = vertices[:, 1]
@@ -498,7 +499,8 @@ def _find_crotch(sl: _Slicer) -> tuple[float, float, list[tuple[float, float]]]:
         )
     legs = [sl.lateral_range(lp) for lp in loops]
 
-    def step(legs_now, yq):
+    def step(legs_now: list[tuple[float, float]], yq: float
+             ) -> tuple[bool | None, list[tuple[float, float]]]:
         """(merged?, new leg ranges)"""
         ranges = [sl.lateral_range(lp) for lp in sl.horizontal(yq)]
         new = []
@@ -567,7 +569,7 @@ def _find_armpit(sl: _Slicer, crotch: float, centre: float) -> float:
     dy = 0.005 * f.height
     jump = 0.02 * f.height
 
-    def width(yq):
+    def width(yq: float) -> float:
         lp = _torso_loop(sl, sl.horizontal(yq), centre)
         if lp is None:
             raise InputError(f"no torso section at height {yq - f.y0:.3f} m above the feet")
@@ -691,7 +693,7 @@ def _arm_planes(sl: _Slicer, chest: tuple[float, float], crotch: float,
     arc = _arc_fraction(line)
     half_chest = 0.5 * (chest[1] - chest[0])
 
-    def girths(fracs):
+    def girths(fracs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         g = np.full(len(fracs), np.nan)
         normals = []
         pts = []
@@ -860,7 +862,8 @@ def find_section_planes(
     return {name: planes[name] for name in GIRTH_NAMES if name in wanted}
 
 
-def _neck_plane(sl: _Slicer, armpit: float, centre: float, torso_seed) -> SectionPlane:
+def _neck_plane(sl: _Slicer, armpit: float, centre: float,
+                torso_seed: Callable[[float], np.ndarray]) -> SectionPlane:
     """The neck plane (see the module doc); ``torso_seed(y)`` is the torso loop centroid at height y."""
     f = sl.frame
     h = f.height

@@ -35,6 +35,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -44,6 +45,11 @@ from torchgarment.io.payload import load_payload
 from torchgarment.options import OptionEnum
 from torchgarment.sim.drape import DrapeSettings
 from torchgarment.structures.garment_mesh import GarmentMesh
+
+if TYPE_CHECKING:
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.sim.drape import DrapeResult
 
 FORMAT = "torchgarment.clothing_basis/1"
 PLACEMENT_VERSION = "1"
@@ -227,7 +233,7 @@ class ClothingBasis:
         return basis.to(device=device, dtype=dtype)
 
 
-def _as_garment_mesh(garment, settings: DrapeSettings) -> GarmentMesh:  # noqa: ANN001
+def _as_garment_mesh(garment: SewingPattern | GarmentMesh, settings: DrapeSettings) -> GarmentMesh:
     if isinstance(garment, GarmentMesh):
         return garment.to(dtype=torch.float64, device="cpu")
     from torchgarment.pattern.spec import SewingPattern
@@ -239,7 +245,7 @@ def _as_garment_mesh(garment, settings: DrapeSettings) -> GarmentMesh:  # noqa: 
     raise InputError(f"a clothing basis needs a SewingPattern or a GarmentMesh, got {type(garment).__name__}")
 
 
-def basis_key(pca, mesh: GarmentMesh, settings: BasisSettings) -> str:  # noqa: ANN001 - BodyPCA
+def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings) -> str:
     """Cache key of a basis: hash of the body model, garment, c, drape settings and placement rule.
 
     ``k`` is not part of it: the drapes along component ``i`` do not depend on how many components are kept,
@@ -256,7 +262,7 @@ def sample_names(k: int) -> list[str]:
 
 
 def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor, reference: BodyFrame,
-                  settings: DrapeSettings, frame: BodyFrame | None = None):  # noqa: ANN201 - DrapeResult
+                  settings: DrapeSettings, frame: BodyFrame | None = None) -> DrapeResult:
     """Drape the garment (placed for ``reference``) on one body after re-placing it (:func:`place_for_body`).
 
     Args:
@@ -278,8 +284,8 @@ def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor
 
 
 def build_basis(
-    pca,  # noqa: ANN001 - BodyPCA
-    garment,  # noqa: ANN001 - SewingPattern | GarmentMesh
+    pca: BodyPCA,
+    garment: SewingPattern | GarmentMesh,
     settings: BasisSettings | None = None,
     *,
     name: str = "",

@@ -19,8 +19,15 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.datadriven.basis import ClothingBasis
+    from torchgarment.datadriven.dataset import BodyDataset
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.pattern.spec import SewingPattern
 
 MODEL_FORMAT = "torchgarment.pca_garment_model/1"
 
@@ -100,7 +107,7 @@ def _write_json(path: Path, data: dict) -> None:
         fh.write("\n")
 
 
-def _dataset(args: argparse.Namespace):  # noqa: ANN202 - BodyDataset
+def _dataset(args: argparse.Namespace) -> BodyDataset:
     from torchgarment.datadriven.dataset import BodyDataset
 
     if args.bodies is not None:
@@ -120,7 +127,8 @@ def _dataset(args: argparse.Namespace):  # noqa: ANN202 - BodyDataset
     return BodyDataset.load(path)
 
 
-def _garment(args: argparse.Namespace, pca):  # noqa: ANN001, ANN202 - (SewingPattern, name, info)
+def _garment(args: argparse.Namespace, pca: BodyPCA) -> tuple[SewingPattern, str, dict]:
+    """(pattern, garment name, provenance for model.json) of ``--garment`` or ``--pattern``."""
     if args.garment is not None:
         from torchgarment.body.measure import measure_body
         from torchgarment.pattern.library import draft, list_garments
@@ -186,7 +194,7 @@ def cmd_pca_build(args: argparse.Namespace) -> int:
     return 0
 
 
-def load_model(model_dir: str | Path):  # noqa: ANN201 - (BodyPCA, ClothingBasis, dict)
+def load_model(model_dir: str | Path) -> tuple[BodyPCA, ClothingBasis, dict]:
     """Read a folder written by ``pca build``: (PCA, basis, model.json contents).
 
     Raises:

@@ -14,12 +14,17 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchgarment.errors import InputError, MeshError
 from torchgarment.io.atomic import atomic_path
 from torchgarment.io.payload import load_payload
+
+if TYPE_CHECKING:
+    from torchgarment.body.anny_phenotype import PhenotypeRanges
+    from torchgarment.body.body import Body
 
 FORMAT = "torchgarment.body_dataset/1"
 """Format tag stored in saved data sets."""
@@ -84,7 +89,7 @@ class BodyDataset:
         return BodyDataset(self.vertices[ids], self.faces, [dict(self.params[i]) for i in ids], self.source,
                            self.topology)
 
-    def body(self, i: int):  # noqa: ANN201 - Body
+    def body(self, i: int) -> Body:
         """Body ``i`` as a plain :class:`~torchgarment.body.body.Body` (mesh only)."""
         from torchgarment.body.body import Body
 
@@ -112,7 +117,7 @@ class BodyDataset:
                             "order)")
 
     @classmethod
-    def from_anny(cls, n: int, seed: int = 0, ranges=None, batch_size: int = 64,  # noqa: ANN001
+    def from_anny(cls, n: int, seed: int = 0, ranges: PhenotypeRanges | None = None, batch_size: int = 64,
                   dtype: torch.dtype = torch.float64,
                   device: torch.device | str | None = None) -> "BodyDataset":
         """``n`` random adult anny bodies (see :func:`torchgarment.body.anny_phenotype.sample_phenotypes`).
@@ -134,7 +139,7 @@ class BodyDataset:
                    TOPOLOGY)
 
     @classmethod
-    def from_meshes(cls, meshes: list, dtype: torch.dtype = torch.float64,  # noqa: ANN001
+    def from_meshes(cls, meshes: list, dtype: torch.dtype = torch.float64,
                     device: torch.device | str | None = None, topology: str = "") -> "BodyDataset":
         """A data set from meshes of one topology.
 

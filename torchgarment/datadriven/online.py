@@ -12,11 +12,16 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchgarment.datadriven.basis import ClothingBasis, Interpolation
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.sdf import BodySDF
 
 
 class OnlineFitter:
@@ -33,7 +38,8 @@ class OnlineFitter:
         InputError: a basis built for another body model, or k larger than a basis has.
     """
 
-    def __init__(self, pca, bases, k: int | None = None,  # noqa: ANN001 - BodyPCA, dict | list
+    def __init__(self, pca: BodyPCA,
+                 bases: ClothingBasis | list[ClothingBasis] | dict[str, ClothingBasis], k: int | None = None,
                  interpolation: Interpolation | str = Interpolation.PIECEWISE,
                  device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> None:
         if isinstance(bases, ClothingBasis):
@@ -157,7 +163,7 @@ class PushOutResult:
     seconds: float
 
 
-def push_out(x: torch.Tensor, sdf, margin: float = 1e-3, iterations: int = 5) -> PushOutResult:  # noqa: ANN001
+def push_out(x: torch.Tensor, sdf: BodySDF, margin: float = 1e-3, iterations: int = 5) -> PushOutResult:
     """Move garment vertices that are inside (or within ``margin`` of) a body out along the SDF gradient.
 
     Each iteration sets ``x <- x + (margin - phi) n`` for the vertices with ``phi < margin``, with ``n`` the

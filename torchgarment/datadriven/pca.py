@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import os
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -24,6 +25,9 @@ import torch
 from torchgarment.errors import InputError, MeshError
 from torchgarment.io.atomic import atomic_path
 from torchgarment.io.payload import load_payload
+
+if TYPE_CHECKING:
+    from torchgarment.datadriven.dataset import BodyDataset
 
 FORMAT = "torchgarment.body_pca/1"
 
@@ -52,7 +56,7 @@ class BodyPCA:
     topology: str = ""
 
     @classmethod
-    def fit(cls, dataset, max_components: int | None = None) -> "BodyPCA":  # noqa: ANN001 - BodyDataset
+    def fit(cls, dataset: BodyDataset, max_components: int | None = None) -> "BodyPCA":
         """PCA of a :class:`~torchgarment.datadriven.dataset.BodyDataset`.
 
         Args:

@@ -43,6 +43,7 @@ import math
 import os
 import re
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import ezdxf
 import numpy as np
@@ -63,6 +64,9 @@ from torchgarment.pattern.spec import (
     StitchOrientation,
 )
 from torchgarment.pattern.svg import NOTCH_LENGTH, grainline_segment, notch_segment, svg_panel_layout
+
+if TYPE_CHECKING:
+    from ezdxf.layouts import BlockLayout
 
 CHORD_TOLERANCE = 1e-5  # metres: max distance between a curve and its written polyline
 LINE_TOLERANCE = 1e-6  # metres: curve points this close to the chord make a LINE edge
@@ -551,7 +555,7 @@ def _corner_indices(pts: np.ndarray, degrees: float = 20.0) -> np.ndarray:
     return np.nonzero(cos < math.cos(math.radians(degrees)))[0]
 
 
-def _read_piece(block, scale: float) -> _Piece | None:
+def _read_piece(block: BlockLayout, scale: float) -> _Piece | None:
     entities = list(block)
     pts = _boundary(entities, 1e-3)  # file units: mm, or inches
     if pts is None:

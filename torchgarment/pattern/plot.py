@@ -8,7 +8,7 @@ pattern match. Seams are coloured per stitch (:func:`torchgarment.pattern.svg.st
 from __future__ import annotations
 
 import os
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -27,6 +27,9 @@ from torchgarment.pattern.svg import (
     stitch_marks,
     svg_panel_layout,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 _DPI = 100
 _LONG_SIDE_IN = 14.0  # inches of the longer figure side
@@ -116,7 +119,7 @@ def _save(fig: Figure, path: str | os.PathLike) -> None:
         fig.savefig(tmp, format="png", dpi=_DPI)
 
 
-def _draw_panel(ax, panel: Panel, offset: np.ndarray, *, color: str = "k", fill: str | None = _FILL,
+def _draw_panel(ax: Axes, panel: Panel, offset: np.ndarray, *, color: str = "k", fill: str | None = _FILL,
                 lw: float = 1.0, ls: str = "-", alpha: float = 1.0, name: bool = True) -> None:
     o = _outline(panel, offset)
     if fill:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import Enum
@@ -155,7 +156,8 @@ def _workers(workers: int) -> int:
     return workers if workers > 0 else (os.cpu_count() or 1)
 
 
-def _chunked(fn, points: np.ndarray, workers: int, min_chunk: int = 50_000) -> np.ndarray:
+def _chunked(fn: Callable[[np.ndarray], np.ndarray], points: np.ndarray, workers: int,
+             min_chunk: int = 50_000) -> np.ndarray:
     """Apply ``fn`` (rows -> values) to ``points`` in chunks on a thread pool (igl releases the GIL)."""
     n = points.shape[0]
     k = max(1, min(workers * 4, n // min_chunk))

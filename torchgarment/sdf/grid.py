@@ -36,6 +36,9 @@ from torchgarment.io.atomic import atomic_path
 from torchgarment.options import OptionEnum
 from torchgarment.sdf.build import SDFGridData, SDFSettings, build_sdf_grid, check_mesh
 
+if TYPE_CHECKING:
+    from torch.autograd.function import FunctionCtx
+
 if TYPE_CHECKING:  # pragma: no cover
     from torchgarment.body.body import Body
 
@@ -117,14 +120,14 @@ class _Sample(torch.autograd.Function):
     """``phi(x)`` with the analytic gradient of the interpolant as backward (first order only)."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, sdf: "BodySDF") -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx: FunctionCtx, x: torch.Tensor, sdf: "BodySDF") -> torch.Tensor:  # type: ignore[override]
         phi, grad = sdf._query(x, with_grad=True)
         ctx.save_for_backward(grad)
         return phi
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_phi: torch.Tensor) -> tuple[torch.Tensor, None]:  # type: ignore[override]
+    def backward(ctx: FunctionCtx, grad_phi: torch.Tensor) -> tuple[torch.Tensor, None]:  # type: ignore[override]
         (grad,) = ctx.saved_tensors
         return grad * grad_phi[:, None], None
 
@@ -170,7 +173,7 @@ class BodySDF(torch.nn.Module):
     node_strides: torch.Tensor
 
     def __init__(self, data: SDFGridData, *, device: torch.device | str | None = None,
-                 dtype: torch.dtype = torch.float64):
+                 dtype: torch.dtype = torch.float64) -> None:
         super().__init__()
         if not dtype.is_floating_point:
             raise InputError(f"BodySDF dtype must be a floating dtype, got {dtype}")

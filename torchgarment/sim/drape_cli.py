@@ -14,8 +14,13 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
 
 
 def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -50,7 +55,7 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     return p
 
 
-def _load_body(spec: str):  # noqa: ANN202 - Body
+def _load_body(spec: str) -> tuple[Body, str]:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import list_sizes
 
@@ -65,7 +70,7 @@ def _load_body(spec: str):  # noqa: ANN202 - Body
     return load_body(path), path.stem
 
 
-def _load_pattern(spec: str, size: str | None, body_spec: str):  # noqa: ANN202 - SewingPattern
+def _load_pattern(spec: str, size: str | None, body_spec: str) -> SewingPattern:
     from torchgarment.body.size_chart import chart_row, list_sizes
     from torchgarment.pattern.library import draft, list_garments
 

@@ -39,6 +39,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
+from types import ModuleType
 
 import torch
 
@@ -544,7 +545,7 @@ def _rest_positions(g: GarmentMesh) -> torch.Tensor:
     return (g.p if g.p is not None else g.x).detach()
 
 
-def _contact_module(effect: Effect):  # noqa: ANN202 - a module
+def _contact_module(effect: Effect) -> ModuleType:
     try:
         return importlib.import_module("torchgarment.sim.contact")
     except ImportError as exc:
