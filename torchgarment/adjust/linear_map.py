@@ -16,8 +16,8 @@ if TYPE_CHECKING:
 
 
 class StoredTransposeMatmul(torch.autograd.Function):
-    """``A @ x`` for constant ``A`` (R, C) and its stored transpose ``AT`` (C, R), dense or sparse; ``x``: (C,
-    d)."""
+    """``A @ x`` for constant ``A`` (R, C) and its stored transpose ``AT`` (C, R), dense or sparse;
+    ``x``: (C, d)."""
 
     @staticmethod
     def forward(  # type: ignore[override]
