@@ -1,8 +1,9 @@
-"""Does the objective of pattern adjustment prefer the chart-drafted pattern? (the grading diagnosis of issue 4)
+"""Does the objective of pattern adjustment prefer the chart-drafted pattern? (the grading diagnosis of issue
+4)
 
-The library drafts every garment from a size-chart row, so a pattern drafted for the target size is the grading a
-pattern maker would give. This script evaluates the adjustment objective (Eq. 17, on the target body, at the exact
-equilibrium) for:
+The library drafts every garment from a size-chart row, so a pattern drafted for the target size is the
+grading a pattern maker would give. This script evaluates the adjustment objective (Eq. 17, on the target
+body, at the exact equilibrium) for:
 
 - ``base``: the base pattern unchanged;
 - ``initialized``: the section-7 initialization;
@@ -16,9 +17,9 @@ drafted pattern's. When ``drafted`` scores far above ``adjusted``, the objective
 grading: a better optimizer cannot close the gap.
 
 Usage:
-    python scripts/adjust_drafted_vs_adjusted.py [--garment straight_skirt] [--base-size 12] [--target-size 20]
-        [--edge-length 0.03] [--voxel 0.01] [--iterations 64] [--reference-edge-length 0.008]
-        [--stretch-stiffness 25] [--threads 1] [--json FILE]
+    python scripts/adjust_drafted_vs_adjusted.py [--garment straight_skirt] [--base-size 12]
+        [--target-size 20] [--edge-length 0.03] [--voxel 0.01] [--iterations 64]
+        [--reference-edge-length 0.008] [--stretch-stiffness 25] [--threads 1] [--json FILE]
 """
 
 from __future__ import annotations
@@ -27,25 +28,32 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+if TYPE_CHECKING:
+    from torchgarment.adjust.pipeline import AdjustSetup
+    from torchgarment.pattern.spec import SewingPattern
 
-def drafted_boundary(setup, drafted, edge_length: float) -> torch.Tensor:  # noqa: ANN001
+
+def drafted_boundary(setup: AdjustSetup, drafted: SewingPattern, edge_length: float) -> torch.Tensor:
     """(B, 2) boundary of ``drafted`` with the base mesh's per-edge sample counts, in the row order of
     ``setup.param``, each panel moved onto the base panel by its best rigid motion."""
     from torchgarment.errors import PatternError
     from torchgarment.pattern.meshing import edge_segment_counts
 
     mesh = setup.mesh_base
-    counts, counts_d = edge_segment_counts(setup.pattern, edge_length), edge_segment_counts(drafted, edge_length)
+    counts, counts_d = edge_segment_counts(setup.pattern, edge_length), edge_segment_counts(drafted,
+                                                                                            edge_length)
     p = mesh.p.detach().cpu().double().numpy().copy()
     vp = mesh.vertex_panel_ids.cpu().numpy()
     names = list(mesh.panel_names)
     for name, panel in drafted.panels.items():
         if name not in names or len(counts[name]) != len(counts_d[name]):
-            raise PatternError(f"panel {name!r} of the drafted pattern does not match the base pattern's edges")
+            raise PatternError(f"panel {name!r} of the drafted pattern does not match the base pattern's "
+                               "edges")
         off = int(np.nonzero(vp == names.index(name))[0].min())
         n = counts[name]
         b = np.concatenate([e.sample_by_length(*panel.edge_endpoints(i), int(n[i]))[:-1]
@@ -95,8 +103,10 @@ def main() -> None:
 
     base_pattern = draft(args.garment, chart_row(args.base_size))
     drafted = draft(args.garment, chart_row(args.target_size))
-    weights = CostWeights(reference_edge_length=args.reference_edge_length) if args.reference_edge_length else None
-    material = Material() if args.stretch_stiffness is None else Material(stretch_stiffness=args.stretch_stiffness)
+    weights = (CostWeights(reference_edge_length=args.reference_edge_length)
+               if args.reference_edge_length else None)
+    material = (Material() if args.stretch_stiffness is None
+                else Material(stretch_stiffness=args.stretch_stiffness))
     settings = AdjustSettings(edge_length=args.edge_length, voxel_size=args.voxel, iterations=args.iterations,
                               weights=weights, drape=DrapeSettings(edge_length=args.edge_length,
                                                                    voxel_size=args.voxel, material=material))
@@ -112,7 +122,8 @@ def main() -> None:
         rows[name] = {"objective": ev.objective, "terms": problem.term_values()}
     lines = SKIRT_LINES if "skirt" in args.garment else TSHIRT_LINES
     w0 = pattern_line_widths(base_pattern, lines)
-    widths = {"adjusted": pattern_line_widths(result.pattern, lines), "drafted": pattern_line_widths(drafted, lines)}
+    widths = {"adjusted": pattern_line_widths(result.pattern, lines),
+              "drafted": pattern_line_widths(drafted, lines)}
     changes = {k: {line: 100.0 * (w[line] - w0[line]) for line in lines} for k, w in widths.items()}
 
     names = list(rows["base"]["terms"])

@@ -4,11 +4,11 @@ For each library garment (or ``--garment`` ones) drafted for chart size ``--base
 ``--target-size`` with :func:`torchgarment.adjust.pipeline.adjust` (pgd, Algorithm 1) and report, per row:
 vertices, triangles and panels of the mesh, the target body, the strength coefficients
 (``δ_fix, δ_cur, δ_dis, δ_smo, δ_str, δ_pos``), the objective of the base pattern, after the section-7
-initialization and at the end, the objective reduction (final against initialized, as :func:`adjust` reports it),
-the maximum boundary displacement, the time per iteration (optimizer and simulation together; the paper also
-splits off the optimizer's share, which is not measured separately here), the number of iterations, the optimization total and the precomputation (base drape, transfer,
-set-up, initialization; the paper's totals exclude it). A garment that fails is reported with its error and the
-script goes on.
+initialization and at the end, the objective reduction (final against initialized, as :func:`adjust` reports
+it), the maximum boundary displacement, the time per iteration (optimizer and simulation together; the paper
+also splits off the optimizer's share, which is not measured separately here), the number of iterations, the
+optimization total and the precomputation (base drape, transfer, set-up, initialization; the paper's totals
+exclude it). A garment that fails is reported with its error and the script goes on.
 
 Usage::
 
@@ -27,11 +27,15 @@ import sys
 import time
 import traceback
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
+if TYPE_CHECKING:
+    from torchgarment.adjust.pipeline import AdjustSettings
 
-def _row(garment: str, base_size: str, target_size: str, settings) -> dict:  # noqa: ANN001 - AdjustSettings
+
+def _row(garment: str, base_size: str, target_size: str, settings: AdjustSettings) -> dict:
     from torchgarment.adjust.objective import CostWeights
     from torchgarment.adjust.pipeline import adjust
     from torchgarment.body import Body
@@ -64,8 +68,8 @@ def _row(garment: str, base_size: str, target_size: str, settings) -> dict:  # n
 
 
 def _markdown(rows: list[dict]) -> str:
-    head = ("| garment (V, T, panels) | target | coefficients | objective base -> init -> final | reduction | "
-            "max disp. mm | s / iteration | iterations | optimization s | precomputation s |")
+    head = ("| garment (V, T, panels) | target | coefficients | objective base -> init -> final | reduction "
+            "| max disp. mm | s / iteration | iterations | optimization s | precomputation s |")
     lines = [head, "|" + "---|" * 10]
     for r in rows:
         if not r["ok"]:
@@ -73,10 +77,11 @@ def _markdown(rows: list[dict]) -> str:
             continue
         c = ", ".join(f"{v:g}" for v in r["coefficients"])
         lines.append(
-            f"| {r['garment']} ({r['vertices']}, {r['triangles']}, {r['panels']}) | size {r['target_size']} | {c} | "
-            f"{r['objective_base']:.3g} -> {r['objective_initial']:.3g} -> {r['objective_final']:.3g} | "
-            f"{r['reduction_percent']:.0f} % | {r['max_displacement_mm']:.1f} | {r['seconds_per_iteration']:.3f} | "
-            f"{r['iterations']} | {r['optimization_seconds']:.1f} | {r['precomputation_seconds']:.1f} |")
+            f"| {r['garment']} ({r['vertices']}, {r['triangles']}, {r['panels']}) | size {r['target_size']} "
+            f"| {c} | {r['objective_base']:.3g} -> {r['objective_initial']:.3g} -> "
+            f"{r['objective_final']:.3g} | {r['reduction_percent']:.0f} % | {r['max_displacement_mm']:.1f} | "
+            f"{r['seconds_per_iteration']:.3f} | {r['iterations']} | {r['optimization_seconds']:.1f} | "
+            f"{r['precomputation_seconds']:.1f} |")
     return "\n".join(lines)
 
 
@@ -117,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         from torchgarment.io.atomic import atomic_open
 
         with atomic_open(args.json) as f:
-            json.dump({"settings": vars(args) | {"json": str(args.json)}, "rows": rows}, f, indent=2, default=str)
+            json.dump({"settings": vars(args) | {"json": str(args.json)}, "rows": rows}, f, indent=2,
+                      default=str)
             f.write("\n")
     return 0 if all(r["ok"] for r in rows) else 1
 

@@ -1,12 +1,12 @@
 """Where does the pattern-adjustment objective want a graded pattern? A scan along uniform panel widening.
 
 Drafts a library garment for chart size ``--base-size`` and prepares its adjustment to ``--target-size`` (base
-drape, transfer, objective; :func:`torchgarment.adjust.pipeline.prepare`). Then it solves the target equilibrium
-exactly for the base pattern widened per panel by factors ``--scales`` along the panel's x axis (about the
-panel's boundary centroid; the skirt's and T-shirt's girth direction) and prints the objective and each term.
-Where the costs (positional, stretching, distance) are smallest near the chart's girth ratio but the total is
-not, the regularizers are what keeps the adjusted pattern from following the chart. ``--weights`` overrides
-coefficients (e.g. ``'{"reference_edge_length": 0.008}'``).
+drape, transfer, objective; :func:`torchgarment.adjust.pipeline.prepare`). Then it solves the target
+equilibrium exactly for the base pattern widened per panel by factors ``--scales`` along the panel's x axis
+(about the panel's boundary centroid; the skirt's and T-shirt's girth direction) and prints the objective and
+each term. Where the costs (positional, stretching, distance) are smallest near the chart's girth ratio but
+the total is not, the regularizers are what keeps the adjusted pattern from following the chart. ``--weights``
+overrides coefficients (e.g. ``'{"reference_edge_length": 0.008}'``).
 
 Usage::
 
@@ -51,12 +51,14 @@ def main(argv: list[str] | None = None) -> int:
     setup = prepare(draft(args.garment, chart_row(args.base_size)), Body.from_size(args.base_size),
                     Body.from_size(args.target_size), settings)
     budget = replace(setup.exact_settings, max_iterations=4 * setup.exact_settings.max_iterations)
-    problem = AdjustProblem(setup.model, setup.param, setup.objective, setup.x_transfer, exact_settings=budget,
+    problem = AdjustProblem(setup.model, setup.param, setup.objective, setup.x_transfer,
+                            exact_settings=budget,
                             solver=settings.solver)
     panel = setup.mesh_base.vertex_panel_ids[setup.param.boundary_index]
     rows = []
     print(f"{args.garment} {args.base_size} -> {args.target_size}: {setup.mesh_base.num_vertices} vertices; "
-          f"chart ratios " + ", ".join(f"{k} {chart_row(args.target_size)[k] / chart_row(args.base_size)[k]:.3f}"
+          f"chart ratios "
+          + ", ".join(f"{k} {chart_row(args.target_size)[k] / chart_row(args.base_size)[k]:.3f}"
                                        for k in ("bust", "waist", "hips")))
     print(f"{'scale':>6} {'objective':>10}  terms")
     for sx in args.scales:

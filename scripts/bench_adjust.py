@@ -7,11 +7,11 @@ Usage:
         [--inner-solver newton|gd-chebyshev] [--adjoint direct|iterative] [--adjoint-max-iterations 50]
         [--reuse-factorization] [--setup FILE]
 
-``--setup FILE`` saves the precomputation (base drape, transfer, initialization: minutes at 30K vertices) on the
-first run and loads it on the next ones, so that optimizer options can be compared on one setup.
+``--setup FILE`` saves the precomputation (base drape, transfer, initialization: minutes at 30K vertices) on
+the first run and loads it on the next ones, so that optimizer options can be compared on one setup.
 
-The garment is meshed at the edge length that gives about ``--vertices`` vertices (measured on a coarse mesh and
-scaled by the square root of the vertex ratio). As in the paper's Table 1, the timed total excludes the
+The garment is meshed at the edge length that gives about ``--vertices`` vertices (measured on a coarse mesh
+and scaled by the square root of the vertex ratio). As in the paper's Table 1, the timed total excludes the
 precomputation (base drape, transfer, factorizations, initialization), which is reported separately. Reports
 total seconds, seconds per iteration, closure calls (cloth solves), simulator iterations, objective reduction.
 """
@@ -25,11 +25,15 @@ import platform
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
+if TYPE_CHECKING:
+    from torchgarment.pattern.spec import SewingPattern
 
-def edge_length_for(pattern, vertices: int) -> tuple[float, int]:  # noqa: ANN001
+
+def edge_length_for(pattern: SewingPattern, vertices: int) -> tuple[float, int]:
     from torchgarment.pattern.meshing import mesh_pattern
 
     e = 0.05
@@ -56,10 +60,11 @@ def main() -> None:
     ap.add_argument("--adjoint", default="direct", choices=["direct", "iterative"], help="adjoint solve")
     ap.add_argument("--adjoint-max-iterations", type=int, default=50)
     ap.add_argument("--reuse-factorization", action="store_true",
-                    help="Newton solves reuse their LU factorization through PCG (AdjustSettings.reuse_factorization)")
+                    help="Newton solves reuse their LU factorization through PCG "
+                         "(AdjustSettings.reuse_factorization)")
     ap.add_argument("--setup", default=None, metavar="FILE",
-                    help="load the precomputation from FILE when it exists, else compute it and save it there "
-                         "(torch.save of the AdjustSetup; the timed optimization is unaffected)")
+                    help="load the precomputation from FILE when it exists, else compute it and save it "
+                         "there (torch.save of the AdjustSetup; the timed optimization is unaffected)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -82,8 +87,8 @@ def main() -> None:
     if args.setup and Path(args.setup).is_file():
         setup = torch.load(args.setup, weights_only=False)
         if setup.mesh_base.num_vertices != n or not math.isclose(setup.settings.edge_length, edge):
-            raise SystemExit(f"error: {args.setup} holds a {setup.mesh_base.num_vertices}-vertex setup, not this "
-                             f"{n}-vertex {args.garment}; pass another --setup file")
+            raise SystemExit(f"error: {args.setup} holds a {setup.mesh_base.num_vertices}-vertex setup, not "
+                             f"this {n}-vertex {args.garment}; pass another --setup file")
         print(f"precomputation loaded from {args.setup}")
     else:
         setup = prepare(pattern, base, target, settings)
@@ -92,7 +97,8 @@ def main() -> None:
                 torch.save(setup, tmp)
     t_prep = time.perf_counter() - t0
     print(f"precomputation {t_prep:.1f} s ({setup.timings})")
-    res = optimize(setup, replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
+    res = optimize(setup,
+                   replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
                                   exact_interval=args.exact_interval, inner_solver=args.inner_solver,
                                   adjoint=args.adjoint, adjoint_max_iterations=args.adjoint_max_iterations,
                                   reuse_factorization=args.reuse_factorization),
@@ -102,7 +108,8 @@ def main() -> None:
         "garment": args.garment, "vertices": m["vertices"], "boundary_vertices": m["boundary_vertices"],
         "edge_length_mm": 1e3 * edge, "iterations": m["iterations"], "threads": args.threads,
         "inner_iterations": args.inner_iterations, "exact_interval": args.exact_interval,
-        "inner_solver": args.inner_solver, "adjoint": args.adjoint, "adjoint_iterations": m["adjoint_iterations"],
+        "inner_solver": args.inner_solver, "adjoint": args.adjoint,
+        "adjoint_iterations": m["adjoint_iterations"],
         "adjoint_max_iterations": args.adjoint_max_iterations,
         "adjoint_factorizations": m["factorizations"],
         "total_seconds": m["seconds"], "seconds_per_iteration": m["seconds_per_iteration"],
@@ -110,7 +117,8 @@ def main() -> None:
         "closure_calls": m["closure_calls"], "sim_iterations": m["sim_iterations"],
         "exact_evaluations": m["exact_evaluations"], "backtracks": m["backtracks"],
         "objective_initial": m["objective_initial"], "objective_final": m["objective_final"],
-        "reduction_percent": m["reduction_percent"], "precomputation_seconds": t_prep, "timings": setup.timings,
+        "reduction_percent": m["reduction_percent"], "precomputation_seconds": t_prep,
+        "timings": setup.timings,
         "machine": platform.processor() or platform.machine(), "torch": torch.__version__,
     }
     print(json.dumps(out, indent=2))

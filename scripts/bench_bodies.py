@@ -39,7 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         os.environ["TORCHGARMENT_CACHE"] = tmp
-        header = f"{'size':>4} | {'height mm':>18} | {'bust mm':>18} | {'waist mm':>18} | {'hips mm':>18} | fit s | hit s"
+        header = (f"{'size':>4} | {'height mm':>18} | {'bust mm':>18} | {'waist mm':>18} | {'hips mm':>18} "
+                  "| fit s | hit s")
         print(header)
         print("-" * len(header))
         for size in sizes:

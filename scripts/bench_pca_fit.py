@@ -20,6 +20,7 @@ import json
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -29,7 +30,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
-def median_seconds(fn, repeats: int) -> float:  # noqa: ANN001
+def median_seconds(fn: Callable[[], object], repeats: int) -> float:
     fn()  # warm-up
     times = []
     for _ in range(repeats):
@@ -43,8 +44,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--vertices", type=int, default=30000, help="garment vertices (default 30000)")
     ap.add_argument("--body-vertices", type=int, default=13348, help="body vertices (default 13348, anny)")
-    ap.add_argument("--k", type=int, nargs="+", default=[5, 10, 20], help="component counts (default 5 10 20)")
-    ap.add_argument("--batch", type=int, default=256, help="customers per batch for the throughput (default 256)")
+    ap.add_argument("--k", type=int, nargs="+", default=[5, 10, 20],
+                    help="component counts (default 5 10 20)")
+    ap.add_argument("--batch", type=int, default=256,
+                    help="customers per batch for the throughput (default 256)")
     ap.add_argument("--repeats", type=int, default=50, help="timed repeats (default 50)")
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"], help="default float32")
     ap.add_argument("--interpolation", default="piecewise", choices=["linear", "piecewise"])
@@ -65,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     kmax = max(args.k)
     nb, ng = args.body_vertices, args.vertices
     q, _ = torch.linalg.qr(torch.randn(3 * nb, kmax, generator=g, dtype=torch.float64))
-    pca = BodyPCA(mean=torch.randn(nb, 3, generator=g, dtype=torch.float64), components=q.T.reshape(kmax, nb, 3),
+    pca = BodyPCA(mean=torch.randn(nb, 3, generator=g, dtype=torch.float64),
+                  components=q.T.reshape(kmax, nb, 3),
                   variances=torch.linspace(1.0, 0.01, kmax, dtype=torch.float64), total_variance=6.0,
                   faces=torch.tensor([[0, 1, 2]], dtype=torch.long), num_bodies=kmax + 1)
     mean = torch.randn(ng, 3, generator=g, dtype=torch.float64)
@@ -86,14 +90,15 @@ def main(argv: list[str] | None = None) -> int:
             batch_s = median_seconds(lambda: fitter.fit_all(wb), max(5, args.repeats // 10))
         rows.append({"k": k, "fit_ms": 1e3 * fit_s, "weights_ms": 1e3 * weights_s,
                      "batch": args.batch, "batch_ms": 1e3 * batch_s, "bodies_per_s": args.batch / batch_s})
-    result = {"garment_vertices": ng, "body_vertices": nb, "dtype": args.dtype, "interpolation": args.interpolation,
+    result = {"garment_vertices": ng, "body_vertices": nb, "dtype": args.dtype,
+              "interpolation": args.interpolation,
               "threads": torch.get_num_threads(), "torch": torch.__version__, "rows": rows}
-    print(f"online fit of a {ng}-vertex garment ({args.dtype}, {args.interpolation}, {result['threads']} threads), "
-          f"medians of {args.repeats}:")
+    print(f"online fit of a {ng}-vertex garment ({args.dtype}, {args.interpolation}, {result['threads']} "
+          f"threads), medians of {args.repeats}:")
     print(f"{'k':>3} {'fit ms':>8} {'weights ms':>11} {'batch':>6} {'batch ms':>9} {'bodies/s':>10}")
     for r in rows:
-        print(f"{r['k']:>3} {r['fit_ms']:>8.3f} {r['weights_ms']:>11.3f} {r['batch']:>6} {r['batch_ms']:>9.2f} "
-              f"{r['bodies_per_s']:>10.0f}")
+        print(f"{r['k']:>3} {r['fit_ms']:>8.3f} {r['weights_ms']:>11.3f} {r['batch']:>6} "
+              f"{r['batch_ms']:>9.2f} {r['bodies_per_s']:>10.0f}")
     if args.json:
         from torchgarment.io.atomic import atomic_path
 

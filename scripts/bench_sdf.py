@@ -2,7 +2,8 @@
 
 Usage:
     python scripts/bench_sdf.py [--mesh PATH] [--voxels 5 2.5 1.25] [--runs 3] [--points 50000] [--json PATH]
-    python scripts/bench_sdf.py --query [--mesh PATH] [--voxels 2.5] [--sdf PATH] [--threads 2] [--calls 50] [--json PATH]
+    python scripts/bench_sdf.py --query [--mesh PATH] [--voxels 2.5] [--sdf PATH] [--threads 2] [--calls 50]
+        [--json PATH]
 
 ``--query`` times sampling only: the median (and min) over ``--calls`` calls of ``value_and_gradient`` and of
 ``forward`` (value only, no autograd) at 5K, 30K and 100K points near the body surface (body vertices plus a
@@ -17,6 +18,7 @@ import argparse
 import json
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +30,8 @@ from torchgarment.sdf import BodySDF, SDFSettings, SignType, exact_signed_distan
 
 QUERY_SIZES = (5_000, 30_000, 100_000)
 
-DEFAULT_MESH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "garmentcode" / "bodies" / "mean_female.obj"
+DEFAULT_MESH = (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "garmentcode" / "bodies"
+                / "mean_female.obj")
 
 
 def bench_one(v: np.ndarray, f: np.ndarray, voxel_mm: float, runs: int, points: int, seed: int = 0) -> dict:
@@ -73,7 +76,7 @@ def bench_one(v: np.ndarray, f: np.ndarray, voxel_mm: float, runs: int, points: 
     }
 
 
-def _times_ms(fn, calls: int) -> tuple[float, float]:
+def _times_ms(fn: Callable[[], object], calls: int) -> tuple[float, float]:
     """(median, min) wall time of ``fn()`` in ms over ``calls`` calls after one warm-up call."""
     fn()
     times = []
@@ -111,8 +114,8 @@ def bench_query(sdf: torch.nn.Module, v: np.ndarray, calls: int, seed: int = 0) 
 
 
 def print_query_table(rows: list[dict]) -> None:
-    print(f"{'dtype':>8} {'order':>6} {'points':>7} {'v+g med ms':>10} {'v+g min':>8} {'fwd med ms':>10} {'fwd min':>8} "
-          f"{'ns/pt':>6}")
+    print(f"{'dtype':>8} {'order':>6} {'points':>7} {'v+g med ms':>10} {'v+g min':>8} {'fwd med ms':>10} "
+          f"{'fwd min':>8} {'ns/pt':>6}")
     for r in rows:
         print(f"{r['dtype']:>8} {r['order']:>6} {r['points']:>7d} {r['value_and_gradient_ms']:>10.3f} "
               f"{r['value_and_gradient_min_ms']:>8.3f} {r['forward_ms']:>10.3f} {r['forward_min_ms']:>8.3f} "
@@ -134,7 +137,8 @@ def main_query(args: argparse.Namespace, v: np.ndarray, f: np.ndarray) -> None:
     print_query_table(rows)
     if args.json is not None:
         with atomic_open(args.json) as fh:
-            json.dump({"mesh": str(args.mesh), "sdf": src, "threads": args.threads, "calls": args.calls, "rows": rows},
+            json.dump({"mesh": str(args.mesh), "sdf": src, "threads": args.threads, "calls": args.calls,
+                       "rows": rows},
                       fh, indent=2)
 
 
@@ -159,19 +163,23 @@ def main(argv: list[str] | None = None) -> None:
         main_query(args, v, f)
         return
     args.voxels = args.voxels or [5.0, 2.5, 1.25]
-    print(f"mesh {args.mesh.name}: {len(v)} vertices, {len(f)} faces, torch threads {torch.get_num_threads()}")
+    print(f"mesh {args.mesh.name}: {len(v)} vertices, {len(f)} faces, "
+          f"torch threads {torch.get_num_threads()}")
     rows = []
-    head = f"{'voxel':>6} {'band':>5} {'build s':>8} {'MB f64':>7} {'MB f32':>7} {'dense MB':>8} {'bricks':>7} {'exact':>9} " \
-           f"{'err mean':>8} {'p99':>6} {'max':>6} {'|g| p1':>6} {'med':>6} {'p99':>6} {'us/pt':>6}"
+    head = (f"{'voxel':>6} {'band':>5} {'build s':>8} {'MB f64':>7} {'MB f32':>7} {'dense MB':>8} "
+            f"{'bricks':>7} {'exact':>9} {'err mean':>8} {'p99':>6} {'max':>6} {'|g| p1':>6} {'med':>6} "
+            f"{'p99':>6} {'us/pt':>6}")
     print(head)
     for vox in args.voxels:
         r = bench_one(v, f, vox, args.runs, args.points)
         rows.append(r)
         print(
-            f"{r['voxel_mm']:>6.2f} {r['band_mm']:>5.1f} {r['build_s_median']:>8.2f} {r['bytes_float64'] / 1e6:>7.1f} "
-            f"{r['bytes_float32'] / 1e6:>7.1f} {r['dense_fine_float32_bytes'] / 1e6:>8.1f} {r['bricks']:>7d} "
-            f"{r['exact_nodes']:>9d} {r['err_mm_mean']:>8.4f} {r['err_mm_p99']:>6.3f} {r['err_mm_max']:>6.3f} "
-            f"{r['grad_norm_p1']:>6.3f} {r['grad_norm_median']:>6.4f} {r['grad_norm_p99']:>6.3f} {r['query_us_per_point']:>6.2f}",
+            f"{r['voxel_mm']:>6.2f} {r['band_mm']:>5.1f} {r['build_s_median']:>8.2f} "
+            f"{r['bytes_float64'] / 1e6:>7.1f} {r['bytes_float32'] / 1e6:>7.1f} "
+            f"{r['dense_fine_float32_bytes'] / 1e6:>8.1f} {r['bricks']:>7d} {r['exact_nodes']:>9d} "
+            f"{r['err_mm_mean']:>8.4f} {r['err_mm_p99']:>6.3f} {r['err_mm_max']:>6.3f} "
+            f"{r['grad_norm_p1']:>6.3f} {r['grad_norm_median']:>6.4f} {r['grad_norm_p99']:>6.3f} "
+            f"{r['query_us_per_point']:>6.2f}",
             flush=True,
         )
     print("err: |sampled - exact (igl, exact winding-number sign)| in mm at random points with |phi| <= band")

@@ -3,14 +3,15 @@
 Usage:
     python scripts/bench_sim.py [--json FILE] [--sizes 5000 15000 30000 60000] [--garment tshirt]
                                 [--body-size 12] [--voxel-mm 2.5] [--sdf-dtype float32] [--threads 2]
-                                [--warmup 200] [--iterations 60] [--calls 60] [--rounds 6] [--diagonal-interval 4]
+                                [--warmup 200] [--iterations 60] [--calls 60] [--rounds 6]
+                                [--diagonal-interval 4]
 
-For every target size the library garment ``--garment`` (drafted for chart size ``--body-size``) is meshed at the
-edge length that gives about that many vertices, and a scene with stretch, sew, bend, gravity and the body
+For every target size the library garment ``--garment`` (drafted for chart size ``--body-size``) is meshed at
+the edge length that gives about that many vertices, and a scene with stretch, sew, bend, gravity and the body
 barrier (SDF of ``Body.from_size(--body-size)`` at ``--voxel-mm``, from the disk cache, stored in
 ``--sdf-dtype``; positions stay float64) is built. Its state is the placed panels projected out of the body
-and then ``--warmup`` GD-Chebyshev iterations (some vertices close to the body, as in a real drape). Measured in
-the same process, with ``torch.set_num_threads(--threads)``:
+and then ``--warmup`` GD-Chebyshev iterations (some vertices close to the body, as in a real drape). Measured
+in the same process, with ``torch.set_num_threads(--threads)``:
 
 * ``ms_per_iteration``: wall time between consecutive solver callbacks with the default :class:`SolveSettings`
   (the preconditioner is rebuilt every iteration with the barrier's rows fresh; the springs' diagonal is
@@ -38,7 +39,9 @@ import math
 import platform
 import statistics
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -48,9 +51,13 @@ from torchgarment.io.atomic import atomic_open
 from torchgarment.pattern.library import draft
 from torchgarment.pattern.meshing import mesh_pattern
 from torchgarment.sdf import BodySDF, SDFSettings
-from torchgarment.sim.scene import Effect, Scene
+from torchgarment.sim.scene import Effect, Scene, SimModel
 from torchgarment.sim.solvers import SolveSettings, solve
 from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse
+
+if TYPE_CHECKING:
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.structures.garment_mesh import GarmentMesh
 
 DEFAULT_SIZES = (5_000, 15_000, 30_000, 60_000)
 EFFECTS = (Effect.STRETCH, Effect.SEW, Effect.BEND, Effect.GRAVITY, Effect.BODY_BARRIER)
@@ -58,7 +65,7 @@ TARGET_MS_30K = 20.0
 TARGET_RATIO = 4.0
 
 
-def call_times(fn, x: torch.Tensor, calls: int) -> list[float]:  # noqa: ANN001
+def call_times(fn: Callable[[torch.Tensor], object], x: torch.Tensor, calls: int) -> list[float]:
     """Seconds of ``calls`` calls of ``fn(x)``.
 
     Every call gets its own copy of ``x`` (made before the clock starts), so that no term can reuse results
@@ -86,7 +93,7 @@ def run_interleaved(tasks: dict, rounds: int) -> dict[str, tuple[float, float]]:
     return {k: (1e3 * statistics.median(v), 1e3 * min(v)) for k, v in samples.items()}
 
 
-def mesh_with_vertices(pattern, target: int, dtype: torch.dtype):  # noqa: ANN001, ANN201
+def mesh_with_vertices(pattern: SewingPattern, target: int, dtype: torch.dtype) -> tuple[GarmentMesh, float]:
     """Mesh ``pattern`` at the edge length giving about ``target`` vertices (V ~ 1 / h^2, two corrections)."""
     h = 0.005
     mesh = mesh_pattern(pattern, h, dtype=dtype)
@@ -96,7 +103,8 @@ def mesh_with_vertices(pattern, target: int, dtype: torch.dtype):  # noqa: ANN00
     return mesh, h
 
 
-def iteration_times(model, x: torch.Tensor, settings: SolveSettings, iterations: int) -> list[float]:  # noqa: ANN001
+def iteration_times(model: SimModel, x: torch.Tensor, settings: SolveSettings,
+                    iterations: int) -> list[float]:
     """Seconds between consecutive solver callbacks (one per iteration) of a GD-Chebyshev solve from ``x``."""
     stamps: list[float] = []
 
@@ -108,13 +116,13 @@ def iteration_times(model, x: torch.Tensor, settings: SolveSettings, iterations:
     return [b - a for a, b in zip(stamps[:-1], stamps[1:])]
 
 
-def bench_size(target: int, args: argparse.Namespace, pattern, sdf: BodySDF) -> dict:  # noqa: ANN001
+def bench_size(target: int, args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF) -> dict:
     """One table row (a dict) for the size ``target``."""
     dtype = torch.float64
     mesh, h = mesh_with_vertices(pattern, target, dtype)
     settings = SolveSettings(rtol=0.0, atol=0.0)
 
-    def build(effects):  # noqa: ANN001, ANN202
+    def build(effects: Iterable[Effect]) -> SimModel:
         return Scene(mesh, body_sdf=sdf, effects=set(effects)).build()
 
     model = build(EFFECTS)
@@ -127,7 +135,8 @@ def bench_size(target: int, args: argparse.Namespace, pattern, sdf: BodySDF) -> 
     stretch = model.term(Effect.STRETCH.value)
     # the solver's first step from x (for timing max_step on a realistic step)
     _, g, hd = model.value_grad_hessian_diagonal(x)
-    step = apply_inverse(jacobi_inverse(hd, settings.preconditioner, settings.diagonal_floor), g).mul_(-settings.step)
+    inverse = jacobi_inverse(hd, settings.preconditioner, settings.diagonal_floor)
+    step = apply_inverse(inverse, g).mul_(-settings.step)
     n = torch.linalg.vector_norm(step, dim=1, keepdim=True)
     step.mul_(settings.max_displacement / n.clamp_min(settings.max_displacement))
 
@@ -147,11 +156,13 @@ def bench_size(target: int, args: argparse.Namespace, pattern, sdf: BodySDF) -> 
         if fused is not None:
             tasks[f"{eff.value}/v+g+diag"] = lambda fused=fused: call_times(fused, x, calls)
         if hasattr(term, "max_step"):
-            tasks[f"{eff.value}/max_step"] = lambda term=term: call_times(lambda xc: term.max_step(xc, step), x, calls)
+            tasks[f"{eff.value}/max_step"] = lambda term=term: call_times(lambda xc: term.max_step(xc, step),
+                                                                          x, calls)
             # as the solver does it: the gradient at x, then the step bound from the same x
             tasks[f"{eff.value}/v+g,max_step"] = lambda term=term: call_times(
                 lambda xc: (term.value_and_grad(xc), term.max_step(xc, step)), x, calls)
-        tasks[f"{eff.value}/without"] = lambda without=without: iteration_times(without, x, settings, per_round)
+        tasks[f"{eff.value}/without"] = lambda without=without: iteration_times(without, x, settings,
+                                                                                per_round)
     res = run_interleaved(tasks, args.rounds)
     (bare, bare_min), (ms_it, ms_it_min) = res["spring"], res["iteration"]
     effects = {}
@@ -163,7 +174,8 @@ def bench_size(target: int, args: argparse.Namespace, pattern, sdf: BodySDF) -> 
             row["ms_value_grad_diag"], row["ms_value_grad_diag_min"] = res[f"{eff.value}/v+g+diag"]
         if f"{eff.value}/max_step" in res:
             row["ms_max_step"], row["ms_max_step_min"] = res[f"{eff.value}/max_step"]
-            row["ms_value_grad_then_max_step"], row["ms_value_grad_then_max_step_min"] = res[f"{eff.value}/v+g,max_step"]
+            (row["ms_value_grad_then_max_step"],
+             row["ms_value_grad_then_max_step_min"]) = res[f"{eff.value}/v+g,max_step"]
             row["max_step"] = float(term.max_step(x, step))
         row["ms_per_iteration_without"], row["ms_per_iteration_without_min"] = res[f"{eff.value}/without"]
         row["ms_saved_when_left_out"] = ms_it - row["ms_per_iteration_without"]
@@ -194,12 +206,13 @@ def bench_size(target: int, args: argparse.Namespace, pattern, sdf: BodySDF) -> 
 def print_table(rows: list[dict]) -> None:
     """Print the per-size table and the per-effect table."""
     k = rows[0]["diagonal_interval"] if rows else 1
-    print(f"\n{'vertices':>9} {'ms/iter':>8} {'(min)':>7} {'ms spring':>9} {'(min)':>7} {'ratio':>6} {'(min)':>6} "
-          f"{f'ms/iter diag/{k}':>14} {'(min)':>7} {'ratio':>6}")
+    print(f"\n{'vertices':>9} {'ms/iter':>8} {'(min)':>7} {'ms spring':>9} {'(min)':>7} {'ratio':>6} "
+          f"{'(min)':>6} {f'ms/iter diag/{k}':>14} {'(min)':>7} {'ratio':>6}")
     for r in rows:
         print(f"{r['vertices']:>9d} {r['ms_per_iteration']:8.2f} {r['ms_per_iteration_min']:7.2f} "
-              f"{r['ms_bare_spring']:9.3f} {r['ms_bare_spring_min']:7.3f} {r['ratio_iteration_to_spring']:6.2f} "
-              f"{r['ratio_iteration_to_spring_min']:6.2f} {r['ms_per_iteration_diagonal_interval']:14.2f} "
+              f"{r['ms_bare_spring']:9.3f} {r['ms_bare_spring_min']:7.3f} "
+              f"{r['ratio_iteration_to_spring']:6.2f} {r['ratio_iteration_to_spring_min']:6.2f} "
+              f"{r['ms_per_iteration_diagonal_interval']:14.2f} "
               f"{r['ms_per_iteration_diagonal_interval_min']:7.2f} "
               f"{r['ms_per_iteration_diagonal_interval'] / r['ms_bare_spring']:6.2f}")
     print(f"\n{'vertices':>9} {'effect':>13} {'ms v+g':>8} {'ms v+g+diag':>11} {'ms max_step':>11} "
@@ -224,29 +237,33 @@ def main() -> None:
                     help="storage dtype of the SDF (positions stay float64)")
     ap.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
     ap.add_argument("--warmup", type=int, default=200, help="GD iterations before timing (realistic state)")
-    ap.add_argument("--iterations", type=int, default=60, help="timed solver iterations per model (all rounds)")
-    ap.add_argument("--calls", type=int, default=60, help="timed calls per single-term measurement (all rounds)")
+    ap.add_argument("--iterations", type=int, default=60,
+                    help="timed solver iterations per model (all rounds)")
+    ap.add_argument("--calls", type=int, default=60,
+                    help="timed calls per single-term measurement (all rounds)")
     ap.add_argument("--rounds", type=int, default=6, help="rounds the measurements are interleaved in")
     ap.add_argument("--diagonal-interval", type=int, default=4,
-                    help="also time iterations with the Hessian diagonal recomputed only every this many iterations")
+                    help="also time iterations with the Hessian diagonal recomputed only every this many "
+                         "iterations")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
     body = Body.from_size(args.body_size)
     pattern = draft(args.garment, chart_row(args.body_size))
     sdf_dtype = getattr(torch, args.sdf_dtype)
-    sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=args.voxel_mm * 1e-3), dtype=sdf_dtype)
+    sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=args.voxel_mm * 1e-3),
+                         dtype=sdf_dtype)
     rows = []
     for target in args.sizes:
         t0 = time.perf_counter()
         rows.append(bench_size(target, args, pattern, sdf))
-        print(f"size {target}: {rows[-1]['vertices']} vertices, {rows[-1]['ms_per_iteration']:.2f} ms/iteration "
-              f"({time.perf_counter() - t0:.1f} s)", flush=True)
+        print(f"size {target}: {rows[-1]['vertices']} vertices, {rows[-1]['ms_per_iteration']:.2f} "
+              f"ms/iteration ({time.perf_counter() - t0:.1f} s)", flush=True)
     print_table(rows)
     r30 = min(rows, key=lambda r: abs(r["vertices"] - 30_000))
     print(f"\nat {r30['vertices']} vertices: {r30['ms_per_iteration']:.2f} ms/iteration "
-          f"(target <= {TARGET_MS_30K} ms), {r30['ratio_iteration_to_spring']:.2f}x the bare spring evaluation "
-          f"(target <= {TARGET_RATIO}x)")
+          f"(target <= {TARGET_MS_30K} ms), {r30['ratio_iteration_to_spring']:.2f}x the bare spring "
+          f"evaluation (target <= {TARGET_RATIO}x)")
     out = {
         "threads": args.threads,
         "garment": args.garment,
@@ -258,7 +275,8 @@ def main() -> None:
         "calls": args.calls,
         "torch": torch.__version__,
         "machine": platform.processor() or platform.machine(),
-        "targets": {"vertices": 30_000, "ms_per_iteration": TARGET_MS_30K, "ratio_to_bare_spring": TARGET_RATIO},
+        "targets": {"vertices": 30_000, "ms_per_iteration": TARGET_MS_30K,
+                    "ratio_to_bare_spring": TARGET_RATIO},
         "sizes": rows,
     }
     if args.json:

@@ -1,9 +1,10 @@
-"""Objective vs time and vs closure calls (cloth solves) for every pattern-adjustment optimizer (Wang 2018, Fig. 12).
+"""Objective vs time and vs closure calls (cloth solves) for every pattern-adjustment optimizer (Wang 2018,
+Fig. 12).
 
 Usage:
-    python scripts/compare_optimizers.py --out DIR [--garment straight_skirt] [--base-size 12] [--target-size 20]
-        [--edge-length 0.04] [--voxel 0.01] [--iterations 32] [--optimizers pgd pgd-exact lbfgs gn fixed-point]
-        [--threads 1]
+    python scripts/compare_optimizers.py --out DIR [--garment straight_skirt] [--base-size 12]
+        [--target-size 20] [--edge-length 0.04] [--voxel 0.01] [--iterations 32]
+        [--optimizers pgd pgd-exact lbfgs gn fixed-point] [--threads 1]
 
 The base drape, transfer and initialization are done once (:func:`torchgarment.adjust.pipeline.prepare`); each
 optimizer then starts from the same initialized pattern with a fresh simulation state. ``pgd`` is Algorithm 1
@@ -19,11 +20,20 @@ import argparse
 import json
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
-def load_case(args: argparse.Namespace):  # noqa: ANN201 - (pattern, base body, target body)
+    from torchgarment.adjust.pipeline import IterationRecord
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
+
+
+def load_case(args: argparse.Namespace) -> tuple[SewingPattern, Body, Body]:
+    """(pattern drafted for the base size, base body, target body)."""
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.pattern.library import draft
@@ -43,7 +53,7 @@ def add_case_arguments(ap: argparse.ArgumentParser, iterations: int) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
 
 
-def save_figure(fig, path: Path) -> None:  # noqa: ANN001
+def save_figure(fig: Figure, path: Path) -> None:
     from torchgarment.io.atomic import atomic_path
 
     with atomic_path(path) as tmp:
@@ -75,10 +85,11 @@ def main() -> None:
     for name in args.optimizers:
         kind, exact = (name[:-6], True) if name.endswith("-exact") else (name, False)
         s = replace(settings, optimizer=kind, inexact=not exact)
-        t0, calls = [0.0], [0]
+        calls = [0]
         rows = [(0.0, 0, setup.objective_initial, True)]
 
-        def cb(rec, terms, rows=rows, calls=calls):  # noqa: ANN001
+        def cb(rec: IterationRecord, terms: dict[str, float], rows: list[tuple] = rows,
+               calls: list[int] = calls) -> None:
             calls[0] += rec.closure_calls
             rows.append((rec.seconds, calls[0], rec.objective, rec.exact))
 
@@ -101,7 +112,8 @@ def main() -> None:
         ax.set_ylabel("objective")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
-    fig.suptitle(f"{args.garment} {args.base_size} -> {args.target_size}, {setup.mesh_base.num_vertices} vertices")
+    fig.suptitle(f"{args.garment} {args.base_size} -> {args.target_size}, {setup.mesh_base.num_vertices} "
+                 "vertices")
     fig.tight_layout()
     save_figure(fig, out / "compare_optimizers.png")
     with atomic_open(out / "compare_optimizers.json") as f:

@@ -1,7 +1,8 @@
-"""Drape every library garment on the smallest and largest chart bodies, and the GarmentCode specs on their bodies.
+"""Drape every library garment on the smallest and largest chart bodies, and the GarmentCode specs on their
+bodies.
 
-Prints a table (garment, body, vertices, iterations, seconds, residual, min_sdf_mm, max_seam_gap_mm, converged)
-and optionally writes every case's metrics as JSON.
+Prints a table (garment, body, vertices, iterations, seconds, residual, min_sdf_mm, max_seam_gap_mm,
+converged) and optionally writes every case's metrics as JSON.
 
 Example::
 
@@ -15,7 +16,13 @@ import json
 import sys
 import time
 import traceback
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
 
 LIBRARY = ["straight_skirt", "aline_skirt", "sheath_dress", "tshirt", "trousers", "bodysuit"]
 SIZES = ["6", "20"]
@@ -23,7 +30,8 @@ GARMENTCODE = [("shirt_mean", "mean_all"), ("dress_pencil", "mean_female")]
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "garmentcode"
 
 
-def _cases(data: Path, only: list[str] | None):
+def _cases(data: Path, only: list[str] | None) -> Iterator[
+        tuple[str, str, Callable[[], Body], Callable[[], SewingPattern]]]:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.pattern.library import draft
@@ -32,7 +40,8 @@ def _cases(data: Path, only: list[str] | None):
         for g in LIBRARY:
             if only and g not in only:
                 continue
-            yield g, f"size {size}", (lambda s=size: Body.from_size(s)), (lambda g=g, s=size: draft(g, chart_row(s)))
+            yield (g, f"size {size}", (lambda s=size: Body.from_size(s)),
+                   (lambda g=g, s=size: draft(g, chart_row(s))))
     for spec, body in GARMENTCODE:
         if only and spec not in only:
             continue
@@ -61,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel, sew_solver=args.sew_solver,
                              solver=args.solver, sew_max_iterations=args.sew_iterations,
                              max_iterations=args.max_iterations)
-    cols = ["garment", "body", "vertices", "iterations", "seconds", "residual", "min_sdf_mm", "max_seam_gap_mm",
+    cols = ["garment", "body", "vertices", "iterations", "seconds", "residual", "min_sdf_mm",
+            "max_seam_gap_mm",
             "converged"]
     print(" | ".join(cols), flush=True)
     rows = []
@@ -73,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
             m["seconds"] = time.perf_counter() - t0
             row = {"garment": garment, "body": body_name, **m}
             print(f"{garment} | {body_name} | {m['vertices']} | {m['iterations']} | {m['seconds']:.1f} | "
-                  f"{m['residual']:.3g} | {m['min_sdf_mm']:.2f} | {m['max_seam_gap_mm']:.3f} | {m['converged']}",
+                  f"{m['residual']:.3g} | {m['min_sdf_mm']:.2f} | {m['max_seam_gap_mm']:.3f} | "
+                  f"{m['converged']}",
                   flush=True)
         except Exception as exc:  # report the failure and go on with the next case
             traceback.print_exc(file=sys.stderr)

@@ -55,7 +55,8 @@ def main() -> None:
         rows = [(0, 0.0, setup.objective_initial)]
         res = optimize(setup, s, log_dir=out / "tb" / tb, progress=True,
                        callback=lambda rec, terms, rows=rows: rows.append((rec.iteration, rec.seconds,
-                                                                           terms.get("positional", rec.objective))))
+                                                                           terms.get("positional",
+                                                                                     rec.objective))))
         runs[label] = {"rows": rows, "final": res.metrics["objective_final"],
                        "positional_final": res.metrics["terms"]["final"].get("positional"),
                        "seconds": res.metrics["seconds"], "closure_calls": res.metrics["closure_calls"]}

@@ -1,4 +1,5 @@
-"""Held-out accuracy of data-driven garment fitting (Gillies et al. 2004) against full drapes, as a function of k.
+"""Held-out accuracy of data-driven garment fitting (Gillies et al. 2004) against full drapes, as a function
+of k.
 
 N training anny adults give the PCA body model; a garment drafted for the mean body is draped on the mean and
 the +-c sigma_i example bodies (the clothing basis, cached and resumable). For each of H held-out bodies
@@ -35,7 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--heldout", type=int, default=20, help="held-out bodies (default 20)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the training bodies (held-out: seed + 1000)")
     ap.add_argument("--garment", default="straight_skirt", help="library garment (default straight_skirt)")
-    ap.add_argument("--hip-ease", type=float, default=0.06, help="hip ease of the skirt drafts (default 0.06 m)")
+    ap.add_argument("--hip-ease", type=float, default=0.06,
+                    help="hip ease of the skirt drafts (default 0.06 m)")
     ap.add_argument("--kmax", type=int, default=3, help="largest k (components draped: 2 kmax + 1 drapes)")
     ap.add_argument("--c", type=float, default=1.0, help="example bodies at +-c sigma (default 1)")
     ap.add_argument("--edge-length", type=float, default=0.05, help="garment edge length, m (default 0.05)")
@@ -84,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
 
     # full drapes of the held-out bodies (the references), cached per body
     cache = Path(args.cache) if args.cache else basis_cache_dir()
-    tag = hashlib.sha256(basis.key.encode() + held.vertices.double().numpy().tobytes() + mesh_hash(mesh).encode())
+    tag = hashlib.sha256(basis.key.encode() + held.vertices.double().numpy().tobytes()
+                         + mesh_hash(mesh).encode())
     ref_dir = cache / f"heldout-{tag.hexdigest()[:20]}"
     refs, ref_metrics, drape_seconds = [], [], []
     for i in tqdm(range(len(held)), desc="held-out full drapes"):
@@ -103,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
         ref_metrics.append(json.loads(e["metrics_json"]))
         drape_seconds.append(ref_metrics[-1]["seconds"])
 
-    sdfs = [BodySDF.cached(held.vertices[i], held.faces, SDFSettings(voxel_size=args.voxel)) for i in range(len(held))]
+    sdfs = [BodySDF.cached(held.vertices[i], held.faces, SDFSettings(voxel_size=args.voxel))
+            for i in range(len(held))]
     rows = []
     for interp in (Interpolation.LINEAR, Interpolation.PIECEWISE):
         for k in range(args.kmax + 1):
@@ -130,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
                 "inside_vertices_mean": statistics.mean(inside), "inside_vertices_max": max(inside),
                 "inside_after_push_out_max": max(inside_after),
                 "body_reconstruction_mean_mm": 1e3 * float(body_err["mean"].mean()),
-                "weights_ms_per_body": 1e3 * (tf - tw) / len(held), "fit_ms_per_body": 1e3 * (tend - tf) / len(held),
+                "weights_ms_per_body": 1e3 * (tf - tw) / len(held),
+                "fit_ms_per_body": 1e3 * (tend - tf) / len(held),
             })
     ref_inside = [int((sdfs[i](refs[i]) < 0).sum()) for i in range(len(held))]
     result = {
@@ -140,20 +145,23 @@ def main(argv: list[str] | None = None) -> int:
         "basis_drapes_ok": {n: mm.get("ok") for n, mm in basis.metrics.items()},
         "heldout_drapes_ok": sum(1 for mm in ref_metrics if mm["ok"]),
         "heldout_reference_inside_vertices_max": max(ref_inside),
-        "seconds": {"dataset": t_data, "basis": t_basis, "full_drape_median": statistics.median(drape_seconds)},
+        "seconds": {"dataset": t_data, "basis": t_basis,
+                    "full_drape_median": statistics.median(drape_seconds)},
         "rows": rows,
     }
-    print(f"{args.garment}: {basis.num_vertices} vertices, {args.train} training / {args.heldout} held-out bodies, "
-          f"k95={result['k_for_95']} k99={result['k_for_99']}, full drape median "
-          f"{result['seconds']['full_drape_median']:.1f} s, {result['heldout_drapes_ok']}/{args.heldout} references ok")
+    print(f"{args.garment}: {basis.num_vertices} vertices, {args.train} training / {args.heldout} held-out "
+          f"bodies, k95={result['k_for_95']} k99={result['k_for_99']}, full drape median "
+          f"{result['seconds']['full_drape_median']:.1f} s, {result['heldout_drapes_ok']}/{args.heldout} "
+          "references ok")
     hdr = f"{'interp':>9} {'k':>2} {'var%':>6} {'mean mm':>8} {'max mm':>8} {'med max':>8} {'inside':>7} " \
           f"{'in max':>6} {'push':>5} {'body mm':>8} {'fit ms':>7}"
     print(hdr)
     for r in rows:
-        print(f"{r['interpolation']:>9} {r['k']:>2} {100 * r['explained_variance']:>6.2f} {r['mean_error_mm']:>8.2f} "
-              f"{r['max_error_mm']:>8.2f} {r['median_of_max_error_mm']:>8.2f} {r['inside_vertices_mean']:>7.1f} "
-              f"{r['inside_vertices_max']:>6d} {r['inside_after_push_out_max']:>5d} "
-              f"{r['body_reconstruction_mean_mm']:>8.2f} {r['fit_ms_per_body']:>7.3f}")
+        print(f"{r['interpolation']:>9} {r['k']:>2} {100 * r['explained_variance']:>6.2f} "
+              f"{r['mean_error_mm']:>8.2f} {r['max_error_mm']:>8.2f} {r['median_of_max_error_mm']:>8.2f} "
+              f"{r['inside_vertices_mean']:>7.1f} {r['inside_vertices_max']:>6d} "
+              f"{r['inside_after_push_out_max']:>5d} {r['body_reconstruction_mean_mm']:>8.2f} "
+              f"{r['fit_ms_per_body']:>7.3f}")
     if args.json:
         with atomic_path(args.json) as tmp:
             Path(tmp).write_text(json.dumps(result, indent=2) + "\n")

@@ -1,4 +1,5 @@
-"""What simulation accuracy costs in time: solver residual vs wall time, and SDF resolution vs collision accuracy.
+"""What simulation accuracy costs in time: solver residual vs wall time, and SDF resolution vs collision
+accuracy.
 
 Usage:
     python scripts/sim_accuracy_vs_time.py [--garment straight_skirt] [--size 12] [--edge-length 0.02]
@@ -12,10 +13,10 @@ and by projected Newton, each with a zero tolerance and a fixed iteration budget
 (the force 2-norm in newtons, relative to the garment's weight) is recorded against the wall time since the
 solve began.
 
-Part 2 (SDF resolution): for each voxel size the body SDF is built afresh (no disk cache; build seconds timed),
-the same settle problem is solved with Newton to the drape tolerance (0.1 % of the weight; solve seconds
-timed), and the result is checked against the exact signed distance to the body mesh (libigl, fast winding
-number sign): the smallest exact clearance in mm, the count of vertices truly inside the body, and the
+Part 2 (SDF resolution): for each voxel size the body SDF is built afresh (no disk cache; build seconds
+timed), the same settle problem is solved with Newton to the drape tolerance (0.1 % of the weight; solve
+seconds timed), and the result is checked against the exact signed distance to the body mesh (libigl, fast
+winding number sign): the smallest exact clearance in mm, the count of vertices truly inside the body, and the
 largest |SDF - exact distance| over the garment's vertices in mm, overall (far vertices sample the coarse far
 field) and over the vertices within 1 cm of the body (where collisions are decided).
 
@@ -33,12 +34,21 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.sdf import BodySDF
+    from torchgarment.sim.scene import Material, SimModel
+    from torchgarment.sim.solvers import SolveInfo
+    from torchgarment.structures.garment_mesh import GarmentMesh
 
-def _settle_problem(garment: str, size: str, edge_length: float):
+
+def _settle_problem(garment: str, size: str, edge_length: float
+                    ) -> tuple[Body, GarmentMesh, torch.Tensor, Material, float, float]:
     """(body, mesh, sewn x, settle Material, settle tolerance in N, weight in N)."""
     from dataclasses import replace
 
@@ -60,14 +70,15 @@ def _settle_problem(garment: str, size: str, edge_length: float):
     return body, res.mesh, res.x.detach(), mat, settings.atol_weight * weight, weight
 
 
-def _model(mesh, sdf, material):  # noqa: ANN001, ANN202
+def _model(mesh: GarmentMesh, sdf: BodySDF, material: Material) -> SimModel:
     from torchgarment.sim.scene import Effect, Scene
 
     effects = {Effect.STRETCH, Effect.SEW, Effect.BEND, Effect.GRAVITY, Effect.BODY_BARRIER}
     return Scene(mesh, body_sdf=sdf, effects=effects, material=material).build()
 
 
-def _timed_solve(model, x0, solver: str, iterations: int, atol: float):  # noqa: ANN001, ANN202
+def _timed_solve(model: SimModel, x0: torch.Tensor, solver: str, iterations: int, atol: float
+                 ) -> tuple[torch.Tensor, SolveInfo, list[tuple[float, float]]]:
     """Solve and record (seconds since start, residual) after every iteration."""
     from torchgarment.sim.solvers import SolveSettings, solve
 
@@ -80,7 +91,8 @@ def _timed_solve(model, x0, solver: str, iterations: int, atol: float):  # noqa:
         trace.append((time.perf_counter() - t0, gn))
         return False
 
-    x, info = solve(model, x0, SolveSettings(rtol=0.0, atol=atol, max_iterations=iterations, max_displacement=0.01),
+    x, info = solve(model, x0,
+                    SolveSettings(rtol=0.0, atol=atol, max_iterations=iterations, max_displacement=0.01),
                     solver=solver, callback=cb)
     return x, info, trace
 
@@ -118,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"sewing {args.garment} on size {args.size} at {args.edge_length} m edges ...", flush=True)
     body, mesh, x_sewn, mat, tol, weight = _settle_problem(args.garment, args.size, args.edge_length)
     bv, bf = body.vertices.detach().cpu().numpy(), body.faces.cpu().numpy()
-    out: dict = {"garment": args.garment, "size": args.size, "vertices": mesh.num_vertices, "weight_n": weight,
+    out: dict = {"garment": args.garment, "size": args.size, "vertices": mesh.num_vertices,
+                 "weight_n": weight,
                  "tolerance_n": tol, "threads": args.threads, "solvers": {}, "sdf": []}
 
     # ------------------------------------------------------------------ part 1: residual vs time
@@ -155,13 +168,14 @@ def main(argv: list[str] | None = None) -> int:
         exact = _exact_distance(xn, bv, bf)
         with torch.no_grad():
             phi = sdf(x).detach().cpu().numpy()
-        row = {"voxel_mm": vmm, "build_seconds": build_s, "solve_seconds": solve_s, "iterations": info.iterations,
+        row = {"voxel_mm": vmm, "build_seconds": build_s, "solve_seconds": solve_s,
+               "iterations": info.iterations,
                "converged": bool(info.converged), "min_exact_clearance_mm": 1e3 * float(exact.min()),
                "inside_vertices": int((exact < 0).sum()),
                "max_sdf_error_mm": 1e3 * float(np.abs(phi - exact).max()),
                "mean_sdf_error_mm": 1e3 * float(np.abs(phi - exact).mean()),
-               # where collisions are decided: the vertices within 1 cm of the body (the rest sample the coarse
-               # far field, whose error does not matter to a barrier that acts within dhat = 3 mm)
+               # where collisions are decided: the vertices within 1 cm of the body (the rest sample the
+               # coarse far field, whose error does not matter to a barrier that acts within dhat = 3 mm)
                "near_vertices": int((exact < 0.01).sum()),
                "max_sdf_error_near_mm": 1e3 * float(np.abs(phi - exact)[exact < 0.01].max(initial=0.0)),
                "max_seam_gap_mm": 1e3 * max_seam_gap(mesh, x), "sdf_mib": sdf.nbytes() / 2 ** 20}

@@ -1,5 +1,5 @@
-"""Relative error vs time of Algorithm 1 for several S (simulation iterations per outer iteration), and the exact
-method (Wang 2018, Fig. 10).
+"""Relative error vs time of Algorithm 1 for several S (simulation iterations per outer iteration), and the
+exact method (Wang 2018, Fig. 10).
 
 Usage:
     python scripts/sweep_inexact.py --out DIR [--S 1 2 4 8] [--inner-solver newton|gd-chebyshev]
@@ -7,10 +7,10 @@ Usage:
         [--iterations 64] [--exact-interval 32] [--threads 1]
 
 Every run is preconditioned gradient descent from the same initialized pattern. The relative error is
-``(f - f*) / (f0 - f*)`` with ``f0`` the initial objective and ``f*`` the lowest exact objective any run reached
-(the paper uses a long run's final objective). Inexact iterations report the objective of the unconverged
-garment (plotted thin); exact checks are marked. Writes ``DIR/sweep_inexact.png``, ``DIR/sweep_inexact.json``
-and TensorBoard runs under ``DIR/tb/S<k>`` and ``DIR/tb/exact``.
+``(f - f*) / (f0 - f*)`` with ``f0`` the initial objective and ``f*`` the lowest exact objective any run
+reached (the paper uses a long run's final objective). Inexact iterations report the objective of the
+unconverged garment (plotted thin); exact checks are marked. Writes ``DIR/sweep_inexact.png``,
+``DIR/sweep_inexact.json`` and TensorBoard runs under ``DIR/tb/S<k>`` and ``DIR/tb/exact``.
 """
 
 from __future__ import annotations
@@ -54,8 +54,10 @@ def main() -> None:
             [("exact", replace(settings, inexact=False))]:
         rows = [(0.0, setup.objective_initial, True)]
         res = optimize(setup, s, log_dir=out / "tb" / label, progress=True,
-                       callback=lambda rec, terms, rows=rows: rows.append((rec.seconds, rec.objective, rec.exact)))
-        runs[label] = {"rows": rows, "final": res.metrics["objective_final"], "seconds": res.metrics["seconds"],
+                       callback=lambda rec, terms, rows=rows: rows.append((rec.seconds, rec.objective,
+                                                                           rec.exact)))
+        runs[label] = {"rows": rows, "final": res.metrics["objective_final"],
+                       "seconds": res.metrics["seconds"],
                        "backtracks": res.metrics["backtracks"], "closure_calls": res.metrics["closure_calls"]}
         print(f"{label:6s} final {res.metrics['objective_final']:.5g}, {res.metrics['seconds']:.1f} s, "
               f"{res.metrics['backtracks']} backtracks")

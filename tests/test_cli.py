@@ -14,7 +14,8 @@ from torchgarment.cli import main
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
     """Run the CLI in a subprocess, as a user would."""
-    return subprocess.run([sys.executable, "-m", "torchgarment", *args], capture_output=True, text=True, timeout=600)
+    return subprocess.run([sys.executable, "-m", "torchgarment", *args], capture_output=True, text=True,
+                          timeout=600)
 
 
 def assert_one_line_error(proc: subprocess.CompletedProcess, needle: str) -> None:
@@ -51,7 +52,8 @@ def test_pattern_from_library_writes_all_files(tmp_path: Path):
     out = tmp_path / "skirt"
     assert main(["pattern", "--garment", "straight_skirt", "--size", list_sizes()[0], "--out", str(out),
                  "--edge-length", "0.02"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["pattern.dxf", "pattern.json", "pattern.png", "pattern.svg"]
+    assert sorted(p.name for p in out.iterdir()) == ["pattern.dxf", "pattern.json", "pattern.png",
+                                                     "pattern.svg"]
     assert json.loads((out / "pattern.json").read_text())["pattern"]["panels"]
     assert [p.name for p in tmp_path.iterdir()] == ["skirt"]  # no staging folder left behind
 

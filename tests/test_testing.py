@@ -36,7 +36,8 @@ class _Quadratic(torch.nn.Module):
         return 0.5 * (d * d).sum() + 0.5 * (self.c[:, None] * x * x).sum(), g
 
     def _diag(self):
-        deg = torch.zeros(4, dtype=torch.float64).index_add_(0, self.pairs.reshape(-1), torch.ones(8, dtype=torch.float64))
+        deg = torch.zeros(4, dtype=torch.float64).index_add_(0, self.pairs.reshape(-1),
+                                                             torch.ones(8, dtype=torch.float64))
         return (self.wrong * (deg + self.c))[:, None, None] * torch.eye(3, dtype=torch.float64)
 
     def hessian_diagonal(self, x, project_psd=True):
@@ -46,7 +47,8 @@ class _Quadratic(torch.nn.Module):
         i, j = self.pairs.T
         eye = torch.eye(3, dtype=torch.float64).expand(4, 3, 3)
         ar = torch.arange(4)
-        return HessianBlocks(torch.cat([ar, i, j]), torch.cat([ar, j, i]), torch.cat([self._diag(), -eye, -eye]))
+        return HessianBlocks(torch.cat([ar, i, j]), torch.cat([ar, j, i]),
+                             torch.cat([self._diag(), -eye, -eye]))
 
 
 def test_fd_gradient_of_polynomial_is_accurate():

@@ -1,7 +1,7 @@
 """The ``torchgarment`` command line.
 
-Subcommands: ``body``, ``pattern``, ``measure``, ``drape``, ``demo``. Every subcommand has ``--help``. Bad input ends
-with one readable line on stderr and exit code 2; outputs are staged and published only on success.
+Subcommands: ``body``, ``pattern``, ``measure``, ``drape``, ``demo``. Every subcommand has ``--help``. Bad
+input ends with one readable line on stderr and exit code 2; outputs are staged and published only on success.
 """
 
 from __future__ import annotations
@@ -11,9 +11,14 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 from torchgarment.errors import TorchGarmentError
+
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.render import MeshLayer
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -43,14 +48,15 @@ def _read_json_object(path: str) -> dict:
     return data
 
 
-def _body_layer(body):
+def _body_layer(body: Body) -> MeshLayer:
     from torchgarment.render import MeshLayer
 
     return MeshLayer(vertices=body.vertices, faces=body.faces, color=(0.78, 0.78, 0.80), label="body")
 
 
-def _write_body_outputs(body, stage: Path, title: str) -> dict:
-    """Write body.obj, skeleton.obj, measurements.json and body.png into ``stage``; return the measurements."""
+def _write_body_outputs(body: Body, stage: Path, title: str) -> dict:
+    """Write body.obj, skeleton.obj, measurements.json and body.png into ``stage``; return the
+    measurements."""
     from torchgarment.io.mesh import save_obj
     from torchgarment.io.skeleton import write_skeleton_obj
     from torchgarment.render import render_views
@@ -65,13 +71,13 @@ def _write_body_outputs(body, stage: Path, title: str) -> dict:
     return measured
 
 
-def _draft_measurements_for_size(size: str):
+def _draft_measurements_for_size(size: str) -> dict[str, float]:
     from torchgarment.body.size_chart import chart_row
 
     return chart_row(size)
 
 
-def _write_pattern_outputs(pattern, stage: Path, edge_length: float | None) -> dict:
+def _write_pattern_outputs(pattern: SewingPattern, stage: Path, edge_length: float | None) -> dict:
     from torchgarment.pattern.dxf import save_dxf
     from torchgarment.pattern.garmentcode import save_pattern
     from torchgarment.pattern.plot import plot_pattern
@@ -104,7 +110,8 @@ def cmd_body(args: argparse.Namespace) -> int:
         print("\n".join(list_sizes()))
         return 0
     if args.out is None or (args.size is None) == (args.measurements is None):
-        raise _UsageError("body: give --list-sizes, or --out DIR with exactly one of --size S or --measurements FILE")
+        raise _UsageError("body: give --list-sizes, or --out DIR with exactly one of --size S or "
+                          "--measurements FILE")
     t0 = time.perf_counter()
     if args.size is not None:
         body = Body.from_size(args.size, cache=not args.no_cache)
@@ -115,7 +122,8 @@ def cmd_body(args: argparse.Namespace) -> int:
     with staged_output(args.out) as stage:
         measured = _write_body_outputs(body, stage, title)
     print(f"body ({title}): {body.num_vertices} vertices, "
-          + ", ".join(f"{k} {v * 100:.1f} cm" for k, v in measured.items() if k in ("height", "bust", "waist", "hips"))
+          + ", ".join(f"{k} {v * 100:.1f} cm" for k, v in measured.items()
+                      if k in ("height", "bust", "waist", "hips"))
           + f"; {time.perf_counter() - t0:.1f} s -> {args.out}")
     return 0
 
@@ -158,8 +166,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Two bodies of the chart, a skirt drafted for each, placed around its body, rendered; then the first size's
-    pattern adjusted to the last size's body (Wang 2018) unless ``--no-adjust``."""
+    """Two bodies of the chart, a skirt drafted for each, placed around its body, rendered; then the first
+    size's pattern adjusted to the last size's body (Wang 2018) unless ``--no-adjust``."""
     from torchgarment.body import Body
     from torchgarment.body.size_chart import list_sizes
     from torchgarment.io.mesh import save_obj
@@ -181,13 +189,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
             info = _write_pattern_outputs(pattern, sub, 0.01)
             mesh = mesh_pattern(pattern, 0.01)
             save_obj(sub / "garment_placed.obj", mesh.x, mesh.faces)
-            layers = [_body_layer(body), MeshLayer(vertices=mesh.x, faces=mesh.faces, color=(0.20, 0.45, 0.80),
+            layers = [_body_layer(body),
+                      MeshLayer(vertices=mesh.x, faces=mesh.faces, color=(0.20, 0.45, 0.80),
                                                    label=args.garment)]
-            render_views(layers, sub / "placed.png", title=f"{args.garment}, size {size}: panels placed for draping")
+            render_views(layers, sub / "placed.png",
+                         title=f"{args.garment}, size {size}: panels placed for draping")
             summary["sizes"][size] = {"measured": measured, "pattern": info,
                                       "seconds": round(time.perf_counter() - t0, 3)}
-            print(f"size {size}: height {measured['height'] * 100:.1f} cm, bust {measured['bust'] * 100:.1f} cm, "
-                  f"waist {measured['waist'] * 100:.1f} cm, hips {measured['hips'] * 100:.1f} cm; "
+            print(f"size {size}: height {measured['height'] * 100:.1f} cm, bust {measured['bust'] * 100:.1f} "
+                  f"cm, waist {measured['waist'] * 100:.1f} cm, hips {measured['hips'] * 100:.1f} cm; "
                   f"{args.garment}: {info['panels']} panels, {info.get('vertices', 0)} vertices "
                   f"({summary['sizes'][size]['seconds']:.1f} s)")
         if not args.no_adjust and len(chosen) >= 2:
@@ -216,9 +226,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("body", help="make a human body from the size chart or from measurements",
-                       description="Fit an anny body to a chart size or to measurements (JSON object of metres: "
-                                   "height, bust, underbust, waist, hips, optional thigh, upper_arm, neck, wrist) "
-                                   "and write body.obj, skeleton.obj, measurements.json and body.png.")
+                       description="Fit an anny body to a chart size or to measurements (JSON object of "
+                                   "metres: height, bust, underbust, waist, hips, optional thigh, upper_arm, "
+                                   "neck, wrist) and write body.obj, skeleton.obj, measurements.json and "
+                                   "body.png.")
     p.add_argument("--size", help="a size label of the built-in chart (see --list-sizes)")
     p.add_argument("--measurements", metavar="FILE.json", help="JSON object of measurements in metres")
     p.add_argument("--out", metavar="DIR", help="output folder")
@@ -227,20 +238,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_body)
 
     p = sub.add_parser("pattern", help="draft a library pattern or convert a pattern file",
-                       description="Draft a library garment for a chart size, or read a pattern file (GarmentCode "
-                                   "JSON or AAMA DXF), and write pattern.json, pattern.svg, pattern.dxf, pattern.png.")
+                       description="Draft a library garment for a chart size, or read a pattern file "
+                                   "(GarmentCode JSON or AAMA DXF), and write pattern.json, pattern.svg, "
+                                   "pattern.dxf, pattern.png.")
     p.add_argument("file", nargs="?", help="a pattern file (.json GarmentCode specification, or .dxf)")
     p.add_argument("--garment", metavar="NAME", help="a library garment (see --list)")
     p.add_argument("--size", help="chart size to draft the library garment for")
     p.add_argument("--out", metavar="DIR", help="output folder")
     p.add_argument("--edge-length", type=float, default=None, metavar="M",
-                   help="also triangulate at this target edge length (metres) and draw the mesh in pattern.png")
+                   help="also triangulate at this target edge length (metres) and draw the mesh in "
+                        "pattern.png")
     p.add_argument("--list", action="store_true", help="print the library garments' names, one per line")
     p.set_defaults(func=cmd_pattern)
 
     p = sub.add_parser("measure", help="measure a closed body mesh (height and girths)",
-                       description="Measure height and the girths bust, underbust, waist, hips, thigh, upper_arm, "
-                                   "neck, wrist of a closed body mesh (+Y up, metres) and write them as JSON.")
+                       description="Measure height and the girths bust, underbust, waist, hips, thigh, "
+                                   "upper_arm, neck, wrist of a closed body mesh (+Y up, metres) and write "
+                                   "them as JSON.")
     p.add_argument("mesh", help="body mesh file (OBJ, PLY, STL, GLB)")
     p.add_argument("--out", required=True, metavar="FILE.json", help="output JSON file")
     p.set_defaults(func=cmd_measure)
@@ -258,9 +272,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_pca_parser(sub)
 
     p = sub.add_parser("demo", help="run the main job on built-in defaults",
-                       description="Make bodies of two chart sizes, draft a garment for each, mesh it, place it "
-                                   "around the body, and write renders, patterns and measurements; then adjust the first "
-                                   "size's pattern to the last size's body (Wang 2018) and write its outputs under adjust/.")
+                       description="Make bodies of two chart sizes, draft a garment for each, mesh it, place "
+                                   "it around the body, and write renders, patterns and measurements; then "
+                                   "adjust the first size's pattern to the last size's body (Wang 2018) and "
+                                   "write its outputs under adjust/.")
     p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder (default: demo_out)")
     p.add_argument("--sizes", nargs="+", metavar="S", help="chart sizes (default: two from the chart)")
     p.add_argument("--garment", default="straight_skirt", help="library garment (default: straight_skirt)")

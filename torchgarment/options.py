@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import re
 from enum import Enum
+from typing import TypeVar
 
 from torchgarment.errors import InputError
+
+_E = TypeVar("_E", bound="OptionEnum")
 
 
 class OptionEnum(str, Enum):
@@ -21,7 +24,7 @@ class OptionEnum(str, Enum):
         return {}
 
     @classmethod
-    def resolve(cls, value):
+    def resolve(cls: type[_E], value: object) -> _E:
         """The member for ``value`` (a member, its value or an alias); :class:`InputError` otherwise."""
         if isinstance(value, cls):
             return value

@@ -15,10 +15,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.sim.energies.base import HessianBlocks
 
 
 @dataclass
@@ -47,7 +51,8 @@ class CheckResult:
 def _compare(analytic: torch.Tensor, fd: torch.Tensor, rtol: float, atol: float, what: str,
              raise_on_failure: bool) -> CheckResult:
     if analytic.shape != fd.shape:
-        raise InputError(f"{what}: analytic shape {tuple(analytic.shape)} != finite-difference shape {tuple(fd.shape)}")
+        raise InputError(f"{what}: analytic shape {tuple(analytic.shape)} != finite-difference shape "
+                         f"{tuple(fd.shape)}")
     err = float((analytic.double() - fd.double()).abs().max()) if fd.numel() else 0.0
     if not (err == err):  # NaN
         err = float("inf")
@@ -131,7 +136,8 @@ def check_gradient(
 
 
 def fd_hessian_columns(
-    grad_fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, columns: torch.Tensor, *, eps: float = 1e-6
+    grad_fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, columns: torch.Tensor, *,
+    eps: float = 1e-6
 ) -> torch.Tensor:
     """Central differences of a gradient: columns ``columns`` of the Hessian, float64 (N, len(columns))."""
     x0 = x.detach().to(torch.float64)
@@ -194,7 +200,7 @@ def check_hessian_blocks(
     return r1, r2
 
 
-def min_eigenvalue(blocks, num_vertices: int) -> float:  # noqa: ANN001 - HessianBlocks
+def min_eigenvalue(blocks: HessianBlocks, num_vertices: int) -> float:
     """Smallest eigenvalue of the assembled (dense) block matrix, for PSD checks on small meshes."""
     H = blocks.to_sparse(num_vertices).to_dense().double()
     H = 0.5 * (H + H.T)

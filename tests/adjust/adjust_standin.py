@@ -26,7 +26,8 @@ def sheet(n: int = 6, h: float = 0.03):
     p = torch.tensor(pts, dtype=torch.float64)
     x = torch.stack([p[:, 0], torch.zeros_like(p[:, 0]), p[:, 1]], dim=1)
     mesh = GarmentMesh(x, torch.tensor(faces), p=p)
-    boundary = torch.tensor([vid(i, j) for i in range(n + 1) for j in range(n + 1) if i in (0, n) or j in (0, n)])
+    boundary = torch.tensor([vid(i, j) for i in range(n + 1) for j in range(n + 1) if i in (0, n)
+                             or j in (0, n)])
     pins = torch.tensor([vid(i, j) for i in range(n + 1) for j in range(n + 1) if j in (0, n)])
     return mesh, boundary, pins
 
@@ -61,7 +62,8 @@ class LinearParam(torch.nn.Module):
 class PositionalObjective(torch.nn.Module):
     """f = w/2 |x - x_t|^2 + fix/2 |p_B - p_bar_B|^2 ; regularizer Hessian = fix I (2B)."""
 
-    def __init__(self, x_target: torch.Tensor, param: LinearParam, weight: float = 1e4, fixing: float = 1.0) -> None:
+    def __init__(self, x_target: torch.Tensor, param: LinearParam, weight: float = 1e4,
+                 fixing: float = 1.0) -> None:
         super().__init__()
         self.register_buffer("x_target", x_target.clone())
         self.param, self.weight, self.fixing = param, weight, fixing
@@ -72,7 +74,8 @@ class PositionalObjective(torch.nn.Module):
 
     def term_values(self, x: torch.Tensor, p: torch.Tensor) -> dict[str, float]:
         return {"positional": float(self.weight / 2 * ((x - self.x_target) ** 2).sum()),
-                "fixing": float(self.fixing / 2 * ((p[self.param.boundary_index] - self.param.initial()) ** 2).sum())}
+                "fixing": float(self.fixing / 2
+                                * ((p[self.param.boundary_index] - self.param.initial()) ** 2).sum())}
 
     def regularizer_hessian(self) -> scipy.sparse.csr_matrix:
         return scipy.sparse.identity(2 * len(self.param.boundary_index), format="csr") * self.fixing
@@ -82,7 +85,8 @@ EXACT = SolveSettings(rtol=0.0, atol=1e-6, max_iterations=300)
 
 
 def problem_parts(n: int = 6, scale: float = 1.05):
-    """(model, param, objective, x_start, q0, mesh): the target is the equilibrium of the pattern scaled by s."""
+    """(model, param, objective, x_start, q0, mesh): the target is the equilibrium of the pattern scaled by
+    s."""
     mesh, boundary, pins = sheet(n)
     model = Scene(mesh, pin_indices=pins).build()
     x_start, _ = solve(model, mesh.x, EXACT, solver="newton")

@@ -20,7 +20,8 @@ def _parse(argv: list[str]) -> argparse.Namespace:
 
 def test_adjust_writes_every_output(tmp_path, capsys):
     out = tmp_path / "out"
-    args = _parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", str(out),
+    args = _parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out",
+                   str(out),
                    "--iterations", "4", "--exact-interval", "2", "--edge-length", "0.05", "--voxel", "0.01",
                    "--log-dir", str(tmp_path / "tb"), "--no-progress"])
     n = torch.get_num_threads()
@@ -33,7 +34,8 @@ def test_adjust_writes_every_output(tmp_path, capsys):
                  "target_before.png", "target_after.png", "overlay.png", "metrics.json"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     m = json.loads((out / "metrics.json").read_text())
-    for key in ("objective_initial", "objective_final", "reduction_percent", "terms", "max_boundary_displacement_mm",
+    for key in ("objective_initial", "objective_final", "reduction_percent", "terms",
+                "max_boundary_displacement_mm",
                 "iterations", "seconds", "seconds_per_iteration", "closure_calls"):
         assert key in m, key
     assert m["iterations"] == 4 and m["objective_final"] <= m["objective_initial"]
@@ -48,7 +50,8 @@ def test_adjust_writes_every_output(tmp_path, capsys):
 
 def test_bad_input(tmp_path):
     with pytest.raises(InputError, match="not a library garment"):
-        cmd_adjust(_parse(["--garment", "cape", "--base-size", "12", "--target-size", "20", "--out", str(tmp_path)]))
+        cmd_adjust(_parse(["--garment", "cape", "--base-size", "12", "--target-size", "20", "--out",
+                           str(tmp_path)]))
     with pytest.raises(InputError, match="neither a chart size"):
         cmd_adjust(_parse(["--garment", "straight_skirt", "--base-body", "nope.obj", "--target-size", "20",
                            "--out", str(tmp_path)]))

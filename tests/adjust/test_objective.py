@@ -102,18 +102,20 @@ def test_weights_turn_terms_off_and_scale_them():
 
 def test_paper_default_weights():
     w = CostWeights()
-    assert (w.fixing, w.curvature, w.distance, w.smoothness, w.stretching, w.positional) == (100, 1e6, 1, 0.05, 1, 100)
+    assert (w.fixing, w.curvature, w.distance, w.smoothness, w.stretching, w.positional) == (100, 1e6, 1,
+                                                                                             0.05, 1, 100)
     assert w.reference_edge_length is None  # the paper's coefficients as given unless asked
 
 
 def test_resolution_factors_rescale_the_regularizers():
-    """On a mesh of edge length h the regularizers are rescaled by (h_ref/h)^(1, 3, 4); at h = h_ref, or with the
-    normalization off, they are the coefficients as given."""
+    """On a mesh of edge length h the regularizers are rescaled by (h_ref/h)^(1, 3, 4); at h = h_ref, or with
+    the normalization off, they are the coefficients as given."""
     from torchgarment.adjust.objective import resolution_factors
 
     assert resolution_factors(0.05, None) == {"fixing": 1.0, "seam": 1.0, "curvature": 1.0}
     f = resolution_factors(0.04, 0.008)
-    assert abs(f["fixing"] - 0.2) < 1e-12 and abs(f["seam"] - 0.008) < 1e-12 and abs(f["curvature"] - 0.0016) < 1e-12
+    assert abs(f["fixing"] - 0.2) < 1e-12 and abs(f["seam"] - 0.008) < 1e-12 and abs(f["curvature"]
+                                                                                     - 0.0016) < 1e-12
     assert resolution_factors(0.008, 0.008) == {"fixing": 1.0, "seam": 1.0, "curvature": 1.0}
     with pytest.raises(InputError):
         resolution_factors(0.0, 0.008)
@@ -137,8 +139,8 @@ def test_regularizer_hessian_is_spd_and_matches_regularizers():
     ev = np.linalg.eigvalsh(H.toarray())
     fix = 100.0 * obj.resolution_factors["fixing"]  # the effective delta_fix on this mesh
     assert ev.min() >= fix * (1 - 1e-9)  # fixing adds delta_fix * I to PSD parts
-    # it is the Hessian of the regularizers at the base pattern along T-fixed directions: for a translation of a
-    # panel (curvature, seam-free direction) it is delta_fix exactly
+    # it is the Hessian of the regularizers at the base pattern along T-fixed directions: for a translation of
+    # a panel (curvature, seam-free direction) it is delta_fix exactly
     d = torch.zeros(P.num_boundary, 2, dtype=torch.float64)
     d[:, 0] = 1.0
     v = d.reshape(-1).numpy()
@@ -153,7 +155,8 @@ def test_initialization_objective():
     s = 1.05
     obj = objective(s, CostWeights(distance=0.0))
     # the transferred garment of a scaled body is the scaled garment
-    assert torch.allclose(obj.x_transfer, (mesh.x - torch.tensor([0.0, 0.9, 0.0])) * s + torch.tensor([0.0, 0.9, 0.0]),
+    assert torch.allclose(obj.x_transfer,
+                          (mesh.x - torch.tensor([0.0, 0.9, 0.0])) * s + torch.tensor([0.0, 0.9, 0.0]),
                           atol=1e-9)
     q0 = P.initial()
     f0 = float(obj.initialization_objective(P(q0)))

@@ -41,7 +41,8 @@ def two_planes(gap: float = 0.1, lift: float = 0.0, n: int = 3) -> Body:
     f = []
     for i in range(n):
         for j in range(n):
-            f += [(vid(i, j), vid(i + 1, j), vid(i + 1, j + 1)), (vid(i, j), vid(i + 1, j + 1), vid(i, j + 1))]
+            f += [(vid(i, j), vid(i + 1, j), vid(i + 1, j + 1)),
+                  (vid(i, j), vid(i + 1, j + 1), vid(i, j + 1))]
     f = np.array(f)
     top = grid + np.array([0.0, 0.0, gap + lift])
     v = np.concatenate([grid, top])
@@ -114,7 +115,8 @@ def test_second_minimum_and_blend_between_two_planes():
     assert np.allclose(d1[near], np.maximum(z.numpy(), 0.1 - z.numpy())[near])
     y = transfer_deformation(x, base, target, band=band)
     lift = (y - x)[:, 2].numpy()
-    # w0 = 0.5 + min(d1 - d0, 2B) / 4B: the lift grows linearly from 0 to 4 cm across the band, 2 cm at the tie
+    # w0 = 0.5 + min(d1 - d0, 2B) / 4B: the lift grows linearly from 0 to 4 cm across the band,
+    # 2 cm at the tie
     w_top = np.clip(0.5 + (z.numpy() - 0.05) * 2 / (4 * band), 0.0, 1.0)
     assert np.allclose(lift, 0.04 * w_top, atol=1e-12)
     assert abs(lift[3] - lift[4]) < 1e-6  # continuous across the switch of the closest triangle

@@ -20,7 +20,8 @@ from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError
 
 JOINTS = torch.tensor(
-    [[0, 1, 0], [0, 1.3, 0.02], [0.2, 1.4, 0], [0.5, 1.3, 0.01], [-0.2, 1.4, 0], [0.1, 0.9, 0], [0.1, 0.5, 0.03],
+    [[0, 1, 0], [0, 1.3, 0.02], [0.2, 1.4, 0], [0.5, 1.3, 0.01], [-0.2, 1.4, 0], [0.1, 0.9, 0],
+     [0.1, 0.5, 0.03],
      [1.0, 1.0, 1.0], [1.0, 1.2, 1.0]],
     dtype=torch.float64,
 )
@@ -115,7 +116,8 @@ def test_rotation_conversions_round_trip_and_gradcheck():
     assert torch.allclose(torch.linalg.det(m), torch.ones(100, dtype=torch.float64))
     x = torch.randn(4, 3, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(axis_angle_to_matrix, (x,))
-    assert torch.autograd.gradcheck(axis_angle_to_matrix, (torch.zeros(1, 3, dtype=torch.float64, requires_grad=True),))
+    assert torch.autograd.gradcheck(axis_angle_to_matrix,
+                                    (torch.zeros(1, 3, dtype=torch.float64, requires_grad=True),))
     assert torch.autograd.gradcheck(lambda z: matrix_to_euler_xyz(axis_angle_to_matrix(z)), (x,))
 
 

@@ -23,7 +23,8 @@ def files(tmp_path):
     v = torch.tensor(box.vertices, dtype=torch.float64)
     f = torch.tensor(box.faces, dtype=torch.long)
     save_obj(tmp_path / "body.obj", v, f)
-    skel = Skeleton(torch.tensor([[0, 0.2, 0], [0, 0.8, 0], [0, 1.4, 0]], dtype=torch.float64), torch.tensor([[0, 1], [1, 2]]))
+    skel = Skeleton(torch.tensor([[0, 0.2, 0], [0, 0.8, 0], [0, 1.4, 0]], dtype=torch.float64),
+                    torch.tensor([[0, 1], [1, 2]]))
     write_skeleton_obj(tmp_path / "skel.obj", skel)
     w = torch.rand(3, v.shape[0], dtype=torch.float64)
     write_skin_weights(tmp_path / "w.txt", w)
@@ -57,12 +58,14 @@ def test_load_body_open_nonmanifold_and_degenerate(tmp_path):
 
 
 def test_weld_averages_skin_weights(tmp_path):
-    (tmp_path / "seam.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 4 5 6\n")
+    (tmp_path / "seam.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 4 5 "
+                                       "6\n")
     skel = Skeleton(torch.tensor([[0, 0, 0], [0, 1, 0]], dtype=torch.float64), torch.tensor([[0, 1]]))
     w = torch.tensor([[1.0, 1, 1, 0, 0, 0], [0, 0, 0, 1, 1, 1]], dtype=torch.float64)
     body = load_body(tmp_path / "seam.obj", skel, w, weld=True)
     assert body.num_vertices == 4
-    assert torch.allclose(body.skin_weights, torch.tensor([[0.5, 1, 0.5, 0], [0.5, 0, 0.5, 1]], dtype=torch.float64))
+    assert torch.allclose(body.skin_weights,
+                          torch.tensor([[0.5, 1, 0.5, 0], [0.5, 0, 0.5, 1]], dtype=torch.float64))
 
 
 def test_load_body_errors(files):

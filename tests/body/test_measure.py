@@ -192,7 +192,8 @@ def test_breast_growth_moves_bust_landmarks_continuously(garmentcode_dir):
     x0 = float(v[:, 0].mean())
     front = v[:, 2] - float(v[:, 2].mean())
     # a smooth bump on each breast: forward and downward, fading away from the nipple level and the side
-    bump = torch.exp(-(((v[:, 1] - nip) / 0.06) ** 2)) * torch.exp(-(((v[:, 0] - x0).abs() - 0.09) / 0.07) ** 2)
+    bump = torch.exp(-(((v[:, 1] - nip) / 0.06) ** 2)) * torch.exp(-(((v[:, 0] - x0).abs() - 0.09)
+                                                                     / 0.07) ** 2)
     bump = bump * torch.clamp(front / 0.1, 0.0, 1.0)
     ys, gs = [], []
     for t in np.linspace(0.0, 1.0, 9):

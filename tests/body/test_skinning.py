@@ -9,10 +9,10 @@ import pytest
 import torch
 import trimesh
 
+from torchgarment.body import skinning
 from torchgarment.body.body import Body
 from torchgarment.body.kinematics import KinematicSkeleton
 from torchgarment.body.skeleton import Skeleton
-from torchgarment.body import skinning
 from torchgarment.body.skinning import (
     Pose,
     arm_angles,
@@ -24,11 +24,13 @@ from torchgarment.body.skinning import (
 )
 from torchgarment.errors import InputError
 
-BONES = [(0, 1), (1, 2), (1, 3), (3, 4), (4, 5), (1, 6), (6, 7), (7, 8), (0, 9), (9, 10), (10, 11), (0, 12), (12, 13), (13, 14)]
+BONES = [(0, 1), (1, 2), (1, 3), (3, 4), (4, 5), (1, 6), (6, 7), (7, 8), (0, 9), (9, 10), (10, 11), (0, 12),
+         (12, 13), (13, 14)]
 
 
 def stick_joints(arm_drop_deg: float = 45.0) -> torch.Tensor:
-    """Joints of a 1.7 m stick figure (+Y up, X sideways) with upper arms ``arm_drop_deg`` below horizontal."""
+    """Joints of a 1.7 m stick figure (+Y up, X sideways) with upper arms ``arm_drop_deg`` below
+    horizontal."""
     c, s = math.cos(math.radians(arm_drop_deg)), math.sin(math.radians(arm_drop_deg))
     j = [[0, 1.0, 0], [0, 1.4, 0], [0, 1.7, 0]]
     for side in (1, -1):
@@ -78,7 +80,8 @@ def test_lbs_rigid_and_batched():
     w[0] = 1.0
     angle = 0.7
     t = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
-    t[0, :3, :3] = torch.tensor([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1]])
+    t[0, :3, :3] = torch.tensor([[math.cos(angle), -math.sin(angle), 0],
+                                 [math.sin(angle), math.cos(angle), 0], [0, 0, 1]])
     t[0, :3, 3] = torch.tensor([1.0, 2.0, 3.0])
     out = linear_blend_skinning(v, w, t)
     expected = v @ t[0, :3, :3].T + t[0, :3, 3]
@@ -182,7 +185,9 @@ def test_repose_uses_given_skin_weights_and_moves_landmarks():
     wrist = body.skeleton.joints[5] + torch.tensor([0.0, 0.0, 0.01], dtype=torch.float64)
     body.landmarks = {"left_wrist": wrist, "navel": torch.tensor([0.0, 1.1, 0.1], dtype=torch.float64)}
     t_body = repose(body, Pose.T)
-    assert torch.allclose(t_body.landmarks["left_wrist"], t_body.skeleton.joints[5] + torch.tensor([0, 0, 0.01], dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(t_body.landmarks["left_wrist"],
+                          t_body.skeleton.joints[5] + torch.tensor([0, 0, 0.01], dtype=torch.float64),
+                          atol=1e-12)
     assert torch.allclose(t_body.landmarks["navel"], body.landmarks["navel"], atol=1e-15, rtol=0)
     assert t_body.skin_weights is body.skin_weights
     assert repose(stick_body(), Pose.T).skin_weights.shape == (15, body.num_vertices)  # derived weights kept
@@ -217,7 +222,8 @@ def test_single_bone_rotation_moves_only_its_subtree():
     assert (posed[follows_hip] - body.vertices[follows_hip]).norm(dim=1).max() > 0.05
     # distances to the hip joint are preserved (rigid rotation about the hip)
     hip = body.skeleton.joints[9]
-    assert torch.allclose((posed[in_subtree] - hip).norm(dim=1), (body.vertices[in_subtree] - hip).norm(dim=1), atol=1e-12)
+    assert torch.allclose((posed[in_subtree] - hip).norm(dim=1),
+                          (body.vertices[in_subtree] - hip).norm(dim=1), atol=1e-12)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -251,7 +257,8 @@ def test_find_arms_on_anny_picks_ball_joints(anny):
     names = anny.skeleton.names
     for arm, s in zip(find_arms(anny.skeleton), "LR"):
         assert names[arm.chest] == "spine01"
-        assert [names[arm.shoulder], names[arm.elbow], names[arm.wrist]] == [f"upperarm01.{s}", f"lowerarm01.{s}", f"wrist.{s}"]
+        assert [names[arm.shoulder], names[arm.elbow], names[arm.wrist]] == [f"upperarm01.{s}",
+                                                                             f"lowerarm01.{s}", f"wrist.{s}"]
     # The geometric rule alone (no names) finds the same joints.
     unnamed = Skeleton(anny.skeleton.joints, anny.skeleton.bones, [])
     assert find_arms(unnamed) == find_arms(anny.skeleton)
@@ -259,18 +266,21 @@ def test_find_arms_on_anny_picks_ball_joints(anny):
 
 def test_find_arms_name_hint_and_pattern():
     # A wide clavicle (9 % of the height sideways) passes the lateral rule; the upper-arm name wins over it.
-    joints = torch.cat([stick_joints(), torch.tensor([[0.15, 1.43, 0.0], [-0.15, 1.43, 0.0]], dtype=torch.float64)])
+    joints = torch.cat([stick_joints(),
+                        torch.tensor([[0.15, 1.43, 0.0], [-0.15, 1.43, 0.0]], dtype=torch.float64)])
     bones = [b for b in BONES if b not in ((1, 3), (1, 6))] + [(1, 15), (15, 3), (1, 16), (16, 6)]
     geometric = find_arms(Skeleton(joints, torch.tensor(bones)))
     assert (geometric[0].shoulder, geometric[1].shoulder) == (15, 16)
     names = [f"j{i}" for i in range(17)]
-    names[3], names[6], names[15], names[16] = "mixamorig:LeftArm", "mixamorig:RightArm", "LeftShoulder", "RightShoulder"
+    names[3], names[6] = "mixamorig:LeftArm", "mixamorig:RightArm"
+    names[15], names[16] = "LeftShoulder", "RightShoulder"
     named = find_arms(Skeleton(joints, torch.tensor(bones), names))
     assert (named[0].shoulder, named[0].elbow, named[1].shoulder, named[1].elbow) == (3, 4, 6, 7)
     pattern = skinning._UPPER_ARM_NAME
     for good in ("upperarm01.L", "mixamorig:LeftArm", "RightArm", "l_upperarm", "Humerus_R", "arm_l"):
         assert pattern.search(good), good
-    for bad in ("LeftForeArm", "lowerarm01.L", "LeftShoulder", "shoulder01.L", "left_shoulder", "forearm_r", "armature"):
+    for bad in ("LeftForeArm", "lowerarm01.L", "LeftShoulder", "shoulder01.L", "left_shoulder", "forearm_r",
+                "armature"):
         assert not pattern.search(bad), bad
 
 
@@ -326,7 +336,8 @@ def test_anny_keep_elbows_and_naive_inverse_is_worse(anny, anny_t):
     posed = linear_blend_skinning(anny.vertices, weights, transforms)
     assert (posed - anny_t.vertices).abs().max() < 1e-12
     exact = inverse_linear_blend_skinning(posed, weights, transforms)
-    naive = linear_blend_skinning(posed, weights, KinematicSkeleton(anny_t.skeleton).skinning_transforms(-rotations))
+    naive = linear_blend_skinning(posed, weights,
+                                  KinematicSkeleton(anny_t.skeleton).skinning_transforms(-rotations))
     assert (exact - anny.vertices).norm(dim=1).max() < 1e-10
     assert (naive - anny.vertices).norm(dim=1).max() > 5e-3
 
@@ -352,7 +363,8 @@ def test_repose_targets_and_params_errors():
     for bad in (math.pi / 2, (0.1, 2.0), "X", (0.1,)):
         with pytest.raises((InputError, ValueError)):
             repose(body, bad)
-    broken = Body(body.vertices, body.faces, body.skeleton, params={skinning.ROTATIONS_KEY: {"99": [0, 0, 1]}})
+    broken = Body(body.vertices, body.faces, body.skeleton,
+                  params={skinning.ROTATIONS_KEY: {"99": [0, 0, 1]}})
     with pytest.raises(InputError, match="malformed"):
         repose(broken, Pose.T)
     t_body = repose(body, Pose.T)

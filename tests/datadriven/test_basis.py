@@ -117,10 +117,11 @@ def small_pca():
 def fake_drape_factory(calls: list):
     """A stand-in simulator whose result is affine in the body: x = placed x + 0.1 * body[:Vg]."""
 
-    def fake(mesh, vertices, faces, reference, settings, frame=None):  # noqa: ANN001, ANN202
+    def fake(mesh, vertices, faces, reference, settings, frame=None):
         calls.append(1)
         x = mesh.x + 0.1 * vertices[: mesh.num_vertices].double()
-        return SimpleNamespace(x=x, metrics={"vertices": mesh.num_vertices, "iterations": 1, "converged": True,
+        return SimpleNamespace(x=x,
+                               metrics={"vertices": mesh.num_vertices, "iterations": 1, "converged": True,
                                              "ok": True, "min_sdf_mm": 1.0, "inside_vertices": 0,
                                              "max_seam_gap_mm": 0.0, "residual": 0.0})
 
@@ -164,7 +165,8 @@ def test_build_rejects_bad_input(small_pca, tmp_path):
     with pytest.raises(InputError, match="SewingPattern or a GarmentMesh"):
         build_basis(small_pca, "skirt", BasisSettings(k=1), cache_dir=tmp_path)
     with pytest.raises(InputError, match="components"):
-        build_basis(small_pca, square_mesh(), BasisSettings(k=small_pca.num_components + 1), cache_dir=tmp_path)
+        build_basis(small_pca, square_mesh(), BasisSettings(k=small_pca.num_components + 1),
+                    cache_dir=tmp_path)
 
 
 @pytest.mark.slow

@@ -29,7 +29,8 @@ def random_basis(pca: BodyPCA, n: int, k: int, seed: int, name: str) -> Clothing
     mean = mesh.x + 0.01 * torch.randn(nv, 3, generator=g, dtype=torch.float64)
     plus = mean + 0.02 * torch.randn(k, nv, 3, generator=g, dtype=torch.float64)
     minus = mean - 0.02 * torch.randn(k, nv, 3, generator=g, dtype=torch.float64)
-    return ClothingBasis(mean, plus, minus, pca.sigmas[:k].clone(), mesh.with_positions(mean), pca.fingerprint(),
+    return ClothingBasis(mean, plus, minus, pca.sigmas[:k].clone(), mesh.with_positions(mean),
+                         pca.fingerprint(),
                          f"key{seed}", name)
 
 
@@ -79,7 +80,8 @@ def test_batched_equals_per_body_and_reference(pca):
     xg.sum().backward()
     assert wg.grad is not None and torch.isfinite(wg.grad).all()
     # float64 finite-difference check of d garment / d weights (away from the piecewise kink at w = 0)
-    assert torch.autograd.gradcheck(lambda ww: fitter.fit_all(ww)[:, :5], (w[:2].clone().requires_grad_(True),))
+    assert torch.autograd.gradcheck(lambda ww: fitter.fit_all(ww)[:, :5],
+                                    (w[:2].clone().requires_grad_(True),))
     zero = OnlineFitter(pca, bases, k=0)  # k = 0: everybody gets the mean garment
     assert torch.equal(zero.fit(zero.weights(bodies))["a"], bases[0].mean.expand(6, -1, -1))
     f32 = OnlineFitter(pca, bases, k=2, dtype=torch.float32)

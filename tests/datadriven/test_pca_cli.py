@@ -22,11 +22,13 @@ def run(argv: list[str]) -> int:
     return args.func(args)
 
 
-def fake_drape(mesh, vertices, faces, reference, settings, frame=None):  # noqa: ANN001, ANN201
+def fake_drape(mesh, vertices, faces, reference, settings, frame=None):
     """Affine stand-in for the simulator (fast): the garment moves with the body's first vertices."""
-    x = basis_mod.place_for_body(mesh.x, reference, reference) + 0.1 * (vertices[: mesh.num_vertices].double()
-                                                                      - vertices[: mesh.num_vertices].double().mean(0))
-    return SimpleNamespace(x=x, metrics={"vertices": mesh.num_vertices, "iterations": 1, "converged": True, "ok": True,
+    body = vertices[: mesh.num_vertices].double()
+    x = basis_mod.place_for_body(mesh.x, reference, reference) + 0.1 * (body - body.mean(0))
+    return SimpleNamespace(x=x,
+                           metrics={"vertices": mesh.num_vertices, "iterations": 1, "converged": True,
+                                    "ok": True,
                                          "min_sdf_mm": 1.0, "inside_vertices": 0, "max_seam_gap_mm": 0.0,
                                          "residual": 0.0})
 
@@ -38,7 +40,8 @@ def model_dir(tmp_path_factory):
     mp = pytest.MonkeyPatch()
     mp.setattr(basis_mod, "drape_on_body", fake_drape)
     try:
-        rc = run(["pca", "build", "--garment", "straight_skirt", "--bodies", "5", "--k", "2", "--edge-length", "0.08",
+        rc = run(["pca", "build", "--garment", "straight_skirt", "--bodies", "5", "--k", "2", "--edge-length",
+                  "0.08",
                   "--voxel", "0.01", "--cache", str(cache), "--out", str(out), "--no-progress"])
     finally:
         mp.undo()
@@ -98,7 +101,8 @@ def test_build_rejects_bad_options(tmp_path):
     with pytest.raises(InputError, match="at least 3"):
         run(["pca", "build", "--garment", "straight_skirt", "--bodies", "2", "--out", str(tmp_path / "m")])
     with pytest.raises(InputError, match="c must"):
-        run(["pca", "build", "--garment", "straight_skirt", "--bodies", "4", "--c", "0", "--out", str(tmp_path / "m")])
+        run(["pca", "build", "--garment", "straight_skirt", "--bodies", "4", "--c", "0", "--out",
+             str(tmp_path / "m")])
     with pytest.raises(SystemExit):
         run(["pca", "build", "--bodies", "4", "--out", str(tmp_path / "m")])  # no garment
     assert not (tmp_path / "m").exists()
@@ -113,7 +117,8 @@ def test_build_from_a_folder_of_meshes(tmp_path, monkeypatch):
         save_obj(folder / f"b{i}.obj", ds.vertices[i], ds.faces)
     monkeypatch.setattr(basis_mod, "drape_on_body", fake_drape)
     out = tmp_path / "model"
-    rc = run(["pca", "build", "--garment", "aline_skirt", "--dataset", str(folder), "--k", "1", "--edge-length",
+    rc = run(["pca", "build", "--garment", "aline_skirt", "--dataset", str(folder), "--k", "1",
+              "--edge-length",
               "0.1", "--cache", str(tmp_path / "cache"), "--out", str(out), "--no-progress"])
     assert rc == 0
     info = json.loads((out / "model.json").read_text())

@@ -26,7 +26,8 @@ def test_read_polyline_and_comments(tmp_path):
 
 
 def test_round_trip_with_names(tmp_path):
-    s = Skeleton(torch.rand(4, 3, dtype=torch.float64), torch.tensor([[0, 1], [1, 2], [1, 3]]), ["root", "chest", "left arm", "head"])
+    s = Skeleton(torch.rand(4, 3, dtype=torch.float64), torch.tensor([[0, 1], [1, 2], [1, 3]]),
+                 ["root", "chest", "left arm", "head"])
     write_skeleton_obj(tmp_path / "s.obj", s)
     r = read_skeleton_obj(tmp_path / "s.obj", dtype=torch.float32)
     assert torch.equal(r.joints, s.joints.float()) and torch.equal(r.bones, s.bones) and r.names == s.names

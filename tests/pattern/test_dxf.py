@@ -12,16 +12,27 @@ from ezdxf.document import Drawing
 
 from torchgarment.errors import PatternError
 from torchgarment.pattern.dxf import load_dxf, save_dxf
-from torchgarment.pattern.spec import Edge, EdgeKind, EdgeRef, Notch, Panel, SewingPattern, Stitch, StitchOrientation
+from torchgarment.pattern.spec import (
+    Edge,
+    EdgeKind,
+    EdgeRef,
+    Notch,
+    Panel,
+    SewingPattern,
+    Stitch,
+    StitchOrientation,
+)
 
 
 def _pattern() -> SewingPattern:
     quad = Panel("front", [[0, 0], [0.4, 0], [0.4, 0.6], [0, 0.6]], [
-        Edge(0, 1), Edge(1, 2, EdgeKind.QUADRATIC, controls=[[0.5, 0.15]]), Edge(2, 3), Edge(3, 0, label="cf")],
+        Edge(0, 1), Edge(1, 2, EdgeKind.QUADRATIC, controls=[[0.5, 0.15]]), Edge(2, 3),
+        Edge(3, 0, label="cf")],
         notches=[Notch(0, 0.5, "mid"), Notch(1, 0.3)], translation=[0.0, 1.1, 0.2], label="torso")
     curvy = Panel("back", [[0.4, 0], [0.4, 0.6], [0, 0.6], [0, 0]], [
         Edge(3, 0, EdgeKind.CUBIC, controls=[[0.3, -0.1], [0.7, 0.1]]), Edge(0, 1),
-        Edge(1, 2, EdgeKind.ARC, arc=(0.25, False, True)), Edge(2, 3)], rotation=[0, math.pi, 0], grainline=[1, 1])
+        Edge(1, 2, EdgeKind.ARC, arc=(0.25, False, True)), Edge(2, 3)], rotation=[0, math.pi, 0],
+                  grainline=[1, 1])
     cap = Panel("cäp é", [[0, 0], [0.2, 0], [0.2, 0.1]], [
         Edge(0, 1, EdgeKind.ARC, arc=(0.15, True, False)),
         Edge(1, 2, EdgeKind.CUBIC, controls=[[0.2, 0.3], [0.6, -0.4]]), Edge(2, 0)])
@@ -36,7 +47,8 @@ def _dist_to_closed(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
     ab = b - a
     out = []
     for q in np.array_split(p, max(1, len(p) // 256)):
-        t = np.clip(((q[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300)[None], 0, 1)
+        t = np.clip(((q[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300)[None],
+                    0, 1)
         out.append(np.linalg.norm(q[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1).min(axis=1))
     return np.concatenate(out)
 
@@ -111,11 +123,13 @@ def test_round_trip(tmp_path):
         assert [n.edge for n in q.notches] == [n.edge for n in p.notches]
         assert [n.name for n in q.notches] == [n.name for n in p.notches]
         assert np.allclose([n.t for n in q.notches], [n.t for n in p.notches], atol=5e-3)
-    assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation) for s in pat.stitches]
+    assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation)
+                                                                 for s in pat.stitches]
 
 
 def _without_exact_edges(src, dst, replace=None):
-    """Copy a DXF of ours with the ``edge`` data entries disabled (or one entry replaced): a 'foreign' file."""
+    """Copy a DXF of ours with the ``edge`` data entries disabled (or one entry replaced): a 'foreign'
+    file."""
     lines = src.read_text(encoding="ascii").splitlines()
     if replace is None:
         lines = ["x" + ln if ln.startswith("edge ") else ln for ln in lines]
@@ -143,7 +157,8 @@ def test_refit_without_exact_edges(tmp_path):
     quad = got.panels["front"].edges[1]  # degree-elevated quadratic
     np.testing.assert_allclose(quad.controls, [[1 / 3, 0.1], [2 / 3, 0.1]], atol=1e-6)
     assert got.panels["cäp é"].edges[0].arc == pytest.approx((0.15, True, False))
-    assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation) for s in pat.stitches]
+    assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation)
+                                                                 for s in pat.stitches]
 
 
 def test_inconsistent_exact_edge_is_refitted(tmp_path):
@@ -163,7 +178,8 @@ def test_inconsistent_exact_edge_is_refitted(tmp_path):
 
 
 def test_library_tshirt_round_trip_keeps_stitched_edges(tmp_path):
-    # regression: the largest tshirt's armhole cubic used to be refitted into a loop and split, losing a stitch
+    # regression: the largest tshirt's armhole cubic used to be refitted into a loop and split, losing
+    # a stitch
     lib = pytest.importorskip("torchgarment.pattern.library")
     chart = pytest.importorskip("torchgarment.body.size_chart")
     pat = lib.draft("tshirt", chart.chart_row(chart.list_sizes()[-1]))
@@ -174,7 +190,8 @@ def test_library_tshirt_round_trip_keeps_stitched_edges(tmp_path):
         got.validate()
         assert [len(p.edges) for p in got.panels.values()] == [len(p.edges) for p in pat.panels.values()]
         assert max(hausdorff(p, got.panels[n], 200) for n, p in pat.panels.items()) < tol
-        assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation) for s in pat.stitches]
+        assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation)
+                                                                     for s in pat.stitches]
 
 
 def _foreign(path, points_mm, bulges=None, turn_points=None, layer_units=None):
@@ -243,7 +260,8 @@ def test_bad_files(tmp_path):
         load_dxf(tmp_path / "e.dxf")
     pat = _pattern()
     save_dxf(tmp_path / "ok.dxf", pat)
-    text = (tmp_path / "ok.dxf").read_text(encoding="ascii").replace("stitch front 3 back 1", "stitch front 3 nope 1")
+    text = (tmp_path / "ok.dxf").read_text(encoding="ascii").replace("stitch front 3 back 1",
+                                                                     "stitch front 3 nope 1")
     (tmp_path / "bad.dxf").write_text(text, encoding="ascii")
     with pytest.raises(PatternError, match="unknown piece 'nope'"):
         load_dxf(tmp_path / "bad.dxf")
@@ -262,5 +280,6 @@ def test_garmentcode_round_trip(garmentcode_dir, tmp_path):
     assert worst < 1e-4
     for n, p in pat.panels.items():
         assert len(got.panels[n].edges) == len(p.edges)
-    assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation) for s in pat.stitches]
+    assert [(s.a, s.b, s.orientation) for s in got.stitches] == [(s.a, s.b, s.orientation)
+                                                                 for s in pat.stitches]
     got.validate(max_stitch_length_ratio=gc.MAX_STITCH_LENGTH_RATIO)

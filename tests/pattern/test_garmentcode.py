@@ -1,4 +1,5 @@
-"""GarmentCode JSON: import of the four shared specs, units and placement, round trip, orientation, bad input."""
+"""GarmentCode JSON: import of the four shared specs, units and placement, round trip, orientation, bad
+input."""
 
 from __future__ import annotations
 
@@ -41,7 +42,8 @@ def test_import_specs(garmentcode_dir, name):
         for e, re_ in zip(panel.edges, rp["edges"]):
             assert [e.start, e.end] == re_["endpoints"]
             if "curvature" in re_ and re_["curvature"]["type"] == "circle":
-                assert e.kind is EdgeKind.ARC and e.arc[0] == pytest.approx(re_["curvature"]["params"][0] / 100)
+                assert e.kind is EdgeKind.ARC and e.arc[0] == pytest.approx(re_["curvature"]["params"][0]
+                                                                            / 100)
     # GarmentCode's own rule: no "right_wrong" entries in these files, so every stitch is OPPOSITE
     assert all(s.orientation is StitchOrientation.OPPOSITE for s in p.stitches)
 
@@ -127,20 +129,24 @@ def two_panels(flip_back: bool) -> dict:
     """
     front = {"translation": [0, 100, 10], "rotation": [0, 0, 0],
              "vertices": [[0, 0], [20, 0], [20, 30], [0, 30]],
-             "edges": [{"endpoints": [0, 1]}, {"endpoints": [1, 2]}, {"endpoints": [2, 3]}, {"endpoints": [3, 0]}]}
+             "edges": [{"endpoints": [0, 1]}, {"endpoints": [1, 2]}, {"endpoints": [2, 3]},
+                       {"endpoints": [3, 0]}]}
     back_v = [[0, 0], [0, 30], [20, 30], [20, 0]]  # clockwise in 2D = counter-clockwise seen from -z
     back = {"translation": [0, 100, -10], "rotation": [0, 0, 0], "vertices": back_v,
-            "edges": [{"endpoints": [0, 1]}, {"endpoints": [1, 2]}, {"endpoints": [2, 3]}, {"endpoints": [3, 0]}]}
+            "edges": [{"endpoints": [0, 1]}, {"endpoints": [1, 2]}, {"endpoints": [2, 3]},
+                      {"endpoints": [3, 0]}]}
     stitch_edge = 2  # back's right side (20, 30) -> (20, 0)
     if flip_back:
         back["vertices"] = [[0, 0], [20, 0], [20, 30], [0, 30]]
         stitch_edge = 1  # (20, 0) -> (20, 30): same direction as the front's edge 1
     return {"pattern": {"panels": {"front": front, "back": back},
-                        "stitches": [[{"panel": "front", "edge": 1}, {"panel": "back", "edge": stitch_edge}]]},
+                        "stitches": [[{"panel": "front", "edge": 1},
+                                      {"panel": "back", "edge": stitch_edge}]]},
             "properties": {"units_in_meter": 100}}
 
 
-@pytest.mark.parametrize("flip_back, expected", [(False, StitchOrientation.OPPOSITE), (True, StitchOrientation.SAME)])
+@pytest.mark.parametrize("flip_back, expected",
+                         [(False, StitchOrientation.OPPOSITE), (True, StitchOrientation.SAME)])
 def test_orientation_inferred_from_placement(flip_back, expected):
     d = two_panels(flip_back)
     p = pattern_from_dict(d, "two", orientation_rule=OrientationRule.PLACEMENT)
@@ -156,7 +162,8 @@ def test_orientation_inferred_from_placement(flip_back, expected):
     for side in d3["pattern"]["stitches"][0]:
         side["orientation"] = "same"
     for rule in OrientationRule:
-        assert pattern_from_dict(d3, "two", orientation_rule=rule).stitches[0].orientation is StitchOrientation.SAME
+        stitch = pattern_from_dict(d3, "two", orientation_rule=rule).stitches[0]
+        assert stitch.orientation is StitchOrientation.SAME
     d3["pattern"]["stitches"][0][1]["orientation"] = "opposite"
     with pytest.raises(PatternError, match="disagree"):
         pattern_from_dict(d3, "two")
@@ -202,14 +209,18 @@ def test_bad_input(tmp_path):
          r"panel 'front' edge 2 end vertex = 9 is out of range"),
         (lambda d: d["pattern"]["panels"]["front"]["edges"][3].update(endpoints=[2, 0]),
          "panel 'front' does not close"),
-        (lambda d: d["pattern"]["panels"]["front"].update(vertices=[[0, 0], [1]]), "panel 'front' vertices must be"),
-        (lambda d: d["pattern"]["panels"]["back"]["edges"][1].update(curvature={"type": "spline", "params": []}),
+        (lambda d: d["pattern"]["panels"]["front"].update(vertices=[[0, 0], [1]]),
+         "panel 'front' vertices must be"),
+        (lambda d: d["pattern"]["panels"]["back"]["edges"][1].update(curvature={"type": "spline",
+                                                                                "params": []}),
          "panel 'back' edge 1 has unknown curvature type 'spline'"),
-        (lambda d: d["pattern"]["panels"]["back"]["edges"][1].update(curvature={"type": "cubic", "params": [[0.5, 1]]}),
+        (lambda d: d["pattern"]["panels"]["back"]["edges"][1].update(curvature={"type": "cubic",
+                                                                                "params": [[0.5, 1]]}),
          "panel 'back' edge 1 cubic params must be"),
         (lambda d: d["pattern"]["panels"]["front"].update(rotation=[0, "x", 0]), "panel 'front' rotation"),
         (lambda d: d["pattern"]["panels"]["front"].pop("edges"), "panel 'front': missing key 'edges'"),
-        (lambda d: d["pattern"]["panels"]["front"].update(notches=[{"edge": 0, "t": 2.0}]), "notch 0 t must be"),
+        (lambda d: d["pattern"]["panels"]["front"].update(notches=[{"edge": 0, "t": 2.0}]),
+         "notch 0 t must be"),
         (lambda d: d["properties"].update(units_in_meter=0), "units_in_meter"),
         (lambda d: d["pattern"]["stitches"][0].append("inside_out"), "third entry must be 'right_wrong'"),
     ]

@@ -126,7 +126,8 @@ def test_skirt_waist_and_hip_widths(name, body):
     assert hips == pytest.approx(m.hips + opts["hip_ease"], abs=0.002)
     # custom ease goes where it should
     q = draft(name, m, hip_ease=0.08, waist_ease=0.0)
-    assert sum(width_at(v, m.hip_height - 1e-6) for v in q.panels.values()) == pytest.approx(m.hips + 0.08, abs=0.002)
+    assert sum(width_at(v, m.hip_height - 1e-6) for v in q.panels.values()) == pytest.approx(m.hips + 0.08,
+                                                                                             abs=0.002)
 
 
 def test_aline_flares_and_straight_does_not():
@@ -165,14 +166,16 @@ def test_trousers_and_bodysuit_girths(body):
     t = draft("trousers", m)
     hips = sum(width_at(v, m.hip_height - 1e-6) for v in t.panels.values())
     assert hips == pytest.approx(m.hips + draft_options("trousers")["hip_ease"], abs=0.002)
-    waist = sum(v.edge_length(i) for v in t.panels.values() for i, e in enumerate(v.edges) if e.label == "waist")
+    waist = sum(v.edge_length(i) for v in t.panels.values() for i, e in enumerate(v.edges)
+                if e.label == "waist")
     assert waist == pytest.approx(m.waist + draft_options("trousers")["waist_ease"], abs=0.002)
     # one leg's girth just below the crotch is at least thigh + ease
     leg = width_at(t.panels["front_left"], m.crotch_height - 0.01) + width_at(t.panels["back_left"],
                                                                              m.crotch_height - 0.01)
     assert leg >= m.thigh_girth + draft_options("trousers")["thigh_ease"] - 0.03
     b = draft("bodysuit", m)
-    for y, g in ((m.waist_height - 1e-6, m.waist), (m.hip_height + 1e-6, m.hips), (m.bust_height - 1e-6, m.bust)):
+    for y, g in ((m.waist_height - 1e-6, m.waist), (m.hip_height + 1e-6, m.hips),
+                 (m.bust_height - 1e-6, m.bust)):
         assert sum(width_at(v, y) for v in b.panels.values()) == pytest.approx(g, abs=0.002)
 
 
@@ -236,7 +239,8 @@ def test_drafts_clear_a_real_body(garmentcode_dir):
     meas = yaml.safe_load((garmentcode_dir / "bodies" / "mean_female.yaml").read_text())["body"]
     m = DraftMeasurements.from_dict({
         "height": meas["height"] / 100, "bust": meas["bust"] / 100, "underbust": meas["underbust"] / 100,
-        "waist": meas["waist"] / 100, "hips": meas["hips"] / 100, "arm_angle": math.radians(meas["arm_pose_angle"]),
+        "waist": meas["waist"] / 100, "hips": meas["hips"] / 100,
+        "arm_angle": math.radians(meas["arm_pose_angle"]),
     })
     v, f = np.asarray(body.vertices, dtype=np.float64), np.asarray(body.faces, dtype=np.int64)
     for name in NAMES:

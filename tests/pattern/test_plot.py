@@ -1,4 +1,5 @@
-"""PNG pattern sheets: files written atomically, sheet aspect, seams in stitch colours, mesh overlay, overlay plot."""
+"""PNG pattern sheets: files written atomically, sheet aspect, seams in stitch colours, mesh overlay, overlay
+plot."""
 
 from __future__ import annotations
 

@@ -106,7 +106,8 @@ def assert_same_pattern(got: SewingPattern, want: SewingPattern, what: str) -> N
         assert len(q.edges) == len(p.edges), f"{what} {name}"
         assert [e.kind for e in q.edges] == [e.kind for e in p.edges], f"{what} {name}"
         assert [e.label for e in q.edges] == [e.label for e in p.edges], f"{what} {name}"
-        np.testing.assert_allclose(q.vertices[[e.start for e in q.edges]], p.vertices[[e.start for e in p.edges]],
+        np.testing.assert_allclose(q.vertices[[e.start for e in q.edges]],
+                                   p.vertices[[e.start for e in p.edges]],
                                    atol=1e-9, err_msg=f"{what} {name}")
         np.testing.assert_allclose(q.translation, p.translation, atol=1e-9, err_msg=f"{what} {name}")
         np.testing.assert_allclose(q.rotation, p.rotation, atol=1e-9, err_msg=f"{what} {name}")
@@ -118,8 +119,10 @@ def assert_same_pattern(got: SewingPattern, want: SewingPattern, what: str) -> N
 
 
 # ---------------------------------------------------------------------------------------------- meshing
-def _edge_vertices(panel: Panel, edge: int, boundary: np.ndarray, p2d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh boundary vertices lying on a panel edge, ordered along it: indices (k,) and arc-length fractions."""
+def _edge_vertices(panel: Panel, edge: int, boundary: np.ndarray,
+                   p2d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh boundary vertices lying on a panel edge, ordered along it: indices (k,) and arc-length
+    fractions."""
     e = panel.edges[edge]
     a, b = panel.edge_endpoints(edge)
     dense = e.polyline(a, b, 1 if e.kind is EdgeKind.LINE else 4096)
@@ -156,7 +159,8 @@ def test_mesh_pairs_every_stitch_one_to_one(pattern, edge_length):
             # both ends present, segments no longer than the target, equal arc-length spacing
             assert n >= 1 and frac[0] < 1e-6 and frac[-1] > 1 - 1e-6, f"stitch {k} {ref}"
             assert length / n <= edge_length * (1 + 1e-6), f"stitch {k} {ref}"
-            np.testing.assert_allclose(frac, np.linspace(0.0, 1.0, n + 1), atol=1e-3, err_msg=f"stitch {k} {ref}")
+            np.testing.assert_allclose(frac, np.linspace(0.0, 1.0, n + 1), atol=1e-3,
+                                       err_msg=f"stitch {k} {ref}")
             sides.append((idx, frac))
         (ia, fa), (ib, fb) = sides
         assert ia.shape == ib.shape, f"stitch {k}: {ia.shape[0]} vs {ib.shape[0]} seam vertices"
@@ -259,7 +263,8 @@ def test_json_svg_dxf_round_trip(pattern, tmp_path):
         for e, f in zip(p.edges, from_json.panels[name].edges):
             if e.controls is not None:
                 np.testing.assert_allclose(f.controls, e.controls, atol=1e-12)
-            assert (f.arc is None) == (e.arc is None) and (f.arc is None or np.allclose(f.arc, e.arc, atol=1e-12))
+            assert (f.arc is None) == (e.arc is None) and (f.arc is None
+                                                           or np.allclose(f.arc, e.arc, atol=1e-12))
 
     from_dxf = load_dxf(tmp_path / "p.dxf")
     from_dxf.validate(max_stitch_length_ratio=MAX_STITCH_LENGTH_RATIO)

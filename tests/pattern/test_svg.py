@@ -10,7 +10,16 @@ import numpy as np
 import pytest
 
 from torchgarment.errors import PatternError
-from torchgarment.pattern.spec import Edge, EdgeKind, EdgeRef, Notch, Panel, SewingPattern, Stitch, StitchOrientation
+from torchgarment.pattern.spec import (
+    Edge,
+    EdgeKind,
+    EdgeRef,
+    Notch,
+    Panel,
+    SewingPattern,
+    Stitch,
+    StitchOrientation,
+)
 from torchgarment.pattern.svg import save_svg, stitch_marks, svg_panel_layout
 
 NS = {"s": "http://www.w3.org/2000/svg"}
@@ -92,7 +101,8 @@ def _dist_to_polyline(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
     ab = b - a
     out = []
     for q in np.array_split(p, max(1, len(p) // 256)):
-        t = np.clip(((q[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300)[None], 0, 1)
+        t = np.clip(((q[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300)[None],
+                    0, 1)
         out.append(np.linalg.norm(q[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1).min(axis=1))
     return np.concatenate(out)
 
@@ -111,9 +121,11 @@ def test_well_formed_real_scale(sheet):
     w, h = root.get("width"), root.get("height")
     assert w.endswith("mm") and h.endswith("mm")
     vb = [float(x) for x in root.get("viewBox").split()]
-    assert vb[:2] == [0, 0] and vb[2] == pytest.approx(float(w[:-2])) and vb[3] == pytest.approx(float(h[:-2]))
+    assert vb[:2] == [0, 0]
+    assert vb[2] == pytest.approx(float(w[:-2])) and vb[3] == pytest.approx(float(h[:-2]))
     _, size = svg_panel_layout(pat)
-    assert vb[2] == pytest.approx(1000 * size[0], abs=1e-3) and vb[3] == pytest.approx(1000 * size[1], abs=1e-3)
+    assert vb[2] == pytest.approx(1000 * size[0], abs=1e-3) and vb[3] == pytest.approx(1000 * size[1],
+                                                                                       abs=1e-3)
     assert [p.name for p in path.parent.iterdir()] == ["p.svg"]  # atomic: no temporary left behind
 
 
@@ -126,7 +138,10 @@ def test_outline_paths_are_the_panels(sheet):
         d = groups[name].find("s:path[@class='outline']", NS).get("d")
         assert {"Q", "C", "A"} & set(d.split()) or name == "front"
         pts_mm, ends = _sample_path(d, 800)
-        to_panel = lambda q: np.stack([q[:, 0] / 1000, size[1] - q[:, 1] / 1000], axis=1) - offsets[name]
+
+        def to_panel(q):
+            return np.stack([q[:, 0] / 1000, size[1] - q[:, 1] / 1000], axis=1) - offsets[name]
+
         ends = to_panel(np.array(ends))
         order = [e.start for e in panel.edges] + [panel.edges[0].start]
         np.testing.assert_allclose(ends, panel.vertices[order], atol=1e-6)
@@ -146,7 +161,8 @@ def test_layout_has_no_overlap():
                                 [Edge(0, 1), Edge(1, 2), Edge(2, 3), Edge(3, 0)])
     pat = SewingPattern("many", panels)
     offsets, size = svg_panel_layout(pat, margin=0.01)
-    boxes = np.stack([np.stack([p.vertices.min(0), p.vertices.max(0)]) + offsets[n] for n, p in panels.items()])
+    boxes = np.stack([np.stack([p.vertices.min(0), p.vertices.max(0)]) + offsets[n]
+                      for n, p in panels.items()])
     assert boxes.min() >= 0.01 - 1e-12
     assert np.all(boxes[:, 1] <= size + 1e-12)
     for i in range(len(boxes)):
@@ -158,7 +174,8 @@ def test_layout_has_no_overlap():
 
 def test_stitch_labels_arrows_notches_grainlines(sheet):
     pat, root, _ = sheet
-    labels = [t.text for t in root.iter("{http://www.w3.org/2000/svg}text") if t.get("class") == "stitch-label"]
+    labels = [t.text for t in root.iter("{http://www.w3.org/2000/svg}text")
+              if t.get("class") == "stitch-label"]
     assert sorted(labels) == ["S0", "S0", "S1", "S1"]
     seams = root.findall(".//s:path[@class='seam']", NS)
     assert sorted((s.get("data-stitch"), s.get("data-edge")) for s in seams) == [

@@ -99,7 +99,8 @@ def test_gradcheck_fine_coarse_and_outside(sphere_sdf):
     x = _off_face_points(sphere_sdf, 20, 2).requires_grad_(True)
     assert torch.autograd.gradcheck(sphere_sdf, (x,), eps=1e-6, atol=1e-6)
     # Far field (coarse cells near the centre) and outside the box.
-    y = torch.tensor([[0.011, -0.013, 0.017], [0.9, 0.2, -0.1], [0.03, 1.5, 2.2]], dtype=torch.float64, requires_grad=True)
+    y = torch.tensor([[0.011, -0.013, 0.017], [0.9, 0.2, -0.1], [0.03, 1.5, 2.2]], dtype=torch.float64,
+                     requires_grad=True)
     assert torch.autograd.gradcheck(sphere_sdf, (y,), eps=1e-6, atol=1e-6)
 
 
@@ -242,8 +243,8 @@ def test_real_body_2p5mm(garmentcode_dir):
 
 @pytest.mark.slow
 def test_real_body_1p75mm_within_1mm(garmentcode_dir):
-    # The issue's acceptance bound (1 mm everywhere in the band) needs voxels below 2 mm: the worst points sit in
-    # concave creases (armpit, between the legs), where the distance field has a kink that trilinear
+    # The issue's acceptance bound (1 mm everywhere in the band) needs voxels below 2 mm: the worst points sit
+    # in concave creases (armpit, between the legs), where the distance field has a kink that trilinear
     # interpolation rounds off by about 0.45 voxel (2.5 mm: 1.18 mm, see test_real_body_2p5mm; 2 mm: 1.01 mm).
     sdf, err, gn = _real_body_check(garmentcode_dir, 0.00175, 8, n=50000)
     assert err.max() < 1e-3 and np.percentile(err, 99) < 4e-4
@@ -261,7 +262,8 @@ def _reference_sample(sdf, x):
     off = (u - uc) * h
     sq = (off * off).sum(-1)
     outside = sq > 0
-    dist = torch.where(outside, torch.sqrt(torch.where(outside, sq, torch.ones_like(sq))), torch.zeros_like(sq))
+    dist = torch.where(outside, torch.sqrt(torch.where(outside, sq, torch.ones_like(sq))),
+                       torch.zeros_like(sq))
     cell = torch.minimum(torch.floor(uc), n_fine - 1).long()
     bc = torch.div(cell, B, rounding_mode="floor")
     loc = cell - bc * B
@@ -293,7 +295,8 @@ def _reference_sample(sdf, x):
 
 
 def _mixed_points(sdf, n, seed):
-    """Band points, far-field points, points outside the box and points exactly on grid nodes and box faces."""
+    """Band points, far-field points, points outside the box and points exactly on grid nodes and box
+    faces."""
     rng = np.random.default_rng(seed)
     lo, hi = sdf.bounds.double().numpy()
     dirs = rng.normal(size=(n, 3))
@@ -370,7 +373,8 @@ def test_non_finite_queries(sphere_sdf):
 
 def test_buffers_move_and_state(sphere_sdf):
     s = BodySDF(sphere_sdf.to_data()).to(dtype=torch.float32)
-    assert s.nodes.dtype == torch.float32 and s.cell_base.dtype == torch.int32 and s.bricks.dtype == torch.float32
+    assert s.nodes.dtype == torch.float32 and s.cell_base.dtype == torch.int32
+    assert s.bricks.dtype == torch.float32
     assert s.bricks.data_ptr() == s.nodes.data_ptr()  # a view, no second copy
     assert set(s.state_dict()) == {"origin", "coarse", "brick_index", "nodes"}
     np.testing.assert_array_equal(s.to_data().bricks, sphere_sdf.to_data().bricks.astype(np.float32))
@@ -398,9 +402,11 @@ def test_sdf_cache(sphere, tmp_path, monkeypatch):
     key = sdf_cache.sdf_cache_key(v, f, SMALL)
     assert key != sdf_cache.sdf_cache_key(v, f, SDFSettings(voxel_size=0.005, brick=4, band=0.025))
     assert key != sdf_cache.sdf_cache_key(v, f, SDFSettings(voxel_size=0.004, brick=4))
-    assert key != sdf_cache.sdf_cache_key(v, f, SDFSettings(voxel_size=0.005, brick=4, sign_type="pseudonormal"))
+    assert key != sdf_cache.sdf_cache_key(v, f,
+                                          SDFSettings(voxel_size=0.005, brick=4, sign_type="pseudonormal"))
     assert key != sdf_cache.sdf_cache_key(v * (1 + 1e-12), f, SMALL)
-    assert key == sdf_cache.sdf_cache_key(v.astype(np.float64), f.astype(np.int32), SDFSettings(voxel_size=0.005, brick=4, workers=1))
+    assert key == sdf_cache.sdf_cache_key(v.astype(np.float64), f.astype(np.int32),
+                                          SDFSettings(voxel_size=0.005, brick=4, workers=1))
     # A corrupt entry is rebuilt.
     entry = tmp_path / f"{key}.npz"
     entry.write_bytes(entry.read_bytes()[:1000])

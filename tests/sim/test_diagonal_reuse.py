@@ -1,6 +1,6 @@
 """The GD-Chebyshev preconditioner's reuse machinery: cached constant Hessian diagonals, the reused elastic
-diagonal with fresh volatile (barrier) rows, sparse barrier accumulation, partial re-inversion and the adjugate
-3x3 inverse. Each is checked against the plain computation it replaces."""
+diagonal with fresh volatile (barrier) rows, sparse barrier accumulation, partial re-inversion and the
+adjugate 3x3 inverse. Each is checked against the plain computation it replaces."""
 
 from __future__ import annotations
 
@@ -24,14 +24,15 @@ from test_hard_cases import tube_scene  # noqa: E402
 
 
 def _settled_tube(iterations: int = 60):
-    """A tube sewn around a thin cylinder, after some GD iterations (some vertices within the barrier's range)."""
+    """A tube sewn around a thin cylinder, after some GD iterations (some vertices within the barrier's
+    range)."""
     scene, sdf = tube_scene(0.03, 0.02, torch.float64, material=Material())
     model = scene.build()
     x, _ = solve(model, scene.garment.x, SolveSettings(rtol=0.0, atol=0.0, max_iterations=iterations))
     return model, x
 
 
-def _sum_of_terms(model, x):  # noqa: ANN001, ANN202
+def _sum_of_terms(model, x):
     E = sum(float(t.value_and_grad(x)[0]) for t in model.terms)
     g = sum(t.value_and_grad(x)[1] for t in model.terms)
     h = sum(t.hessian_diagonal(x) for t in model.terms)
@@ -48,7 +49,8 @@ def test_model_diagonal_equals_the_sum_of_the_terms():
     torch.testing.assert_close(model.hessian_diagonal(x), h0, rtol=1e-12, atol=1e-9)
     barrier = model.term("body_barrier")
     rows = model.last_volatile_rows
-    assert rows is not None and 0 < rows.numel() < model.num_vertices  # the barrier acts on a few vertices only
+    # the barrier acts on a few vertices only
+    assert rows is not None and 0 < rows.numel() < model.num_vertices
     phi = barrier.sdf(x)
     assert set(rows.tolist()) == set(torch.nonzero(phi < barrier.dhat).flatten().tolist())
 
@@ -56,7 +58,8 @@ def test_model_diagonal_equals_the_sum_of_the_terms():
 def test_constant_diagonal_cache_follows_stiffness_changes():
     model, x = _settled_tube(5)
     c1 = model.constant_hessian_diagonal(x.dtype, x.device).clone()
-    assert model.constant_hessian_diagonal(x.dtype, x.device) is model.constant_hessian_diagonal(x.dtype, x.device)
+    assert model.constant_hessian_diagonal(x.dtype, x.device) is model.constant_hessian_diagonal(x.dtype,
+                                                                                                 x.device)
     sew = model.term("sew")
     sew.stiffness *= 2.0
     c2 = model.constant_hessian_diagonal(x.dtype, x.device)
@@ -81,8 +84,8 @@ def test_reuse_elastic_keeps_the_elastic_part_and_refreshes_the_barrier():
 
 
 def test_barrier_accumulation_matches_autograd_and_the_dense_diagonal():
-    """The sparse accumulation (rows within dhat only) against independent computations: the energy and gradient
-    of the autograd ``forward`` (full SDF query) and the dense ``hessian_diagonal`` blocks."""
+    """The sparse accumulation (rows within dhat only) against independent computations: the energy and
+    gradient of the autograd ``forward`` (full SDF query) and the dense ``hessian_diagonal`` blocks."""
     model, x = _settled_tube()
     barrier = model.term("body_barrier")
     g = torch.zeros_like(x)
@@ -115,12 +118,14 @@ def test_partial_update_equals_a_rebuild_with_the_same_scale():
     full.rebuild(h2)
     full_scale_state = JacobiState(settings, seam_pairs(model))
     full_scale_state._scale = state._scale  # the partial update keeps the scale of its last full rebuild
-    full_scale_state._base = jacobi_inverse(h2, settings.preconditioner, settings.diagonal_floor, state._scale)
+    full_scale_state._base = jacobi_inverse(h2, settings.preconditioner, settings.diagonal_floor,
+                                            state._scale)
     full_scale_state._finish(h2)
     torch.testing.assert_close(apply_inverse(state.inverse, g2), apply_inverse(full_scale_state.inverse, g2),
                                rtol=1e-10, atol=0.0)
     # and the floor's scale barely matters: the same as a plain rebuild to round-off of the floor
-    torch.testing.assert_close(apply_inverse(state.inverse, g2), apply_inverse(full.inverse, g2), rtol=1e-6, atol=0.0)
+    torch.testing.assert_close(apply_inverse(state.inverse, g2), apply_inverse(full.inverse, g2), rtol=1e-6,
+                               atol=0.0)
 
 
 def test_spd_inverse_3x3_against_linalg():
@@ -146,7 +151,9 @@ def test_elastic_reuse_does_not_change_the_converged_drape():
     scene, _ = tube_scene(0.03, 0.02, torch.float64, material=Material())
     model = scene.build()
     st = dict(rtol=1e-7, atol=0.0, max_iterations=6000)
-    xa, ia = solve(model, scene.garment.x, SolveSettings(elastic_diagonal_interval=1, **st), solver="gd-chebyshev")
-    xb, ib = solve(model, scene.garment.x, SolveSettings(elastic_diagonal_interval=4, **st), solver="gd-chebyshev")
+    xa, ia = solve(model, scene.garment.x, SolveSettings(elastic_diagonal_interval=1, **st),
+                   solver="gd-chebyshev")
+    xb, ib = solve(model, scene.garment.x, SolveSettings(elastic_diagonal_interval=4, **st),
+                   solver="gd-chebyshev")
     assert ia.converged and ib.converged
     assert float((xa - xb).norm(dim=1).max()) < 1e-3

@@ -11,8 +11,8 @@ from torchgarment.errors import InputError
 from torchgarment.sim.drape import DrapeSettings, drape, max_seam_gap, seam_gaps, vertex_stretch_ratio
 from torchgarment.structures.garment_mesh import GarmentMesh
 
-# small case at the default (strict) force tolerance |g|_2 <= 1e-3 * weight, with the default C1 (quadratic) SDF
-# sampling and settle-stage barrier weight 1e-3 J.
+# small case at the default (strict) force tolerance |g|_2 <= 1e-3 * weight, with the default C1 (quadratic)
+# SDF sampling and settle-stage barrier weight 1e-3 J.
 SMALL = DrapeSettings(edge_length=0.035, voxel_size=0.008, sew_solver="gd-chebyshev", solver="newton",
                       sew_max_iterations=600, max_iterations=120)
 
@@ -37,7 +37,8 @@ def test_small_drape_end_to_end(small_drape):
     assert abs(m["min_sdf_mm"] - 1e3 * float(phi.min())) < 1e-9
     assert m["max_seam_gap_mm"] <= 1.0
     assert r.converged and m["converged"] and r.ok
-    assert m["residual"] <= m["tolerance"] <= 1e-3 * m["weight_n"] + 1e-15  # the strict weight-based criterion
+    # the strict weight-based criterion
+    assert m["residual"] <= m["tolerance"] <= 1e-3 * m["weight_n"] + 1e-15
     assert m["energy"] < m["energy_start"]
     # every stage keeps its residual history; the sewing stage closed the seams from ~30 cm
     assert [s.name for s in r.stages] == ["sew", "settle"]
@@ -106,8 +107,10 @@ def test_quadratic_sdf_sampling_is_c1_and_consistent(sphere_sdf):
     assert float(g.norm(dim=1).max()) <= 3 ** 0.5 + 1e-12
     # along a segment crossing ~10 voxel faces: the trilinear gradient jumps, the quadratic one is continuous
     t = torch.linspace(0.0, 0.05, 50001, dtype=torch.float64)[:, None]
-    seg = torch.tensor([0.0, 0.0, 0.105], dtype=torch.float64) + t * torch.tensor([0.6, 0.7, 0.387], dtype=torch.float64)
-    jump = {m.sampling: float(m.value_and_gradient(seg)[1].diff(dim=0).norm(dim=1).max()) for m in (sphere_sdf, q)}
+    seg = torch.tensor([0.0, 0.0, 0.105], dtype=torch.float64) + t * torch.tensor([0.6, 0.7, 0.387],
+                                                                                  dtype=torch.float64)
+    jump = {m.sampling: float(m.value_and_gradient(seg)[1].diff(dim=0).norm(dim=1).max())
+            for m in (sphere_sdf, q)}
     assert jump[SDFSampling.TRILINEAR] > 0.02 and jump[SDFSampling.QUADRATIC] < 1e-3
     with pytest.raises(InputError):
         sphere_sdf.with_sampling("cubic")
@@ -129,7 +132,8 @@ def test_cli_bad_input(tmp_path, capsys):
 
     parser = argparse.ArgumentParser()
     add_drape_parser(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["drape", "--pattern", "no_such_garment", "--body", "6", "--out", str(tmp_path / "o")])
+    args = parser.parse_args(["drape", "--pattern", "no_such_garment", "--body", "6", "--out",
+                              str(tmp_path / "o")])
     with pytest.raises(InputError, match="neither a library garment"):
         args.func(args)
     args = parser.parse_args(["drape", "--pattern", "straight_skirt", "--body", str(tmp_path / "nobody.obj"),

@@ -1,5 +1,6 @@
 """Hard cases stay numerically stable (issue 3): every case either converges with finite values or is rejected
-up front by :meth:`Scene.build` with a one-line :class:`InputError` / :class:`MeshError`; a NaN or Inf is a failure.
+up front by :meth:`Scene.build` with a one-line :class:`InputError` / :class:`MeshError`; a NaN or Inf is a
+failure.
 
 Scenes are tiny so the whole file runs in about a minute on 2 cores:
 
@@ -10,8 +11,8 @@ Scenes are tiny so the whole file runs in about a minute on 2 cores:
   pinned along the top row, with the stretch, sew, bend, gravity and body-barrier effects.
 
 Convergence is judged by an absolute force tolerance tied to the scene's physics (a fraction of the garment's
-total weight; ``rtol = 0``), because a relative tolerance ``rtol * |g(x0)|`` is meaningless when the start state
-has an enormous force (phi = 1e-9 m gives 1e7 N per vertex, which would make one iteration "converge").
+total weight; ``rtol = 0``), because a relative tolerance ``rtol * |g(x0)|`` is meaningless when the start
+state has an enormous force (phi = 1e-9 m gives 1e7 N per vertex, which would make one iteration "converge").
 """
 
 from __future__ import annotations
@@ -59,16 +60,20 @@ def grid_sheet(n: int = 5, spacing: float = 0.02) -> tuple[np.ndarray, np.ndarra
 def rect_panel(name: str, w: float, h: float, translation=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0)) -> Panel:
     v = np.array([[0, 0], [w, 0], [w, h], [0, h]], dtype=np.float64)
     return Panel(name, v, [Edge(0, 1), Edge(1, 2), Edge(2, 3), Edge(3, 0)],
-                 translation=np.asarray(translation, dtype=np.float64), rotation=np.asarray(rotation, dtype=np.float64))
+                 translation=np.asarray(translation, dtype=np.float64),
+                 rotation=np.asarray(rotation, dtype=np.float64))
 
 
-def tube_pattern(radius: float, height: float, *, gap: float = 0.01, ease: float = 1.2, scale: float = 1.0) -> SewingPattern:
-    """Front and back rectangles (width ``ease * pi * radius``) at ``z = +-(radius + gap)``, sewn along both sides,
-    spanning ``y`` in ``[-height / 2, height / 2]``; everything multiplied by ``scale`` (1000: millimetres)."""
+def tube_pattern(radius: float, height: float, *, gap: float = 0.01, ease: float = 1.2,
+                 scale: float = 1.0) -> SewingPattern:
+    """Front and back rectangles (width ``ease * pi * radius``) at ``z = +-(radius + gap)``, sewn along both
+    sides, spanning ``y`` in ``[-height / 2, height / 2]``; everything multiplied by ``scale`` (1000:
+    millimetres)."""
     w, r, y0 = math.pi * radius * ease * scale, (radius + gap) * scale, -0.5 * height * scale
     front = rect_panel("front", w, height * scale, (-w / 2, y0, r))
     back = rect_panel("back", w, height * scale, (w / 2, y0, -r), (0.0, math.pi, 0.0))
-    stitches = [Stitch(EdgeRef("front", 1), EdgeRef("back", 3)), Stitch(EdgeRef("front", 3), EdgeRef("back", 1))]
+    stitches = [Stitch(EdgeRef("front", 1), EdgeRef("back", 3)),
+                Stitch(EdgeRef("front", 3), EdgeRef("back", 1))]
     return SewingPattern("tube", {"front": front, "back": back}, stitches)
 
 
@@ -131,10 +136,12 @@ def solve_and_check(model, x0: torch.Tensor, solver: str, atol: float, sdf: Body
 
 def force_floor(mesh: GarmentMesh, stiffness: float = DEFAULT_STRETCH_STIFFNESS) -> float:
     """Force-norm noise (N) of the stretch term from rounding the positions to ``mesh.dtype``:
-    ``4 eps |x|_max k_max sqrt(E)`` with ``k_max = Y / (shortest rest edge)`` (1e-3 N for 5 mm float32 edges)."""
+    ``4 eps |x|_max k_max sqrt(E)`` with ``k_max = Y / (shortest rest edge)`` (1e-3 N for 5 mm float32
+    edges)."""
     eps = torch.finfo(mesh.dtype).eps
     rest = torch.linalg.vector_norm(mesh.p[mesh.edges[:, 0]] - mesh.p[mesh.edges[:, 1]], dim=1)
-    return 4.0 * eps * float(mesh.x.abs().max()) * stiffness / float(rest.min()) * math.sqrt(mesh.edges.shape[0])
+    return (4.0 * eps * float(mesh.x.abs().max()) * stiffness / float(rest.min())
+            * math.sqrt(mesh.edges.shape[0]))
 
 
 def hanging_sheet(mutate=None, n: int = 5, dtype: torch.dtype = torch.float64, plain: bool = False) -> Scene:
@@ -180,7 +187,8 @@ def set_x(i: int, value) -> callable:
 
 # ------------------------------------------------------------------------------------------ rejected up front
 REJECTED = [
-    pytest.param(lambda: hanging_sheet(set_p(1, [0.0, 0.0])), MeshError, "zero rest length", id="zero-rest-edge"),
+    pytest.param(lambda: hanging_sheet(set_p(1, [0.0, 0.0])), MeshError, "zero rest length",
+                 id="zero-rest-edge"),
     pytest.param(lambda: hanging_sheet(lambda x, f, p: (x, np.concatenate([f, [[0, 0, 5]]]), p)), MeshError,
                  "zero rest length", id="face-repeating-a-vertex"),
     pytest.param(lambda: hanging_sheet(set_p(1, [1e-6, 0.0])), MeshError, "shorter than the median",
@@ -190,10 +198,12 @@ REJECTED = [
     pytest.param(lambda: hanging_sheet(corner_sliver(1e-6)), MeshError, "sliver", id="sliver-0.006deg"),
     pytest.param(lambda: hanging_sheet(corner_sliver(1e-6, in_3d=False)), MeshError, "sliver",
                  id="sliver-rest-only"),
-    pytest.param(lambda: hanging_sheet(corner_sliver(0.0)), MeshError, "degenerate", id="degenerate-triangle"),
+    pytest.param(lambda: hanging_sheet(corner_sliver(0.0)), MeshError, "degenerate",
+                 id="degenerate-triangle"),
     pytest.param(lambda: hanging_sheet(set_x(1, [0.0, 0.0, 0.0]), plain=True), MeshError, "zero rest length",
                  id="plain-mesh-zero-edge"),
-    pytest.param(lambda: hanging_sheet(set_x(3, [np.nan, 0.0, 0.0])), InputError, "non-finite", id="nan-position"),
+    pytest.param(lambda: hanging_sheet(set_x(3, [np.nan, 0.0, 0.0])), InputError, "non-finite",
+                 id="nan-position"),
     pytest.param(lambda: hanging_sheet(lambda x, f, p: (x, np.concatenate([f, [[0, 1, 99]]]), p)), MeshError,
                  "outside", id="face-index-out-of-range"),
     pytest.param(lambda: Scene(mesh_pattern(tube_pattern(0.03, 0.12, scale=1000.0), 20.0)), InputError,
@@ -225,7 +235,7 @@ def test_mm_garment_scaled_to_metres_is_accepted():
     assert Scene(g, body_sdf=cylinder_sdf(0.03, voxel=0.005)).build().num_vertices == g.num_vertices
 
 
-# ------------------------------------------------------------------------------------------ degenerate-ish meshes that converge
+# ------------------------------------------------------------------------ degenerate-ish meshes that converge
 ACCEPTED_MESHES = [
     pytest.param(None, id="baseline"),
     pytest.param(set_p(1, [1e-4, 0.0]), id="short-rest-edge-0.1mm"),  # 200x shorter than the median: accepted
@@ -255,17 +265,18 @@ def test_collapsed_start(solver):
     """All vertices start at one point (every 3D edge has zero length)."""
     scene = hanging_sheet(lambda x, f, p: (np.zeros_like(x), f, p))
     model = scene.build()
-    solve_and_check(model, scene.garment.x, solver, WEIGHT_FRACTION[torch.float64] * total_weight(scene.garment))
+    solve_and_check(model, scene.garment.x, solver,
+                    WEIGHT_FRACTION[torch.float64] * total_weight(scene.garment))
 
 
-# ------------------------------------------------------------------------------------------ barrier as phi -> 0+
+# --------------------------------------------------------------------------------------- barrier as phi -> 0+
 @pytest.mark.parametrize("solver", SOLVERS)
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("phi0", [1e-3, 1e-6, 1e-9])
 def test_barrier_near_contact(phi0, dtype, solver, request):
-    """A sheet lying ``phi0`` above the box, pinned at its corners: the start force is ``mu / phi0`` per vertex
-    (1e7 N at 1e-9 m). In float32 ``0.05 + 1e-9`` rounds onto the surface: the solve must refuse that start up
-    front, and after ``project_feasible`` converge like the others."""
+    """A sheet lying ``phi0`` above the box, pinned at its corners: the start force is ``mu / phi0`` per
+    vertex (1e7 N at 1e-9 m). In float32 ``0.05 + 1e-9`` rounds onto the surface: the solve must refuse that
+    start up front, and after ``project_feasible`` converge like the others."""
     n = 6
     x, f, p = grid_sheet(n)
     x = np.stack([x[:, 0] - 0.05, np.full(n * n, 0.05 + phi0), x[:, 1] - 0.05], 1)
@@ -283,12 +294,13 @@ def test_barrier_near_contact(phi0, dtype, solver, request):
         one_line(exc)
         x0 = model.project_feasible(x0)
     # force tolerance: 1 % of the sheet's weight (the barrier stiffness mu / phi^2 near contact is ~1e4 N/m)
-    xs = solve_and_check(model, x0, solver, 0.01 * total_weight(g) * (10.0 if dtype == torch.float32 else 1.0), sdf)
+    xs = solve_and_check(model, x0, solver,
+                         0.01 * total_weight(g) * (10.0 if dtype == torch.float32 else 1.0), sdf)
     # the equilibrium does not depend on how close the start was: the cloth settles ~1 mm above the box
     assert 5e-4 < float(sdf(xs).min()) < 3e-3
 
 
-# ------------------------------------------------------------------------------------------ tube on a cylinder
+# ----------------------------------------------------------------------------------------- tube on a cylinder
 def tube_scene(radius: float, edge: float, dtype: torch.dtype, *, gap: float = 0.01, voxel: float = 0.0025,
                material: Material | None = None) -> tuple[Scene, BodySDF]:
     g = mesh_pattern(tube_pattern(radius, 0.12, gap=gap), edge, dtype=dtype)
@@ -311,7 +323,8 @@ def test_start_inside_body(dtype, solver):
     one_line(exc)
     x1 = model.project_feasible(x0)
     assert bool((sdf(x1) > 0).all())
-    solve_and_check(model, x1, solver, 0.05 * total_weight(scene.garment) * (5.0 if dtype == torch.float32 else 1.0),
+    solve_and_check(model, x1, solver,
+                    0.05 * total_weight(scene.garment) * (5.0 if dtype == torch.float32 else 1.0),
                     sdf)
 
 
@@ -321,7 +334,8 @@ def test_start_inside_body(dtype, solver):
                                           pytest.param(0.03, 0.1, id="very-coarse"),
                                           pytest.param(0.03, 0.02, id="wrist-r30mm")])
 def test_tube_around_thin_cylinder(radius, edge, dtype, solver):
-    """A sleeve sewn around a thin limb (SDF at 2.5 mm) and a very coarse sleeve (a few triangles per panel)."""
+    """A sleeve sewn around a thin limb (SDF at 2.5 mm) and a very coarse sleeve (a few triangles per
+    panel)."""
     scene, sdf = tube_scene(radius, edge, dtype)
     model = scene.build()
     solve_and_check(model, scene.garment.x, solver,
@@ -332,9 +346,9 @@ def test_tube_around_thin_cylinder(radius, edge, dtype, solver):
 @pytest.mark.parametrize("solver", SOLVERS)
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_very_fine_small_panel(dtype, solver):
-    """A 6 x 6 cm panel meshed at 5 mm, hanging from its top edge, starting stretched by 10 % (so the solve has
-    work to do: the flat start is within float32 round-off of equilibrium). The tolerance is the larger of a
-    fraction of the weight and the dtype's force floor (see :func:`force_floor`)."""
+    """A 6 x 6 cm panel meshed at 5 mm, hanging from its top edge, starting stretched by 10 % (so the solve
+    has work to do: the flat start is within float32 round-off of equilibrium). The tolerance is the larger of
+    a fraction of the weight and the dtype's force floor (see :func:`force_floor`)."""
     g = mesh_pattern(SewingPattern("small", {"p": rect_panel("p", 0.06, 0.06)}), 0.005, dtype=dtype)
     top = torch.nonzero(g.p[:, 1] > 0.06 - 1e-6).flatten()
     model = Scene(g, pin_indices=top).build()
@@ -353,8 +367,8 @@ def _spring_constant() -> float:
 # factors at 300 iterations: 1.3e7, 31, 5.2, 1.4e3, 1.1e6)
 STIFFNESS_CASES = [
     pytest.param(dict(sew_stiffness=1e6 * _spring_constant()), 1e6, id="sew-1e6x-stretch"),
-    # weak seams: the tube slides down onto the cylinder (the range-limited barrier does not hold it up from afar),
-    # GD gets 7x in 300 iterations (10x with the unbounded barrier); Newton converges
+    # weak seams: the tube slides down onto the cylinder (the range-limited barrier does not hold it up from
+    # afar), GD gets 7x in 300 iterations (10x with the unbounded barrier); Newton converges
     pytest.param(dict(sew_stiffness=1e-3 * _spring_constant()), 5.0, id="sew-1e-3x-stretch"),
     pytest.param(dict(stretch_stiffness=1e3 * DEFAULT_STRETCH_STIFFNESS), 3.0, id="stretch-1e3x"),
     pytest.param(dict(bend_stiffness=1e6 * 2.0e-5), 300.0, id="bend-1e6x"),
@@ -387,7 +401,7 @@ def test_stiffness_ratios_gd(material, gd_factor):
     assert h[0] / min(h) >= gd_factor, f"residual {h[0]:.3g} -> {min(h):.3g} N, less than {gd_factor:g}x"
 
 
-# ------------------------------------------------------------------------------------------ real thin body parts
+# --------------------------------------------------------------------------------------- real thin body parts
 def _rotation_y_to(axis: np.ndarray) -> np.ndarray:
     """(3, 3) rotation taking +Y onto the unit vector ``axis`` (Rodrigues)."""
     y = np.array([0.0, 1.0, 0.0])
@@ -426,8 +440,8 @@ def test_sleeve_on_real_thin_body_part(size6_body, part, upper, lower, height, e
     axis = a - b  # tube axis from the lower joint towards the upper one
     girth = float(getattr(body.measurements(), part))
     radius = girth / (2 * math.pi)
-    # crop the body to a 15 cm ball around the part: a small open mesh, fast to build at 2.5 mm (the SDF's sign
-    # comes from the fast winding number, which is right on open meshes)
+    # crop the body to a 15 cm ball around the part: a small open mesh, fast to build at 2.5 mm (the SDF's
+    # sign comes from the fast winding number, which is right on open meshes)
     v, f = body.vertices.detach().numpy(), body.faces.numpy()
     keep = (np.linalg.norm(v[f].mean(axis=1) - centre, axis=1) < 0.15)
     sdf = BodySDF.from_mesh(v, f[keep], SDFSettings(voxel_size=0.0025))
@@ -442,6 +456,7 @@ def test_sleeve_on_real_thin_body_part(size6_body, part, upper, lower, height, e
     xs = solve_and_check(model, x0, solver, 0.05 * total_weight(g), sdf,
                          gd_factor=100.0 if solver == "gd-chebyshev" else None)
     exact = igl.signed_distance(xs.numpy(), v, f, igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)[0]
-    assert float(np.min(exact)) > 0.0, f"{part}: a vertex is {-1e3 * float(np.min(exact)):.2f} mm inside the body"
+    assert float(np.min(exact)) > 0.0, (f"{part}: a vertex is {-1e3 * float(np.min(exact)):.2f} mm inside "
+                                        "the body")
     # the garment touches the part (within a few mm somewhere), so the test exercises the contact
     assert float(np.min(exact)) < 0.01

@@ -83,12 +83,15 @@ def test_asked_but_impossible_plain_mesh(skirt):
 
 
 def test_material_reaches_terms(skirt):
-    mat = Material(stretch_stiffness=7.0, sew_stiffness=3.0, bend_stiffness=1e-4, density=0.3, pin_stiffness=5.0,
+    mat = Material(stretch_stiffness=7.0, sew_stiffness=3.0, bend_stiffness=1e-4, density=0.3,
+                   pin_stiffness=5.0,
                    barrier_mu=0.02)
     m = Scene(skirt, body_sdf=PlaneSDF(), pin_indices=[3], material=mat).build()
     assert m.term("stretch").stiffness == 7.0 and m.term("sew").stiffness == 3.0
-    assert m.term("bend").stiffness == 1e-4 and m.term("pins").stiffness == 5.0 and m.term("body_barrier").mu == 0.02
-    assert float(m.term("gravity").masses.sum()) == pytest.approx(0.3 * float(skirt.rest_face_areas.abs().sum()))
+    assert m.term("bend").stiffness == 1e-4 and m.term("pins").stiffness == 5.0
+    assert m.term("body_barrier").mu == 0.02
+    assert float(m.term("gravity").masses.sum()) == pytest.approx(0.3
+                                                                  * float(skirt.rest_face_areas.abs().sum()))
     # default pin targets are the current positions: zero energy there
     assert m.term_values(skirt.x)["pins"] == 0.0
     with pytest.raises(InputError, match="no term"):

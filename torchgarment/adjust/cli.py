@@ -20,8 +20,14 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.adjust.pipeline import AdjustResult
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
 
 
 def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -33,12 +39,14 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     d = AdjustSettings()
     p = subparsers.add_parser(
         "adjust", help="adjust a sewing pattern to another body (Wang et al. 2018)",
-        description="Drape the pattern on the base body, transfer the garment to the target body and optimize the "
-                    "pattern so that the garment fits the target body as the base garment fits the base body. "
-                    "Writes pattern.json/.svg/.dxf, garment_base.obj, garment_target.obj, renders, overlay.png and "
-                    "metrics.json; TensorBoard scalars under logs/adjust/<run> (--log-dir).")
+        description="Drape the pattern on the base body, transfer the garment to the target body and "
+                    "optimize the pattern so that the garment fits the target body as the base garment fits "
+                    "the base body. Writes pattern.json/.svg/.dxf, garment_base.obj, garment_target.obj, "
+                    "renders, overlay.png and metrics.json; TensorBoard scalars under logs/adjust/<run> "
+                    "(--log-dir).")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--pattern", metavar="P", help="a pattern file (.json GarmentCode or .dxf) or a library name")
+    src.add_argument("--pattern", metavar="P",
+                     help="a pattern file (.json GarmentCode or .dxf) or a library name")
     src.add_argument("--garment", metavar="NAME", help="a library garment, drafted for the base size")
     base = p.add_mutually_exclusive_group(required=True)
     base.add_argument("--base-body", metavar="B", help="base body: a mesh file or a chart size")
@@ -48,7 +56,8 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     tgt.add_argument("--target-size", metavar="S", help="target body: a chart size")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--optimizer", default=d.optimizer.value, choices=[k.value for k in OptimizerKind],
-                   help=f"optimizer (default {d.optimizer.value}: preconditioned gradient descent, Algorithm 1)")
+                   help=f"optimizer (default {d.optimizer.value}: preconditioned gradient descent, Algorithm "
+                        "1)")
     p.add_argument("--iterations", type=int, default=d.iterations, metavar="N",
                    help=f"outer iterations (default {d.iterations})")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device (default cpu)")
@@ -61,15 +70,17 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     p.add_argument("--exact-interval", type=int, default=d.exact_interval, metavar="M",
                    help=f"outer iterations between exact solves (default {d.exact_interval})")
     p.add_argument("--inner-solver", default=d.inner_solver.value, choices=[k.value for k in SolverKind],
-                   help=f"solver of the S-iteration simulations (default {d.inner_solver.value}; gd-chebyshev for "
-                        "large meshes)")
+                   help=f"solver of the S-iteration simulations (default {d.inner_solver.value}; "
+                        f"gd-chebyshev for large meshes)")
     p.add_argument("--adjoint", default="direct", choices=["direct", "iterative", "sparse", "cg"],
-                   help="adjoint solve of the gradients: direct (= sparse, the default) or iterative (= cg, for "
-                        "large meshes)")
+                   help="adjoint solve of the gradients: direct (= sparse, the default) or iterative "
+                        "(= cg, for large meshes)")
     p.add_argument("--reference-edge-length", type=float, default=None, metavar="M",
-                   help="rescale the regularizers to the balance of a mesh of this edge length in metres (0.008: the "
-                        "paper's Table 1 dress; see CostWeights.reference_edge_length); default: coefficients as given")
-    p.add_argument("--exact", action="store_true", help="exact simulation at every iteration (no Algorithm 1)")
+                   help="rescale the regularizers to the balance of a mesh of this edge length in metres "
+                        "(0.008: the paper's Table 1 dress; see CostWeights.reference_edge_length); default: "
+                        "coefficients as given")
+    p.add_argument("--exact", action="store_true",
+                   help="exact simulation at every iteration (no Algorithm 1)")
     p.add_argument("--no-init", action="store_true", help="skip the section-7 initialization")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint/adjust.pt")
     p.add_argument("--log-dir", metavar="DIR",
@@ -79,7 +90,7 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     return p
 
 
-def _load_body(spec: str, what: str):  # noqa: ANN202 - Body
+def _load_body(spec: str, what: str) -> tuple[Body, str]:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import list_sizes
 
@@ -87,13 +98,14 @@ def _load_body(spec: str, what: str):  # noqa: ANN202 - Body
         return Body.from_size(spec), f"size {spec}"
     path = Path(spec)
     if not path.is_file():
-        raise InputError(f"--{what} {spec}: neither a chart size ({', '.join(list_sizes())}) nor an existing mesh file")
+        raise InputError(f"--{what} {spec}: neither a chart size ({', '.join(list_sizes())}) nor an existing "
+                         "mesh file")
     from torchgarment.body.load import load_body
 
     return load_body(path), path.stem
 
 
-def _load_pattern(spec: str, base_size: str | None, flag: str):  # noqa: ANN202 - SewingPattern
+def _load_pattern(spec: str, base_size: str | None, flag: str) -> SewingPattern:
     from torchgarment.body.size_chart import chart_row, list_sizes
     from torchgarment.pattern.library import draft, list_garments
 
@@ -105,13 +117,14 @@ def _load_pattern(spec: str, base_size: str | None, flag: str):  # noqa: ANN202 
     if flag == "--garment":
         raise InputError(f"--garment {spec}: not a library garment ({', '.join(list_garments())})")
     if not Path(spec).is_file():
-        raise InputError(f"--pattern {spec}: neither a library garment ({', '.join(list_garments())}) nor a file")
+        raise InputError(f"--pattern {spec}: neither a library garment ({', '.join(list_garments())}) nor a "
+                         "file")
     from torchgarment.pattern.files import load_pattern_file
 
     return load_pattern_file(spec)
 
 
-def _json_safe(v):  # noqa: ANN001, ANN202
+def _json_safe(v: Any) -> Any:
     if isinstance(v, dict):
         return {k: _json_safe(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
@@ -121,7 +134,7 @@ def _json_safe(v):  # noqa: ANN001, ANN202
     return v
 
 
-def write_outputs(result, stage: Path, base_body, target_body, title: str) -> None:  # noqa: ANN001
+def write_outputs(result: AdjustResult, stage: Path, base_body: Body, target_body: Body, title: str) -> None:
     """Write every output file of ``torchgarment adjust`` for an :class:`AdjustResult` into ``stage``."""
     from torchgarment.io.atomic import atomic_open
     from torchgarment.io.mesh import save_obj
@@ -146,7 +159,8 @@ def write_outputs(result, stage: Path, base_body, target_body, title: str) -> No
     before = vertex_stretch_ratio(result.mesh_base, result.x_base_on_target) - base_ratio
     after = vertex_stretch_ratio(result.mesh_target, result.mesh_target.x) - base_ratio
     lim = max(0.02, float(before.abs().max()), float(after.abs().max()))
-    body = MeshLayer(vertices=target_body.vertices, faces=target_body.faces, color=(0.78, 0.78, 0.80), label="body")
+    body = MeshLayer(vertices=target_body.vertices, faces=target_body.faces, color=(0.78, 0.78, 0.80),
+                     label="body")
     for fname, x, scal, what in (("target_before.png", result.x_base_on_target, before, "base pattern"),
                                  ("target_after.png", result.mesh_target.x, after, "adjusted pattern")):
         layer = MeshLayer(vertices=x, faces=result.mesh_base.faces, scalars=scal, cmap="coolwarm", vmin=-lim,
@@ -172,7 +186,8 @@ def cmd_adjust(args: argparse.Namespace) -> int:
 
     weights = CostWeights(reference_edge_length=args.reference_edge_length)
     weights.validate()
-    settings = AdjustSettings(optimizer=args.optimizer, iterations=args.iterations, edge_length=args.edge_length,
+    settings = AdjustSettings(optimizer=args.optimizer, iterations=args.iterations,
+                              edge_length=args.edge_length,
                               voxel_size=args.voxel, inner_iterations=args.inner_iterations,
                               exact_interval=args.exact_interval, inexact=not args.exact,
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
@@ -181,7 +196,8 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     base_spec = args.base_body if args.base_body is not None else args.base_size
     target_spec = args.target_body if args.target_body is not None else args.target_size
     base_body, base_name = _load_body(base_spec, "base-body" if args.base_body is not None else "base-size")
-    target_body, target_name = _load_body(target_spec, "target-body" if args.target_body is not None else "target-size")
+    target_body, target_name = _load_body(target_spec,
+                                          "target-body" if args.target_body is not None else "target-size")
     from torchgarment.body.size_chart import list_sizes
 
     base_size = base_spec if base_spec in list_sizes() else None
@@ -193,7 +209,8 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     out = Path(args.out)
     import time
 
-    run = f"{pattern.name}-{base_name}-to-{target_name}-{time.strftime('%Y%m%d-%H%M%S')}".replace(" ", "_").replace("/", "_")
+    run = f"{pattern.name}-{base_name}-to-{target_name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    run = run.replace(" ", "_").replace("/", "_")
     log_dir = Path(args.log_dir) if args.log_dir else Path("logs") / "adjust" / run
     result = adjust(pattern, base_body, target_body, settings, log_dir=log_dir,
                     checkpoint_dir=out / "checkpoint", progress=not args.no_progress, resume=args.resume,
@@ -202,8 +219,8 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     with staged_output(out) as stage:
         write_outputs(result, stage, base_body, target_body, title)
     m = result.metrics
-    print(f"adjust {title}: objective {m['objective_base']:.4g} (base) -> {m['objective_initial']:.4g} (initialized) "
-          f"-> {m['objective_final']:.4g} ({m['reduction_percent']:.1f} % reduction), {m['iterations']} iterations, "
-          f"{m['closure_calls']} cloth solves, {m['seconds']:.1f} s, max boundary displacement "
-          f"{m['max_boundary_displacement_mm']:.1f} mm -> {out}", file=sys.stdout)
+    print(f"adjust {title}: objective {m['objective_base']:.4g} (base) -> {m['objective_initial']:.4g} "
+          f"(initialized) -> {m['objective_final']:.4g} ({m['reduction_percent']:.1f} % reduction), "
+          f"{m['iterations']} iterations, {m['closure_calls']} cloth solves, {m['seconds']:.1f} s, max "
+          f"boundary displacement {m['max_boundary_displacement_mm']:.1f} mm -> {out}", file=sys.stdout)
     return 0

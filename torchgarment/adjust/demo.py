@@ -1,7 +1,8 @@
-"""A short pattern-adjustment demo for ``torchgarment demo``: a library garment from one chart size to another.
+"""A short pattern-adjustment demo for ``torchgarment demo``: a library garment from one chart size to
+another.
 
-Coarse by default (5 cm triangle edges, 10 mm SDF voxels, 16 pgd iterations with an exact check every 8) so that
-it runs in a few minutes on 2 CPU cores. The outputs are those of ``torchgarment adjust``
+Coarse by default (5 cm triangle edges, 10 mm SDF voxels, 16 pgd iterations with an exact check every 8) so
+that it runs in a few minutes on 2 CPU cores. The outputs are those of ``torchgarment adjust``
 (:func:`torchgarment.adjust.cli.write_outputs`), TensorBoard scalars under ``out_dir/logs``.
 """
 
@@ -46,7 +47,8 @@ def run_adjust_demo(
         ``out_dir``.
 
     Raises:
-        InputError: unknown size or garment, non-positive ``edge_length``/``voxel_size``, negative ``iterations``.
+        InputError: unknown size or garment, non-positive ``edge_length``/``voxel_size``, negative
+            ``iterations``.
     """
     from torchgarment.adjust.cli import write_outputs
     from torchgarment.adjust.pipeline import AdjustSettings, adjust

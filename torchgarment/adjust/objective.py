@@ -63,20 +63,20 @@ class CostWeights:
         boundary_position_weight: ``u_i`` of Eq. 16 on pattern-boundary vertices (1 elsewhere).
         reference_edge_length: the mesh resolution (mean rest edge length, metres) the coefficients refer to;
             None uses them as given at any resolution. The paper's sums are not resolution independent: the
-            costs sum over vertices and edges (about ``h^-2`` terms for edge length ``h``), the regularizers over
-            boundary vertices (about ``h^-1``) or corners (a fixed number), and the seam and curvature residuals
-            shrink with ``h`` (one edge's length, a corner's second difference). On a mesh of edge length ``h``
-            the regularizers are therefore rescaled so that their balance with the costs is that of the
-            reference mesh (:func:`resolution_factors`): fixing by ``h_ref / h``, seam by ``(h_ref / h)^3``,
-            curvature by ``(h_ref / h)^4``. :data:`DEFAULT_REFERENCE_EDGE_LENGTH` (8 mm) is the resolution of the
-            paper's Table 1 secretary dress (34K vertices, 66K triangles on about 2 m^2 of fabric). Off by
-            default (None). Measured on the straight skirt, 3 cm edges, 96 pgd iterations
-            (``scripts/adjust_acceptance.py --edge-length 0.03 --iterations 96 --weights JSON``): the section-7
-            initialization gains (size 12 -> 20: objective 196 -> 11.3 instead of -> 63.5); grading to size 20
-            gets closer to the chart (waist +15.7 cm instead of +13.6; chart +19.05); grading to size 6
-            overshoots the hips (-12.4 cm instead of -11.9; chart -8.9). Along a uniform panel widening
-            (``scripts/adjust_widening_scan.py``) the objective's minimum moves from a ratio of about 1.1 to the
-            chart's 1.22.
+            costs sum over vertices and edges (about ``h^-2`` terms for edge length ``h``), the regularizers
+            over boundary vertices (about ``h^-1``) or corners (a fixed number), and the seam and curvature
+            residuals shrink with ``h`` (one edge's length, a corner's second difference). On a mesh of edge
+            length ``h`` the regularizers are therefore rescaled so that their balance with the costs is that
+            of the reference mesh (:func:`resolution_factors`): fixing by ``h_ref / h``, seam by ``(h_ref /
+            h)^3``, curvature by ``(h_ref / h)^4``. :data:`DEFAULT_REFERENCE_EDGE_LENGTH` (8 mm) is the
+            resolution of the paper's Table 1 secretary dress (34K vertices, 66K triangles on about 2 m^2 of
+            fabric). Off by default (None). Measured on the straight skirt, 3 cm edges, 96 pgd iterations
+            (``scripts/adjust_acceptance.py --edge-length 0.03 --iterations 96 --weights JSON``): the
+            section-7 initialization gains (size 12 -> 20: objective 196 -> 11.3 instead of -> 63.5); grading
+            to size 20 gets closer to the chart (waist +15.7 cm instead of +13.6; chart +19.05); grading to
+            size 6 overshoots the hips (-12.4 cm instead of -11.9; chart -8.9). Along a uniform panel widening
+            (``scripts/adjust_widening_scan.py``) the objective's minimum moves from a ratio of about 1.1 to
+            the chart's 1.22.
     """
 
     distance: float = 1.0
@@ -97,7 +97,8 @@ class CostWeights:
             v = getattr(self, f.name)
             if f.name == "reference_edge_length":
                 if v is not None and (not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0):
-                    raise InputError(f"reference_edge_length must be None or a positive length in metres, got {v!r}")
+                    raise InputError("reference_edge_length must be None or a positive length in metres, "
+                                     f"got {v!r}")
                 continue
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise InputError(f"cost weight {f.name} must be a finite number >= 0, got {v!r}")
@@ -262,7 +263,8 @@ class AdjustObjective(torch.nn.Module):
         """Sum () of the regularizers at the pattern ``p`` (V, 2)."""
         self._check(None, p)
         q = self.boundary(p)
-        return sum((r(q) for r in self.regularizers.values()), torch.zeros((), dtype=p.dtype, device=p.device))
+        return sum((r(q) for r in self.regularizers.values()),
+                   torch.zeros((), dtype=p.dtype, device=p.device))
 
     def initialization_objective(self, p: torch.Tensor) -> torch.Tensor:
         """Section 7's initialization objective (): stretching at ``x = x_transfer`` plus the regularizers.
@@ -277,7 +279,8 @@ class AdjustObjective(torch.nn.Module):
         return out
 
     def regularizer_hessian(self) -> scipy.sparse.csr_matrix:
-        """Constant approximate Hessian (2B, 2B) of the regularizers w.r.t. ``q.reshape(-1)``, positive definite.
+        """Constant approximate Hessian (2B, 2B) of the regularizers w.r.t. ``q.reshape(-1)``, positive
+        definite.
 
         Fixing: exact (``δ_fix I``); curvature: ``T_i`` held constant; seam: base edge directions. When the
         fixing term is off, ``1e-8`` times the largest diagonal entry (or 1 if all are zero) is added on the

@@ -1,12 +1,12 @@
 """Regularizers on the boundary parameters ``q`` (Wang et al. 2018, section 5.1, Eq. 9-10) and seam lengths.
 
 Every regularizer is an ``nn.Module`` whose ``forward(q)`` takes the boundary positions ``q`` (B, 2) (metres,
-in the order of :attr:`BoundaryParametrization.boundary_index`) and returns a scalar; autograd gives ``dR/dq``.
-Like the costs, each is a least-squares sum ``forward(q) = weight / 2 * |residuals(q)|^2`` (for Gauss-Newton).
-``hessian()`` returns the constant approximate Hessian (scipy csr, (2B, 2B), ``q`` flattened row-major) used
-by the preconditioner of section 7: exact for the fixing term, with ``T_i`` held constant for the curvature
-term (the paper's choice), and with edge directions held at the base pattern's for the seam term.
-Coefficients are in 1/m^2 like the paper's.
+in the order of :attr:`BoundaryParametrization.boundary_index`) and returns a scalar; autograd gives
+``dR/dq``. Like the costs, each is a least-squares sum ``forward(q) = weight / 2 * |residuals(q)|^2`` (for
+Gauss-Newton). ``hessian()`` returns the constant approximate Hessian (scipy csr, (2B, 2B), ``q`` flattened
+row-major) used by the preconditioner of section 7: exact for the fixing term, with ``T_i`` held constant for
+the curvature term (the paper's choice), and with edge directions held at the base pattern's for the seam
+term. Coefficients are in 1/m^2 like the paper's.
 """
 
 from __future__ import annotations
@@ -68,8 +68,8 @@ class BoundaryCurvatureRegularizer(torch.nn.Module):
 
     ``j``, ``k`` are the outline neighbours of boundary vertex ``i``. ``T_i`` is the similarity (rotation and
     uniform scale, ``[[a, -b], [b, a]]``) that best maps the base edge vectors ``(q̄_j - q̄_i, q̄_k - q̄_i)`` onto
-    the current ones ``(q_j - q_i, q_k - q_i)`` in the least-squares sense (Fig. 6); it is a smooth function of
-    ``q`` and autograd differentiates through it. The term is zero under any rotation + uniform scale +
+    the current ones ``(q_j - q_i, q_k - q_i)`` in the least-squares sense (Fig. 6); it is a smooth function
+    of ``q`` and autograd differentiates through it. The term is zero under any rotation + uniform scale +
     translation of a whole outline. ``w_i = corner_weight`` at corners, 1 elsewhere.
 
     Attributes:
@@ -102,13 +102,15 @@ class BoundaryCurvatureRegularizer(torch.nn.Module):
         self.register_buffer("q_base", qb)
 
     def similarities(self, q: torch.Tensor) -> torch.Tensor:
-        """(B, 2) ``T_i`` as complex numbers ``[a, b]`` (least-squares similarity from base to current edges)."""
+        """(B, 2) ``T_i`` as complex numbers ``[a, b]`` (least-squares similarity from base to current
+        edges)."""
         qb = self.q_base.to(q.dtype)
         ej, ek = q[self.prev] - q, q[self.next] - q
         bj, bk = qb[self.prev] - qb, qb[self.next] - qb
         # z = sum conj(b) e / sum |b|^2
         num = torch.stack([(bj * ej).sum(-1) + (bk * ek).sum(-1),
-                           bj[:, 0] * ej[:, 1] - bj[:, 1] * ej[:, 0] + bk[:, 0] * ek[:, 1] - bk[:, 1] * ek[:, 0]], -1)
+                           bj[:, 0] * ej[:, 1] - bj[:, 1] * ej[:, 0] + bk[:, 0] * ek[:, 1] - bk[:, 1]
+                           * ek[:, 0]], -1)
         den = bj.pow(2).sum(-1) + bk.pow(2).sum(-1)
         return num / den[:, None]
 
@@ -129,12 +131,14 @@ class BoundaryCurvatureRegularizer(torch.nn.Module):
         return 0.5 * self.weight * self.residuals(q).pow(2).sum()
 
     def hessian(self) -> scipy.sparse.csr_matrix:
-        """(2B, 2B) Hessian with ``T_i`` held constant: ``weight * kron(D^T W D, I_2)``, D the second difference."""
+        """(2B, 2B) Hessian with ``T_i`` held constant: ``weight * kron(D^T W D, I_2)``, D the second
+        difference."""
         B = self.q_base.shape[0]
         i = np.arange(B)
         pv, nx = self.prev.cpu().numpy(), self.next.cpu().numpy()
         D = scipy.sparse.coo_matrix((np.concatenate([np.ones(B), np.ones(B), -2.0 * np.ones(B)]),
-                                     (np.concatenate([i, i, i]), np.concatenate([pv, nx, i]))), shape=(B, B)).tocsr()
+                                     (np.concatenate([i, i, i]), np.concatenate([pv, nx, i]))),
+                                    shape=(B, B)).tocsr()
         W = scipy.sparse.diags(self.vertex_weight.detach().cpu().double().numpy())
         return scipy.sparse.kron(self.weight * (D.T @ W @ D), scipy.sparse.identity(2), format="csr")
 
@@ -182,7 +186,8 @@ class SeamLengthRegularizer(torch.nn.Module):
         return 0.5 * self.weight * self.residuals(q).pow(2).sum()
 
     def hessian(self) -> scipy.sparse.csr_matrix:
-        """(2B, 2B) Gauss-Newton Hessian with the edge directions of the base pattern: ``weight * sum g g^T``."""
+        """(2B, 2B) Gauss-Newton Hessian with the edge directions of the base pattern: ``weight * sum g
+        g^T``."""
         B = self.q_base.shape[0]
         pr = self.pairs.cpu().numpy()
         if pr.shape[0] == 0:

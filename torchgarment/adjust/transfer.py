@@ -29,6 +29,8 @@ farther than the candidates only removes a blend.)
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -36,6 +38,9 @@ from scipy.spatial import cKDTree
 from torchgarment.body.body import Body
 from torchgarment.errors import InputError
 from torchgarment.options import OptionEnum
+
+if TYPE_CHECKING:
+    import scipy.sparse
 
 DEFAULT_BAND = 0.01
 """Transition bandwidth ``B`` of Eq. 15 in metres (the paper gives no value)."""
@@ -96,7 +101,8 @@ def point_triangle_closest(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nd
     return out
 
 
-def _frames(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _frames(v: np.ndarray,
+            f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-triangle frame: v0, e1, e2, unit normal n, area."""
     v0 = v[f[:, 0]]
     e1 = v[f[:, 1]] - v0
@@ -107,7 +113,8 @@ def _frames(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     return v0, e1, e2, n, 0.5 * dbl
 
 
-def _local_coordinates(x: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray, n: np.ndarray) -> np.ndarray:
+def _local_coordinates(x: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray,
+                       n: np.ndarray) -> np.ndarray:
     """(N, 3) ``(a, b, h)`` with ``x = v0 + a e1 + b e2 + h n`` (rows matched)."""
     r = x - v0
     h = (r * n).sum(1)
@@ -120,7 +127,7 @@ def _local_coordinates(x: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.nda
     return np.stack([a, b, h], 1)
 
 
-def _vertex_adjacency(f: np.ndarray, num_vertices: int):  # noqa: ANN202 - scipy sparse
+def _vertex_adjacency(f: np.ndarray, num_vertices: int) -> scipy.sparse.csr_matrix:
     """(F, F) sparse boolean: triangles sharing a vertex (diagonal included)."""
     import scipy.sparse
 
@@ -165,7 +172,9 @@ def two_minimum_triangles(x: np.ndarray, v: np.ndarray, f: np.ndarray, band: flo
     return t0, d0, t1, d1
 
 
-def _second(x, idx, cand, a, b, c, adj, t0, d0, band, t1, d1) -> None:  # noqa: ANN001
+def _second(x: np.ndarray, idx: np.ndarray, cand: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,
+            adj: scipy.sparse.csr_matrix, t0: np.ndarray, d0: np.ndarray, band: float, t1: np.ndarray,
+            d1: np.ndarray) -> None:
     """Fill t1/d1 for the points ``idx`` from their candidate triangles ``cand`` (n, k)."""
     n, k = cand.shape
     owner = np.repeat(idx, k)
@@ -202,7 +211,8 @@ def _second(x, idx, cand, a, b, c, adj, t0, d0, band, t1, d1) -> None:  # noqa: 
     d1[idx[has]] = best[has]
 
 
-def transfer_deformation(x_base: torch.Tensor, base_body: Body, target_body: Body, *, band: float = DEFAULT_BAND,
+def transfer_deformation(x_base: torch.Tensor, base_body: Body, target_body: Body, *,
+                         band: float = DEFAULT_BAND,
                          offset: OffsetScaling | str = OffsetScaling.SCALED) -> torch.Tensor:
     """Transfer a garment draped on ``base_body`` to ``target_body`` (Eq. 15).
 
@@ -228,8 +238,9 @@ def transfer_deformation(x_base: torch.Tensor, base_body: Body, target_body: Bod
     fb = base_body.faces.detach().cpu().numpy().astype(np.int64)
     ft = target_body.faces.detach().cpu().numpy().astype(np.int64)
     if vb.shape != vt.shape or fb.shape != ft.shape or not np.array_equal(fb, ft):
-        raise InputError(f"deformation transfer needs bodies of one topology: base has {vb.shape[0]} vertices and "
-                         f"{fb.shape[0]} faces, target {vt.shape[0]} and {ft.shape[0]} (or different faces)")
+        raise InputError(f"deformation transfer needs bodies of one topology: base has {vb.shape[0]} "
+                         f"vertices and {fb.shape[0]} faces, target {vt.shape[0]} and {ft.shape[0]} (or "
+                         "different faces)")
     x = x_base.detach().cpu().double().numpy()
     t0, d0, t1, d1 = two_minimum_triangles(x, vb, fb, band)
     F0 = _frames(vb, fb)

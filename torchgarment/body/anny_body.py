@@ -40,15 +40,26 @@ import math
 import os
 import time
 from dataclasses import asdict, dataclass
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from torchgarment.body import cache as body_cache
 from torchgarment.body.body import Body
-from torchgarment.body.measure import SectionPlane, body_height, find_section_planes, measure_body, section_girths
+from torchgarment.body.measure import (
+    SectionPlane,
+    body_height,
+    find_section_planes,
+    measure_body,
+    section_girths,
+)
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    import anny
 
 FIT_VERSION = "5"
 """Version of the fitting code; part of the cache key. Bump it whenever fitted bodies would change."""
@@ -88,7 +99,8 @@ ADULT_AGE = 2.0 / 3.0
 """Anny ``age`` of the MakeHuman "young" (25 years) targets."""
 
 _PHENOTYPES = (
-    "gender", "age", "muscle", "weight", "height", "proportions", "cupsize", "firmness", "african", "asian", "caucasian"
+    "gender", "age", "muscle", "weight", "height", "proportions", "cupsize", "firmness", "african", "asian",
+    "caucasian"
 )
 """Anny's phenotype labels with ``phenotypes="all"``, in the model's order."""
 
@@ -126,10 +138,11 @@ class FitSettings:
     """Settings of :func:`fit_anny`.
 
     Attributes:
-        tolerance: stop when every measurement (height and girths, re-measured with fresh planes) is within this
-            many metres of the request (the landmark search has about 1 mm of jitter, so much less is wasted
-            time).
-        max_rounds: maximum number of Levenberg-Marquardt iterations (each re-finds the planes of every trial).
+        tolerance: stop when every measurement (height and girths, re-measured with fresh planes) is within
+            this many metres of the request (the landmark search has about 1 mm of jitter, so much less is
+            wasted time).
+        max_rounds: maximum number of Levenberg-Marquardt iterations (each re-finds the planes of every
+            trial).
         prior: weight (metres per unit) of the prior pulling local changes to 0.
         accept: a fit whose final error exceeds this many metres raises InputError.
         max_step: largest change of any parameter in one step (a trust region: the tape planes move with the
@@ -172,7 +185,7 @@ class AnnyFit:
 
 
 @functools.lru_cache(maxsize=1)
-def load_anny_model():
+def load_anny_model() -> anny.Anny:
     """The anny model used for bodies (loaded once per process; anny caches its data on disk).
 
     Returns:
@@ -182,7 +195,7 @@ def load_anny_model():
     return anny.Anny(topology=TOPOLOGY, local_changes=list(LOCAL_CHANGES.values()), phenotypes="all")
 
 
-def _import_anny_quietly():
+def _import_anny_quietly() -> ModuleType:
     """Import anny without the banner its NVIDIA Warp dependency prints on stdout and stderr at import.
 
     anny initializes Warp at import; Warp prints a version banner (stdout) and, on machines without a CUDA
@@ -242,21 +255,24 @@ def validate_measurements(measurements: dict) -> dict[str, float]:
         try:
             value = float(measurements[name])
         except (TypeError, ValueError):
-            raise InputError(f"body measurement {name!r} must be a number (metres), got {measurements[name]!r}")
+            raise InputError(f"body measurement {name!r} must be a number (metres), got "
+                             f"{measurements[name]!r}")
         if not math.isfinite(value) or not lo <= value <= hi:
-            raise InputError(f"body measurement {name}={value!r} m is outside the realistic range [{lo}, {hi}] m")
+            raise InputError(f"body measurement {name}={value!r} m is outside the realistic range [{lo}, "
+                             f"{hi}] m")
         out[name] = value
     if "underbust" in out and out["underbust"] >= out["bust"]:
-        raise InputError(f"underbust ({out['underbust']:.3f} m) must be smaller than bust ({out['bust']:.3f} m)")
+        raise InputError(f"underbust ({out['underbust']:.3f} m) must be smaller than bust ({out['bust']:.3f} "
+                         "m)")
     return out
 
 
 def guess_gender(measurements: dict[str, float]) -> float:
     """Anny ``gender`` (0 male, 1 female) guessed from the relative hips-waist and bust-underbust drops.
 
-    Typical women have ``(hips - waist) / hips`` about 0.2-0.3 and ``(bust - underbust) / bust`` about 0.12-0.18;
-    typical men about 0.05-0.1 and 0.05-0.08. Each drop is mapped linearly onto [0, 1] between those values and
-    the available ones are averaged.
+    Typical women have ``(hips - waist) / hips`` about 0.2-0.3 and ``(bust - underbust) / bust`` about
+    0.12-0.18; typical men about 0.05-0.1 and 0.05-0.08. Each drop is mapped linearly onto [0, 1] between
+    those values and the available ones are averaged.
     """
     m = measurements
     scores = [((m["hips"] - m["waist"]) / m["hips"] - 0.08) / 0.12]
@@ -276,7 +292,7 @@ class _Shape:
     The parameter vector is ``[height, weight, muscle, proportions, cupsize, local changes of girths]``.
     """
 
-    def __init__(self, model, phenotype: dict[str, float], girths: list[str]):
+    def __init__(self, model: anny.Anny, phenotype: dict[str, float], girths: list[str]) -> None:
         self.model = model
         if tuple(model.phenotype_labels) != _PHENOTYPES:
             raise InputError(f"unexpected anny phenotype labels {list(model.phenotype_labels)}")
@@ -287,7 +303,8 @@ class _Shape:
         self.num_lc = len(labels)
         self.girths = girths
         upper = {"weight": MAX_WEIGHT}
-        self.lower = torch.tensor([0.0] * NUM_PHENO_FREE + [LOCAL_CHANGE_RANGE[0]] * len(girths), dtype=torch.float64)
+        self.lower = torch.tensor([0.0] * NUM_PHENO_FREE + [LOCAL_CHANGE_RANGE[0]] * len(girths),
+                                  dtype=torch.float64)
         self.upper = torch.tensor(
             [upper.get(k, 1.0) for k in _FREE] + [LOCAL_CHANGE_RANGE[1]] * len(girths), dtype=torch.float64
         )
@@ -310,7 +327,8 @@ class _Shape:
 
 
 def _solve_height(shape: _Shape, x: torch.Tensor, target: float) -> torch.Tensor:
-    """Secant iterations on the phenotype height so that the body height matches ``target`` (in place on x)."""
+    """Secant iterations on the phenotype height so that the body height matches ``target`` (in place on
+    x)."""
     with torch.no_grad():
 
         def h(t: float) -> float:
@@ -335,7 +353,8 @@ def _plane_offsets(planes: dict[str, SectionPlane], names: tuple[str, ...]) -> t
 
 
 def _plane_motion(
-    shape: "_Shape", faces: torch.Tensor, names: tuple[str, ...], x: torch.Tensor, offsets: torch.Tensor, h: float
+    shape: "_Shape", faces: torch.Tensor, names: tuple[str, ...], x: torch.Tensor, offsets: torch.Tensor,
+    h: float
 ) -> torch.Tensor:
     """(G, P) derivative of the plane offsets (``point . normal`` of freshly found planes) with respect to the
     parameters, by one-sided finite differences of step ``h`` (backwards at an upper bound)."""
@@ -350,7 +369,8 @@ def _plane_motion(
     return out
 
 
-def _girth_slopes(vertices: torch.Tensor, faces: torch.Tensor, planes: dict[str, SectionPlane], eps: float = 1e-3):
+def _girth_slopes(vertices: torch.Tensor, faces: torch.Tensor, planes: dict[str, SectionPlane],
+                  eps: float = 1e-3) -> torch.Tensor:
     """(G,) derivative of each girth with respect to moving its plane along the normal (central differences
     over +-eps metres), in the order of ``planes``."""
     shifted = {}
@@ -383,7 +403,8 @@ def _bounded_step(
     return step
 
 
-def fit_anny(measurements: dict[str, float], settings: FitSettings = FitSettings()) -> tuple[AnnyFit, torch.Tensor]:
+def fit_anny(measurements: dict[str, float],
+             settings: FitSettings = FitSettings()) -> tuple[AnnyFit, torch.Tensor]:
     """Fit anny's phenotype and local changes to tape measurements.
 
     Args:
@@ -413,7 +434,7 @@ def fit_anny(measurements: dict[str, float], settings: FitSettings = FitSettings
     )
     x_prior = x.clone()
 
-    def residual(xv: torch.Tensor, planes) -> torch.Tensor:
+    def residual(xv: torch.Tensor, planes: dict[str, SectionPlane]) -> torch.Tensor:
         v = shape.vertices(xv)
         g = section_girths(v, faces, planes)
         meas = torch.stack([body_height(v)] + [g[n] for n in girths])
@@ -425,7 +446,7 @@ def fit_anny(measurements: dict[str, float], settings: FitSettings = FitSettings
     rounds = 0
     history: list[float] = []
 
-    def evaluate(xv: torch.Tensor):
+    def evaluate(xv: torch.Tensor) -> tuple[dict[str, SectionPlane], torch.Tensor, torch.Tensor]:
         """(fresh planes, their offsets (G,), true residual) of the body at xv: what measure_body reports."""
         with torch.no_grad():
             v = shape.vertices(xv)
@@ -503,7 +524,7 @@ def fit_anny(measurements: dict[str, float], settings: FitSettings = FitSettings
     return fit, v
 
 
-def _rig(model, x_coeffs: torch.Tensor, offset: torch.Tensor) -> tuple[Skeleton, torch.Tensor]:
+def _rig(model: anny.Anny, x_coeffs: torch.Tensor, offset: torch.Tensor) -> tuple[Skeleton, torch.Tensor]:
     """Skeleton (joints = bone heads, bones = parent links) and (J, V) skin weights of a fitted body.
 
     Joints carrying no skin weight and having no weighted descendant (the eye bones of the eyeless topology)
@@ -605,8 +626,8 @@ def body_from_measurements(
         settings: fit settings.
 
     Returns:
-        A :class:`Body`: closed manifold mesh (V = 13,348 vertices), +Y up, metres, feet at y = 0, centred in x
-        and z; skeleton of anny's bone heads (joint names kept); (J, V) skin weights; landmarks at the girth
+        A :class:`Body`: closed manifold mesh (V = 13,348 vertices), +Y up, metres, feet at y = 0, centred in
+        x and z; skeleton of anny's bone heads (joint names kept); (J, V) skin weights; landmarks at the girth
         section seeds (``"bust"``, ...) and the ``"crown"``; ``params`` with the request, the measured values,
         the fitted anny parameters and the fit's timing. ``params["cache_hit"]`` tells whether it came from
         the cache.

@@ -4,8 +4,8 @@
 a data set of hundreds of bodies (the data-driven fitting of Gillies et al. 2004) instead samples anny's
 phenotype parameters directly and evaluates the model once per batch (measured: 0.06 s per body for
 sampling with the stature solve, 0.01-0.02 s per body for the vertices, on an idle 2-core CPU).
-Bodies are in the frame of the fitted ones: +Y up, front +Z, metres, feet at ``y = 0``, the root (pelvis) joint
-on the Y axis, topology :data:`~torchgarment.body.anny_body.TOPOLOGY` (13,348 vertices).
+Bodies are in the frame of the fitted ones: +Y up, front +Z, metres, feet at ``y = 0``, the root (pelvis)
+joint on the Y axis, topology :data:`~torchgarment.body.anny_body.TOPOLOGY` (13,348 vertices).
 
 Sampling (:func:`sample_phenotypes`, all draws independent):
 
@@ -30,20 +30,21 @@ the published 5th-95th percentile spread (about 23 cm) of the same tables. The g
 Anthropometric Survey of U.S. Army Personnel", NATICK/TR-15/007, 2014) for chest and buttock (hip) girths,
 widened by a few centimetres. (These figures are quoted from the cited reports as remembered when this module
 was written; they could not be re-checked against the reports in the offline environment it was built in, so
-treat them as approximate and check them before relying on the exact values.) The ``weight`` range and the girth factor were chosen by measuring the sampled
-bodies (:func:`torchgarment.body.measure.measure_body`). Measured on 40 default (female) samples, seed 1: stature
-mean 159.5 cm (5th-95th percentile 148.6-169.0), bust 93.7 (82.7-105.7), waist 75.6 (65.6-85.5), hips 104.0
-(93.3-116.6) cm; 39 of 40 inside :data:`GIRTH_RANGES` (one waist of 59.8 cm). Limitation: the statures match
-NHANES, but the girths span roughly the US Misses size chart (sizes 6-20) rather than the whole US population
-(NHANES mean adult female waist about 98 cm): anny's phenotypes and MakeHuman local changes within their
-range do not reach the largest waists with a plausible shape. Bodies can be checked with
-:func:`check_realistic`.
+treat them as approximate and check them before relying on the exact values.) The ``weight`` range and the
+girth factor were chosen by measuring the sampled bodies (:func:`torchgarment.body.measure.measure_body`).
+Measured on 40 default (female) samples, seed 1: stature mean 159.5 cm (5th-95th percentile 148.6-169.0), bust
+93.7 (82.7-105.7), waist 75.6 (65.6-85.5), hips 104.0 (93.3-116.6) cm; 39 of 40 inside :data:`GIRTH_RANGES`
+(one waist of 59.8 cm). Limitation: the statures match NHANES, but the girths span roughly the US Misses size
+chart (sizes 6-20) rather than the whole US population (NHANES mean adult female waist about 98 cm): anny's
+phenotypes and MakeHuman local changes within their range do not reach the largest waists with a plausible
+shape. Bodies can be checked with :func:`check_realistic`.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -61,6 +62,9 @@ from torchgarment.body.anny_body import (
 from torchgarment.body.body import Body
 from torchgarment.errors import InputError
 from torchgarment.options import OptionEnum
+
+if TYPE_CHECKING:
+    import anny
 
 PHENOTYPE_NAMES: tuple[str, ...] = _PHENOTYPES
 """Anny's phenotype labels (``phenotypes="all"``), in the model's order."""
@@ -155,11 +159,11 @@ class PhenotypeRanges:
             raise InputError(f"PhenotypeRanges.age_years must lie in [11, 90] years, got {(lo, hi)}")
         if not (LOCAL_CHANGE_RANGE[0] <= self.girth[0] <= self.girth[1] <= LOCAL_CHANGE_RANGE[1]
                 and 0.0 <= self.girth_noise <= 1.0):
-            raise InputError(f"PhenotypeRanges.girth must be an interval in {LOCAL_CHANGE_RANGE} and girth_noise in "
-                             f"[0, 1], got {self.girth} and {self.girth_noise}")
+            raise InputError(f"PhenotypeRanges.girth must be an interval in {LOCAL_CHANGE_RANGE} and "
+                             f"girth_noise in [0, 1], got {self.girth} and {self.girth_noise}")
         if not (0.8 < self.stature_mean < 2.3 and 0.0 <= self.stature_sd < 0.3 and self.stature_clip >= 0):
-            raise InputError("PhenotypeRanges: stature_mean must be in (0.8, 2.3) m, stature_sd in [0, 0.3) m and "
-                             "stature_clip >= 0")
+            raise InputError("PhenotypeRanges: stature_mean must be in (0.8, 2.3) m, stature_sd in [0, 0.3) "
+                             "m and stature_clip >= 0")
 
 
 def age_from_years(years: torch.Tensor) -> torch.Tensor:
@@ -170,7 +174,7 @@ def age_from_years(years: torch.Tensor) -> torch.Tensor:
     return torch.where(years < y1, young, old)
 
 
-def _framed(model, coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _framed(model: anny.Anny, coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, V, 3) Y-up vertices in the body frame and the (B, 3) offsets subtracted (root on Y, feet at 0)."""
     with torch.no_grad():
         rest = model.get_rest_model(coeffs)
@@ -195,8 +199,8 @@ def _as_matrix(phenotypes: list[dict]) -> tuple[torch.Tensor, torch.Tensor]:
             raise InputError(f"a phenotype must be a dict of anny parameters, got {type(ph).__name__}")
         unknown = sorted(set(ph) - set(PHENOTYPE_NAMES) - set(LOCAL_CHANGE_NAMES))
         if unknown:
-            raise InputError(f"unknown anny parameter(s) {unknown}; accepted: {', '.join(PHENOTYPE_NAMES)} and the "
-                             f"local changes {', '.join(LOCAL_CHANGE_NAMES)}")
+            raise InputError(f"unknown anny parameter(s) {unknown}; accepted: {', '.join(PHENOTYPE_NAMES)} "
+                             f"and the local changes {', '.join(LOCAL_CHANGE_NAMES)}")
         full = dict(DEFAULT_PHENOTYPE, gender=0.5)
         full.update(ph)
         row, lc_row = [], []
@@ -213,10 +217,11 @@ def _as_matrix(phenotypes: list[dict]) -> tuple[torch.Tensor, torch.Tensor]:
             (row if name in PHENOTYPE_NAMES else lc_row).append(value)
         rows.append(row)
         lc_rows.append(lc_row)
-    return torch.tensor(rows, dtype=torch.float64), torch.tensor(lc_rows, dtype=torch.float64).reshape(len(rows), -1)
+    return (torch.tensor(rows, dtype=torch.float64),
+            torch.tensor(lc_rows, dtype=torch.float64).reshape(len(rows), -1))
 
 
-def _coefficients(model, pheno: torch.Tensor, lc: torch.Tensor | None = None) -> torch.Tensor:
+def _coefficients(model: anny.Anny, pheno: torch.Tensor, lc: torch.Tensor | None = None) -> torch.Tensor:
     """Blend-shape coefficients of a (B, P) phenotype batch with (B, L) local changes (in
     :data:`LOCAL_CHANGE_NAMES` order; None: none)."""
     full = pheno.new_zeros(pheno.shape[0], len(model.local_change_labels))
@@ -249,9 +254,10 @@ def vertices_from_phenotypes(phenotypes: list[dict], batch_size: int = 32) -> to
     return torch.cat(out)
 
 
-def _solve_stature(model, pheno: torch.Tensor, lc: torch.Tensor, target: torch.Tensor, iterations: int = 8
-                   ) -> torch.Tensor:
-    """Batched secant on the ``height`` phenotype column so that the stature (max y - min y) hits ``target``."""
+def _solve_stature(model: anny.Anny, pheno: torch.Tensor, lc: torch.Tensor, target: torch.Tensor,
+                   iterations: int = 8) -> torch.Tensor:
+    """Batched secant on the ``height`` phenotype column so that the stature (max y - min y) hits
+    ``target``."""
     hi_index = PHENOTYPE_NAMES.index("height")
 
     def stature(t: torch.Tensor) -> torch.Tensor:
@@ -321,7 +327,8 @@ def sample_phenotypes(n: int, seed: int = 0, ranges: PhenotypeRanges | None = No
     }
     pheno = torch.stack([cols[k] for k in PHENOTYPE_NAMES], dim=1)
     girth = uniform(ranges.girth)
-    noise = ranges.girth_noise * (2.0 * torch.rand(n, len(GIRTH_GAINS), generator=g, dtype=torch.float64) - 1.0)
+    noise = ranges.girth_noise * (2.0 * torch.rand(n, len(GIRTH_GAINS), generator=g, dtype=torch.float64)
+                                  - 1.0)
     gains = torch.tensor(list(GIRTH_GAINS.values()), dtype=torch.float64)
     lc = (girth[:, None] * gains + noise).clamp(*LOCAL_CHANGE_RANGE)
     lc_full = torch.zeros(n, len(LOCAL_CHANGE_NAMES), dtype=torch.float64)
@@ -391,7 +398,8 @@ def body_from_phenotype(
     return body.to(device=device, dtype=dtype)
 
 
-def check_realistic(measurements: dict[str, float], population: Population | str = Population.FEMALE) -> list[str]:
+def check_realistic(measurements: dict[str, float],
+                    population: Population | str = Population.FEMALE) -> list[str]:
     """Names of the measurements outside :data:`GIRTH_RANGES` (empty list: realistic).
 
     Args:

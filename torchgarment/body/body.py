@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -46,13 +47,14 @@ class Body:
     def num_vertices(self) -> int:
         return int(self.vertices.shape[0])
 
-    def to(self, device=None, dtype=None) -> "Body":
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "Body":
         """Return a copy with tensors moved to ``device`` and floats cast to ``dtype``."""
         return Body(
             vertices=self.vertices.to(device=device, dtype=dtype),
             faces=self.faces.to(device=device),
             skeleton=None if self.skeleton is None else self.skeleton.to(device, dtype),
-            skin_weights=None if self.skin_weights is None else self.skin_weights.to(device=device, dtype=dtype),
+            skin_weights=(None if self.skin_weights is None
+                          else self.skin_weights.to(device=device, dtype=dtype)),
             landmarks={k: v.to(device=device, dtype=dtype) for k, v in self.landmarks.items()},
             params=dict(self.params),
         )
@@ -67,21 +69,27 @@ class Body:
 
     # Constructors live in their own modules; these are thin entry points.
     @classmethod
-    def from_file(cls, path, skeleton=None, skin_weights=None, *, dtype=torch.float64, device=None) -> "Body":
+    def from_file(cls, path: str | os.PathLike, skeleton: Skeleton | str | os.PathLike | None = None,
+                  skin_weights: torch.Tensor | str | os.PathLike | None = None, *,
+                  dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> "Body":
         """Load any mesh file (OBJ, PLY, STL, GLB) as a body; see :func:`torchgarment.body.load.load_body`."""
         from torchgarment.body.load import load_body
 
         return load_body(path, skeleton=skeleton, skin_weights=skin_weights, dtype=dtype, device=device)
 
     @classmethod
-    def from_measurements(cls, *, dtype=torch.float64, device=None, cache=True, **measurements: float) -> "Body":
-        """Fit an anny body to measurements in metres; see :func:`torchgarment.body.anny_body.body_from_measurements`."""
+    def from_measurements(cls, *, dtype: torch.dtype = torch.float64,
+                          device: torch.device | str | None = None, cache: bool = True,
+                          **measurements: float) -> "Body":
+        """Fit an anny body to measurements in metres; see
+        :func:`torchgarment.body.anny_body.body_from_measurements`."""
         from torchgarment.body.anny_body import body_from_measurements
 
         return body_from_measurements(measurements, dtype=dtype, device=device, cache=cache)
 
     @classmethod
-    def from_size(cls, size: str, *, dtype=torch.float64, device=None, cache=True) -> "Body":
+    def from_size(cls, size: str, *, dtype: torch.dtype = torch.float64,
+                  device: torch.device | str | None = None, cache: bool = True) -> "Body":
         """A body of a size of the built-in chart; see :mod:`torchgarment.body.size_chart`."""
         from torchgarment.body.size_chart import chart_row
 

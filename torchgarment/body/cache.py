@@ -1,9 +1,9 @@
 """Disk cache of generated bodies.
 
-Entries live in ``$TORCHGARMENT_CACHE/bodies`` (default ``~/.cache/torchgarment/bodies``), one ``<key>.pt`` file
-each, written atomically (:mod:`torchgarment.io.atomic`), so a crash never leaves a half-written entry. The key
-is a SHA-256 hash of a JSON description of everything the body depends on (the requested measurements, the
-generator's version, the fitting code's version); callers build that description.
+Entries live in ``$TORCHGARMENT_CACHE/bodies`` (default ``~/.cache/torchgarment/bodies``), one ``<key>.pt``
+file each, written atomically (:mod:`torchgarment.io.atomic`), so a crash never leaves a half-written entry.
+The key is a SHA-256 hash of a JSON description of everything the body depends on (the requested measurements,
+the generator's version, the fitting code's version); callers build that description.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -44,7 +45,7 @@ def cache_key(description: dict) -> str:
         A 32-character hex key.
     """
 
-    def norm(x):
+    def norm(x: Any) -> Any:
         if isinstance(x, float):
             return round(x, 9)
         if isinstance(x, dict):

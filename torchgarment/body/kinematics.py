@@ -28,11 +28,15 @@ from __future__ import annotations
 import copy
 import enum
 from collections import OrderedDict, deque
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    import pytorch_kinematics as pk
 
 __all__ = [
     "KinematicSkeleton",
@@ -110,7 +114,8 @@ def joint_parents(skeleton: Skeleton) -> torch.Tensor:
     """
     num_joints = skeleton.num_joints
     if skeleton.joints.ndim != 2 or skeleton.joints.shape[1] != 3 or num_joints == 0:
-        raise InputError(f"skeleton joints must have shape (J, 3) with J > 0, got {tuple(skeleton.joints.shape)}")
+        raise InputError("skeleton joints must have shape (J, 3) with J > 0, got "
+                         f"{tuple(skeleton.joints.shape)}")
     if not torch.isfinite(skeleton.joints).all():
         raise InputError("skeleton joints must be finite")
     check_bone_forest(num_joints, skeleton.bones)
@@ -276,7 +281,7 @@ _CHAIN_TEMPLATES: "OrderedDict[tuple[int, ...], tuple[object, dict[str, int]]]" 
 _MAX_CHAIN_TEMPLATES = 8
 
 
-def _chain_template(urdf: str, parents: tuple[int, ...]):
+def _chain_template(urdf: str, parents: tuple[int, ...]) -> tuple[pk.Chain, dict[str, int]]:
     """The float64 CPU pytorch-kinematics chain of a topology and its frame index map (cached per topology).
 
     Only the static offsets of the ``joint{j}_x`` frames depend on the joint positions; callers copy the
@@ -313,7 +318,7 @@ class KinematicSkeleton:
         urdf: the URDF text loaded into the chain.
     """
 
-    def __init__(self, skeleton: Skeleton):
+    def __init__(self, skeleton: Skeleton) -> None:
         from pytorch_kinematics import transforms as tf
 
         self.skeleton = skeleton
@@ -323,12 +328,14 @@ class KinematicSkeleton:
         chain = copy.deepcopy(template)
         # Set the exact float64 joint offsets (the URDF parser rounds them to float32).
         offsets = _offsets(skeleton.joints, self.parents)
-        x_frames = torch.tensor([frame_of[f"{_link(j)}_x"] for j in range(skeleton.num_joints)], dtype=torch.long)
+        x_frames = torch.tensor([frame_of[f"{_link(j)}_x"] for j in range(skeleton.num_joints)],
+                                dtype=torch.long)
         chain._static_offsets[x_frames, :3, 3] = offsets
         for j in range(skeleton.num_joints):
             k = int(x_frames[j])
             chain.joint_offsets[k] = chain._static_offsets[k][None].clone()
-            chain.find_frame(f"{_link(j)}_x").joint.offset = tf.Transform3d(pos=offsets[j], dtype=torch.float64)
+            chain.find_frame(f"{_link(j)}_x").joint.offset = tf.Transform3d(pos=offsets[j],
+                                                                            dtype=torch.float64)
         names = chain.get_joint_parameter_names()
         position = {n: i for i, n in enumerate(names)}
         dof = torch.tensor(
@@ -344,7 +351,7 @@ class KinematicSkeleton:
     def num_joints(self) -> int:
         return self.skeleton.num_joints
 
-    def chain(self, dtype: torch.dtype, device: torch.device):
+    def chain(self, dtype: torch.dtype, device: torch.device | str) -> pk.Chain:
         """The pytorch-kinematics chain for ``dtype`` and ``device`` (built on first use)."""
         key = (dtype, torch.device(device))
         if key not in self._chains:

@@ -87,7 +87,8 @@ def load_body(
                 skin_weights.to(dtype=dtype, device=device), skel.num_joints, num_file_vertices
             )
         elif isinstance(skin_weights, (str, os.PathLike)):
-            weights = read_skin_weights(skin_weights, skel.num_joints, num_file_vertices, dtype=dtype, device=device)
+            weights = read_skin_weights(skin_weights, skel.num_joints, num_file_vertices, dtype=dtype,
+                                        device=device)
         else:
             raise InputError(f"skin_weights must be a tensor or a path, got {type(skin_weights).__name__}")
         if index_map is not None:
@@ -102,4 +103,5 @@ def load_body(
             BodyMeshWarning,
             stacklevel=2,
         )
-    return Body(vertices=vertices, faces=faces, skeleton=skel, skin_weights=weights, params={"source": str(path)})
+    return Body(vertices=vertices, faces=faces, skeleton=skel, skin_weights=weights,
+                params={"source": str(path)})

@@ -19,11 +19,11 @@ Landmark heuristics (all found from horizontal section loops, never from vertex 
 * **armpit**: scanning up from the hips, the first height where the straddling (torso) loop abruptly widens by
   more than 0.02 ``h`` between two neighbouring sections: the arms join the torso. Refined by bisection.
 * **bust**: the nipple level is the highest local maximum (over +-0.01 ``h``; the window is truncated at the
-  top of the band, so a high breast just under the armpits still counts) of the front profile (the most frontal
-  point of the torso loop as a function of height) between ``armpit - 0.15 h`` and ``armpit - 0.005 h``,
-  refined to sub-sample precision with a parabola; the bust is the maximum torso girth within +-0.0075 ``h`` of
-  it (the tape slid to the fullest part, also refined with a parabola). Without such a maximum (flat chest) the
-  nipple level is the level of maximum torso girth in that band.
+  top of the band, so a high breast just under the armpits still counts) of the front profile (the most
+  frontal point of the torso loop as a function of height) between ``armpit - 0.15 h`` and ``armpit - 0.005
+  h``, refined to sub-sample precision with a parabola; the bust is the maximum torso girth within +-0.0075
+  ``h`` of it (the tape slid to the fullest part, also refined with a parabola). Without such a maximum (flat
+  chest) the nipple level is the level of maximum torso girth in that band.
 * **underbust**: below the nipple the front profile drops steeply with the breast down to the breast fold,
   where the rib cage takes over and the profile flattens (or turns forward again over a belly). The fold is
   the *soft* minimum (temperature ``0.001 h`` of depth) of the tilted profile ``front(y) - 0.3 y`` within
@@ -36,7 +36,8 @@ Landmark heuristics (all found from horizontal section loops, never from vertex 
 * **waist**: horizontal plane of minimum torso girth between ``crotch + 0.1 h`` and ``underbust - 0.01 h``.
 * **hips**: the buttocks level is the most posterior point of the torso between crotch and waist; the hips are
   the maximum torso girth within +-0.01 ``h`` of it.
-* **thigh**: horizontal plane ``0.01 h`` below the crotch, the body's right leg (as GarmentCode's ``leg_circ``).
+* **thigh**: horizontal plane ``0.01 h`` below the crotch, the body's right leg (as GarmentCode's
+  ``leg_circ``).
 * **arm** (the body's right arm, as GarmentCode's ``wrist``): a centreline is traced by cutting with planes
   normal to the lateral axis from the side of the chest outwards (the arm loop is the highest loop in each
   cut); it runs from the shoulder to the fingertips, parametrised by arc-length fraction. Girths are taken
@@ -71,6 +72,7 @@ Botsch et al. on a fixed mesh topology):
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -92,8 +94,8 @@ _FOLD_SEARCH = 0.08
 """How far below the nipple the breast fold is searched, as a fraction of the height."""
 
 _FOLD_SOFTNESS = 0.001
-"""Temperature (fraction of the height, in front depth) of the soft minimum that places the breast fold: levels
-whose tilted front depth is within a few times this of the minimum share the weight, so the fold moves
+"""Temperature (fraction of the height, in front depth) of the soft minimum that places the breast fold:
+levels whose tilted front depth is within a few times this of the minimum share the weight, so the fold moves
 continuously with the shape instead of jumping between mesh rows."""
 
 _FOLD_DEPTH = 0.01
@@ -237,8 +239,8 @@ class _Loop:
 def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.ndarray) -> list[_Loop]:
     """Cut a mesh by a plane; return its connected section loops (detached numpy).
 
-    A vertex is on the positive side when its signed distance is > 0, so every face is crossed by 0 or 2 of its
-    edges and each crossed face contributes one segment between its two crossing points.
+    A vertex is on the positive side when its signed distance is > 0, so every face is crossed by 0 or 2 of
+    its edges and each crossed face contributes one segment between its two crossing points.
 
     Args:
         vertices: (V, 3) positions.
@@ -296,7 +298,8 @@ def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.nd
 
 
 def _pick_loop(loops: list[_Loop], seed: np.ndarray, basis: np.ndarray) -> _Loop | None:
-    """The innermost loop whose polygon encloses ``seed`` (ray casting in the plane), else the nearest loop."""
+    """The innermost loop whose polygon encloses ``seed`` (ray casting in the plane), else the nearest
+    loop."""
     if not loops:
         return None
     s = seed @ basis.T
@@ -330,7 +333,8 @@ def _check_mesh(vertices: torch.Tensor, faces: torch.Tensor) -> None:
     if not bool(torch.isfinite(vertices.detach()).all()):
         raise MeshError("vertices contain NaN or infinite values")
     if int(faces.max()) >= vertices.shape[0]:
-        raise MeshError(f"faces index vertex {int(faces.max())} but there are only {vertices.shape[0]} vertices")
+        raise MeshError(f"faces index vertex {int(faces.max())} but there are only {vertices.shape[0]} "
+                        "vertices")
 
 
 def body_height(vertices: torch.Tensor) -> torch.Tensor:
@@ -353,9 +357,10 @@ def section_girths(
 ) -> dict[str, torch.Tensor]:
     """Convex-hull girths of the section loops picked by ``planes`` (differentiable w.r.t. ``vertices``).
 
-    Each plane cuts the mesh edges; the cut points are linear interpolations of the edge endpoints, so gradients
-    flow to the vertices. The loop enclosing (or nearest to) the plane's seed is measured by the perimeter of its
-    convex hull; the hull's corner order comes from scipy on detached coordinates (it is locally constant).
+    Each plane cuts the mesh edges; the cut points are linear interpolations of the edge endpoints, so
+    gradients flow to the vertices. The loop enclosing (or nearest to) the plane's seed is measured by the
+    perimeter of its convex hull; the hull's corner order comes from scipy on detached coordinates (it is
+    locally constant).
 
     Args:
         vertices: (V, 3) positions, metres, any float dtype and device.
@@ -366,7 +371,8 @@ def section_girths(
         For each plane name, a 0-dim tensor (the girth in metres) of ``vertices``' dtype and device.
 
     Raises:
-        MeshError: the plane misses the mesh, or the picked section loop is not closed (open mesh) or degenerate.
+        MeshError: the plane misses the mesh, or the picked section loop is not closed (open mesh) or
+            degenerate.
     """
     _check_mesh(vertices, faces)
     topo = _topology(faces)
@@ -387,7 +393,8 @@ def section_girths(
         if loop is None:
             raise MeshError(f"the {name!r} plane does not cut the mesh")
         if not loop.closed:
-            raise MeshError(f"the {name!r} section is not a closed loop: the mesh is open or non-manifold there")
+            raise MeshError(f"the {name!r} section is not a closed loop: the mesh is open or non-manifold "
+                            "there")
         hull = loop.hull_indices(basis)
         m = len(hull)
         hull_edges.append(loop.edge_ids[hull])
@@ -438,7 +445,7 @@ class _Frame:
 class _Slicer:
     """Horizontal and oblique cuts of one (detached) mesh, with the body frame."""
 
-    def __init__(self, vertices: np.ndarray, topo: _Topology):
+    def __init__(self, vertices: np.ndarray, topo: _Topology) -> None:
         self.v = vertices
         self.topo = topo
         y = vertices[:, 1]
@@ -492,7 +499,8 @@ def _find_crotch(sl: _Slicer) -> tuple[float, float, list[tuple[float, float]]]:
         )
     legs = [sl.lateral_range(lp) for lp in loops]
 
-    def step(legs_now, yq):
+    def step(legs_now: list[tuple[float, float]], yq: float
+             ) -> tuple[bool | None, list[tuple[float, float]]]:
         """(merged?, new leg ranges)"""
         ranges = [sl.lateral_range(lp) for lp in sl.horizontal(yq)]
         new = []
@@ -561,7 +569,7 @@ def _find_armpit(sl: _Slicer, crotch: float, centre: float) -> float:
     dy = 0.005 * f.height
     jump = 0.02 * f.height
 
-    def width(yq):
+    def width(yq: float) -> float:
         lp = _torso_loop(sl, sl.horizontal(yq), centre)
         if lp is None:
             raise InputError(f"no torso section at height {yq - f.y0:.3f} m above the feet")
@@ -618,7 +626,8 @@ def _parabolic_offset(values: np.ndarray, i: int) -> float:
 
 
 def _arm_centreline(sl: _Slicer, chest_lo: float, crotch: float) -> np.ndarray:
-    """(K, 3) centroids of the right arm's sections by planes normal to the lateral axis, shoulder to fingertip.
+    """(K, 3) centroids of the right arm's sections by planes normal to the lateral axis, shoulder to
+    fingertip.
 
     The planes run from the right side of the chest outwards; at each, the arm is the section loop with the
     highest centroid (in A- and T-pose the arm is above the hip).
@@ -650,7 +659,8 @@ def _arc_fraction(line: np.ndarray) -> np.ndarray:
 
 def _perp_girths(sl: _Slicer, line: np.ndarray, normal: np.ndarray, fractions: np.ndarray, arc: np.ndarray,
                  centre: float, half_chest: float) -> tuple[np.ndarray, np.ndarray]:
-    """Hull girths of the loops around centreline points (at arc ``fractions``) cut perpendicular to ``normal``.
+    """Hull girths of the loops around centreline points (at arc ``fractions``) cut perpendicular to
+    ``normal``.
 
     A loop reaching within ``half_chest / 2`` of the body's lateral centre has merged with the torso: NaN.
 
@@ -676,13 +686,14 @@ def _local_direction(line: np.ndarray, arc: np.ndarray, fraction: float, half: i
     return d / np.linalg.norm(d)
 
 
-def _arm_planes(sl: _Slicer, chest: tuple[float, float], crotch: float, centre: float) -> dict[str, SectionPlane]:
+def _arm_planes(sl: _Slicer, chest: tuple[float, float], crotch: float,
+                centre: float) -> dict[str, SectionPlane]:
     """Upper-arm and wrist planes on the right arm (see the module doc)."""
     line = _arm_centreline(sl, chest[0], crotch)
     arc = _arc_fraction(line)
     half_chest = 0.5 * (chest[1] - chest[0])
 
-    def girths(fracs):
+    def girths(fracs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         g = np.full(len(fracs), np.nan)
         normals = []
         pts = []
@@ -805,7 +816,8 @@ def find_section_planes(
 
     # underbust: the breast fold is where the front profile, going down from the nipple, stops falling
     # steeply: the (soft) minimum of front(y) - FOLD_SLOPE * y within FOLD_SEARCH below the nipple (the level
-    # where the profile's slope drops below FOLD_SLOPE). The tape sits 0.005 h under it. Shallow breasts blend continuously towards nipple - 0.035 h (flat chest) with the breast depth.
+    # where the profile's slope drops below FOLD_SLOPE). The tape sits 0.005 h under it. Shallow breasts blend
+    # continuously towards nipple - 0.035 h (flat chest) with the breast depth.
     below = np.flatnonzero((ys >= nipple - _FOLD_SEARCH * h) & (ys <= ys[i_nip]) & np.isfinite(front))
     if below.size < 3:
         raise InputError("the torso is too short to find the underbust")
@@ -850,7 +862,8 @@ def find_section_planes(
     return {name: planes[name] for name in GIRTH_NAMES if name in wanted}
 
 
-def _neck_plane(sl: _Slicer, armpit: float, centre: float, torso_seed) -> SectionPlane:
+def _neck_plane(sl: _Slicer, armpit: float, centre: float,
+                torso_seed: Callable[[float], np.ndarray]) -> SectionPlane:
     """The neck plane (see the module doc); ``torso_seed(y)`` is the torso loop centroid at height y."""
     f = sl.frame
     h = f.height
@@ -883,9 +896,11 @@ def _check_closed(topo: _Topology) -> None:
     """Raise MeshError unless every edge is shared by exactly two faces."""
     counts = np.bincount(topo.face_edges.ravel(), minlength=len(topo.edges))
     if np.any(counts == 1):
-        raise MeshError(f"the mesh is open: {int(np.sum(counts == 1))} boundary edges; measuring needs a closed body")
+        raise MeshError(f"the mesh is open: {int(np.sum(counts == 1))} boundary edges; measuring needs a "
+                        "closed body")
     if np.any(counts > 2):
-        raise MeshError(f"the mesh is non-manifold: {int(np.sum(counts > 2))} edges shared by more than two faces")
+        raise MeshError(f"the mesh is non-manifold: {int(np.sum(counts > 2))} edges shared by more than two "
+                        "faces")
 
 
 def measure_body(vertices: torch.Tensor, faces: torch.Tensor) -> BodyMeasurements:

@@ -2,26 +2,28 @@
 
 Source and choice
 -----------------
-The rows are the US *Misses* body-measurement chart: the body (not garment) measurements that US sewing-pattern
-makers have drafted Misses sizes to since the 1967 revision by the Measurement Standard Committee of the
-Pattern Fashion Industry, the system that the US National Bureau of Standards' Voluntary Product Standard
-PS 42-70 ("Body Measurements for the Sizing of Women's Patterns and Apparel", 1971, a US government work)
-standardised. The figures are published openly in every pattern catalogue; the copy used here is the table
-reproduced at http://sewingscholar.blogspot.com/2011/02 ("Misses Sizing: designed for the female American
-figure of average proportions, 5'5" to 5'6" tall without shoes"). Measurement figures are facts, free to use.
+The rows are the US *Misses* body-measurement chart: the body (not garment) measurements that US
+sewing-pattern makers have drafted Misses sizes to since the 1967 revision by the Measurement Standard
+Committee of the Pattern Fashion Industry, the system that the US National Bureau of Standards' Voluntary
+Product Standard PS 42-70 ("Body Measurements for the Sizing of Women's Patterns and Apparel", 1971, a US
+government work) standardised. The figures are published openly in every pattern catalogue; the copy used here
+is the table reproduced at http://sewingscholar.blogspot.com/2011/02 ("Misses Sizing: designed for the female
+American figure of average proportions, 5'5" to 5'6" tall without shoes"). Measurement figures are facts, free
+to use.
 
-Why this chart: it is a real, widely used, openly published *size chart* (labels "6" ... "20" that users know),
-for one body type at one height, so sizes differ by girths only, which is what garment grading needs. Raw
-anthropometric surveys (e.g. ANSUR II) are public domain too but are not size charts: turning them into one
-requires choosing a sizing system, which would make the numbers ours rather than the source's.
+Why this chart: it is a real, widely used, openly published *size chart* (labels "6" ... "20" that users
+know), for one body type at one height, so sizes differ by girths only, which is what garment grading needs.
+Raw anthropometric surveys (e.g. ANSUR II) are public domain too but are not size charts: turning them into
+one requires choosing a sizing system, which would make the numbers ours rather than the source's.
 
 Columns (the source gives inches; converted exactly with 1 in = 0.0254 m):
 
 * ``bust``, ``waist``, ``hips``: straight from the source (its "Hip" is the full-hip girth).
 * ``height``: the source gives the range 5'5" to 5'6" for every size; its midpoint 65.5 in = 1.6637 m is used.
 * ``underbust``: not in the source. Derived with the rule ``underbust = bust * UNDERBUST_RATIO`` where
-  :data:`UNDERBUST_RATIO` = 80.7483 / 97.4076 is the underbust-to-bust ratio of the GarmentCode mean female body
-  (``garmentcode/bodies/mean_female.yaml``, cm), the reference body of the garment data this library targets.
+  :data:`UNDERBUST_RATIO` = 80.7483 / 97.4076 is the underbust-to-bust ratio of the GarmentCode mean female
+  body (``garmentcode/bodies/mean_female.yaml``, cm), the reference body of the garment data this library
+  targets.
 """
 
 from __future__ import annotations

@@ -30,6 +30,7 @@ class Skeleton:
     def num_joints(self) -> int:
         return int(self.joints.shape[0])
 
-    def to(self, device=None, dtype=None) -> "Skeleton":
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "Skeleton":
         """Return a copy on ``device`` with float tensors cast to ``dtype``."""
-        return Skeleton(self.joints.to(device=device, dtype=dtype), self.bones.to(device=device), list(self.names))
+        return Skeleton(self.joints.to(device=device, dtype=dtype), self.bones.to(device=device),
+                        list(self.names))

@@ -27,10 +27,10 @@ is +X; ``H`` is the skeleton's height, the y extent of its joints):
 Posing (:func:`repose`). Every body has a *rest pose*: the pose it was built or loaded in, in which its
 skin weights are defined. The rotations applied so far are stored, relative to the rest pose, in
 ``params["joint_rotations"]`` (joint index -> local axis-angle, SMPL convention). Each call recovers the
-rest-pose vertices exactly (per-vertex inverse of the blended transform, :func:`inverse_linear_blend_skinning`)
-and poses them with the new rotations, so the result depends only on the target, never on the path
-(A -> T -> A equals A, A -> T -> rest returns the input to round-off). The target rotations are computed
-on the rest skeleton:
+rest-pose vertices exactly (per-vertex inverse of the blended transform,
+:func:`inverse_linear_blend_skinning`) and poses them with the new rotations, so the result depends only on
+the target, never on the path (A -> T -> A equals A, A -> T -> rest returns the input to round-off). The
+target rotations are computed on the rest skeleton:
 
 * shoulder: the smallest rotation taking the rest shoulder->elbow direction to the target direction, which
   lies in the coronal plane (spanned by +Y and +-X) at the target angle below horizontal; this removes any
@@ -80,7 +80,8 @@ ELBOW_FRACTION = 0.53
 #: ``Body.params`` key of the rotations applied since the rest pose: {"joint index": [x, y, z]} axis-angle.
 ROTATIONS_KEY = "joint_rotations"
 
-_UPPER_ARM_NAME = re.compile(r"upper_?arm|humerus|(^|[:_.\s])((left|right|l|r)_?)?arm([._]?(l|r))?$", re.IGNORECASE)
+_UPPER_ARM_NAME = re.compile(r"upper_?arm|humerus|(^|[:_.\s])((left|right|l|r)_?)?arm([._]?(l|r))?$",
+                             re.IGNORECASE)
 
 
 class Pose(enum.Enum):
@@ -112,7 +113,8 @@ class ArmChain:
     tip: int
 
 
-def linear_blend_skinning(vertices: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+def linear_blend_skinning(vertices: torch.Tensor, weights: torch.Tensor,
+                          transforms: torch.Tensor) -> torch.Tensor:
     """Pose vertices: ``v' = sum_j w[j, v] (A_j[:3, :3] v + A_j[:3, 3])``.
 
     Args:
@@ -133,7 +135,8 @@ def linear_blend_skinning(vertices: torch.Tensor, weights: torch.Tensor, transfo
         raise InputError(f"weights must have shape (J, V={vertices.shape[0]}), got {tuple(weights.shape)}")
     if transforms.ndim not in (3, 4) or tuple(transforms.shape[-3:]) != (weights.shape[0], 4, 4):
         raise InputError(
-            f"transforms must have shape (J={weights.shape[0]}, 4, 4) or (B, J, 4, 4), got {tuple(transforms.shape)}"
+            f"transforms must have shape (J={weights.shape[0]}, 4, 4) or (B, J, 4, 4), got "
+            f"{tuple(transforms.shape)}"
         )
     blended = torch.einsum("jv,...jab->...vab", weights, transforms[..., :3, :])  # (..., V, 3, 4)
     return (blended[..., :3] @ vertices[..., None])[..., 0] + blended[..., 3]
@@ -166,7 +169,8 @@ def inverse_linear_blend_skinning(
     if weights.ndim != 2 or weights.shape[1] != posed.shape[0]:
         raise InputError(f"weights must have shape (J, V={posed.shape[0]}), got {tuple(weights.shape)}")
     if tuple(transforms.shape) != (weights.shape[0], 4, 4):
-        raise InputError(f"transforms must have shape (J={weights.shape[0]}, 4, 4), got {tuple(transforms.shape)}")
+        raise InputError(f"transforms must have shape (J={weights.shape[0]}, 4, 4), got "
+                         f"{tuple(transforms.shape)}")
     blended = torch.einsum("jv,jab->vab", weights, transforms[:, :3, :])  # (V, 3, 4)
     linear = blended[..., :3]
     det = torch.linalg.det(linear.detach())
@@ -216,11 +220,13 @@ def nearest_bone_weights(
     points = vertices.detach()
     owner = torch.cat(
         [
-            heads[torch.argmin(_point_segment_distance2(points[i : i + chunk], joints[heads], joints[children]), 1)]
+            heads[torch.argmin(_point_segment_distance2(points[i : i + chunk], joints[heads],
+                                                        joints[children]), 1)]
             for i in range(0, points.shape[0], chunk)
         ]
     )
-    weights = torch.zeros(skeleton.num_joints, vertices.shape[0], dtype=vertices.dtype, device=vertices.device)
+    weights = torch.zeros(skeleton.num_joints, vertices.shape[0], dtype=vertices.dtype,
+                          device=vertices.device)
     weights[owner, torch.arange(vertices.shape[0], device=vertices.device)] = 1.0
     return weights
 
@@ -265,8 +271,8 @@ def find_arms(skeleton: Skeleton, parents: torch.Tensor | None = None) -> tuple[
         tip = int(torch.argmax(reach))
         if not float(reach[tip]) >= MIN_ARM_REACH * height:
             raise InputError(
-                f"cannot find the {_side_name(side)} arm: no end joint lies {MIN_ARM_REACH:.0%} of the skeleton "
-                f"height ({height:.3f} m) sideways from the midline"
+                f"cannot find the {_side_name(side)} arm: no end joint lies {MIN_ARM_REACH:.0%} of the "
+                f"skeleton height ({height:.3f} m) sideways from the midline"
             )
         tips.append(tip)
     up = [_ancestors(plist, t) for t in tips]
@@ -296,8 +302,8 @@ def find_arms(skeleton: Skeleton, parents: torch.Tensor | None = None) -> tuple[
         w = next((k for k in range(s + 1, len(path)) if int(num_children[path[k]]) > 1), len(path) - 1)
         if w - s < 2:
             raise InputError(
-                f"the {_side_name(side)} arm has no elbow joint between its shoulder joint {path[s]} and its wrist "
-                f"joint {path[w]}"
+                f"the {_side_name(side)} arm has no elbow joint between its shoulder joint {path[s]} and its "
+                f"wrist joint {path[w]}"
             )
         seg = torch.linalg.vector_norm(joints[path[s + 1 : w + 1]] - joints[path[s:w]], dim=1)
         along = torch.cumsum(seg, 0)  # distance from the shoulder of path[s + 1 .. w]
@@ -365,7 +371,8 @@ def joint_rotations(body: Body) -> torch.Tensor:
     stored = body.params.get(ROTATIONS_KEY, {})
     if not isinstance(stored, dict):
         raise InputError(
-            f"params[{ROTATIONS_KEY!r}] must be a dict of joint index -> [x, y, z], got {type(stored).__name__}"
+            f"params[{ROTATIONS_KEY!r}] must be a dict of joint index -> [x, y, z], got "
+            f"{type(stored).__name__}"
         )
     for key, value in stored.items():
         try:
@@ -393,7 +400,8 @@ def _topological_order(parents: list[int]) -> list[int]:
     return sorted(range(len(parents)), key=depth.__getitem__)
 
 
-def _rest_joints(posed: torch.Tensor, rotations: torch.Tensor, parents: list[int], order: list[int]) -> torch.Tensor:
+def _rest_joints(posed: torch.Tensor, rotations: torch.Tensor, parents: list[int],
+                 order: list[int]) -> torch.Tensor:
     """Rest joint positions (J, 3) from posed ones: ``t_j - t_p = W_p^T (g_j - g_p)`` (float64)."""
     world = _world_rotations(rotations, parents, order)
     rest = posed.clone()
@@ -404,7 +412,8 @@ def _rest_joints(posed: torch.Tensor, rotations: torch.Tensor, parents: list[int
     return rest
 
 
-def _target_angles(target: Pose | float | tuple[float, float], a_pose_angle: float) -> tuple[float, float] | None:
+def _target_angles(target: Pose | float | tuple[float, float],
+                   a_pose_angle: float) -> tuple[float, float] | None:
     if isinstance(target, (Pose, str)):
         pose = Pose(target)
         if pose is Pose.REST:

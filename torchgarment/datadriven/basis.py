@@ -9,8 +9,8 @@ fitted to each example body and normalizes; here the weight of the example body 
 * ``"linear"`` (the paper's linear model): ``G_i = (g_i+ - g_i-) / (2 h_i)`` (central difference), garment
   ``= g_0 + sum_i w_i G_i``; exact at the mean body, second-order accurate in between;
 * ``"piecewise"``: ``G_i+ = (g_i+ - g_0) / h_i`` for ``w_i > 0`` and ``G_i- = (g_0 - g_i-) / h_i`` for
-  ``w_i < 0``; garment ``= g_0 + sum_i max(w_i, 0) G_i+ + min(w_i, 0) G_i-``, which reproduces every one of the
-  2k + 1 basis drapes exactly (still two einsums online).
+  ``w_i < 0``; garment ``= g_0 + sum_i max(w_i, 0) G_i+ + min(w_i, 0) G_i-``, which reproduces every one of
+  the 2k + 1 basis drapes exactly (still two einsums online).
 
 Placement of the fixed pattern around each body (the library drafts a pattern *for* one body and places
 its panels from that body's measurements): the garment mesh is placed once for the reference (mean) body,
@@ -35,6 +35,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -44,6 +45,11 @@ from torchgarment.io.payload import load_payload
 from torchgarment.options import OptionEnum
 from torchgarment.sim.drape import DrapeSettings
 from torchgarment.structures.garment_mesh import GarmentMesh
+
+if TYPE_CHECKING:
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.sim.drape import DrapeResult
 
 FORMAT = "torchgarment.clothing_basis/1"
 PLACEMENT_VERSION = "1"
@@ -111,7 +117,8 @@ def mesh_hash(mesh: GarmentMesh) -> str:
     """SHA-256 of a garment mesh's placed positions, rest positions, faces and seams (float64/int64)."""
     h = hashlib.sha256()
     for t in (mesh.x.double(), mesh.p.double() if mesh.p is not None else torch.zeros(0), mesh.faces.long(),
-              mesh.seam_pairs.long(), mesh.panel_ids.long() if mesh.panel_ids is not None else torch.zeros(0)):
+              mesh.seam_pairs.long(),
+              mesh.panel_ids.long() if mesh.panel_ids is not None else torch.zeros(0)):
         h.update(t.detach().cpu().contiguous().numpy().tobytes())
     h.update(json.dumps(list(mesh.panel_names)).encode())
     return h.hexdigest()
@@ -122,7 +129,8 @@ def _settings_description(settings: DrapeSettings) -> dict:
 
 
 def basis_cache_dir() -> Path:
-    """Default folder of clothing bases: ``$TORCHGARMENT_CACHE/clothing_basis`` or ``~/.cache/torchgarment/...``."""
+    """Default folder of clothing bases: ``$TORCHGARMENT_CACHE/clothing_basis`` or
+    ``~/.cache/torchgarment/...``."""
     from torchgarment.body.cache import cache_root
 
     return cache_root() / "clothing_basis"
@@ -187,11 +195,13 @@ class ClothingBasis:
             + torch.einsum("bk,kvc->bvc", w2.clamp_max(0.0), gm)
         return out if w.ndim == 2 else out[0]
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "ClothingBasis":
+    def to(self, device: torch.device | str | None = None,
+           dtype: torch.dtype | None = None) -> "ClothingBasis":
         def cast(t: torch.Tensor) -> torch.Tensor:
             return t.to(device=device, dtype=dtype)
 
-        return replace(self, mean=cast(self.mean), plus=cast(self.plus), minus=cast(self.minus), steps=cast(self.steps),
+        return replace(self, mean=cast(self.mean), plus=cast(self.plus), minus=cast(self.minus),
+                       steps=cast(self.steps),
                        garment=self.garment.to(device=device, dtype=dtype))
 
     def save(self, path: str | os.PathLike) -> None:
@@ -199,7 +209,8 @@ class ClothingBasis:
         g = self.garment
         payload = {
             "format": FORMAT, "mean": self.mean.cpu(), "plus": self.plus.cpu(), "minus": self.minus.cpu(),
-            "steps": self.steps.cpu(), "pca_fingerprint": self.pca_fingerprint, "key": self.key, "name": self.name,
+            "steps": self.steps.cpu(), "pca_fingerprint": self.pca_fingerprint, "key": self.key,
+            "name": self.name,
             "metrics_json": json.dumps(self.metrics, default=str),
             "garment": {"x": g.x.cpu(), "faces": g.faces.cpu(), "p": None if g.p is None else g.p.cpu(),
                         "panel_ids": None if g.panel_ids is None else g.panel_ids.cpu(),
@@ -216,12 +227,13 @@ class ClothingBasis:
         gd = p["garment"]
         garment = GarmentMesh(gd["x"], gd["faces"], p=gd["p"], panel_ids=gd["panel_ids"],
                               panel_names=gd["panel_names"], seam_pairs=gd["seam_pairs"])
-        basis = cls(p["mean"], p["plus"], p["minus"], p["steps"], garment, p["pca_fingerprint"], p["key"], p["name"],
+        basis = cls(p["mean"], p["plus"], p["minus"], p["steps"], garment, p["pca_fingerprint"], p["key"],
+                    p["name"],
                     json.loads(p["metrics_json"]))
         return basis.to(device=device, dtype=dtype)
 
 
-def _as_garment_mesh(garment, settings: DrapeSettings) -> GarmentMesh:  # noqa: ANN001
+def _as_garment_mesh(garment: SewingPattern | GarmentMesh, settings: DrapeSettings) -> GarmentMesh:
     if isinstance(garment, GarmentMesh):
         return garment.to(dtype=torch.float64, device="cpu")
     from torchgarment.pattern.spec import SewingPattern
@@ -233,13 +245,14 @@ def _as_garment_mesh(garment, settings: DrapeSettings) -> GarmentMesh:  # noqa: 
     raise InputError(f"a clothing basis needs a SewingPattern or a GarmentMesh, got {type(garment).__name__}")
 
 
-def basis_key(pca, mesh: GarmentMesh, settings: BasisSettings) -> str:  # noqa: ANN001 - BodyPCA
+def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings) -> str:
     """Cache key of a basis: hash of the body model, garment, c, drape settings and placement rule.
 
     ``k`` is not part of it: the drapes along component ``i`` do not depend on how many components are kept,
     so a basis for a larger k reuses those of a smaller one (the assembled basis is ``basis_k<k>.pt``).
     """
-    desc = {"format": FORMAT, "pca": pca.fingerprint(), "garment": mesh_hash(mesh), "c": float(settings.c), "drape": _settings_description(settings.drape), "placement": PLACEMENT_VERSION}
+    desc = {"format": FORMAT, "pca": pca.fingerprint(), "garment": mesh_hash(mesh), "c": float(settings.c),
+            "drape": _settings_description(settings.drape), "placement": PLACEMENT_VERSION}
     return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:24]
 
 
@@ -249,7 +262,7 @@ def sample_names(k: int) -> list[str]:
 
 
 def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor, reference: BodyFrame,
-                  settings: DrapeSettings, frame: BodyFrame | None = None):  # noqa: ANN201 - DrapeResult
+                  settings: DrapeSettings, frame: BodyFrame | None = None) -> DrapeResult:
     """Drape the garment (placed for ``reference``) on one body after re-placing it (:func:`place_for_body`).
 
     Args:
@@ -271,8 +284,8 @@ def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor
 
 
 def build_basis(
-    pca,  # noqa: ANN001 - BodyPCA
-    garment,  # noqa: ANN001 - SewingPattern | GarmentMesh
+    pca: BodyPCA,
+    garment: SewingPattern | GarmentMesh,
     settings: BasisSettings | None = None,
     *,
     name: str = "",
@@ -330,14 +343,16 @@ def build_basis(
             verts = pca64.sample_body(int(i), settings.c if sign == "plus" else -settings.c)
         t0 = time.perf_counter()
         result = drape_on_body(mesh, verts, faces, reference, settings.drape)
-        m = {key_: result.metrics[key_] for key_ in ("vertices", "iterations", "converged", "ok", "min_sdf_mm",
+        m = {key_: result.metrics[key_]
+             for key_ in ("vertices", "iterations", "converged", "ok", "min_sdf_mm",
                                                     "inside_vertices", "max_seam_gap_mm", "residual")}
         m["seconds"] = time.perf_counter() - t0
         bar.set_postfix(last=f"{sample} {m['seconds']:.0f}s {'ok' if m['ok'] else 'NOT ok'}", refresh=False)
         with atomic_path(path) as tmp:
             torch.save({"x": result.x.detach().cpu().double(), "metrics_json": json.dumps(m)}, tmp)
         results[sample], metrics[sample] = result.x.detach().cpu().double(), m
-    plus = torch.stack([results[f"plus_{i}"] for i in range(k)]) if k else torch.zeros(0, mesh.num_vertices, 3,
+    plus = torch.stack([results[f"plus_{i}"] for i in range(k)]) if k else torch.zeros(0, mesh.num_vertices,
+                                                                                       3,
                                                                                        dtype=torch.float64)
     minus = torch.stack([results[f"minus_{i}"] for i in range(k)]) if k else torch.zeros_like(plus)
     steps = settings.c * pca64.sigmas[:k].clone()

@@ -18,8 +18,15 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.datadriven.basis import ClothingBasis
+    from torchgarment.datadriven.dataset import BodyDataset
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.pattern.spec import SewingPattern
 
 MODEL_FORMAT = "torchgarment.pca_garment_model/1"
 
@@ -32,26 +39,33 @@ def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentP
     d = DrapeSettings()
     p = subparsers.add_parser(
         "pca", help="data-driven garment fitting (Gillies et al. 2004): build a model, fit a body",
-        description="PCA body model + parallel clothing basis draped offline; online fitting by a weighted sum.")
+        description="PCA body model + parallel clothing basis draped offline; online fitting by a weighted "
+                    "sum.")
     sub = p.add_subparsers(dest="pca_command", required=True)
 
     b = sub.add_parser(
         "build", help="sample bodies, fit the PCA body model and drape the clothing basis",
-        description="Sample N anny adults (or read --dataset), fit the PCA body model, drape the garment on the "
-                    "mean body and on mean +- c sigma_i along each kept component, and write pca.pt, basis.pt and "
-                    "model.json into MODEL_DIR. Drapes are cached and resumable (--cache).")
+        description="Sample N anny adults (or read --dataset), fit the PCA body model, drape the garment on "
+                    "the mean body and on mean +- c sigma_i along each kept component, and write pca.pt, "
+                    "basis.pt and model.json into MODEL_DIR. Drapes are cached and resumable (--cache).")
     g = b.add_mutually_exclusive_group(required=True)
-    g.add_argument("--garment", metavar="NAME", help="a library garment, drafted for the mean body's measurements")
-    g.add_argument("--pattern", metavar="P", help="a pattern file (.json GarmentCode or .dxf), placed as in the file")
+    g.add_argument("--garment", metavar="NAME",
+                   help="a library garment, drafted for the mean body's measurements")
+    g.add_argument("--pattern", metavar="P",
+                   help="a pattern file (.json GarmentCode or .dxf), placed as in the file")
     src = b.add_mutually_exclusive_group(required=True)
     src.add_argument("--bodies", type=int, metavar="N", help="number of random anny adults to sample")
-    src.add_argument("--dataset", metavar="PATH", help="a saved body dataset (.pt) or a folder of meshes (OBJ/PLY) "
+    src.add_argument("--dataset", metavar="PATH",
+                     help="a saved body dataset (.pt) or a folder of meshes (OBJ/PLY) "
                                                        "of one topology")
-    b.add_argument("--population", default="female", help="anny adults to sample: female or male (default female)")
+    b.add_argument("--population", default="female",
+                   help="anny adults to sample: female or male (default female)")
     b.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
     b.add_argument("--k", type=int, default=None, help="components to drape (default: reach --variance)")
-    b.add_argument("--variance", type=float, default=0.95, help="variance target when --k is not given (default 0.95)")
-    b.add_argument("--c", type=float, default=1.0, help="example bodies at +-c standard deviations (default 1)")
+    b.add_argument("--variance", type=float, default=0.95,
+                   help="variance target when --k is not given (default 0.95)")
+    b.add_argument("--c", type=float, default=1.0,
+                   help="example bodies at +-c standard deviations (default 1)")
     b.add_argument("--edge-length", type=float, default=d.edge_length, metavar="M",
                    help=f"garment triangle edge length in metres (default {d.edge_length})")
     b.add_argument("--voxel", type=float, default=d.voxel_size, metavar="M",
@@ -64,17 +78,20 @@ def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentP
 
     f = sub.add_parser(
         "fit", help="fit a built model's garment to a body",
-        description="Project a body (same topology as the model's bodies) to PCA weights, evaluate the garment "
-                    "as mean + sum_i w_i G_i, optionally push vertices out of the body, and write garment.obj and "
-                    "metrics.json (seconds per step, weights, penetrations).")
+        description="Project a body (same topology as the model's bodies) to PCA weights, evaluate the "
+                    "garment as mean + sum_i w_i G_i, optionally push vertices out of the body, and write "
+                    "garment.obj and metrics.json (seconds per step, weights, penetrations).")
     f.add_argument("--model", required=True, metavar="MODEL_DIR", help="folder written by `pca build`")
-    f.add_argument("--body", required=True, metavar="B", help="body mesh file (OBJ, PLY, ...) of the model's topology")
+    f.add_argument("--body", required=True, metavar="B",
+                   help="body mesh file (OBJ, PLY, ...) of the model's topology")
     f.add_argument("--out", required=True, metavar="DIR", help="output folder")
     f.add_argument("--k", type=int, default=None, help="components to use (default: all of the basis)")
     f.add_argument("--interpolation", default=Interpolation.PIECEWISE.value,
                    choices=[m.value for m in Interpolation], help="basis interpolation (default piecewise)")
-    f.add_argument("--push-out", action="store_true", help="move vertices inside the body out along the SDF gradient")
-    f.add_argument("--margin", type=float, default=1e-3, metavar="M", help="push-out clearance (default 0.001 m)")
+    f.add_argument("--push-out", action="store_true",
+                   help="move vertices inside the body out along the SDF gradient")
+    f.add_argument("--margin", type=float, default=1e-3, metavar="M",
+                   help="push-out clearance (default 0.001 m)")
     f.add_argument("--voxel", type=float, default=0.005, metavar="M",
                    help="voxel size of the body SDF for penetration counts and the push-out (default 0.005)")
     f.set_defaults(func=cmd_pca_fit)
@@ -89,7 +106,7 @@ def _write_json(path: Path, data: dict) -> None:
         fh.write("\n")
 
 
-def _dataset(args: argparse.Namespace):  # noqa: ANN202 - BodyDataset
+def _dataset(args: argparse.Namespace) -> BodyDataset:
     from torchgarment.datadriven.dataset import BodyDataset
 
     if args.bodies is not None:
@@ -101,20 +118,23 @@ def _dataset(args: argparse.Namespace):  # noqa: ANN202 - BodyDataset
         return BodyDataset.from_anny(args.bodies, seed=args.seed, ranges=ranges)
     path = Path(args.dataset)
     if path.is_dir():
-        files = sorted(q for q in path.iterdir() if q.suffix.lower() in (".obj", ".ply", ".stl", ".off", ".glb"))
+        files = sorted(q for q in path.iterdir()
+                       if q.suffix.lower() in (".obj", ".ply", ".stl", ".off", ".glb"))
         if len(files) < 3:
             raise InputError(f"--dataset {path}: needs at least 3 mesh files, found {len(files)}")
         return BodyDataset.from_meshes(files)
     return BodyDataset.load(path)
 
 
-def _garment(args: argparse.Namespace, pca):  # noqa: ANN001, ANN202 - (SewingPattern, name, info)
+def _garment(args: argparse.Namespace, pca: BodyPCA) -> tuple[SewingPattern, str, dict]:
+    """(pattern, garment name, provenance for model.json) of ``--garment`` or ``--pattern``."""
     if args.garment is not None:
         from torchgarment.body.measure import measure_body
         from torchgarment.pattern.library import draft, list_garments
 
         if args.garment not in list_garments():
-            raise InputError(f"--garment {args.garment}: not a library garment ({', '.join(list_garments())})")
+            raise InputError(f"--garment {args.garment}: not a library garment "
+                             f"({', '.join(list_garments())})")
         m = measure_body(pca.mean.detach().cpu().double(), pca.faces.cpu()).to_dict()
         request = {k: m[k] for k in ("height", "bust", "underbust", "waist", "hips")}
         return draft(args.garment, request), args.garment, {"drafted_for_mean_body": request}
@@ -139,11 +159,12 @@ def cmd_pca_build(args: argparse.Namespace) -> int:
     t_data = time.perf_counter()
     pca = BodyPCA.fit(dataset)
     if args.k is not None and args.k > pca.num_components:
-        raise InputError(f"--k {args.k}: the body model of {len(dataset)} bodies has only {pca.num_components} "
-                         "components")
+        raise InputError(f"--k {args.k}: the body model of {len(dataset)} bodies has only "
+                         f"{pca.num_components} components")
     pattern, name, info = _garment(args, pca)
     t_pca = time.perf_counter()
-    basis = build_basis(pca, pattern, settings, name=name, cache_dir=args.cache, progress=not args.no_progress)
+    basis = build_basis(pca, pattern, settings, name=name, cache_dir=args.cache,
+                        progress=not args.no_progress)
     t_basis = time.perf_counter()
     ratio = pca.explained_variance_ratio
     model = {
@@ -153,7 +174,8 @@ def cmd_pca_build(args: argparse.Namespace) -> int:
         "k": basis.k, "c": settings.c, "variance_target": settings.variance if args.k is None else None,
         "explained_variance": float(ratio[: basis.k].sum()) if basis.k else 0.0,
         "k_for_95": pca.k_for_variance(0.95), "k_for_99": pca.k_for_variance(0.99),
-        "garment_vertices": basis.num_vertices, "basis_key": basis.key, "pca_fingerprint": basis.pca_fingerprint,
+        "garment_vertices": basis.num_vertices, "basis_key": basis.key,
+        "pca_fingerprint": basis.pca_fingerprint,
         "drapes": basis.metrics, "all_drapes_ok": all(m.get("ok", False) for m in basis.metrics.values()),
         "seconds": {"dataset": t_data - t0, "pca": t_pca - t_data, "basis": t_basis - t_pca,
                     "total": time.perf_counter() - t0},
@@ -164,14 +186,14 @@ def cmd_pca_build(args: argparse.Namespace) -> int:
         basis.save(stage / "basis.pt")
         _write_json(stage / "model.json", model)
     bad = [n for n, m in basis.metrics.items() if not m.get("ok", False)]
-    print(f"pca build {name}: {len(dataset)} bodies, k={basis.k} ({100 * model['explained_variance']:.1f} % of the "
-          f"variance), {basis.num_vertices} garment vertices, {len(basis.metrics)} drapes"
+    print(f"pca build {name}: {len(dataset)} bodies, k={basis.k} ({100 * model['explained_variance']:.1f} % "
+          f"of the variance), {basis.num_vertices} garment vertices, {len(basis.metrics)} drapes"
           + (f" ({len(bad)} not ok: {', '.join(bad)})" if bad else " (all ok)")
           + f", {model['seconds']['total']:.1f} s -> {args.out}")
     return 0
 
 
-def load_model(model_dir: str | Path):  # noqa: ANN201 - (BodyPCA, ClothingBasis, dict)
+def load_model(model_dir: str | Path) -> tuple[BodyPCA, ClothingBasis, dict]:
     """Read a folder written by ``pca build``: (PCA, basis, model.json contents).
 
     Raises:
@@ -216,10 +238,10 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
     body = load_body(args.body)
     if body.num_vertices != pca.num_vertices or body.faces.shape != pca.faces.shape \
             or not torch.equal(body.faces.long(), pca.faces.long()):
-        raise InputError(f"--body {args.body}: {body.num_vertices} vertices / {body.faces.shape[0]} faces, but the "
-                         f"model's bodies have {pca.num_vertices} / {pca.faces.shape[0]} of topology "
-                         f"{pca.topology or '(unnamed)'}: the body must have the model's topology (same vertices "
-                         "and faces in the same order)")
+        raise InputError(f"--body {args.body}: {body.num_vertices} vertices / {body.faces.shape[0]} faces, "
+                         f"but the model's bodies have {pca.num_vertices} / {pca.faces.shape[0]} of topology "
+                         f"{pca.topology or '(unnamed)'}: the body must have the model's topology (same "
+                         f"vertices and faces in the same order)")
     name = basis.name or "garment"
     fitter = OnlineFitter(pca, {name: basis}, k=args.k, interpolation=args.interpolation)
     t_load = time.perf_counter()
@@ -243,7 +265,8 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
     res_rec = pca.reconstruction_error(body.vertices, fitter.k)
     metrics = {"model": str(args.model), "body": str(args.body), "garment": name, "k": fitter.k,
                "interpolation": fitter.interpolation.value, "seconds": seconds,
-               "weights": [float(v) for v in w], "weights_in_sigmas": [float(v) for v in w / pca.sigmas[: fitter.k]],
+               "weights": [float(v) for v in w],
+               "weights_in_sigmas": [float(v) for v in w / pca.sigmas[: fitter.k]],
                "penetrations": pen, "garment_vertices": int(x.shape[0]),
                "body_reconstruction_error_mm": {"mean": 1e3 * float(res_rec["mean"][0]),
                                                 "max": 1e3 * float(res_rec["max"][0])},
@@ -255,5 +278,6 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
     print(f"pca fit {name}: k={fitter.k}, weights {seconds['weights'] * 1e3:.2f} ms, "
           f"fit {seconds['fit'] * 1e3:.2f} ms, "
           f"{pen['inside_vertices']} vertices inside the body"
-          + (f" ({pen['inside_after_push_out']} after push-out)" if args.push_out else "") + f" -> {args.out}")
+          + (f" ({pen['inside_after_push_out']} after push-out)" if args.push_out else "")
+          + f" -> {args.out}")
     return 0

@@ -14,12 +14,17 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchgarment.errors import InputError, MeshError
 from torchgarment.io.atomic import atomic_path
 from torchgarment.io.payload import load_payload
+
+if TYPE_CHECKING:
+    from torchgarment.body.anny_phenotype import PhenotypeRanges
+    from torchgarment.body.body import Body
 
 FORMAT = "torchgarment.body_dataset/1"
 """Format tag stored in saved data sets."""
@@ -50,7 +55,8 @@ class BodyDataset:
             raise MeshError(f"dataset vertices must be a floating (N, V, 3) tensor with N >= 1, got "
                             f"{getattr(v, 'shape', type(v).__name__)}")
         if not isinstance(f, torch.Tensor) or f.ndim != 2 or f.shape[1] != 3 or f.dtype != torch.long:
-            raise MeshError(f"dataset faces must be a long (F, 3) tensor, got {getattr(f, 'shape', type(f).__name__)}")
+            raise MeshError("dataset faces must be a long (F, 3) tensor, got "
+                            f"{getattr(f, 'shape', type(f).__name__)}")
         if f.numel() and (int(f.min()) < 0 or int(f.max()) >= v.shape[1]):
             raise MeshError(f"dataset faces index vertices outside [0, {v.shape[1]})")
         if not bool(torch.isfinite(v).all()):
@@ -83,13 +89,14 @@ class BodyDataset:
         return BodyDataset(self.vertices[ids], self.faces, [dict(self.params[i]) for i in ids], self.source,
                            self.topology)
 
-    def body(self, i: int):  # noqa: ANN201 - Body
+    def body(self, i: int) -> Body:
         """Body ``i`` as a plain :class:`~torchgarment.body.body.Body` (mesh only)."""
         from torchgarment.body.body import Body
 
         return Body(vertices=self.vertices[i], faces=self.faces, params=dict(self.params[i]))
 
-    def check_topology(self, vertices: torch.Tensor, faces: torch.Tensor | None = None, what: str = "body") -> None:
+    def check_topology(self, vertices: torch.Tensor, faces: torch.Tensor | None = None,
+                       what: str = "body") -> None:
         """Raise :class:`MeshError` unless a mesh has this data set's topology.
 
         Args:
@@ -101,16 +108,18 @@ class BodyDataset:
             raise MeshError(f"{what}: vertices must be (V, 3) or (B, V, 3), got {tuple(vertices.shape)}")
         if vertices.shape[-2] != self.num_vertices:
             raise MeshError(f"{what} has {vertices.shape[-2]} vertices but the body model's topology "
-                            f"({self.topology or self.source or 'dataset'}) has {self.num_vertices}: bodies must "
-                            "share one topology (same vertices in the same order)")
+                            f"({self.topology or self.source or 'dataset'}) has {self.num_vertices}: bodies "
+                            f"must share one topology (same vertices in the same order)")
         if faces is not None and (faces.shape != self.faces.shape
                                   or not torch.equal(faces.to(self.faces.device).long(), self.faces)):
-            raise MeshError(f"{what} has {self.num_vertices} vertices but different faces from the body model's "
-                            "topology: bodies must share one topology (same faces, same vertex order)")
+            raise MeshError(f"{what} has {self.num_vertices} vertices but different faces from the body "
+                            "model's topology: bodies must share one topology (same faces, same vertex "
+                            "order)")
 
     @classmethod
-    def from_anny(cls, n: int, seed: int = 0, ranges=None, batch_size: int = 64,  # noqa: ANN001
-                  dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> "BodyDataset":
+    def from_anny(cls, n: int, seed: int = 0, ranges: PhenotypeRanges | None = None, batch_size: int = 64,
+                  dtype: torch.dtype = torch.float64,
+                  device: torch.device | str | None = None) -> "BodyDataset":
         """``n`` random adult anny bodies (see :func:`torchgarment.body.anny_phenotype.sample_phenotypes`).
 
         Args:
@@ -126,10 +135,11 @@ class BodyDataset:
         phenotypes = sample_phenotypes(n, seed=seed, ranges=ranges, batch_size=batch_size)
         vertices = vertices_from_phenotypes(phenotypes, batch_size=batch_size)
         faces = load_anny_model().faces.clone().long()
-        return cls(vertices.to(device=device, dtype=dtype), faces.to(device=device), phenotypes, "anny", TOPOLOGY)
+        return cls(vertices.to(device=device, dtype=dtype), faces.to(device=device), phenotypes, "anny",
+                   TOPOLOGY)
 
     @classmethod
-    def from_meshes(cls, meshes: list, dtype: torch.dtype = torch.float64,  # noqa: ANN001
+    def from_meshes(cls, meshes: list, dtype: torch.dtype = torch.float64,
                     device: torch.device | str | None = None, topology: str = "") -> "BodyDataset":
         """A data set from meshes of one topology.
 
@@ -170,17 +180,20 @@ class BodyDataset:
             if faces0 is None:
                 faces0 = f.cpu()
             elif v.shape[0] != verts[0].shape[0]:
-                raise MeshError(f"{name} has {v.shape[0]} vertices but the first mesh has {verts[0].shape[0]}: "
-                                "a body dataset needs one topology (same vertices in the same order)")
+                raise MeshError(f"{name} has {v.shape[0]} vertices but the first mesh has "
+                                f"{verts[0].shape[0]}: a body dataset needs one topology (same vertices in "
+                                "the same order)")
             elif f.shape != faces0.shape or not torch.equal(f.cpu(), faces0):
-                raise MeshError(f"{name} has the same vertex count as the first mesh but different faces: a body "
-                                "dataset needs one topology (same faces, same vertex order)")
+                raise MeshError(f"{name} has the same vertex count as the first mesh but different faces: a "
+                                f"body dataset needs one topology (same faces, same vertex order)")
             verts.append(v.cpu())
-        return cls(torch.stack(verts).to(device=device, dtype=dtype), faces0.to(device=device), params, "meshes",
+        return cls(torch.stack(verts).to(device=device, dtype=dtype), faces0.to(device=device), params,
+                   "meshes",
                    topology)
 
     def measure(self, progress: bool = True) -> list[dict[str, float]]:
-        """Height and girths of every body (:func:`torchgarment.body.measure.measure_body`, about 0.4 s each)."""
+        """Height and girths of every body (:func:`torchgarment.body.measure.measure_body`, about 0.4 s
+        each)."""
         from tqdm import tqdm
 
         from torchgarment.body.measure import measure_body

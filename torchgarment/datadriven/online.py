@@ -3,20 +3,25 @@
 The retailer's flow (paper, section 3): when a customer registers, their body is projected once onto the PCA
 components (:meth:`OnlineFitter.weights`, ``3 M N`` multiply-adds); every catalogue garment is then
 ``g_0 + sum_i w_i G_i`` (:meth:`OnlineFitter.fit`), for many customers and many garments in one matrix
-product over the concatenated vertices of all garments. Garments may end slightly inside a body (the linear model is an
-approximation); :func:`push_out` moves such vertices out along the body SDF's gradient, timed separately
-since it needs the customer's SDF.
+product over the concatenated vertices of all garments. Garments may end slightly inside a body (the linear
+model is an approximation); :func:`push_out` moves such vertices out along the body SDF's gradient, timed
+separately since it needs the customer's SDF.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchgarment.datadriven.basis import ClothingBasis, Interpolation
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.sdf import BodySDF
 
 
 class OnlineFitter:
@@ -33,7 +38,8 @@ class OnlineFitter:
         InputError: a basis built for another body model, or k larger than a basis has.
     """
 
-    def __init__(self, pca, bases, k: int | None = None,  # noqa: ANN001 - BodyPCA, dict | list
+    def __init__(self, pca: BodyPCA,
+                 bases: ClothingBasis | list[ClothingBasis] | dict[str, ClothingBasis], k: int | None = None,
                  interpolation: Interpolation | str = Interpolation.PIECEWISE,
                  device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> None:
         if isinstance(bases, ClothingBasis):
@@ -96,7 +102,8 @@ class OnlineFitter:
         """
         w = torch.as_tensor(weights, device=self.mean.device, dtype=self.mean.dtype)
         if w.ndim not in (1, 2) or w.shape[-1] != self.k:
-            raise InputError(f"weights must be (k,) or (B, k) with k = {self.k} (the fitter's k), got {tuple(w.shape)}")
+            raise InputError(f"weights must be (k,) or (B, k) with k = {self.k} (the fitter's k), got "
+                             f"{tuple(w.shape)}")
         w2 = w if w.ndim == 2 else w[None]
         flat = self.mean.reshape(-1)
         if w2.requires_grad:
@@ -156,7 +163,7 @@ class PushOutResult:
     seconds: float
 
 
-def push_out(x: torch.Tensor, sdf, margin: float = 1e-3, iterations: int = 5) -> PushOutResult:  # noqa: ANN001
+def push_out(x: torch.Tensor, sdf: BodySDF, margin: float = 1e-3, iterations: int = 5) -> PushOutResult:
     """Move garment vertices that are inside (or within ``margin`` of) a body out along the SDF gradient.
 
     Each iteration sets ``x <- x + (margin - phi) n`` for the vertices with ``phi < margin``, with ``n`` the

@@ -8,8 +8,8 @@ projection), and ``m + sum_i w_i c_i`` reconstructs it. ``k`` for a variance tar
 smallest number of components whose variances sum to that fraction of the total.
 
 The model is stored with at most ``N - 1`` components (the rank of the centred data); directions whose
-singular value is below ``10 sqrt(eps)`` of the largest (numerically zero variance) are dropped. Its :meth:`BodyPCA.
-fingerprint` (a SHA-256 of the mean, components and faces) keys the clothing-basis cache.
+singular value is below ``10 sqrt(eps)`` of the largest (numerically zero variance) are dropped. Its
+:meth:`BodyPCA. fingerprint` (a SHA-256 of the mean, components and faces) keys the clothing-basis cache.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import os
 from dataclasses import dataclass
-from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -25,6 +25,9 @@ import torch
 from torchgarment.errors import InputError, MeshError
 from torchgarment.io.atomic import atomic_path
 from torchgarment.io.payload import load_payload
+
+if TYPE_CHECKING:
+    from torchgarment.datadriven.dataset import BodyDataset
 
 FORMAT = "torchgarment.body_pca/1"
 
@@ -53,7 +56,7 @@ class BodyPCA:
     topology: str = ""
 
     @classmethod
-    def fit(cls, dataset, max_components: int | None = None) -> "BodyPCA":  # noqa: ANN001 - BodyDataset
+    def fit(cls, dataset: BodyDataset, max_components: int | None = None) -> "BodyPCA":
         """PCA of a :class:`~torchgarment.datadriven.dataset.BodyDataset`.
 
         Args:
@@ -127,7 +130,8 @@ class BodyPCA:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "BodyPCA":
         """A copy on ``device`` with float tensors cast to ``dtype``."""
-        return BodyPCA(self.mean.to(device=device, dtype=dtype), self.components.to(device=device, dtype=dtype),
+        return BodyPCA(self.mean.to(device=device, dtype=dtype),
+                       self.components.to(device=device, dtype=dtype),
                        self.variances.to(device=device, dtype=dtype), self.total_variance,
                        self.faces.to(device=device), self.num_bodies, self.topology)
 
@@ -184,7 +188,8 @@ class BodyPCA:
         """Bodies ``mean + sum_i w_i c_i`` from (k,) or (B, k) weights (k <= K): (V, 3) or (B, V, 3)."""
         w = torch.as_tensor(weights, device=self.device, dtype=self.dtype)
         if w.ndim not in (1, 2) or w.shape[-1] > self.num_components:
-            raise InputError(f"weights must be (k,) or (B, k) with k <= {self.num_components}, got {tuple(w.shape)}")
+            raise InputError(f"weights must be (k,) or (B, k) with k <= {self.num_components}, got "
+                             f"{tuple(w.shape)}")
         k = w.shape[-1]
         w2 = w if w.ndim == 2 else w[None]
         flat = w2 @ self.components[:k].reshape(k, 3 * self.num_vertices)
@@ -219,7 +224,8 @@ class BodyPCA:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the model to one ``.pt`` file atomically."""
-        payload = {"format": FORMAT, "mean": self.mean.detach().cpu(), "components": self.components.detach().cpu(),
+        payload = {"format": FORMAT, "mean": self.mean.detach().cpu(),
+                   "components": self.components.detach().cpu(),
                    "variances": self.variances.detach().cpu(), "total_variance": self.total_variance,
                    "faces": self.faces.cpu(), "num_bodies": self.num_bodies, "topology": self.topology}
         with atomic_path(path) as tmp:

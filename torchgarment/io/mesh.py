@@ -51,7 +51,8 @@ def _check_file(path: Path, suffixes: tuple[str, ...], what: str) -> str:
     suffix = path.suffix.lower()
     if suffix not in suffixes:
         raise InputError(
-            f"unsupported {what} format {suffix or '(no suffix)'!r} for {path}; use one of {', '.join(suffixes)}"
+            f"unsupported {what} format {suffix or '(no suffix)'!r} for {path}; use one of "
+            f"{', '.join(suffixes)}"
         )
     return suffix
 
@@ -83,8 +84,10 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     keys = [m.group(1) for m in _FIRST_TOKEN.finditer(text)]
     unknown = set(keys) - _OBJ_IGNORED - {"v", "f"}
     if unknown:
-        bad = next(i for i, ln in enumerate(lines) if ln.split("#", 1)[0].split()[:1] and ln.split()[0] in unknown)
-        raise InputError(f"malformed OBJ {path}: line {bad + 1}: unknown statement {lines[bad].split()[0][:40]!r}")
+        bad = next(i for i, ln in enumerate(lines) if ln.split("#", 1)[0].split()[:1]
+                   and ln.split()[0] in unknown)
+        raise InputError(f"malformed OBJ {path}: line {bad + 1}: unknown statement "
+                         f"{lines[bad].split()[0][:40]!r}")
     v_body = [b.split() for b in _V_LINE.findall(text)]
     f_body = [ln.split() for ln in _F_LINE.findall(_SLASH_SUFFIX.sub("", text))]
     try:
@@ -95,7 +98,8 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"malformed OBJ {path}: {_one_line(e)}") from None
     sizes = np.array([len(tok) for tok in f_body], dtype=np.int64)
     if sizes.size and sizes.min() < 3:
-        raise InputError(f"malformed OBJ {path}: face {int(np.argmin(sizes)) + 1} has fewer than three vertices")
+        raise InputError(f"malformed OBJ {path}: face {int(np.argmin(sizes)) + 1} has fewer than three "
+                         "vertices")
     defined_before = None
     triangles = []
     for k in np.unique(sizes):
@@ -139,7 +143,8 @@ def _load_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     vertices = getattr(loaded, "vertices", None)
     if faces is None or vertices is None:
         raise InputError(f"mesh {path} contains no triangles ({type(loaded).__name__})")
-    return np.asarray(vertices, dtype=np.float64).reshape(-1, 3), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    return (np.asarray(vertices, dtype=np.float64).reshape(-1, 3),
+            np.asarray(faces, dtype=np.int64).reshape(-1, 3))
 
 
 def load_mesh(

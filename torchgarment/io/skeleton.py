@@ -79,7 +79,8 @@ def read_skeleton_obj(
         key = tokens[0]
         if key == "v":
             if len(tokens) < 4:
-                raise InputError(f"malformed skeleton OBJ {path}: line {number}: a joint needs three coordinates")
+                raise InputError(f"malformed skeleton OBJ {path}: line {number}: a joint needs three "
+                                 "coordinates")
             joints.append(tokens[1:4])
         elif key == "l":
             try:
@@ -93,12 +94,14 @@ def read_skeleton_obj(
             idx = [i - 1 if i > 0 else len(joints) + i for i in idx]
             bones.extend(zip(idx[:-1], idx[1:]))
         elif key == "f":
-            raise InputError(f"skeleton OBJ {path}: line {number}: has faces; a skeleton has only v and l lines")
+            raise InputError(f"skeleton OBJ {path}: line {number}: has faces; a skeleton has only v and l "
+                             "lines")
         else:
             raise InputError(f"malformed skeleton OBJ {path}: line {number}: unknown statement {key[:40]!r}")
     if not joints or not bones:
         raise InputError(
-            f"skeleton OBJ {path} needs joints (v lines) and bones (l lines); got {len(joints)} and {len(bones)}"
+            f"skeleton OBJ {path} needs joints (v lines) and bones (l lines); got {len(joints)} and "
+            f"{len(bones)}"
         )
     try:
         joint_array = np.array(joints, dtype=np.float64)
@@ -114,7 +117,8 @@ def read_skeleton_obj(
     name_list: list[str] = []
     if names:
         if sorted(names) != list(range(len(joints))):
-            raise InputError(f"skeleton OBJ {path}: '# joint <index> <name>' comments must name every joint once")
+            raise InputError(f"skeleton OBJ {path}: '# joint <index> <name>' comments must name every joint "
+                             "once")
         name_list = [names[i] for i in range(len(joints))]
     return Skeleton(
         joints=torch.as_tensor(joint_array, dtype=dtype, device=device),
@@ -180,7 +184,8 @@ def validate_skin_weights(
         raise InputError(f"{source} contain non-finite values")
     negative = torch.nonzero((weights < 0).any(dim=0), as_tuple=False).flatten()
     if negative.numel():
-        raise InputError(f"{source} are negative for {negative.numel()} vertices, first {negative[:5].tolist()}")
+        raise InputError(f"{source} are negative for {negative.numel()} vertices, first "
+                         f"{negative[:5].tolist()}")
     total = weights.sum(dim=0)
     empty = torch.nonzero(total <= 0, as_tuple=False).flatten()
     if empty.numel():

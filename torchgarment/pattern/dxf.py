@@ -43,6 +43,7 @@ import math
 import os
 import re
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import ezdxf
 import numpy as np
@@ -63,6 +64,9 @@ from torchgarment.pattern.spec import (
     StitchOrientation,
 )
 from torchgarment.pattern.svg import NOTCH_LENGTH, grainline_segment, notch_segment, svg_panel_layout
+
+if TYPE_CHECKING:
+    from ezdxf.layouts import BlockLayout
 
 CHORD_TOLERANCE = 1e-5  # metres: max distance between a curve and its written polyline
 LINE_TOLERANCE = 1e-6  # metres: curve points this close to the chord make a LINE edge
@@ -133,8 +137,8 @@ def _check_chain(panel: Panel) -> None:
     for i, e in enumerate(edges):
         nxt = edges[(i + 1) % len(edges)]
         if e.end != nxt.start:
-            raise PatternError(f"panel '{panel.name}' does not close: edge {i} ends at vertex {e.end} but edge "
-                               f"{(i + 1) % len(edges)} starts at vertex {nxt.start}")
+            raise PatternError(f"panel '{panel.name}' does not close: edge {i} ends at vertex {e.end} but "
+                               f"edge {(i + 1) % len(edges)} starts at vertex {nxt.start}")
 
 
 def pattern_dxf_document(pattern: SewingPattern) -> Drawing:
@@ -167,7 +171,8 @@ def pattern_dxf_document(pattern: SewingPattern) -> Drawing:
         h = 8.0
         for k, text in enumerate([f"Piece Name: {name}", "Quantity: 1"]):
             blk.add_text(_escape_text(text), dxfattribs={"layer": "1", "height": h,
-                                                           "insert": (centre[0], centre[1] - 1.5 * h * (k + 1))})
+                                                           "insert": (centre[0],
+                                                                      centre[1] - 1.5 * h * (k + 1))})
         data = [
             "translation " + " ".join(repr(float(x)) for x in panel.translation),
             "rotation " + " ".join(repr(float(x)) for x in panel.rotation),
@@ -193,7 +198,8 @@ def pattern_dxf_document(pattern: SewingPattern) -> Drawing:
 
 
 def _edge_entry(i: int, edge: Edge) -> str:
-    """The ``edge`` entry of the data layer: the exact definition of edge ``i`` relative to its turn points."""
+    """The ``edge`` entry of the data layer: the exact definition of edge ``i`` relative to its turn
+    points."""
     if edge.kind is EdgeKind.ARC:
         r, large, sweep = edge.arc
         numbers = [repr(float(r)), str(int(large)), str(int(sweep))]
@@ -444,7 +450,8 @@ def _parse_edge_entry(rest: str) -> tuple[int, Edge]:
 
 
 def _exact_fit(edge: Edge, q: np.ndarray) -> _Fit | None:
-    """The stored exact edge if it agrees with the boundary points q (m, 2) between two turn points, else None.
+    """The stored exact edge if it agrees with the boundary points q (m, 2) between two turn points, else
+    None.
 
     Agreement: the points are, within ``LINE_TOLERANCE``, the curve at the parameters :func:`save_dxf`
     samples; or (points resampled by another tool) every point lies within ``LINE_TOLERANCE`` of the curve
@@ -463,7 +470,8 @@ def _exact_fit(edge: Edge, q: np.ndarray) -> _Fit | None:
     dense = np.concatenate([edge.evaluate(a, b, _edge_params(edge, a, b, 0.1 * LINE_TOLERANCE)), b[None]])
     dense[0] = a
     on_curve = float(_dist_to_polyline(q, dense).max())
-    if on_curve > LINE_TOLERANCE or float(_dist_to_polyline(dense, q).max()) > CHORD_TOLERANCE + LINE_TOLERANCE:
+    if (on_curve > LINE_TOLERANCE
+            or float(_dist_to_polyline(dense, q).max()) > CHORD_TOLERANCE + LINE_TOLERANCE):
         return None
     return _Fit(edge.kind, q, controls=edge.controls, arc=edge.arc, error=on_curve)
 
@@ -514,8 +522,8 @@ def _boundary(entities: list, tol: float) -> np.ndarray | None:
     """Largest closed boundary polyline on layer 1 (bulge arcs sampled), (M, 2) in file units, or None."""
     best, best_area = None, -1.0
     for e in entities:
-        if e.dxftype() == "POLYLINE" and e.dxf.layer == "1" and not e.is_3d_polyline and not e.is_poly_face_mesh \
-                and not e.is_polygon_mesh:
+        if (e.dxftype() == "POLYLINE" and e.dxf.layer == "1" and not e.is_3d_polyline
+                and not e.is_poly_face_mesh and not e.is_polygon_mesh):
             verts = [(v.dxf.location.x, v.dxf.location.y, v.dxf.bulge) for v in e.vertices]
         elif e.dxftype() == "LWPOLYLINE" and e.dxf.layer == "1":
             verts = [(x, y, b) for x, y, b in e.get_points("xyb")]
@@ -527,7 +535,8 @@ def _boundary(entities: list, tol: float) -> np.ndarray | None:
         if np.allclose(v[0, :2], v[-1, :2], atol=1e-9):
             v = v[:-1]
         nxt = np.roll(v[:, :2], -1, axis=0)
-        pts = np.concatenate([_bulge_points(v[i, :2], nxt[i], float(v[i, 2]), tol) for i in range(v.shape[0])])
+        pts = np.concatenate([_bulge_points(v[i, :2], nxt[i], float(v[i, 2]), tol)
+                              for i in range(v.shape[0])])
         keep = np.ones(pts.shape[0], dtype=bool)
         keep[1:] = np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-9
         pts = pts[keep]
@@ -546,7 +555,7 @@ def _corner_indices(pts: np.ndarray, degrees: float = 20.0) -> np.ndarray:
     return np.nonzero(cos < math.cos(math.radians(degrees)))[0]
 
 
-def _read_piece(block, scale: float) -> _Piece | None:
+def _read_piece(block: BlockLayout, scale: float) -> _Piece | None:
     entities = list(block)
     pts = _boundary(entities, 1e-3)  # file units: mm, or inches
     if pts is None:
@@ -574,7 +583,8 @@ def _read_piece(block, scale: float) -> _Piece | None:
     else:
         turn = _corner_indices(pts)
     if turn.shape[0] < 2:
-        raise PatternError(f"DXF piece '{name}' has {turn.shape[0]} turn point(s) on its boundary; need at least 2")
+        raise PatternError(f"DXF piece '{name}' has {turn.shape[0]} turn point(s) on its boundary; need at "
+                           "least 2")
     pts = np.roll(pts, -int(turn[0]), axis=0) * scale
     turn = turn - turn[0]
     if not data and _signed_area(pts) < 0:  # foreign clockwise piece: make it counter-clockwise
@@ -602,7 +612,8 @@ def _notch_on(panel: Panel, seg: np.ndarray) -> Notch:
 
 
 def _build_panel(piece: _Piece, max_fit_error: float) -> tuple[Panel, list[list[int]], float]:
-    """Panel from a piece; also, per turn-point segment, the indices of the edges it became, and the worst fit."""
+    """Panel from a piece; also, per turn-point segment, the indices of the edges it became, and the worst
+    fit."""
     m = piece.points.shape[0]
     bounds = list(piece.turn) + [m]
     closed = np.concatenate([piece.points, piece.points[:1]])
@@ -726,9 +737,11 @@ def _parse_stitch(line: str, by_block: dict[str, tuple[str, list[list[int]]]]) -
                 raise PatternError(f"DXF stitch '{line}' refers to unknown piece '{blk}'")
             name, seg_edges = by_block[blk.upper()]
             if not 0 <= edge < len(seg_edges):
-                raise PatternError(f"DXF stitch '{line}' refers to edge {edge}, piece '{name}' has {len(seg_edges)}")
+                raise PatternError(f"DXF stitch '{line}' refers to edge {edge}, piece '{name}' has "
+                                   f"{len(seg_edges)}")
             if len(seg_edges[edge]) != 1:
-                raise PatternError(f"DXF stitch '{line}': edge {edge} of '{name}' did not fit one curve and was split")
+                raise PatternError(f"DXF stitch '{line}': edge {edge} of '{name}' did not fit one curve and "
+                                   "was split")
             refs.append(EdgeRef(name, seg_edges[edge][0]))
         return Stitch(refs[0], refs[1], StitchOrientation(orient))
     except PatternError:

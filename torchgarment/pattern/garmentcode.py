@@ -24,10 +24,11 @@ Conversions on reading (and the reverse on writing):
 Stitch orientation (which ends of two stitched edges meet): a side of a stitch carrying our extra key
 ``"orientation": "opposite" | "same"`` is used as is. Otherwise :class:`OrientationRule` decides:
 
-* ``GARMENTCODE`` (default): GarmentCode's own rule, as in its box mesher (``pygarment/meshgen/boxmeshgen.py``,
-  ``read_stitches``): a stitch whose list has a third entry ``"right_wrong"`` is SAME, every other stitch is
-  OPPOSITE. This matches our counter-clockwise-from-outside convention: all four GarmentCode specs in the
-  shared data have their panels' outward normals pointing away from the body.
+* ``GARMENTCODE`` (default): GarmentCode's own rule, as in its box mesher
+  (``pygarment/meshgen/boxmeshgen.py``, ``read_stitches``): a stitch whose list has a third entry
+  ``"right_wrong"`` is SAME, every other stitch is OPPOSITE. This matches our counter-clockwise-from-outside
+  convention: all four GarmentCode specs in the shared data have their panels' outward normals pointing away
+  from the body.
 * ``PLACEMENT``: inferred from the 3D placement (:func:`infer_stitch_orientation`): both edges' end points
   are placed in 3D and the pairing with the smaller summed endpoint distance wins (ties go to OPPOSITE).
   This needs no convention but is fragile when two panels are far apart compared with the edge length (a
@@ -78,7 +79,8 @@ MAX_STITCH_LENGTH_RATIO = 1.5
 gathers fabric into seams: ``dress_pencil`` joins a 28.7 cm bodice waist to a 22.0 cm skirt edge (1.30)."""
 
 _GC_KEY = "garmentcode"
-_OWN_PROPERTIES = ("units_in_meter", "curvature_coords", "normalize_panel_translation", "normalized_edge_loops")
+_OWN_PROPERTIES = ("units_in_meter", "curvature_coords", "normalize_panel_translation",
+                   "normalized_edge_loops")
 _RIGHT_WRONG = "right_wrong"
 
 
@@ -120,7 +122,8 @@ def load_pattern(
     try:
         d = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise PatternError(f"{path}: malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from exc
+        raise PatternError(f"{path}: malformed JSON at line {exc.lineno} column {exc.colno}: "
+                           f"{exc.msg}") from exc
     stem = path.stem
     if stem.endswith("_specification"):
         stem = stem[: -len("_specification")]
@@ -309,7 +312,8 @@ def _edge_from_dict(where: str, e: Any, vertices: np.ndarray, scale: float, abso
         if kind == "circle":
             if (not isinstance(params, list) or len(params) != 3 or not _is_number(params[0])
                     or not all(isinstance(f, (int, bool)) or _is_number(f) for f in params[1:])):
-                raise PatternError(f"{where} circle params must be [radius, large_arc, right], got {params!r}")
+                raise PatternError(f"{where} circle params must be [radius, large_arc, right], "
+                                   f"got {params!r}")
             radius = float(params[0]) * scale
             if radius <= 0:
                 raise PatternError(f"{where} circle radius must be positive, got {params[0]!r}")
@@ -335,7 +339,8 @@ def _absolute_to_relative(ctrl: np.ndarray, a: np.ndarray, b: np.ndarray, where:
 def _stitch_from_list(k: int, s: Any, panels: dict[str, Panel], rule: OrientationRule) -> Stitch:
     where = f"stitch {k}"
     if not isinstance(s, list) or len(s) not in (2, 3):
-        raise PatternError(f"{where} must be a list of two {{panel, edge}} objects (and optionally 'right_wrong')")
+        raise PatternError(f"{where} must be a list of two {{panel, edge}} objects (and optionally "
+                           "'right_wrong')")
     right_wrong = False
     if len(s) == 3:
         if s[2] != _RIGHT_WRONG:
@@ -358,7 +363,8 @@ def _stitch_from_list(k: int, s: Any, panels: dict[str, Panel], rule: Orientatio
             try:
                 orients.append(StitchOrientation(side["orientation"]))
             except ValueError:
-                raise PatternError(f"{w} orientation must be 'opposite' or 'same', got {side['orientation']!r}") \
+                raise PatternError(f"{w} orientation must be 'opposite' or 'same', got "
+                                   f"{side['orientation']!r}") \
                     from None
     if len(set(orients)) > 1:
         raise PatternError(f"{where}: its two sides disagree on the orientation")
@@ -375,7 +381,8 @@ def infer_stitch_orientation(panels: dict[str, Panel], a: EdgeRef, b: EdgeRef) -
     """Which ends of two edges meet, judged from the panels' 3D placement.
 
     Both edges' end points are placed in 3D; OPPOSITE (``a.start``-``b.end``, ``a.end``-``b.start``) is chosen
-    unless SAME (``a.start``-``b.start``, ``a.end``-``b.end``) has a strictly smaller sum of endpoint distances.
+    unless SAME (``a.start``-``b.start``, ``a.end``-``b.end``) has a strictly smaller sum of endpoint
+    distances.
 
     Args:
         panels: the pattern's panels by name.

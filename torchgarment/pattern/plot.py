@@ -8,7 +8,7 @@ pattern match. Seams are coloured per stitch (:func:`torchgarment.pattern.svg.st
 from __future__ import annotations
 
 import os
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -27,6 +27,9 @@ from torchgarment.pattern.svg import (
     stitch_marks,
     svg_panel_layout,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 _DPI = 100
 _LONG_SIDE_IN = 14.0  # inches of the longer figure side
@@ -78,7 +81,8 @@ def _mesh_triangles(mesh: PanelMesh, offsets_by_name: dict[str, np.ndarray]) -> 
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
         raise InputError(f"mesh.faces must be (F, 3) integers, got shape {faces.shape} {faces.dtype}")
     if ids.shape != (faces.shape[0],) or not np.issubdtype(ids.dtype, np.integer):
-        raise InputError(f"mesh.panel_ids must be (F,) integers, got shape {ids.shape} for {faces.shape[0]} faces")
+        raise InputError(f"mesh.panel_ids must be (F,) integers, got shape {ids.shape} for {faces.shape[0]} "
+                         "faces")
     if faces.size and (faces.min() < 0 or faces.max() >= p.shape[0]):
         raise InputError(f"mesh.faces refer to vertices outside 0..{p.shape[0] - 1}")
     if ids.size and (ids.min() < 0 or ids.max() >= len(offsets)):
@@ -115,7 +119,7 @@ def _save(fig: Figure, path: str | os.PathLike) -> None:
         fig.savefig(tmp, format="png", dpi=_DPI)
 
 
-def _draw_panel(ax, panel: Panel, offset: np.ndarray, *, color: str = "k", fill: str | None = _FILL,
+def _draw_panel(ax: Axes, panel: Panel, offset: np.ndarray, *, color: str = "k", fill: str | None = _FILL,
                 lw: float = 1.0, ls: str = "-", alpha: float = 1.0, name: bool = True) -> None:
     o = _outline(panel, offset)
     if fill:

@@ -315,8 +315,8 @@ class SewingPattern:
                 if ref.panel not in self.panels:
                     raise PatternError(f"stitch {k} refers to unknown panel '{ref.panel}'")
                 if not 0 <= ref.edge < len(self.panels[ref.panel].edges):
-                    raise PatternError(f"stitch {k} refers to edge {ref.edge} of panel '{ref.panel}', which has "
-                                       f"{len(self.panels[ref.panel].edges)} edges")
+                    raise PatternError(f"stitch {k} refers to edge {ref.edge} of panel '{ref.panel}', which "
+                                       f"has {len(self.panels[ref.panel].edges)} edges")
                 if ref in used:
                     raise PatternError(f"edge {ref.edge} of panel '{ref.panel}' is stitched twice "
                                        f"(stitches {used[ref]} and {k})")
@@ -324,8 +324,9 @@ class SewingPattern:
             la, lb = self.edge_length(s.a), self.edge_length(s.b)
             if min(la, lb) <= 0 or max(la, lb) / min(la, lb) > max_stitch_length_ratio:
                 raise PatternError(
-                    f"stitch {k} joins edges of mismatched length: {s.a.panel}[{s.a.edge}] {la * 1000:.1f} mm "
-                    f"vs {s.b.panel}[{s.b.edge}] {lb * 1000:.1f} mm (ratio limit {max_stitch_length_ratio})"
+                    f"stitch {k} joins edges of mismatched length: {s.a.panel}[{s.a.edge}] {la * 1000:.1f} "
+                    f"mm vs {s.b.panel}[{s.b.edge}] {lb * 1000:.1f} mm (ratio limit "
+                    f"{max_stitch_length_ratio})"
                 )
 
 
@@ -355,7 +356,8 @@ def _validate_panel(name: str, panel: Panel) -> None:
         raise PatternError(f"panel '{name}' has zero area")
     crossing = _first_self_crossing(outline)
     if crossing is not None:
-        raise PatternError(f"panel '{name}' outline crosses itself near ({crossing[0]:.4f}, {crossing[1]:.4f}) m")
+        raise PatternError(f"panel '{name}' outline crosses itself near ({crossing[0]:.4f}, "
+                           f"{crossing[1]:.4f}) m")
 
 
 def _first_self_crossing(poly: np.ndarray) -> np.ndarray | None:

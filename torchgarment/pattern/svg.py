@@ -56,7 +56,8 @@ def panel_bbox(panel: Panel) -> np.ndarray:
     return np.stack([o.min(axis=0), o.max(axis=0)])
 
 
-def shelf_layout(bboxes: dict[str, np.ndarray], margin: float = 0.02) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def shelf_layout(bboxes: dict[str, np.ndarray],
+                 margin: float = 0.02) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Shelf-pack bounding boxes into rows without overlap.
 
     Boxes are sorted by height (tallest first, stable) and placed left to right in rows of a width about
@@ -98,7 +99,8 @@ def shelf_layout(bboxes: dict[str, np.ndarray], margin: float = 0.02) -> tuple[d
     return offsets, np.array([sheet_w, sheet_h])
 
 
-def svg_panel_layout(pattern: SewingPattern, *, margin: float = 0.02) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def svg_panel_layout(pattern: SewingPattern, *,
+                     margin: float = 0.02) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Per-panel offsets of the sheet layout used by :func:`save_svg` (and the PNG and DXF writers).
 
     Args:
@@ -147,7 +149,8 @@ def notch_segment(panel: Panel, notch: Notch, length: float = NOTCH_LENGTH) -> n
 
 
 def grainline_segment(panel: Panel) -> np.ndarray:
-    """(2, 2) grainline through the outline's centroid along ``panel.grainline``, 60 % of the panel's extent."""
+    """(2, 2) grainline through the outline's centroid along ``panel.grainline``, 60 % of the panel's
+    extent."""
     o = panel.outline(resolution=32)
     c = o.mean(axis=0)
     g = panel.grainline
@@ -188,7 +191,8 @@ def stitch_marks(pattern: SewingPattern) -> list[StitchMark]:
             panel = pattern.panels[ref.panel]
             p, tan = edge_point_and_tangent(panel, ref.edge, 0.5)
             flip = side == "b" and s.orientation is StitchOrientation.OPPOSITE
-            marks.append(StitchMark(k, ref.panel, ref.edge, p, -tan if flip else tan, inward_normal(panel, tan)))
+            marks.append(StitchMark(k, ref.panel, ref.edge, p, -tan if flip else tan,
+                                    inward_normal(panel, tan)))
     return marks
 
 
@@ -277,14 +281,15 @@ def pattern_svg(pattern: SewingPattern, *, margin: float = 0.02) -> str:
                        f'font-size="6" text-anchor="middle" dominant-baseline="middle">S{m.stitch}</text>')
         for notch in panel.notches:
             p, q = frame(notch_segment(panel, notch))
-            out.append(f'<line class="notch" x1="{_f(p[0])}" y1="{_f(p[1])}" x2="{_f(q[0])}" y2="{_f(q[1])}"/>')
+            out.append(f'<line class="notch" x1="{_f(p[0])}" y1="{_f(p[1])}" x2="{_f(q[0])}" '
+                       f'y2="{_f(q[1])}"/>')
         g0, g1 = frame(grainline_segment(panel))
         out.append(f'<path class="grainline" d="M {_pt(g0)} L {_pt(g1)} {_arrow_d(g1, g1 - g0, 5.0)} '
                    f'{_arrow_d(g0, g0 - g1, 5.0)}"/>')
         c = frame(panel.outline(resolution=32).mean(axis=0))
         size = float(np.clip(0.08 * 1000 * np.ptp(panel.outline(resolution=8), axis=0).min(), 4.0, 14.0))
-        out.append(f'<text class="panel-name" x="{_f(c[0] + 0.6 * size)}" y="{_f(c[1])}" font-size="{_f(size)}" '
-                   f'dominant-baseline="middle">{escape(name)}</text>')
+        out.append(f'<text class="panel-name" x="{_f(c[0] + 0.6 * size)}" y="{_f(c[1])}" '
+                   f'font-size="{_f(size)}" dominant-baseline="middle">{escape(name)}</text>')
         out.append("</g>")
     out.append("</svg>")
     return "\n".join(out) + "\n"

@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 from torchgarment.errors import InputError
 from torchgarment.io.atomic import atomic_path
 from torchgarment.render.colormap import ScalarColors
-from torchgarment.render.image import RenderStyle, check_size, scene_points, render_prepared
+from torchgarment.render.image import RenderStyle, check_size, render_prepared, scene_points
 from torchgarment.render.layers import MeshLayer, prepare_layers
 from torchgarment.render.views import View, fit_camera
 

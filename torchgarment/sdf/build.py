@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import Enum
@@ -30,7 +31,6 @@ from enum import Enum
 import numpy as np
 
 from torchgarment.errors import InputError, MeshError
-
 
 DEFAULT_BAND = 0.02
 """Default narrow-band half-width in metres (raised to the far-field minimum for coarse voxels)."""
@@ -71,7 +71,8 @@ class SDFSettings:
     def __post_init__(self) -> None:
         object.__setattr__(self, "sign_type", SignType(self.sign_type))
         if not (math.isfinite(self.voxel_size) and self.voxel_size > 0):
-            raise InputError(f"SDFSettings.voxel_size must be a positive number of metres, got {self.voxel_size}")
+            raise InputError("SDFSettings.voxel_size must be a positive number of metres, got "
+                             f"{self.voxel_size}")
         if int(self.brick) != self.brick or self.brick < 2:
             raise InputError(f"SDFSettings.brick must be an integer >= 2, got {self.brick}")
         if self.workers < 0:
@@ -143,9 +144,11 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.
     if not np.issubdtype(f.dtype, np.integer):
         raise MeshError(f"SDF mesh faces must be integer indices, got dtype {f.dtype}")
     if not np.isfinite(v).all():
-        raise MeshError(f"SDF mesh has {int((~np.isfinite(v).any(axis=1)).sum())} vertices with NaN/inf coordinates")
+        raise MeshError(f"SDF mesh has {int((~np.isfinite(v).any(axis=1)).sum())} vertices with NaN/inf "
+                        "coordinates")
     if f.min() < 0 or f.max() >= v.shape[0]:
-        raise MeshError(f"SDF mesh face indices must lie in [0, {v.shape[0] - 1}], got [{f.min()}, {f.max()}]")
+        raise MeshError(f"SDF mesh face indices must lie in [0, {v.shape[0] - 1}], "
+                        f"got [{f.min()}, {f.max()}]")
     return np.ascontiguousarray(v), np.ascontiguousarray(f, dtype=np.int64)
 
 
@@ -153,7 +156,8 @@ def _workers(workers: int) -> int:
     return workers if workers > 0 else (os.cpu_count() or 1)
 
 
-def _chunked(fn, points: np.ndarray, workers: int, min_chunk: int = 50_000) -> np.ndarray:
+def _chunked(fn: Callable[[np.ndarray], np.ndarray], points: np.ndarray, workers: int,
+             min_chunk: int = 50_000) -> np.ndarray:
     """Apply ``fn`` (rows -> values) to ``points`` in chunks on a thread pool (igl releases the GIL)."""
     n = points.shape[0]
     k = max(1, min(workers * 4, n // min_chunk))
@@ -286,13 +290,15 @@ def _propagate_sign(
     sign_km[kk, mm] = 0
     # Corners of the brick are coarse nodes, whose sign is known from the coarse grid.
     corner = (loc % B == 0).all(axis=1)[mm]
-    sign_km[kk[corner], mm[corner]] = np.where(bricks[kk[corner], mm[corner]] < 0, -1, 1)  # coarse-filled = exact
+    # coarse-filled = exact
+    sign_km[kk[corner], mm[corner]] = np.where(bricks[kk[corner], mm[corner]] < 0, -1, 1)
     Bp = B + 1
     # Per local node: its level (the largest step dividing all its coordinates), reference node and gap.
     step_m = np.full(loc.shape[0], B)
     step = B // 2
     while step >= 1:
-        step_m = np.where((loc % (2 * step) == 0).all(axis=1), step_m, np.where((loc % step == 0).all(axis=1), step, step_m))
+        step_m = np.where((loc % (2 * step) == 0).all(axis=1), step_m,
+                          np.where((loc % step == 0).all(axis=1), step, step_m))
         step //= 2
     ref = (loc // (2 * step_m[:, None])) * (2 * step_m[:, None])
     ref_m = (ref[:, 0] * Bp + ref[:, 1]) * Bp + ref[:, 2]
@@ -321,7 +327,8 @@ def _node_offsets(n: int) -> np.ndarray:
     return np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def build_sdf_grid(vertices: np.ndarray, faces: np.ndarray, settings: SDFSettings | None = None) -> SDFGridData:
+def build_sdf_grid(vertices: np.ndarray, faces: np.ndarray,
+                   settings: SDFSettings | None = None) -> SDFGridData:
     """Build a sparse narrow-band signed distance grid of a triangle mesh.
 
     Args:
@@ -358,7 +365,8 @@ def build_sdf_grid(vertices: np.ndarray, faces: np.ndarray, settings: SDFSetting
     for di in (0, 1):
         for dj in (0, 1):
             for dk in (0, 1):
-                corner_min = np.minimum(corner_min, acoarse[di : di + nb[0], dj : dj + nb[1], dk : dk + nb[2]])
+                corner_min = np.minimum(corner_min,
+                                        acoarse[di : di + nb[0], dj : dj + nb[1], dk : dk + nb[2]])
     need = band + math.sqrt(3.0) * h
     cand = np.argwhere(corner_min - 0.5 * math.sqrt(3.0) * s <= need)  # (K0, 3) brick coordinates
 
@@ -366,7 +374,8 @@ def build_sdf_grid(vertices: np.ndarray, faces: np.ndarray, settings: SDFSetting
     loc = _node_offsets(B + 1)  # (M, 3) local node offsets, M = (B+1)^3
     corners = _node_offsets(2)  # (8, 3)
     corner_abs = acoarse[
-        cand[:, None, 0] + corners[None, :, 0], cand[:, None, 1] + corners[None, :, 1], cand[:, None, 2] + corners[None, :, 2]
+        cand[:, None, 0] + corners[None, :, 0], cand[:, None, 1] + corners[None, :, 1],
+        cand[:, None, 2] + corners[None, :, 2],
     ]  # (K0, 8)
     corner_dist = np.linalg.norm(loc[:, None, :] * h - corners[None, :, :] * s, axis=-1)  # (M, 8)
     exact = np.empty((cand.shape[0], loc.shape[0]), dtype=bool)  # (K0, M)
@@ -387,7 +396,8 @@ def build_sdf_grid(vertices: np.ndarray, faces: np.ndarray, settings: SDFSetting
         for a in range(3):
             wts[:, c] *= t[:, a] if corners[c, a] else 1.0 - t[:, a]
     corner_val = coarse[
-        cand[:, None, 0] + corners[None, :, 0], cand[:, None, 1] + corners[None, :, 1], cand[:, None, 2] + corners[None, :, 2]
+        cand[:, None, 0] + corners[None, :, 0], cand[:, None, 1] + corners[None, :, 1],
+        cand[:, None, 2] + corners[None, :, 2],
     ]  # (K, 8)
     bricks = corner_val @ wts.T  # (K, M)
 

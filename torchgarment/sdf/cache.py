@@ -1,10 +1,10 @@
 """Disk cache of built body SDFs.
 
-Entries live in ``$TORCHGARMENT_CACHE/sdf`` (default ``~/.cache/torchgarment/sdf``), one ``<key>.npz`` file each,
-written atomically by :meth:`BodySDF.save <torchgarment.sdf.grid.BodySDF.save>` in float64, so a hit returns
-exactly the values of a fresh build. The key is a SHA-256 hash of the mesh arrays (float64 vertices, int64
-faces, with their shapes), of the settings that change the grid (voxel size, band, brick, sign type; not the
-thread count) and of :data:`SDF_CACHE_VERSION`.
+Entries live in ``$TORCHGARMENT_CACHE/sdf`` (default ``~/.cache/torchgarment/sdf``), one ``<key>.npz`` file
+each, written atomically by :meth:`BodySDF.save <torchgarment.sdf.grid.BodySDF.save>` in float64, so a hit
+returns exactly the values of a fresh build. The key is a SHA-256 hash of the mesh arrays (float64 vertices,
+int64 faces, with their shapes), of the settings that change the grid (voxel size, band, brick, sign type; not
+the thread count) and of :data:`SDF_CACHE_VERSION`.
 """
 
 from __future__ import annotations
@@ -34,7 +34,8 @@ def _as_numpy(a: torch.Tensor | np.ndarray) -> np.ndarray:
     return a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
 
 
-def sdf_cache_key(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | np.ndarray, settings: SDFSettings | None = None) -> str:
+def sdf_cache_key(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | np.ndarray,
+                  settings: SDFSettings | None = None) -> str:
     """Hash a mesh and SDF settings into a cache key.
 
     Args:
@@ -81,7 +82,8 @@ def cached_sdf(
         dtype: floating dtype of the returned SDF (entries are stored in float64).
 
     Returns:
-        The :class:`BodySDF`, equal to ``BodySDF.from_mesh(vertices, faces, settings, device=device, dtype=dtype)``.
+        The :class:`BodySDF`, equal to ``BodySDF.from_mesh(vertices, faces, settings, device=device,
+        dtype=dtype)``.
 
     Raises:
         MeshError: invalid mesh.

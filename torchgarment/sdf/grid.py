@@ -12,12 +12,13 @@ See :mod:`torchgarment.sdf.build` for the layout. Sampling rules for a query poi
 
 The interpolant is continuous everywhere; its gradient is piecewise smooth (it jumps across cell faces).
 
-:class:`SDFSampling` ``QUADRATIC`` (see :meth:`BodySDF.with_sampling`) instead returns the trilinear interpolant
-box-filtered over one voxel, ``phi_q(x) = mean of phi over the cube x + [-h/2, h/2]^3``: the triquadratic
-B-spline of the node values, continuously differentiable (C1) inside the fine bricks, so that a barrier built on it
-has a continuous force. It is evaluated exactly with 8 trilinear samples (the midpoint rule on the two linear
-pieces per axis) and its gradient is the exact derivative of that formula; it keeps the trilinear Lipschitz bound
-(an average of a Lipschitz function) and is exact where ``phi`` is linear (flat parts of the body).
+:class:`SDFSampling` ``QUADRATIC`` (see :meth:`BodySDF.with_sampling`) instead returns the trilinear
+interpolant box-filtered over one voxel, ``phi_q(x) = mean of phi over the cube x + [-h/2, h/2]^3``: the
+triquadratic B-spline of the node values, continuously differentiable (C1) inside the fine bricks, so that a
+barrier built on it has a continuous force. It is evaluated exactly with 8 trilinear samples (the midpoint
+rule on the two linear pieces per axis) and its gradient is the exact derivative of that formula; it keeps the
+trilinear Lipschitz bound (an average of a Lipschitz function) and is exact where ``phi`` is linear (flat
+parts of the body).
 """
 
 from __future__ import annotations
@@ -34,6 +35,9 @@ from torchgarment.errors import InputError
 from torchgarment.io.atomic import atomic_path
 from torchgarment.options import OptionEnum
 from torchgarment.sdf.build import SDFGridData, SDFSettings, build_sdf_grid, check_mesh
+
+if TYPE_CHECKING:
+    from torch.autograd.function import FunctionCtx
 
 if TYPE_CHECKING:  # pragma: no cover
     from torchgarment.body.body import Body
@@ -79,10 +83,10 @@ def _block_values(values: np.ndarray, blocks: np.ndarray, n: int) -> np.ndarray:
 def _flat_layout(data: SDFGridData) -> tuple[np.ndarray, np.ndarray, int]:
     """One flat node array in which every cell, fine or coarse, is read with the same 8 corner offsets.
 
-    The fine bricks come first (row ``k`` at ``k * (B+1)^3``). The coarse grid follows, cut into "coarse bricks"
-    of ``B^3`` coarse cells stored exactly like fine bricks (``(B+1)^3`` nodes in C order, shared faces stored
-    twice, padded by edge values past the grid), so that the corners of a coarse cell are also at offsets
-    ``i * (B+1)^2 + j * (B+1) + k`` from its first corner.
+    The fine bricks come first (row ``k`` at ``k * (B+1)^3``). The coarse grid follows, cut into "coarse
+    bricks" of ``B^3`` coarse cells stored exactly like fine bricks (``(B+1)^3`` nodes in C order, shared
+    faces stored twice, padded by edge values past the grid), so that the corners of a coarse cell are also at
+    offsets ``i * (B+1)^2 + j * (B+1) + k`` from its first corner.
 
     Returns:
         ``(nodes, cell_base, fine_end)``: nodes (L,) float64; cell_base (n0 * n1 * n2,) int64, for every brick
@@ -116,14 +120,14 @@ class _Sample(torch.autograd.Function):
     """``phi(x)`` with the analytic gradient of the interpolant as backward (first order only)."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, sdf: "BodySDF") -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx: FunctionCtx, x: torch.Tensor, sdf: "BodySDF") -> torch.Tensor:  # type: ignore[override]
         phi, grad = sdf._query(x, with_grad=True)
         ctx.save_for_backward(grad)
         return phi
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_phi: torch.Tensor) -> tuple[torch.Tensor, None]:  # type: ignore[override]
+    def backward(ctx: FunctionCtx, grad_phi: torch.Tensor) -> tuple[torch.Tensor, None]:  # type: ignore[override]
         (grad,) = ctx.saved_tensors
         return grad * grad_phi[:, None], None
 
@@ -132,19 +136,20 @@ class BodySDF(torch.nn.Module):
     """Signed distance field of a body (metres, negative inside), sparse narrow band + coarse far field.
 
     Build with :meth:`from_mesh`, :meth:`from_body` or :meth:`cached` (disk cache); sample with ``sdf(x)``
-    (differentiable through autograd, first order) or :meth:`value_and_gradient` (analytic gradient, no graph).
-    Buffers move with ``.to(device, dtype)``; queries must be on the SDF's device and are computed in the SDF's
-    dtype.
+    (differentiable through autograd, first order) or :meth:`value_and_gradient` (analytic gradient, no
+    graph). Buffers move with ``.to(device, dtype)``; queries must be on the SDF's device and are computed in
+    the SDF's dtype.
 
-    Sampling cost: one lookup is integer arithmetic, one read of the brick table and ONE gather of the 8 corner
-    values from the flat node array ``nodes`` (fine bricks and coarse cells share the same corner offsets, see
-    :func:`_flat_layout`), then a trilinear interpolation whose gradient reuses the same values. The gather is
-    bound by memory latency once the touched bricks exceed the CPU caches (a 2.5 mm body grid holds 100 MB in
-    float64, 50 MB in float32), so float32 and spatially coherent queries are the fastest.
+    Sampling cost: one lookup is integer arithmetic, one read of the brick table and ONE gather of the 8
+    corner values from the flat node array ``nodes`` (fine bricks and coarse cells share the same corner
+    offsets, see :func:`_flat_layout`), then a trilinear interpolation whose gradient reuses the same values.
+    The gather is bound by memory latency once the touched bricks exceed the CPU caches (a 2.5 mm body grid
+    holds 100 MB in float64, 50 MB in float32), so float32 and spatially coherent queries are the fastest.
 
     Attributes:
         voxel_size: fine spacing in metres.
-        sampling: the :class:`SDFSampling` of queries (``TRILINEAR`` on construction; see :meth:`with_sampling`).
+        sampling: the :class:`SDFSampling` of queries (``TRILINEAR`` on construction; see
+            :meth:`with_sampling`).
         brick: brick edge in voxels (coarse spacing is ``brick * voxel_size``).
         band: narrow-band half-width in metres.
         origin: buffer (3,), position of node (0, 0, 0).
@@ -167,7 +172,8 @@ class BodySDF(torch.nn.Module):
     brick_strides: torch.Tensor
     node_strides: torch.Tensor
 
-    def __init__(self, data: SDFGridData, *, device: torch.device | str | None = None, dtype: torch.dtype = torch.float64):
+    def __init__(self, data: SDFGridData, *, device: torch.device | str | None = None,
+                 dtype: torch.dtype = torch.float64) -> None:
         super().__init__()
         if not dtype.is_floating_point:
             raise InputError(f"BodySDF dtype must be a floating dtype, got {dtype}")
@@ -187,7 +193,8 @@ class BodySDF(torch.nn.Module):
         ik = dict(device=device, dtype=index_dtype)
         self.register_buffer("origin", torch.as_tensor(np.asarray(data.origin), **kw))
         self.register_buffer("coarse", torch.as_tensor(np.asarray(data.coarse), **kw))
-        self.register_buffer("brick_index", torch.as_tensor(np.asarray(data.brick_index, dtype=np.int64), device=device))
+        self.register_buffer("brick_index",
+                             torch.as_tensor(np.asarray(data.brick_index, dtype=np.int64), device=device))
         self.register_buffer("nodes", torch.as_tensor(nodes, **kw))
         # Derived lookup tables (rebuilt from the data, not part of the state dict).
         self.register_buffer("cell_base", torch.as_tensor(cell_base, **ik), persistent=False)
@@ -197,10 +204,13 @@ class BodySDF(torch.nn.Module):
         self.register_buffer("box_min", torch.zeros(3, 1, **kw), persistent=False)
         self.register_buffer("box_max", torch.tensor([[n * B] for n in nb], **kw), persistent=False)
         self.register_buffer("cell_max", torch.tensor([[n * B - 1] for n in nb], **ik), persistent=False)
-        self.register_buffer("brick_strides", torch.tensor([[nb[1] * nb[2]], [nb[2]], [1]], **ik), persistent=False)
+        self.register_buffer("brick_strides", torch.tensor([[nb[1] * nb[2]], [nb[2]], [1]], **ik),
+                             persistent=False)
         self.register_buffer("node_strides", torch.tensor([[Bp * Bp], [Bp], [1]], **ik), persistent=False)
-        self._brick_shift = B.bit_length() - 1 if B & (B - 1) == 0 else None  # shifts replace // for 2^k bricks
-        self.register_buffer("cell_sizes", torch.tensor([self.voxel_size, B * self.voxel_size], **kw), persistent=False)
+        # shifts replace // for 2^k bricks
+        self._brick_shift = B.bit_length() - 1 if B & (B - 1) == 0 else None
+        self.register_buffer("cell_sizes", torch.tensor([self.voxel_size, B * self.voxel_size], **kw),
+                             persistent=False)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -247,7 +257,8 @@ class BodySDF(torch.nn.Module):
             vertices: (V, 3) positions in metres.
             faces: (F, 3) vertex indices.
             settings: grid settings (default :class:`SDFSettings()`).
-            cache_dir: folder of the entries; default ``$TORCHGARMENT_CACHE/sdf`` or ``~/.cache/torchgarment/sdf``.
+            cache_dir: folder of the entries; default ``$TORCHGARMENT_CACHE/sdf`` or
+                ``~/.cache/torchgarment/sdf``.
             device: device of the buffers.
             dtype: floating dtype of the buffers and of the queries.
 
@@ -316,9 +327,11 @@ class BodySDF(torch.nn.Module):
     def _check(self, x: torch.Tensor) -> torch.Tensor:
         """Validate query points and return them as an (N, 3) tensor in the SDF's dtype."""
         if not isinstance(x, torch.Tensor) or x.shape[-1:] != (3,):
-            raise InputError(f"SDF query points must be a tensor of shape (..., 3), got {getattr(x, 'shape', type(x))}")
+            raise InputError("SDF query points must be a tensor of shape (..., 3), got "
+                             f"{getattr(x, 'shape', type(x))}")
         if x.device != self.device:
-            raise InputError(f"SDF query points are on {x.device}, the SDF is on {self.device}; move one with .to()")
+            raise InputError(f"SDF query points are on {x.device}, the SDF is on {self.device}; move one "
+                             "with .to()")
         x = x.reshape(-1, 3).to(self.dtype)
         if not bool(torch.isfinite(x.sum())):  # one reduction; also trips on sums beyond the dtype's range
             raise InputError("SDF query points contain NaN or inf (or coordinates near the dtype's range)")
@@ -364,7 +377,8 @@ class BodySDF(torch.nn.Module):
         g = g.view(8, n, 3)
         sign = (idx * 2 - 1).to(x.dtype)[:, None, :]  # (8, 1, 3): d w / d u = -1 for i = 0, +1 for i = 1
         # d wprod / d u_d = sign_d * product of the other two weights
-        others = torch.stack([wc[..., 1] * wc[..., 2], wc[..., 0] * wc[..., 2], wc[..., 0] * wc[..., 1]], dim=2)
+        others = torch.stack([wc[..., 1] * wc[..., 2], wc[..., 0] * wc[..., 2], wc[..., 0] * wc[..., 1]],
+                             dim=2)
         grad = ((sign * others) * f[..., None]).sum(0) / h + 0.5 * (wprod[..., None] * g).sum(0)
         return phi, grad
 
@@ -392,7 +406,8 @@ class BodySDF(torch.nn.Module):
         h, B = self.voxel_size, self.brick
         idt = self.cell_max.dtype
         n = x.shape[0]
-        u = torch.sub(x.T, self.origin[:, None], out=x.new_empty(3, n)).div_(h)  # (3, N) fine grid coordinates
+        # (3, N) fine grid coordinates
+        u = torch.sub(x.T, self.origin[:, None], out=x.new_empty(3, n)).div_(h)
         uc = torch.clamp(u, min=self.box_min, max=self.box_max)  # projection onto the box
         cell = torch.minimum(uc.to(idt), self.cell_max)  # uc >= 0: truncation is floor
         if self._brick_shift is not None:
@@ -427,7 +442,8 @@ class BodySDF(torch.nn.Module):
             dx = y[:, 1] - y[:, 0]  # (3, N)
             r = (dx * tx).add_(y[:, 0])  # (3, N): value, d/dz, d/dy
             phi = r[0]
-            grad = torch.stack([dx[0], r[2], r[1]]).div_(torch.where(fine, self.cell_sizes[0], self.cell_sizes[1]))
+            grad = torch.stack([dx[0], r[2], r[1]]).div_(torch.where(fine, self.cell_sizes[0],
+                                                                     self.cell_sizes[1]))
 
         # Outside the box: phi(p) + |x - p|, p the projection of x onto the box.
         inside = u == uc
@@ -438,7 +454,8 @@ class BodySDF(torch.nn.Module):
         phi = phi + dist
         if not with_grad:
             return phi, None
-        # d/dx of phi(p(x)) + |x - p(x)|: a clamped coordinate does not move p and only the distance term acts.
+        # d/dx of phi(p(x)) + |x - p(x)|: a clamped coordinate does not move p and only the distance term
+        # acts.
         grad = torch.where(inside, grad, off.div_(dist.clamp(min=torch.finfo(x.dtype).tiny)))
         return phi, grad
 
@@ -464,7 +481,8 @@ class BodySDF(torch.nn.Module):
 
     @torch.no_grad()
     def value_and_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Signed distance and its analytic gradient (of the interpolant, see :attr:`sampling`), without autograd.
+        """Signed distance and its analytic gradient (of the interpolant, see :attr:`sampling`), without
+        autograd.
 
         Args:
             x: (..., 3) positions in metres on the SDF's device.
@@ -514,7 +532,8 @@ class BodySDF(torch.nn.Module):
 
     @classmethod
     def load(
-        cls, path: str | os.PathLike, *, device: torch.device | str | None = None, dtype: torch.dtype = torch.float64
+        cls, path: str | os.PathLike, *, device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float64
     ) -> "BodySDF":
         """Read a grid written by :meth:`save`.
 

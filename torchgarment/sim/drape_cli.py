@@ -12,8 +12,13 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
 
 
 def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -24,15 +29,16 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     d = DrapeSettings()
     p = subparsers.add_parser(
         "drape", help="drape a sewing pattern on a body",
-        description="Place a pattern's panels around a body, sew them and solve for the quasistatic equilibrium "
-                    "(Wang et al. 2018). Writes garment.obj, drape.png (garment coloured by the stretch ratio) "
-                    "and metrics.json.")
+        description="Place a pattern's panels around a body, sew them and solve for the quasistatic "
+                    "equilibrium (Wang et al. 2018). Writes garment.obj, drape.png (garment coloured by the "
+                    "stretch ratio) and metrics.json.")
     p.add_argument("--pattern", required=True, metavar="P",
                    help="a pattern file (.json GarmentCode specification or .dxf) or a library garment name "
                         "(with --size)")
     p.add_argument("--size", help="chart size to draft a library garment for (default: the body's size when "
                                   "--body is a chart size)")
-    p.add_argument("--body", required=True, metavar="B", help="a body mesh file (OBJ, PLY, ...) or a chart size")
+    p.add_argument("--body", required=True, metavar="B",
+                   help="a body mesh file (OBJ, PLY, ...) or a chart size")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--edge-length", type=float, default=d.edge_length, metavar="M",
                    help=f"triangle edge length in metres (default {d.edge_length})")
@@ -47,7 +53,7 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     return p
 
 
-def _load_body(spec: str):  # noqa: ANN202 - Body
+def _load_body(spec: str) -> tuple[Body, str]:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import list_sizes
 
@@ -55,23 +61,26 @@ def _load_body(spec: str):  # noqa: ANN202 - Body
         return Body.from_size(spec), f"size {spec}"
     path = Path(spec)
     if not path.is_file():
-        raise InputError(f"--body {spec}: neither a chart size ({', '.join(list_sizes())}) nor an existing mesh file")
+        raise InputError(f"--body {spec}: neither a chart size ({', '.join(list_sizes())}) nor an existing "
+                         "mesh file")
     from torchgarment.body.load import load_body
 
     return load_body(path), path.stem
 
 
-def _load_pattern(spec: str, size: str | None, body_spec: str):  # noqa: ANN202 - SewingPattern
+def _load_pattern(spec: str, size: str | None, body_spec: str) -> SewingPattern:
     from torchgarment.body.size_chart import chart_row, list_sizes
     from torchgarment.pattern.library import draft, list_garments
 
     if spec in list_garments():
         size = size if size is not None else (body_spec if body_spec in list_sizes() else None)
         if size is None:
-            raise InputError(f"--pattern {spec} is a library garment: give --size S (one of {', '.join(list_sizes())})")
+            raise InputError(f"--pattern {spec} is a library garment: give --size S (one of "
+                             f"{', '.join(list_sizes())})")
         return draft(spec, chart_row(size))
     if not Path(spec).is_file():
-        raise InputError(f"--pattern {spec}: neither a library garment ({', '.join(list_garments())}) nor a file")
+        raise InputError(f"--pattern {spec}: neither a library garment ({', '.join(list_garments())}) nor a "
+                         "file")
     from torchgarment.pattern.files import load_pattern_file
 
     return load_pattern_file(spec)
@@ -93,7 +102,8 @@ class _Progress:
         if stage != self.stage:
             self.close()
             self.stage = stage
-            self.bar = tqdm(total=self.totals.get(stage), desc=f"drape: {stage}", file=sys.stderr, leave=False,
+            self.bar = tqdm(total=self.totals.get(stage), desc=f"drape: {stage}", file=sys.stderr,
+                            leave=False,
                             unit="it")
         self.bar.update(1)
         if k % 10 == 0:
@@ -106,7 +116,8 @@ class _Progress:
 
 
 def cmd_drape(args: argparse.Namespace) -> int:
-    """Run ``torchgarment drape``; returns the exit code (0 also when the drape did not converge: see metrics)."""
+    """Run ``torchgarment drape``; returns the exit code (0 also when the drape did not converge: see
+    metrics)."""
     from torchgarment.io.mesh import save_obj
     from torchgarment.io.staging import staged_output
     from torchgarment.render import MeshLayer, render_views
@@ -123,7 +134,8 @@ def cmd_drape(args: argparse.Namespace) -> int:
     progress = _Progress({"sew": settings.sew_max_iterations, "settle": settings.max_iterations},
                          enabled=not args.no_progress)
     try:
-        result = drape(pattern, body, settings=settings, progress=progress, dtype=body.dtype, device=body.device)
+        result = drape(pattern, body, settings=settings, progress=progress, dtype=body.dtype,
+                       device=body.device)
     finally:
         progress.close()
     metrics = {"pattern": args.pattern, "body": args.body, **result.metrics}

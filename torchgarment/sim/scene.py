@@ -39,6 +39,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
+from types import ModuleType
 
 import torch
 
@@ -52,7 +53,6 @@ from torchgarment.sim.energies.sew import DEFAULT_SEW_STIFFNESS, SewingSprings
 from torchgarment.sim.energies.stretch import DEFAULT_STRETCH_STIFFNESS, PlanarSprings, check_positions
 from torchgarment.structures.garment_mesh import GarmentMesh
 
-
 MAX_EXTENT = 10.0
 """Largest bounding-box side, in metres, of a garment (3D positions or 2D pattern) or body a scene accepts."""
 
@@ -60,7 +60,8 @@ MAX_GARMENT_TO_BODY = 10.0
 """Largest ratio of the garment's bounding-box side to the body's (SDF box) a scene accepts."""
 
 MIN_REST_EDGE_RATIO = 1e-3
-"""Shortest rest edge a scene accepts, as a fraction of the median rest edge (its spring would be 1000x stiffer)."""
+"""Shortest rest edge a scene accepts, as a fraction of the median rest edge (its spring would be 1000x
+stiffer)."""
 
 MIN_REST_ANGLE_DEG = 0.1
 """Smallest rest-triangle angle in degrees a scene accepts (bending weights grow like 1 / angle)."""
@@ -92,7 +93,8 @@ class Material:
     """Cloth and interaction parameters, SI units.
 
     Attributes:
-        stretch_stiffness: ``Y`` of the planar springs in N (about 2,900 N/m membrane stiffness at 1 cm edges).
+        stretch_stiffness: ``Y`` of the planar springs in N (about 2,900 N/m membrane stiffness at 1 cm
+            edges).
         sew_stiffness: seam spring constant in N/m.
         bend_stiffness: bending stiffness in N m (J).
         density: areal density in kg/m^2.
@@ -184,8 +186,9 @@ class Scene:
         """Build the :class:`SimModel` with exactly the resolved effects' terms.
 
         Raises:
-            InputError: see :meth:`resolved_effects`; bad pins; an SDF on another device; missing contact module;
-                non-finite coordinates; a garment or body not in metres (see :func:`check_scene_input`).
+            InputError: see :meth:`resolved_effects`; bad pins; an SDF on another device; missing contact
+                module; non-finite coordinates; a garment or body not in metres (see
+                :func:`check_scene_input`).
             MeshError: faces out of range; (near-)zero rest edges or sliver rest triangles.
         """
         effects = self.resolved_effects()
@@ -210,7 +213,8 @@ class Scene:
                 dev = getattr(sdf, "device", g.device)
                 if torch.device(dev) != g.device:
                     raise InputError(f"the body SDF is on {dev} but the garment is on {g.device}")
-                terms.append(BodyBarrier(sdf, V, mu=m.barrier_mu, dhat=m.barrier_dhat, offset=m.barrier_offset))
+                terms.append(BodyBarrier(sdf, V, mu=m.barrier_mu, dhat=m.barrier_dhat,
+                                         offset=m.barrier_offset))
             elif eff is Effect.SELF_CONTACT:
                 contact = _contact_module(eff)
                 terms.append(contact.SelfContact(
@@ -265,7 +269,8 @@ class SimModel(torch.nn.Module):
         self.device = torch.device(device)
         self.dtype = dtype
         self._const_diag: tuple | None = None  # (key, (V, 3, 3)) cache of constant_hessian_diagonal
-        self._elastic_diag: torch.Tensor | None = None  # (V, 3, 3) last full diagonal of the non-volatile terms
+        # (V, 3, 3) last full diagonal of the non-volatile terms
+        self._elastic_diag: torch.Tensor | None = None
         #: rows (long) whose diagonal the volatile terms (barrier, contact) set in the last
         #: :meth:`value_grad_hessian_diagonal`; None = possibly all
         self.last_volatile_rows: torch.Tensor | None = None
@@ -292,7 +297,8 @@ class SimModel(torch.nn.Module):
         return self.energy(x)
 
     def energy(self, x: torch.Tensor) -> torch.Tensor:
-        """Total energy () in joules of positions ``x`` (V, 3); differentiable in ``x`` and term parameters."""
+        """Total energy () in joules of positions ``x`` (V, 3); differentiable in ``x`` and term
+        parameters."""
         check_positions(x, self.num_vertices, "SimModel")
         total = torch.zeros((), dtype=x.dtype, device=x.device)
         for t in self.terms:
@@ -311,8 +317,8 @@ class SimModel(torch.nn.Module):
 
     def constant_hessian_diagonal(self, dtype: torch.dtype, device: torch.device) -> torch.Tensor | None:
         """(V, 3, 3) sum of the Hessian diagonals of the terms whose Hessian is constant
-        (:attr:`EnergyTerm.constant_hessian`), computed once per (dtype, device, term state) and cached; None if
-        no term has a constant Hessian. Do not modify the result."""
+        (:attr:`EnergyTerm.constant_hessian`), computed once per (dtype, device, term state) and cached; None
+        if no term has a constant Hessian. Do not modify the result."""
         const = [t for t in self.terms if t.constant_hessian]
         if not const:
             return None
@@ -331,7 +337,8 @@ class SimModel(torch.nn.Module):
         check_positions(x, self.num_vertices, "SimModel")
         x = x.detach()
         const = self.constant_hessian_diagonal(x.dtype, x.device)
-        h = torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device) if const is None else const.clone()
+        h = (torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device) if const is None
+             else const.clone())
         for t in self.terms:
             if not t.constant_hessian:
                 h.add_(t.hessian_diagonal(x))
@@ -342,18 +349,18 @@ class SimModel(torch.nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Energy (), gradient (V, 3) and Hessian diagonal blocks (V, 3, 3) together.
 
-        Terms that can share work between them do; terms with a constant Hessian contribute their cached diagonal
-        (:meth:`constant_hessian_diagonal`); terms with sparse derivatives (the range-limited barrier) touch only
-        their rows.
+        Terms that can share work between them do; terms with a constant Hessian contribute their cached
+        diagonal (:meth:`constant_hessian_diagonal`); terms with sparse derivatives (the range-limited
+        barrier) touch only their rows.
 
         Args:
             x: (V, 3) positions in metres.
             reuse_elastic: reuse the diagonal of the non-volatile terms (see
-                :attr:`~torchgarment.sim.energies.base.EnergyTerm.volatile_hessian`) from the last call made with
-                ``reuse_elastic=False`` (same dtype and device), and evaluate only the volatile terms' diagonal
-                (barriers, contact) at ``x``. The result is then the exact diagonal of the volatile terms plus a
-                slightly stale one of the elastic terms, which is what a Jacobi preconditioner needs. Falls back
-                to a full evaluation when nothing is cached.
+                :attr:`~torchgarment.sim.energies.base.EnergyTerm.volatile_hessian`) from the last call made
+                with ``reuse_elastic=False`` (same dtype and device), and evaluate only the volatile terms'
+                diagonal (barriers, contact) at ``x``. The result is then the exact diagonal of the volatile
+                terms plus a slightly stale one of the elastic terms, which is what a Jacobi preconditioner
+                needs. Falls back to a full evaluation when nothing is cached.
         """
         check_positions(x, self.num_vertices, "SimModel")
         x = x.detach()
@@ -367,7 +374,8 @@ class SimModel(torch.nn.Module):
             self._record_volatile_rows()
             return E, g, h
         const = self.constant_hessian_diagonal(x.dtype, x.device)
-        h = torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device) if const is None else const.clone()
+        h = (torch.zeros(self.num_vertices, 3, 3, dtype=x.dtype, device=x.device) if const is None
+             else const.clone())
         for t in self.terms:  # elastic (non-volatile) terms first, then the elastic sum is cached
             if not t.volatile_hessian:
                 E = E + t.accumulate_value_grad_hessian_diagonal(x, g, None if t.constant_hessian else h)
@@ -416,8 +424,8 @@ class SimModel(torch.nn.Module):
         return alpha
 
     def project_feasible(self, x: torch.Tensor) -> torch.Tensor:
-        """``x`` with vertices inside the body moved just outside (each term with ``project_feasible`` in turn);
-        ``x`` itself when no term has one."""
+        """``x`` with vertices inside the body moved just outside (each term with ``project_feasible`` in
+        turn); ``x`` itself when no term has one."""
         check_positions(x, self.num_vertices, "SimModel")
         for t in self.terms:
             if hasattr(t, "project_feasible"):
@@ -450,14 +458,15 @@ def check_scene_input(garment: GarmentMesh, body_sdf: torch.nn.Module | None = N
 
     Raises:
         InputError: non-finite coordinates; garment or body not in metres.
-        MeshError: no faces, face indices out of range, (near-)zero rest edges, sliver or degenerate rest triangles.
+        MeshError: no faces, face indices out of range, (near-)zero rest edges, sliver or degenerate rest
+            triangles.
     """
     g = garment
     V = g.num_vertices
     x = g.x.detach().to(torch.float64)
     if not bool(torch.isfinite(x).all()):
-        raise InputError(f"garment positions x contain {int((~torch.isfinite(x)).any(dim=1).sum())} non-finite "
-                         f"vertices (NaN or Inf)")
+        raise InputError(f"garment positions x contain {int((~torch.isfinite(x)).any(dim=1).sum())} "
+                         f"non-finite vertices (NaN or Inf)")
     p = None if g.p is None else g.p.detach().to(torch.float64)
     if p is not None and not bool(torch.isfinite(p).all()):
         raise InputError("garment rest positions p contain NaN or Inf")
@@ -471,17 +480,17 @@ def check_scene_input(garment: GarmentMesh, body_sdf: torch.nn.Module | None = N
     if p is not None:
         size = max(size, float((p.max(dim=0).values - p.min(dim=0).values).max()))
     if size > MAX_EXTENT:
-        raise InputError(f"the garment spans {size:.4g} m (more than {MAX_EXTENT:g} m): coordinates must be in "
-                         f"metres; {_unit_hint(size)}")
+        raise InputError(f"the garment spans {size:.4g} m (more than {MAX_EXTENT:g} m): coordinates must be "
+                         f"in metres; {_unit_hint(size)}")
     bounds = getattr(body_sdf, "bounds", None) if body_sdf is not None else None
     if isinstance(bounds, torch.Tensor) and bounds.shape == (2, 3):
         body = float((bounds[1] - bounds[0]).max())
         if body > MAX_EXTENT:
-            raise InputError(f"the body SDF spans {body:.4g} m (more than {MAX_EXTENT:g} m): the body must be in "
-                             f"metres; {_unit_hint(body)}")
+            raise InputError(f"the body SDF spans {body:.4g} m (more than {MAX_EXTENT:g} m): the body must "
+                             f"be in metres; {_unit_hint(body)}")
         if body > 0 and size > MAX_GARMENT_TO_BODY * body:
-            raise InputError(f"the garment spans {size:.4g} m, {size / body:.0f}x the body's {body:.3g} m: both must "
-                             f"be in metres; {_unit_hint(size / body)}")
+            raise InputError(f"the garment spans {size:.4g} m, {size / body:.0f}x the body's {body:.3g} m: "
+                             f"both must be in metres; {_unit_hint(size / body)}")
     if not check_rest:
         return
     rest = p if p is not None else x
@@ -491,25 +500,26 @@ def check_scene_input(garment: GarmentMesh, body_sdf: torch.nn.Module | None = N
     k = int(torch.argmin(lengths))
     shortest, median = float(lengths[k]), float(lengths.median())
     if not shortest > 0:
-        raise MeshError(f"garment {what} edge {e[k].tolist()} has zero rest length (duplicate vertex positions "
-                        f"or a face repeating a vertex); remesh the pattern")
+        raise MeshError(f"garment {what} edge {e[k].tolist()} has zero rest length (duplicate vertex "
+                        f"positions or a face repeating a vertex); remesh the pattern")
     if shortest < MIN_REST_EDGE_RATIO * median:
-        raise MeshError(f"garment {what} edge {e[k].tolist()} is {shortest:.3g} m long, {median / shortest:.3g}x "
-                        f"shorter than the median edge ({median:.3g} m; limit {1 / MIN_REST_EDGE_RATIO:g}x): its "
-                        f"spring would be that much stiffer; remesh the pattern")
+        raise MeshError(f"garment {what} edge {e[k].tolist()} is {shortest:.3g} m long, "
+                        f"{median / shortest:.3g}x shorter than the median edge ({median:.3g} m; limit "
+                        f"{1 / MIN_REST_EDGE_RATIO:g}x): its spring would be that much stiffer; remesh the "
+                        "pattern")
     t = rest[g.faces]
     if t.shape[-1] == 2:
         t = torch.cat([t, torch.zeros_like(t[..., :1])], dim=-1)
     sides = torch.stack([t[:, 2] - t[:, 1], t[:, 0] - t[:, 2], t[:, 1] - t[:, 0]], dim=1)  # (F, 3, 3)
-    l = torch.linalg.vector_norm(sides, dim=2).sort(dim=1).values  # (F, 3) ascending
+    lengths = torch.linalg.vector_norm(sides, dim=2).sort(dim=1).values  # (F, 3) ascending
     twice_area = torch.linalg.vector_norm(torch.linalg.cross(sides[:, 2], -sides[:, 1], dim=1), dim=1)
-    sin_min = twice_area / (l[:, 1] * l[:, 2])  # sine of the angle opposite the shortest side
+    sin_min = twice_area / (lengths[:, 1] * lengths[:, 2])  # sine of the angle opposite the shortest side
     f = int(torch.argmin(sin_min))
     angle = math.degrees(math.asin(min(1.0, float(sin_min[f]))))
     if angle < MIN_REST_ANGLE_DEG:
         kind = "degenerate" if angle < 1e-6 else "sliver"
-        raise MeshError(f"garment {what} triangle {f} {g.faces[f].tolist()} is {kind}: smallest angle {angle:.3g} "
-                        f"deg (limit {MIN_REST_ANGLE_DEG:g} deg); remesh the pattern")
+        raise MeshError(f"garment {what} triangle {f} {g.faces[f].tolist()} is {kind}: smallest angle "
+                        f"{angle:.3g} deg (limit {MIN_REST_ANGLE_DEG:g} deg); remesh the pattern")
 
 
 def _unit_hint(ratio: float) -> str:
@@ -535,9 +545,9 @@ def _rest_positions(g: GarmentMesh) -> torch.Tensor:
     return (g.p if g.p is not None else g.x).detach()
 
 
-def _contact_module(effect: Effect):  # noqa: ANN202 - a module
+def _contact_module(effect: Effect) -> ModuleType:
     try:
         return importlib.import_module("torchgarment.sim.contact")
     except ImportError as exc:
-        raise InputError(f"effect {effect.value!r} needs torchgarment.sim.contact (IPC via ipctk), which could not "
-                         f"be imported: {exc}") from exc
+        raise InputError(f"effect {effect.value!r} needs torchgarment.sim.contact (IPC via ipctk), which "
+                         f"could not be imported: {exc}") from exc

@@ -203,12 +203,14 @@ def check_mesh(
     out = torch.nonzero(((faces < 0) | (faces >= vertices.shape[0])).any(dim=1), as_tuple=False).flatten()
     if out.numel():
         raise MeshError(
-            f"{name}: {out.numel()} faces index vertices outside [0, {vertices.shape[0]}), first faces {_first(out)}"
+            f"{name}: {out.numel()} faces index vertices outside [0, {vertices.shape[0]}), first faces "
+            f"{_first(out)}"
         )
     degenerate = find_degenerate_faces(vertices, faces, area_tol)
     if degenerate.numel():
         raise MeshError(
-            f"{name}: {degenerate.numel()} degenerate faces (area <= {area_tol:g} m^2), first {_first(degenerate)}"
+            f"{name}: {degenerate.numel()} degenerate faces (area <= {area_tol:g} m^2), first "
+            f"{_first(degenerate)}"
         )
     if not allow_unreferenced:
         unref = find_unreferenced_vertices(vertices.shape[0], faces)

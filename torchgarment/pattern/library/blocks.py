@@ -25,7 +25,8 @@ from torchgarment.errors import InputError
 from torchgarment.pattern.library.builder import Chain, cubic_length, side_curve
 from torchgarment.pattern.library.measurements import DraftMeasurements
 
-SHOULDER_SLOPE = math.radians(20.0)  # GarmentCode mean body shoulder_incl 20.9 deg; Aldrich ~ 4.5 cm over 12 cm
+# GarmentCode mean body shoulder_incl 20.9 deg; Aldrich ~ 4.5 cm over 12 cm
+SHOULDER_SLOPE = math.radians(20.0)
 CLEARANCE = 0.03  # gap between the body's bounding girth and a placed panel, metres
 
 
@@ -144,7 +145,8 @@ def sleeve_half(*, cap_length: float, bicep_half: float, cuff_half: float, lengt
                          f"{bicep_half:.3f} m; reduce sleeve ease or lower the armhole")
 
     def cap(h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return np.array([0.0, -0.4 * bicep_half]), np.array([h, -0.6 * bicep_half]), np.array([h, -bicep_half])
+        return np.array([0.0, -0.4 * bicep_half]), np.array([h, -0.6 * bicep_half]), np.array([h,
+                                                                                               -bicep_half])
 
     lo, hi = 0.0, cap_length
     for _ in range(60):
@@ -178,8 +180,8 @@ def trouser_leg(m: DraftMeasurements, *, hip_width: float, waist_width: float, c
         hem_height: hem above the floor.
 
     Returns:
-        closed counter-clockwise chain (last point = first) starting at the crotch point: inseam, hem, side_low, side_hip, waist,
-        centre, crotch.
+        closed counter-clockwise chain (last point = first) starting at the crotch point: inseam, hem,
+        side_low, side_hip, waist, centre, crotch.
     """
     yc, yh, yw = m.crotch_height, m.hip_height, m.waist_height
     if not hem_height < yc - 0.1:

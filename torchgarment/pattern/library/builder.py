@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from torchgarment.errors import PatternError
@@ -34,22 +35,22 @@ class Chain:
     segments: list[Segment] = field(default_factory=list)
 
     @classmethod
-    def start(cls, p) -> "Chain":
+    def start(cls, p: ArrayLike) -> "Chain":
         return cls(points=[np.asarray(p, dtype=np.float64)])
 
-    def line(self, p, label: str) -> "Chain":
+    def line(self, p: ArrayLike, label: str) -> "Chain":
         """Append a straight segment to ``p``."""
         return self._add(p, EdgeKind.LINE, np.zeros((0, 2)), label)
 
-    def quad(self, c, p, label: str) -> "Chain":
+    def quad(self, c: ArrayLike, p: ArrayLike, label: str) -> "Chain":
         """Append a quadratic Bezier with absolute control ``c``."""
         return self._add(p, EdgeKind.QUADRATIC, np.asarray([c], dtype=np.float64), label)
 
-    def cubic(self, c1, c2, p, label: str) -> "Chain":
+    def cubic(self, c1: ArrayLike, c2: ArrayLike, p: ArrayLike, label: str) -> "Chain":
         """Append a cubic Bezier with absolute controls ``c1``, ``c2``."""
         return self._add(p, EdgeKind.CUBIC, np.asarray([c1, c2], dtype=np.float64), label)
 
-    def _add(self, p, kind: EdgeKind, controls: np.ndarray, label: str) -> "Chain":
+    def _add(self, p: ArrayLike, kind: EdgeKind, controls: np.ndarray, label: str) -> "Chain":
         self.points.append(np.asarray(p, dtype=np.float64))
         self.segments.append(Segment(kind, controls, label))
         return self
@@ -79,13 +80,14 @@ def mirror_half(right: Chain) -> Chain:
     return Chain(right.points + left.points[1:], right.segments + left.segments)
 
 
-def make_panel(name: str, chain: Chain, *, closed: bool = False, label: str = "") -> tuple[Panel, dict[str, int]]:
+def make_panel(name: str, chain: Chain, *, closed: bool = False,
+               label: str = "") -> tuple[Panel, dict[str, int]]:
     """Turn a chain into a panel and a map from segment label to edge index.
 
     Args:
         name: panel name.
-        chain: the outline, counter-clockwise seen from outside. If ``closed`` its last point repeats the first;
-            otherwise a final segment must not be implied (the last segment ends at the first point).
+        chain: the outline, counter-clockwise seen from outside. If ``closed`` its last point repeats the
+            first; otherwise a final segment must not be implied (the last segment ends at the first point).
         closed: whether ``chain.points[-1]`` duplicates ``chain.points[0]``.
         label: panel label.
     """
@@ -115,7 +117,7 @@ def make_panel(name: str, chain: Chain, *, closed: bool = False, label: str = ""
     return panel, index
 
 
-def place(panel: Panel, origin, x_axis, y_axis) -> Panel:
+def place(panel: Panel, origin: ArrayLike, x_axis: ArrayLike, y_axis: ArrayLike) -> Panel:
     """Set the placement so that local (0, 0) goes to ``origin`` and local x, y to the given world axes.
 
     Args:
@@ -146,11 +148,12 @@ def place_back(panel: Panel, z: float, x: float = 0.0) -> Panel:
 
 def seam(pa: str, ia: dict[str, int], la: str, pb: str, ib: dict[str, int], lb: str,
          orientation: StitchOrientation = StitchOrientation.OPPOSITE) -> Stitch:
-    """A stitch between edge ``la`` of panel ``pa`` and edge ``lb`` of panel ``pb`` (labels via index maps)."""
+    """A stitch between edge ``la`` of panel ``pa`` and edge ``lb`` of panel ``pb`` (labels via index
+    maps)."""
     return Stitch(EdgeRef(pa, ia[la]), EdgeRef(pb, ib[lb]), orientation)
 
 
-def cubic_length(p0, c1, c2, p1, n: int = 256) -> float:
+def cubic_length(p0: ArrayLike, c1: ArrayLike, c2: ArrayLike, p1: ArrayLike, n: int = 256) -> float:
     """Arc length of an absolute cubic Bezier (polyline estimate, metres)."""
     t = np.linspace(0.0, 1.0, n + 1)[:, None]
     pts = ((1 - t) ** 3 * np.asarray(p0) + 3 * (1 - t) ** 2 * t * np.asarray(c1)
@@ -158,7 +161,7 @@ def cubic_length(p0, c1, c2, p1, n: int = 256) -> float:
     return float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
 
 
-def side_curve(p_low, p_high, chain: Chain, label: str, bulge: float = 0.5) -> Chain:
+def side_curve(p_low: ArrayLike, p_high: ArrayLike, chain: Chain, label: str, bulge: float = 0.5) -> Chain:
     """Append a cubic from the chain's last point ``p_low`` to ``p_high`` with vertical end tangents.
 
     Used for the waist-to-hip and waist-to-bust side shaping: the curve leaves and arrives vertically, so

@@ -89,7 +89,8 @@ class DraftMeasurements:
             raise InputError(f"height {self.height} m is outside 0.8..2.6 m (measurements are in metres)")
         for name in ("bust", "underbust", "waist", "hips"):
             if not 0.3 < getattr(self, name) < 2.5:
-                raise InputError(f"{name} {getattr(self, name)} m is outside 0.3..2.5 m (girths are in metres)")
+                raise InputError(f"{name} {getattr(self, name)} m is outside 0.3..2.5 m (girths are in "
+                                 "metres)")
         h, db = self.height, self.bust - _REF_BUST
         rules = {
             "waist_height": 0.634 * h,
@@ -116,14 +117,17 @@ class DraftMeasurements:
             setattr(self, f.name, v)
             if f.name != "arm_angle" and v <= 0:
                 raise InputError(f"measurement '{f.name}' must be positive, got {v}")
-        order = ["knee_height", "crotch_height", "hip_height", "waist_height", "bust_height", "shoulder_height"]
+        order = ["knee_height", "crotch_height", "hip_height", "waist_height", "bust_height",
+                 "shoulder_height"]
         for lo, hi in zip(order[:-1], order[1:]):
             if not getattr(self, lo) < getattr(self, hi):
-                raise InputError(f"{lo} ({getattr(self, lo):.3f} m) must be below {hi} ({getattr(self, hi):.3f} m)")
+                raise InputError(f"{lo} ({getattr(self, lo):.3f} m) must be below {hi} "
+                                 f"({getattr(self, hi):.3f} m)")
         if self.shoulder_height >= self.height:
             raise InputError("shoulder_height must be below height")
         if not -0.1 <= self.arm_angle <= math.pi / 2:
-            raise InputError(f"arm_angle {self.arm_angle} rad is outside -0.1..pi/2 (radians below horizontal)")
+            raise InputError(f"arm_angle {self.arm_angle} rad is outside -0.1..pi/2 (radians below "
+                             "horizontal)")
 
     @classmethod
     def from_dict(cls, d: dict[str, float]) -> "DraftMeasurements":

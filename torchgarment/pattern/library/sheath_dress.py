@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 from torchgarment.errors import InputError
 from torchgarment.pattern.library.blocks import neck_frame, positive
 from torchgarment.pattern.library.builder import Chain, side_curve

@@ -20,7 +20,8 @@ def straight_skirt(m: DraftMeasurements, *, waist_ease: float = 0.01, hip_ease: 
     Returns:
         pattern with panels ``skirt_front`` and ``skirt_back`` and four side-seam stitches.
     """
-    pattern = draft_skirt("straight_skirt", m, waist_ease=waist_ease, hip_ease=hip_ease, front_bias=front_bias,
+    pattern = draft_skirt("straight_skirt", m, waist_ease=waist_ease, hip_ease=hip_ease,
+                          front_bias=front_bias,
                           length_below_knee=length_below_knee, flare=0.0)
     del pattern.metadata["options"]["flare"]  # not an option of the straight skirt
     return pattern

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 from torchgarment.errors import InputError
 from torchgarment.pattern.library.blocks import panel_depth, positive, trouser_leg
 from torchgarment.pattern.library.builder import Chain, make_panel, place_back, place_front, seam
@@ -12,8 +11,10 @@ from torchgarment.pattern.spec import SewingPattern
 LEG_GAP = 0.01  # distance of each leg's crotch point from the body's mid-plane x = 0 when placed (metres)
 
 
-def trousers(m: DraftMeasurements, *, waist_ease: float = 0.01, hip_ease: float = 0.05, thigh_ease: float = 0.06,
-             hem_ratio: float = 0.45, hem_above_ankle: float = 0.0, front_bias: float = 0.01) -> SewingPattern:
+def trousers(m: DraftMeasurements, *, waist_ease: float = 0.01, hip_ease: float = 0.05,
+             thigh_ease: float = 0.06,
+             hem_ratio: float = 0.45, hem_above_ankle: float = 0.0,
+             front_bias: float = 0.01) -> SewingPattern:
     """Draft straight-leg trousers after Aldrich's trouser block, without darts or waistband.
 
     Per leg: front and back panels; hip widths ``(hips + hip_ease) / 4 -/+ front_bias``; crotch extensions
@@ -78,7 +79,8 @@ def trousers(m: DraftMeasurements, *, waist_ease: float = 0.01, hip_ease: float 
             stitches.append(seam(f"front_{s}", idx[f"front_{s}"], e, f"back_{s}", idx[f"back_{s}"], e))
     for part in ("front", "back"):
         for e in ("centre", "crotch"):
-            stitches.append(seam(f"{part}_left", idx[f"{part}_left"], e, f"{part}_right", idx[f"{part}_right"], e))
+            stitches.append(seam(f"{part}_left", idx[f"{part}_left"], e, f"{part}_right",
+                                 idx[f"{part}_right"], e))
     return SewingPattern(name="trousers", panels=panels, stitches=stitches, metadata={
         "garment": "trousers", "measurements": m.to_dict(),
         "options": {"waist_ease": waist_ease, "hip_ease": hip_ease, "thigh_ease": thigh_ease,

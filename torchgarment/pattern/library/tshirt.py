@@ -14,7 +14,8 @@ from torchgarment.pattern.library.torso import draft_torso
 from torchgarment.pattern.spec import SewingPattern
 
 
-def tshirt(m: DraftMeasurements, *, bust_ease: float = 0.08, hip_ease: float = 0.06, sleeve_ease: float = 0.04,
+def tshirt(m: DraftMeasurements, *, bust_ease: float = 0.08, hip_ease: float = 0.06,
+           sleeve_ease: float = 0.04,
            cap_ease: float = 0.0, sleeve_length: float = 0.22, armhole_drop: float = 0.03,
            length_below_hip: float = 0.03,
            shoulder_extension: float = 0.015, neck_widening: float = 0.015,
@@ -23,10 +24,10 @@ def tshirt(m: DraftMeasurements, *, bust_ease: float = 0.08, hip_ease: float = 0
 
     The bust width ``(bust + bust_ease) / 4`` per quarter is squared across the armscye line, which lies
     ``armhole_drop`` below the bust line (Aldrich's easy-fitting blocks lower the armhole); the body panels
-    are straight from the underarm point to the waist line, then flare or taper straight to the hem at ``(max(bust + bust_ease,
-    hips + hip_ease)) / 4``. Front and back armholes are identical, so each sleeve is two identical halves
-    (front and back, joined by overarm and underarm seams) whose cap height is solved so that the cap is
-    ``1 + cap_ease`` times the armhole (jersey: no cap ease).
+    are straight from the underarm point to the waist line, then flare or taper straight to the hem at
+    ``(max(bust + bust_ease, hips + hip_ease)) / 4``. Front and back armholes are identical, so each sleeve is
+    two identical halves (front and back, joined by overarm and underarm seams) whose cap height is solved so
+    that the cap is ``1 + cap_ease`` times the armhole (jersey: no cap ease).
 
     Args:
         m: body measurements (metres).
@@ -80,7 +81,8 @@ def tshirt(m: DraftMeasurements, *, bust_ease: float = 0.08, hip_ease: float = 0
     a = m.arm_angle
     xs, ys = neck.shoulder_point
     ca, sa = math.cos(a), math.sin(a)
-    # (name, mirrored layout?, origin, local x axis, local y axis); the normal x_axis x y_axis points outwards.
+    # (name, mirrored layout?, origin, local x axis, local y axis); the normal x_axis x y_axis points
+    # outwards.
     layout = [
         ("sleeve_front_left", False, (xs, ys, z), (ca, -sa, 0.0), (sa, ca, 0.0)),
         ("sleeve_back_left", True, (xs, ys, -z), (-ca, sa, 0.0), (sa, ca, 0.0)),
@@ -90,12 +92,14 @@ def tshirt(m: DraftMeasurements, *, bust_ease: float = 0.08, hip_ease: float = 0
     idx = {}
     for name, mirrored, origin, ex, ey in layout:
         chain = half.mirrored() if mirrored else half
-        panel, idx[name] = make_panel(name, Chain(chain.points[:], chain.segments[:]), closed=True, label="sleeve")
+        panel, idx[name] = make_panel(name, Chain(chain.points[:], chain.segments[:]), closed=True,
+                                      label="sleeve")
         panel.grainline = np.array([1.0, 0.0])  # warp along the arm
         panels[name] = place(panel, origin, ex, ey)
     f, b = "tshirt_front", "tshirt_back"
     fi, bi = t.index["front"], t.index["back"]
-    for side, body_front, body_back in (("left", "armhole_r", "armhole_l"), ("right", "armhole_l", "armhole_r")):
+    for side, body_front, body_back in (("left", "armhole_r", "armhole_l"),
+                                        ("right", "armhole_l", "armhole_r")):
         sf, sb = f"sleeve_front_{side}", f"sleeve_back_{side}"
         stitches.append(seam(f, fi, body_front, sf, idx[sf], "cap"))
         stitches.append(seam(b, bi, body_back, sb, idx[sb], "cap"))

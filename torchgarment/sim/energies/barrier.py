@@ -12,10 +12,11 @@ grows without bound as a vertex approaches the body. The unbounded form also pus
 loose cloth floats on the far field; the range-limited form (the default in :class:`~torchgarment.sim.scene.
 Material`, ``dhat`` = 3 mm) is C2 at ``dhat`` and acts only within ``dhat`` of the body: resting cloth sits
 just inside ``dhat`` (for a vertex weight ``w`` the equilibrium is ``phi = dhat (1 - u)`` with
-``3 mu u^2 / dhat = w``, ``u`` ~ 1 % at 2 cm edges), and with it the paper's ``mu = 0.01`` J drapes well. Where ``phi <= 0`` the energy is ``+inf`` (never NaN); the gradient
-and Hessian there are evaluated as if ``phi = offset`` (finite, pushing outward), but solvers must not accept
-such states: use :meth:`BodyBarrier.max_step` to stay feasible and :meth:`BodyBarrier.project_feasible` to
-repair an infeasible start (the paper projects penetrating vertices onto the body surface).
+``3 mu u^2 / dhat = w``, ``u`` ~ 1 % at 2 cm edges), and with it the paper's ``mu = 0.01`` J drapes well.
+Where ``phi <= 0`` the energy is ``+inf`` (never NaN); the gradient and Hessian there are evaluated as if
+``phi = offset`` (finite, pushing outward), but solvers must not accept such states: use
+:meth:`BodyBarrier.max_step` to stay feasible and :meth:`BodyBarrier.project_feasible` to repair an infeasible
+start (the paper projects penetrating vertices onto the body surface).
 
 Hessian: per vertex ``b''(phi) g g^T + b'(phi) Hess(phi)`` (``b'' = mu / phi^2``, ``b' = -mu / phi`` for the
 unbounded form). The second part is dropped: the trilinear
@@ -23,8 +24,8 @@ SDF's second derivatives are piecewise (mixed partials only, jumping across cell
 ``Hess(phi)`` of a convex body part is PSD, so the dropped term would mostly reduce stiffness. What remains is
 always PSD, so projection changes nothing. (With a planar SDF, ``Hess(phi) = 0`` and the blocks are exact.)
 
-The SDF is any module with ``forward(x) -> phi`` (differentiable) and ``value_and_gradient(x) -> (phi, grad)``,
-typically a :class:`~torchgarment.sdf.BodySDF`.
+The SDF is any module with ``forward(x) -> phi`` (differentiable) and ``value_and_gradient(x) -> (phi,
+grad)``, typically a :class:`~torchgarment.sdf.BodySDF`.
 """
 
 from __future__ import annotations
@@ -49,7 +50,8 @@ DEFAULT_OFFSET = 1.0e-3
 voxel for coarse SDFs)."""
 
 _DIRECT_SAMPLES = 8192
-"""Below this many path samples :meth:`BodyBarrier.max_step` skips its end-point pre-check (one query less)."""
+"""Below this many path samples :meth:`BodyBarrier.max_step` skips its end-point pre-check (one query
+less)."""
 
 _MAX_TRIALS = 15
 """Trial step lengths certified at once by one multisection pass of :meth:`BodyBarrier.max_step`."""
@@ -67,7 +69,8 @@ class BodyBarrier(EnergyTerm):
     Attributes:
         sdf: the signed distance module.
         mu: barrier weight in joules.
-        dhat: activation distance in metres of the range-limited form, or None for the unbounded ``-mu log phi``.
+        dhat: activation distance in metres of the range-limited form, or None for the unbounded ``-mu log
+            phi``.
         offset: clearance in metres restored by :meth:`project_feasible`; also the ``phi`` used for the
             gradient of infeasible vertices.
         lipschitz: assumed Lipschitz constant of ``phi`` (for the safe-step certificate of :meth:`max_step`).
@@ -99,8 +102,8 @@ class BodyBarrier(EnergyTerm):
             num_vertices: V.
             mu: barrier weight in joules, > 0.
             dhat: activation distance in metres (> 0) of the range-limited barrier, or None (unbounded).
-            offset: clearance in metres, > 0 (below ``dhat``); None means ``max(1 mm, voxel_size / 4)``, at most
-                ``dhat / 2``.
+            offset: clearance in metres, > 0 (below ``dhat``); None means ``max(1 mm, voxel_size / 4)``, at
+                most ``dhat / 2``.
             lipschitz: Lipschitz bound of ``phi`` (>= 1).
             segment_samples: samples per vertex path checked by :meth:`max_step` (>= 1).
             bisection_steps: bisection steps of :meth:`max_step`.
@@ -113,7 +116,8 @@ class BodyBarrier(EnergyTerm):
         """
         super().__init__()
         if not callable(sdf) or not hasattr(sdf, "value_and_gradient"):
-            raise InputError(f"the body barrier needs an SDF module with value_and_gradient, got {type(sdf).__name__}")
+            raise InputError("the body barrier needs an SDF module with value_and_gradient, got "
+                             f"{type(sdf).__name__}")
         if not mu > 0:
             raise InputError(f"barrier mu must be positive, got {mu}")
         if dhat is not None and not (math.isfinite(dhat) and dhat > 0):
@@ -132,8 +136,8 @@ class BodyBarrier(EnergyTerm):
         self.mu = float(mu)
         self.dhat = None if dhat is None else float(dhat)
         if self.dhat is not None and offset >= self.dhat:
-            raise InputError(f"barrier offset ({offset} m) must be below dhat ({self.dhat} m): projected vertices "
-                             f"must land where the barrier acts")
+            raise InputError(f"barrier offset ({offset} m) must be below dhat ({self.dhat} m): projected "
+                             f"vertices must land where the barrier acts")
         self.offset = float(offset)
         self.lipschitz = float(lipschitz)
         self.segment_samples = int(segment_samples)
@@ -164,16 +168,18 @@ class BodyBarrier(EnergyTerm):
         return (x.data_ptr(), x._version, tuple(x.shape), x.stride(), x.dtype, x.device)
 
     def _cached(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """``(phi, grad phi)`` of the last :meth:`_phi_grad_cached` call if ``x`` is that same, unmodified tensor."""
+        """``(phi, grad phi)`` of the last :meth:`_phi_grad_cached` call if ``x`` is that same, unmodified
+        tensor."""
         if self._cache_x is not None and self._cache_key == self._key(x):
             return self._cache_val
         return None
 
     def _phi_grad_cached(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(phi, grad phi)`` of all vertices ``x`` (V, 3), reusing the last evaluation when ``x`` is unchanged.
+        """``(phi, grad phi)`` of all vertices ``x`` (V, 3), reusing the last evaluation when ``x`` is
+        unchanged.
 
-        The solvers evaluate the gradient at ``x`` and then call :meth:`max_step` from the same ``x``; the cache
-        saves that second SDF query.
+        The solvers evaluate the gradient at ``x`` and then call :meth:`max_step` from the same ``x``; the
+        cache saves that second SDF query.
         """
         hit = self._cached(x)
         if hit is not None:
@@ -187,16 +193,16 @@ class BodyBarrier(EnergyTerm):
         return val
 
     def _phi_grad_lazy(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(phi, grad phi)`` where the range-limited barrier can act; a lower bound of ``phi`` (>= ``dhat``) and
-        a zero gradient elsewhere.
+        """``(phi, grad phi)`` where the range-limited barrier can act; a lower bound of ``phi`` (>= ``dhat``)
+        and a zero gradient elsewhere.
 
         Each vertex keeps the position ``r_i`` and value ``phi(r_i)`` of its last sample. Since ``phi`` is
-        ``L``-Lipschitz (:attr:`lipschitz`), ``phi(x_i) >= phi(r_i) - L |x_i - r_i|``; only vertices whose bound
-        is below ``dhat`` are sampled again (and their references updated). The others are at least ``dhat``
-        from the body, where the barrier's energy, force and stiffness are exactly zero, so the energy and its
-        derivatives equal those of a full query; the returned bound is a valid lower bound of ``phi`` for
-        :meth:`max_step` and :meth:`project_feasible`. In a drape most of a loose garment is beyond ``dhat``, so
-        most iterations sample a fraction of the vertices.
+        ``L``-Lipschitz (:attr:`lipschitz`), ``phi(x_i) >= phi(r_i) - L |x_i - r_i|``; only vertices whose
+        bound is below ``dhat`` are sampled again (and their references updated). The others are at least
+        ``dhat`` from the body, where the barrier's energy, force and stiffness are exactly zero, so the
+        energy and its derivatives equal those of a full query; the returned bound is a valid lower bound of
+        ``phi`` for :meth:`max_step` and :meth:`project_feasible`. In a drape most of a loose garment is
+        beyond ``dhat``, so most iterations sample a fraction of the vertices.
         """
         V = x.shape[0]
         if self._ref_x is None or self._ref_x.shape != x.shape or self._ref_x.dtype != x.dtype \
@@ -245,7 +251,8 @@ class BodyBarrier(EnergyTerm):
         return d1, d2
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Energy in joules of positions ``x`` (V, 3), ``+inf`` if a vertex has ``phi <= 0``; differentiable."""
+        """Energy in joules of positions ``x`` (V, 3), ``+inf`` if a vertex has ``phi <= 0``;
+        differentiable."""
         check_positions(x, self.num_vertices, self.name)
         phi = self.sdf(x).to(x.dtype)
         ok = phi > 0
@@ -279,7 +286,8 @@ class BodyBarrier(EnergyTerm):
         self, x: torch.Tensor, g: torch.Tensor, h: torch.Tensor | None, project_psd: bool = True
     ) -> torch.Tensor:
         """Add the gradient (and the Hessian diagonal blocks unless ``h`` is None) in place, touching only the
-        rows of vertices within ``dhat`` of the body (all rows for the unbounded barrier); return the energy."""
+        rows of vertices within ``dhat`` of the body (all rows for the unbounded barrier); return the
+        energy."""
         if self.dhat is None:
             E, safe, gphi = self._evaluate(x)
             d1, d2 = self.derivatives(safe)
@@ -314,7 +322,8 @@ class BodyBarrier(EnergyTerm):
         return s.unsqueeze(2) * s.unsqueeze(1)
 
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
-        """(V, 3, 3) blocks ``b''(phi) g g^T`` (PSD: ``b'' >= 0``; the ``b'(phi) Hess(phi)`` part is dropped)."""
+        """(V, 3, 3) blocks ``b''(phi) g g^T`` (PSD: ``b'' >= 0``; the ``b'(phi) Hess(phi)`` part is
+        dropped)."""
         _, safe, gphi = self._evaluate(x)
         return self._blocks(safe, gphi)
 
@@ -326,12 +335,12 @@ class BodyBarrier(EnergyTerm):
     # ------------------------------------------------------------------ feasibility
     @torch.no_grad()
     def max_step(self, x: torch.Tensor, dx: torch.Tensor) -> float:
-        """Largest ``alpha`` in (0, 1] (up to bisection) such that every path ``x_i + t dx_i``, ``t <= alpha``,
-        stays outside the body (``phi > 0``).
+        """Largest ``alpha`` in (0, 1] (up to bisection) such that every path ``x_i + t dx_i``, ``t <=
+        alpha``, stays outside the body (``phi > 0``).
 
-        Certificates use the Lipschitz bound ``L`` (:attr:`lipschitz`) of ``phi``: a piece of path from ``a`` to
-        ``b`` is safe when ``L |b - a| < phi(a) + phi(b)`` (and ``phi(b) > 0``), and so is the ball of radius
-        ``phi(a) / L`` around a sample ``a``. In order of cost:
+        Certificates use the Lipschitz bound ``L`` (:attr:`lipschitz`) of ``phi``: a piece of path from ``a``
+        to ``b`` is safe when ``L |b - a| < phi(a) + phi(b)`` (and ``phi(b) > 0``), and so is the ball of
+        radius ``phi(a) / L`` around a sample ``a``. In order of cost:
 
         1. a path shorter than ``phi(x_i) / L`` is safe (no SDF query: ``phi(x_i)`` is reused from the last
            energy evaluation at ``x`` when there was one); if all are, the result is 1.0;
@@ -352,7 +361,8 @@ class BodyBarrier(EnergyTerm):
             dx: (V, 3) step.
 
         Raises:
-            InputError: ``x`` is not feasible (use :meth:`project_feasible` first) or ``dx`` has the wrong shape.
+            InputError: ``x`` is not feasible (use :meth:`project_feasible` first) or ``dx`` has the wrong
+                shape.
         """
         check_positions(x, self.num_vertices, self.name)
         check_positions(dx, self.num_vertices, self.name + " step")
@@ -402,8 +412,9 @@ class BodyBarrier(EnergyTerm):
 
     def _certified(self, x: torch.Tensor, dx: torch.Tensor, phi: torch.Tensor, length: torch.Tensor,
                    lo_i: torch.Tensor, trials: torch.Tensor) -> torch.Tensor:
-        """(J,) bool: whether every path ``x + t dx`` (m, 3) is certified on ``[0, a_j]`` for each trial ``a_j``
-        (``segment_samples`` pieces each); paths already certified up to ``lo_i >= a_j`` count as certified."""
+        """(J,) bool: whether every path ``x + t dx`` (m, 3) is certified on ``[0, a_j]`` for each trial
+        ``a_j`` (``segment_samples`` pieces each); paths already certified up to ``lo_i >= a_j`` count as
+        certified."""
         n, L = self.segment_samples, self.lipschitz
         t = torch.arange(1, n + 1, dtype=x.dtype, device=x.device) / n
         at = trials[:, None] * t[None, :]  # (J, n)
@@ -414,7 +425,8 @@ class BodyBarrier(EnergyTerm):
         good = ((ph > 0) & (piece < prev + ph)).all(dim=2) | (lo_i[:, None] >= trials[None, :])  # (m, J)
         return good.all(dim=0)
 
-    def _certify(self, x: torch.Tensor, dx: torch.Tensor, length: torch.Tensor, s: torch.Tensor, e: torch.Tensor,
+    def _certify(self, x: torch.Tensor, dx: torch.Tensor, length: torch.Tensor, s: torch.Tensor,
+                 e: torch.Tensor,
                  phi_s: torch.Tensor | None, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Sample the paths ``x + t dx`` (m, 3) on ``t in [s, e]`` (m,) in ``n`` pieces, where ``[0, s]`` is
         already certified.

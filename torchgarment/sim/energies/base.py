@@ -1,9 +1,9 @@
 """The contract every simulation energy term follows.
 
 A term is a ``torch.nn.Module`` whose ``forward(x)`` returns the scalar energy (joules) of garment positions
-``x: (V, 3)`` (metres), built from differentiable torch operations so that autograd gives dE/dx and, through the
-term's parameters (e.g. the 2D rest positions ``p``), d/dp of anything computed from it. Solvers do not use
-autograd in their inner loop: each term also provides analytic, vectorized first and second derivatives.
+``x: (V, 3)`` (metres), built from differentiable torch operations so that autograd gives dE/dx and, through
+the term's parameters (e.g. the 2D rest positions ``p``), d/dp of anything computed from it. Solvers do not
+use autograd in their inner loop: each term also provides analytic, vectorized first and second derivatives.
 
 * ``value_and_grad(x) -> (E, g)``: energy () and gradient (V, 3), analytic, no autograd graph.
 * ``hessian_diagonal(x) -> (V, 3, 3)``: the 3x3 diagonal blocks of the Hessian (Jacobi preconditioning).
@@ -38,7 +38,8 @@ class HessianBlocks:
     def cat(parts: "list[HessianBlocks]") -> "HessianBlocks":
         """Concatenate several block lists (their sum as a matrix)."""
         return HessianBlocks(
-            torch.cat([p.rows for p in parts]), torch.cat([p.cols for p in parts]), torch.cat([p.values for p in parts])
+            torch.cat([p.rows for p in parts]), torch.cat([p.cols for p in parts]),
+            torch.cat([p.values for p in parts])
         )
 
     def to_sparse(self, num_vertices: int) -> torch.Tensor:
@@ -48,7 +49,8 @@ class HessianBlocks:
         c = (3 * self.cols)[:, None, None] + torch.arange(3, device=self.rows.device)[None, None, :]
         idx = torch.stack([r.expand(k, 3, 3).reshape(-1), c.expand(k, 3, 3).reshape(-1)])
         n = 3 * num_vertices
-        return torch.sparse_coo_tensor(idx, self.values.reshape(-1), (n, n), check_invariants=False).coalesce()
+        return torch.sparse_coo_tensor(idx, self.values.reshape(-1), (n, n),
+                                       check_invariants=False).coalesce()
 
 
 class EnergyTerm(torch.nn.Module):
@@ -60,9 +62,10 @@ class EnergyTerm(torch.nn.Module):
     #: gravity); :class:`~torchgarment.sim.scene.SimModel` then computes the term's Hessian diagonal once and
     #: reuses it (keyed on the term's stiffness, buffers and parameters) instead of every solver iteration.
     constant_hessian: bool = False
-    #: True when the Hessian can change a lot from one solver iteration to the next (barriers and contact, whose
-    #: stiffness grows like 1/distance^2); GD-Chebyshev refreshes such terms' diagonal every iteration and may
-    #: reuse the others' (elastic terms change slowly) for ``SolveSettings.elastic_diagonal_interval`` iterations.
+    #: True when the Hessian can change a lot from one solver iteration to the next (barriers and contact,
+    # whose : stiffness grows like 1/distance^2); GD-Chebyshev refreshes such terms' diagonal every iteration
+    # and may : reuse the others' (elastic terms change slowly) for
+    # ``SolveSettings.elastic_diagonal_interval`` iterations.
     volatile_hessian: bool = False
     #: rows (long) whose Hessian diagonal the last :meth:`accumulate_value_grad_hessian_diagonal` call with a
     #: diagonal touched; None = possibly every row (terms with sparse derivatives set it)
@@ -93,8 +96,8 @@ class EnergyTerm(torch.nn.Module):
         self, x: torch.Tensor, g: torch.Tensor, h: torch.Tensor | None, project_psd: bool = True
     ) -> torch.Tensor:
         """Add the gradient to ``g`` (V, 3) and, unless ``h`` is None, the Hessian diagonal blocks to ``h``
-        (V, 3, 3), in place; return the energy (). Terms whose derivatives are sparse (a barrier acting on a few
-        vertices) override it to touch only those rows."""
+        (V, 3, 3), in place; return the energy (). Terms whose derivatives are sparse (a barrier acting on a
+        few vertices) override it to touch only those rows."""
         if h is None:
             E, gt = self.value_and_grad(x)
         else:
@@ -104,8 +107,8 @@ class EnergyTerm(torch.nn.Module):
         return E
 
     def state_key(self) -> tuple:
-        """A key that changes whenever the term's stiffness, buffers or parameters change (in place or replaced);
-        used to cache derived data such as a constant Hessian diagonal."""
+        """A key that changes whenever the term's stiffness, buffers or parameters change (in place or
+        replaced); used to cache derived data such as a constant Hessian diagonal."""
         tensors = [*self.parameters(recurse=False), *self.buffers(recurse=False)]
         return (getattr(self, "stiffness", None),
                 tuple((t.data_ptr(), t._version, tuple(t.shape), t.dtype, t.device) for t in tensors))

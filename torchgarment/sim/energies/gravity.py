@@ -70,7 +70,8 @@ class Gravity(EnergyTerm):
         """
         super().__init__()
         if not isinstance(masses, torch.Tensor) or masses.ndim != 1 or not masses.is_floating_point():
-            raise InputError(f"masses must be a floating (V,) tensor, got {getattr(masses, 'shape', type(masses))}")
+            raise InputError("masses must be a floating (V,) tensor, got "
+                             f"{getattr(masses, 'shape', type(masses))}")
         if masses.numel() and not bool((masses >= 0).all() and torch.isfinite(masses).all()):
             raise InputError("vertex masses must be finite and non-negative")
         if not gravity >= 0:
@@ -86,13 +87,15 @@ class Gravity(EnergyTerm):
         self._force_cache: torch.Tensor | None = None
 
     @classmethod
-    def from_mesh(cls, mesh: GarmentMesh, *, density: float = DEFAULT_DENSITY, gravity: float = STANDARD_GRAVITY,
+    def from_mesh(cls, mesh: GarmentMesh, *, density: float = DEFAULT_DENSITY,
+                  gravity: float = STANDARD_GRAVITY,
                   direction: Sequence[float] | torch.Tensor = (0.0, -1.0, 0.0)) -> "Gravity":
         """Gravity with masses from the rest areas of ``mesh`` (see :func:`vertex_masses`)."""
         return cls(vertex_masses(mesh, density), gravity=gravity, direction=direction)
 
     def _force(self, x: torch.Tensor) -> torch.Tensor:
-        """(V, 3) gravity force ``m_i g d`` (the negative gradient); cached per dtype and device (do not modify)."""
+        """(V, 3) gravity force ``m_i g d`` (the negative gradient); cached per dtype and device (do not
+        modify)."""
         m, dvec = self.masses, self.direction
         key = (x.dtype, x.device, m.data_ptr(), m._version, dvec.data_ptr(), dvec._version, self.gravity)
         if key != self._force_key:

@@ -48,9 +48,11 @@ class Pins(EnergyTerm):
         """
         super().__init__()
         if not isinstance(indices, torch.Tensor) or indices.ndim != 1 or indices.dtype != torch.long:
-            raise InputError(f"pin indices must be a long (P,) tensor, got {getattr(indices, 'shape', type(indices))}")
+            raise InputError("pin indices must be a long (P,) tensor, got "
+                             f"{getattr(indices, 'shape', type(indices))}")
         P = indices.shape[0]
-        if not isinstance(targets, torch.Tensor) or targets.shape != (P, 3) or not targets.is_floating_point():
+        if (not isinstance(targets, torch.Tensor) or targets.shape != (P, 3)
+                or not targets.is_floating_point()):
             raise InputError(f"pin targets must be a floating ({P}, 3) tensor, got "
                              f"{getattr(targets, 'shape', type(targets))}")
         if P and (int(indices.min()) < 0 or int(indices.max()) >= num_vertices):

@@ -32,7 +32,8 @@ class SewingSprings(EnergyTerm):
     name = "sew"
     constant_hessian = True
 
-    def __init__(self, pairs: torch.Tensor, num_vertices: int, *, stiffness: float = DEFAULT_SEW_STIFFNESS) -> None:
+    def __init__(self, pairs: torch.Tensor, num_vertices: int, *,
+                 stiffness: float = DEFAULT_SEW_STIFFNESS) -> None:
         """Create the springs.
 
         Args:
@@ -44,8 +45,10 @@ class SewingSprings(EnergyTerm):
             InputError: bad shapes, indices out of range, a pair joining a vertex to itself, stiffness <= 0.
         """
         super().__init__()
-        if not isinstance(pairs, torch.Tensor) or pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.dtype != torch.long:
-            raise InputError(f"seam pairs must be a long (S, 2) tensor, got {getattr(pairs, 'shape', type(pairs))}")
+        if (not isinstance(pairs, torch.Tensor) or pairs.ndim != 2 or pairs.shape[1] != 2
+                or pairs.dtype != torch.long):
+            raise InputError("seam pairs must be a long (S, 2) tensor, got "
+                             f"{getattr(pairs, 'shape', type(pairs))}")
         if not stiffness > 0:
             raise InputError(f"sewing stiffness must be positive, got {stiffness}")
         if pairs.numel():

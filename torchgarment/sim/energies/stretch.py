@@ -71,7 +71,8 @@ class PlanarSprings(EnergyTerm):
             InputError: bad shapes, non-positive stiffness or shirring, zero-length rest edges.
         """
         super().__init__()
-        if not isinstance(edges, torch.Tensor) or edges.ndim != 2 or edges.shape[1] != 2 or edges.dtype != torch.long:
+        if (not isinstance(edges, torch.Tensor) or edges.ndim != 2 or edges.shape[1] != 2
+                or edges.dtype != torch.long):
             raise InputError(f"edges must be a long (E, 2) tensor, got {_shape(edges)}")
         if not isinstance(p, torch.Tensor) or p.ndim != 2 or p.shape[1] != 2 or not p.is_floating_point():
             raise InputError(f"rest positions p must be a floating (V, 2) tensor, got {_shape(p)}")
@@ -84,7 +85,8 @@ class PlanarSprings(EnergyTerm):
             r = torch.ones(E, dtype=p.dtype, device=p.device)
         elif isinstance(shirring, torch.Tensor):
             if shirring.shape != (E,):
-                raise InputError(f"shirring must have shape ({E},) (one factor per edge), got {tuple(shirring.shape)}")
+                raise InputError(f"shirring must have shape ({E},) (one factor per edge), got "
+                                 f"{tuple(shirring.shape)}")
             r = shirring.detach().to(dtype=p.dtype, device=p.device).clone()
         else:
             r = torch.full((E,), float(shirring), dtype=p.dtype, device=p.device)
@@ -132,7 +134,8 @@ class PlanarSprings(EnergyTerm):
     def _rest(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """Detached ``(k, rL)``: spring constants ``Y / L`` (N/m) and rest lengths ``r L`` (m), cached."""
         p, r = self.p, self.shirring
-        key = (id(p), p._version, p.data_ptr(), id(r), r._version, r.data_ptr(), self.stiffness, dtype, p.device)
+        key = (id(p), p._version, p.data_ptr(), id(r), r._version, r.data_ptr(), self.stiffness, dtype,
+               p.device)
         if key != self._cache_key:
             with torch.no_grad():
                 L = self._rest_lengths_raw().to(dtype)
@@ -146,18 +149,18 @@ class PlanarSprings(EnergyTerm):
         """Energy in joules of positions ``x`` (V, 3); differentiable in ``x``, ``p`` and ``shirring``."""
         check_positions(x, self.num_vertices, self.name)
         L = self._rest_lengths_raw()
-        l = torch.linalg.vector_norm(x[self._i] - x[self._j], dim=1)
-        s = l - self.shirring * L
+        length = torch.linalg.vector_norm(x[self._i] - x[self._j], dim=1)
+        s = length - self.shirring * L
         return (self.stiffness / (2.0 * L) * s * s).sum()
 
     def _kinematics(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
         check_positions(x, self.num_vertices, self.name)
         k, rl = self._rest(x.dtype)
         d = self._ops.diff(x)
-        l = torch.linalg.vector_norm(d, dim=1)
+        length = torch.linalg.vector_norm(d, dim=1)
         # relative floor keeps 1/l finite for coincident vertices (the gradient there is 0, not NaN)
-        lsafe = torch.maximum(l, rl * torch.finfo(x.dtype).eps)
-        return k, rl, d, l, lsafe
+        lsafe = torch.maximum(length, rl * torch.finfo(x.dtype).eps)
+        return k, rl, d, length, lsafe
 
     def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Energy () in joules and analytic gradient (V, 3) in newtons."""
@@ -169,8 +172,8 @@ class PlanarSprings(EnergyTerm):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Energy, gradient and (optionally) Hessian diagonal blocks sharing one pass over the springs."""
         x = x.detach()
-        k, rl, d, l, lsafe = self._kinematics(x)
-        s = l - rl
+        k, rl, d, length, lsafe = self._kinematics(x)
+        s = length - rl
         ks = k * s
         E = 0.5 * torch.dot(ks, s)
         w = ks / lsafe
@@ -183,8 +186,9 @@ class PlanarSprings(EnergyTerm):
                   w: torch.Tensor, project_psd: bool) -> torch.Tensor:
         """(V, 3, 3) sums of the spring blocks ``K = a I + (k - a) u u^T`` at both endpoints.
 
-        Scatters 7 numbers per spring instead of 9 (``K`` is symmetric): ``c d d^T`` with ``c = (k - a) / l^2``
-        (3 diagonal and 3 off-diagonal entries) and ``a``. Here ``a = k (1 - rL / l) = w``, the force factor.
+        Scatters 7 numbers per spring instead of 9 (``K`` is symmetric): ``c d d^T`` with ``c = (k - a) /
+        l^2`` (3 diagonal and 3 off-diagonal entries) and ``a``. Here ``a = k (1 - rL / l) = w``, the force
+        factor.
         """
         a = w.clamp_min(0.0) if project_psd else w
         c = (k - a).div_(lsafe * lsafe)
@@ -209,7 +213,8 @@ class PlanarSprings(EnergyTerm):
 
     def _blocks(self, k: torch.Tensor, rl: torch.Tensor, d: torch.Tensor, lsafe: torch.Tensor,
                 project_psd: bool) -> torch.Tensor:
-        """(E, 3, 3) blocks ``K = a I + (k - a) u u^T`` with ``a = k (1 - rL / l)`` (clamped at 0 if projecting)."""
+        """(E, 3, 3) blocks ``K = a I + (k - a) u u^T`` with ``a = k (1 - rL / l)`` (clamped at 0 if
+        projecting)."""
         a = k * (1.0 - rl / lsafe)
         if project_psd:
             a = a.clamp_min(0.0)
@@ -221,8 +226,8 @@ class PlanarSprings(EnergyTerm):
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
         """(V, 3, 3) diagonal blocks of the Hessian (N/m), of per-spring PSD-projected blocks by default."""
         x = x.detach()
-        k, rl, d, l, lsafe = self._kinematics(x)
-        return self._diagonal(k, rl, d, lsafe, k * (l - rl) / lsafe, project_psd)
+        k, rl, d, length, lsafe = self._kinematics(x)
+        return self._diagonal(k, rl, d, lsafe, k * (length - rl) / lsafe, project_psd)
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
         """Block-COO Hessian: V diagonal blocks and 2E off-diagonal blocks ``-K``."""
@@ -249,7 +254,8 @@ class PairOperator:
         self.i, self.j, self.num_vertices = i, j, int(num_vertices)
         self._mats: dict[tuple, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
-    def _get(self, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _get(self, dtype: torch.dtype,
+             device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         key = (dtype, device)
         if key not in self._mats:
             i, j = self.i.to(device), self.j.to(device)
