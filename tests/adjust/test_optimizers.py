@@ -88,14 +88,14 @@ def test_closure_calls_counted_and_cached_for_exact_closures():
         return fn
 
     q = torch.zeros(4, 2, dtype=torch.float64, requires_grad=True)
-    opt = PreconditionedGD([q], None, lr=0.25, line_search=False, max_move=None)
+    opt = PreconditionedGD([q], None, lr=0.25, line_search=False, max_displacement=None)
     for _ in range(5):
         opt.step(quad_closure(q))
     assert opt.closure_calls == 5 and len(calls) == 5
     assert torch.allclose(q.detach(), torch.full((4, 2), 1 - 0.5**5, dtype=torch.float64))
     # L-BFGS on the same quadratic: the accepted line-search point is not evaluated twice
     q2 = torch.zeros(4, 2, dtype=torch.float64, requires_grad=True)
-    lb = LBFGS([q2], max_move=None)
+    lb = LBFGS([q2], max_displacement=None)
     calls.clear()
     for _ in range(3):
         lb.step(quad_closure(q2))

@@ -26,7 +26,7 @@ stitched lengths up to the base pattern's gathering ratio) is the job of
 pairs (:attr:`BoundaryParametrization.seam_edge_pairs`) it needs. A hard tie is impossible in a linear
 parametrization of two panels with different shapes, so the constraint is soft (like every term of the paper).
 
-Solve modes (:class:`ParametrizationSolve`): ``factorized`` keeps a SuperLU factorization of ``L_II`` (CPU,
+Solve modes (:class:`ParametrizationSolve`): ``factorized`` keeps a sparse factorization of ``L_II`` (CPU,
 two triangular solves per call); ``explicit`` precomputes the block-diagonal dense operator
 ``-L_II^{-1} L_IB`` per panel and applies it as a sparse matrix product (stays on the device, memory
 ``sum_k I_k B_k``); ``auto`` picks ``factorized`` on the CPU and ``explicit`` on other devices when it has at
@@ -42,11 +42,11 @@ import warnings
 
 import numpy as np
 import scipy.sparse
-import scipy.sparse.linalg
 import torch
 
 from torchgarment.adjust.linear_map import StoredTransposeMatmul
 from torchgarment.errors import MeshError
+from torchgarment.linalg import factorize
 from torchgarment.options import OptionEnum
 from torchgarment.structures.garment_mesh import GarmentMesh
 
@@ -137,7 +137,7 @@ class _FactorizedMap(torch.autograd.Function):
         ctx.param, ctx.transpose = param, transpose
         vn = v.detach().cpu().numpy()
         if transpose:
-            y = param._lu.solve(np.ascontiguousarray(vn), trans="T") if vn.shape[0] else vn
+            y = param._lu.solve(np.ascontiguousarray(vn), transpose=True) if vn.shape[0] else vn
             out = -(param._L_IB.T @ y)
         else:
             rhs = -(param._L_IB @ vn)
@@ -229,7 +229,7 @@ class BoundaryParametrization(torch.nn.Module):
                 else ParametrizationSolve.FACTORIZED
         self.solve = mode
         self._L_II = L_II
-        self._lu = scipy.sparse.linalg.splu(L_II) if len(iidx) else None
+        self._lu = factorize(L_II, symmetric=False, what="interior Laplacian") if len(iidx) else None
         if mode is ParametrizationSolve.EXPLICIT:
             M = self._explicit_operator(L_II.tocsr(), panel, iidx, bidx)
             self.register_buffer("_M", _torch_csr(M, dtype, device), persistent=False)
@@ -264,7 +264,7 @@ class BoundaryParametrization(torch.nn.Module):
     def __setstate__(self, state: dict) -> None:
         super().__setstate__(state)
         if self._L_II.shape[0]:
-            self._lu = scipy.sparse.linalg.splu(self._L_II)
+            self._lu = factorize(self._L_II, symmetric=False, what="interior Laplacian")
 
     # ------------------------------------------------------------------ construction helpers
     def _explicit_operator(self, L_II: scipy.sparse.csr_matrix, panel: np.ndarray, iidx: np.ndarray,
@@ -279,7 +279,8 @@ class BoundaryParametrization(torch.nn.Module):
                 raise MeshError(f"panel {k} has interior vertices but no boundary")
             rhs = -self._L_IB[ri][:, cb].toarray()
             # panels share no vertices, so the panel's rows/columns of L_II are its own system
-            blk = scipy.sparse.linalg.splu(L_II[ri][:, ri].tocsc()).solve(np.ascontiguousarray(rhs))
+            blk = factorize(L_II[ri][:, ri].tocsc(), symmetric=False, what="panel Laplacian").solve(
+                np.ascontiguousarray(rhs))
             rr, cc = np.meshgrid(ri, cb, indexing="ij")
             rows.append(rr.ravel())
             cols.append(cc.ravel())

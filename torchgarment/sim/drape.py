@@ -104,11 +104,18 @@ class DrapeSettings:
     check_interval: int = 5
     max_seam_gap: float = 1.0e-3
 
-    def validate(self) -> None:
-        """Raise :class:`InputError` for out-of-range settings (and normalize the solver names)."""
+    def __post_init__(self) -> None:
         self.sew_solver = SolverKind.resolve(self.sew_solver)
         self.solver = SolverKind.resolve(self.solver)
         self.sdf_sampling = SDFSampling.resolve(self.sdf_sampling)
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` for out-of-range settings (called on construction; changes nothing)."""
+        for name, kind in (("sew_solver", SolverKind), ("solver", SolverKind), ("sdf_sampling", SDFSampling)):
+            if not isinstance(getattr(self, name), kind):
+                raise InputError(f"DrapeSettings.{name} must be one of {[k.value for k in kind]}, "
+                                 f"got {getattr(self, name)!r}")
         positive = {"edge_length": self.edge_length, "voxel_size": self.voxel_size, "sew_gap": self.sew_gap,
                     "max_seam_gap": self.max_seam_gap}
         for name, v in positive.items():

@@ -14,17 +14,20 @@ import inspect
 import math
 import time
 from dataclasses import asdict, dataclass, field
-from enum import Enum
 from typing import Callable, Protocol
 
-import numpy as np
-import scipy.sparse
-import scipy.sparse.linalg
 import torch
 
 from torchgarment.errors import InputError, TorchGarmentError
+from torchgarment.linalg import CSRAssembler, FactorCache
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.base import HessianBlocks
+
+__all__ = [
+    "Callback", "CSRAssembler", "FactorCache", "NonFiniteError", "Preconditioner", "Safeguard", "SolveInfo",
+    "SolveSettings", "SolverKind", "SolverModel", "Timer", "check_x0", "checked_max_step", "evaluate",
+    "evaluate_with_diagonal", "supports_elastic_reuse", "tolerance",
+]
 
 #: ``callback(iteration, x, residual, energy) -> stop``; return True to stop the solve early.
 Callback = Callable[[int, torch.Tensor, float, float], "bool | None"]
@@ -41,7 +44,7 @@ class SolverKind(OptionEnum):
     NEWTON = "newton"
 
 
-class Preconditioner(str, Enum):
+class Preconditioner(OptionEnum):
     """Jacobi preconditioner of the gradient-descent solver."""
 
     #: 3x3 Hessian diagonal blocks, inverted per vertex (non positive-definite blocks fall back to SCALAR)
@@ -50,7 +53,7 @@ class Preconditioner(str, Enum):
     SCALAR = "scalar"
 
 
-class Safeguard(str, Enum):
+class Safeguard(OptionEnum):
     """How the gradient-descent solver keeps barriers finite after each step."""
 
     #: scale the step by ``0.9 * model.max_step(x, dx)`` when that is below 1 (works for any barrier, incl. CCD)
@@ -100,7 +103,8 @@ class SolveSettings:
         max_regularizations: retries of the regularized factorization before giving up.
         reuse_factorization: Newton solves each system by CG preconditioned with the last sparse LU factorization
             (an inexact Newton step to relative residual ``pcg_rtol``) and factorizes afresh only when CG needs
-            more than ``pcg_max_iterations`` iterations or gives no descent direction (:class:`FactorCache`).
+            more than ``pcg_max_iterations`` iterations or gives no descent direction
+            (:class:`~torchgarment.linalg.FactorCache`).
             Large meshes (the drape's settle stage) spend most of a Newton iteration in the factorization.
         pcg_rtol: relative residual of those CG solves, in (0, 1).
         pcg_max_iterations: CG iterations before a fresh factorization (>= 1).
@@ -133,11 +137,17 @@ class SolveSettings:
     pcg_rtol: float = 1e-2
     pcg_max_iterations: int = 25
 
+    def __post_init__(self) -> None:
+        self.preconditioner = Preconditioner.resolve(self.preconditioner)
+        self.safeguard = Safeguard.resolve(self.safeguard)
+        self.validate()
+
     def validate(self) -> None:
-        """Raise :class:`InputError` for out-of-range settings."""
-        self.preconditioner = Preconditioner(self.preconditioner)
-        self.safeguard = Safeguard(self.safeguard)
+        """Raise :class:`InputError` for out-of-range settings (called on construction; changes nothing)."""
         checks = [
+            (isinstance(self.preconditioner, Preconditioner) and isinstance(self.safeguard, Safeguard),
+             f"preconditioner and safeguard must be one of {[p.value for p in Preconditioner]} and "
+             f"{[g.value for g in Safeguard]}"),
             (self.rtol >= 0 and self.atol >= 0, "rtol and atol must be >= 0"),
             (self.max_iterations >= 0, "max_iterations must be >= 0"),
             (0.0 <= self.chebyshev_rho < 1.0, "chebyshev_rho must lie in [0, 1)"),
@@ -264,41 +274,6 @@ def evaluate_with_diagonal(
     return ef, g, gn, h
 
 
-class FactorCache:
-    """The last sparse LU factorization of a Newton system, reused as the preconditioner of conjugate gradients on
-    the next systems (inexact Newton; see ``SolveSettings.reuse_factorization``).
-
-    Attributes:
-        lu: the ``scipy.sparse.linalg.SuperLU`` object, or None. shift: the diagonal shift it was made with.
-        factorizations, pcg_solves: counters.
-    """
-
-    def __init__(self) -> None:
-        self.lu = None
-        self.shift = 0.0
-        self.factorizations = 0
-        self.pcg_solves = 0
-
-    def store(self, lu, shift: float = 0.0) -> None:  # noqa: ANN001 - SuperLU
-        """Keep ``lu`` (a factorization of ``H + shift I``) for the next systems."""
-        self.lu, self.shift = lu, float(shift)
-        self.factorizations += 1
-
-    def solve(self, h: scipy.sparse.spmatrix, rhs: np.ndarray, rtol: float, maxiter: int) -> np.ndarray | None:
-        """``y`` with ``(H + shift I) y ~ rhs`` to relative residual ``rtol`` by CG preconditioned with the cached
-        factorization; None when there is none of this size or CG does not get there within ``maxiter``."""
-        n = h.shape[0]
-        if self.lu is None or self.lu.shape != (n, n):
-            return None
-        a = h + self.shift * scipy.sparse.identity(n, format="csr") if self.shift > 0 else h
-        m = scipy.sparse.linalg.LinearOperator((n, n), matvec=self.lu.solve, dtype=np.float64)
-        y, info = scipy.sparse.linalg.cg(a, rhs, rtol=rtol, atol=0.0, maxiter=maxiter, M=m)
-        if info != 0 or not np.all(np.isfinite(y)):
-            return None
-        self.pcg_solves += 1
-        return y
-
-
 def supports_elastic_reuse(model: SolverModel) -> bool:
     """Whether the model's fused ``value_grad_hessian_diagonal`` accepts ``reuse_elastic`` (a
     :class:`~torchgarment.sim.scene.SimModel` does; duck-typed models need not)."""
@@ -332,51 +307,3 @@ class Timer:
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.start
-
-
-class CSRAssembler:
-    """Assembles :class:`HessianBlocks` into a scipy CSR matrix (3V, 3V), float64, on the CPU.
-
-    The COO -> CSR permutation is computed once per sparsity pattern and reused while the block rows and
-    columns stay the same (they do for the elastic terms; contact terms may change them), so assembly is one
-    ``np.bincount`` per iteration.
-    """
-
-    def __init__(self, num_vertices: int) -> None:
-        self.n = 3 * int(num_vertices)
-        self._rows: torch.Tensor | None = None
-        self._cols: torch.Tensor | None = None
-        self._slot: np.ndarray | None = None
-        self._indptr: np.ndarray | None = None
-        self._indices: np.ndarray | None = None
-
-    def _build_pattern(self, rows: torch.Tensor, cols: torch.Tensor) -> None:
-        r = rows.detach().cpu().numpy().astype(np.int64)
-        c = cols.detach().cpu().numpy().astype(np.int64)
-        k = r.shape[0]
-        ar = np.arange(3, dtype=np.int64)
-        rr = (3 * r[:, None, None] + ar[None, :, None]).repeat(3, axis=2).reshape(-1)
-        cc = (3 * c[:, None, None] + ar[None, None, :]).repeat(3, axis=1).reshape(-1)
-        key = rr * self.n + cc
-        uniq, slot = np.unique(key, return_inverse=True)
-        self._slot = slot.reshape(-1)
-        urow = uniq // self.n
-        self._indices = (uniq % self.n).astype(np.int32 if self.n < 2**31 else np.int64)
-        self._indptr = np.zeros(self.n + 1, dtype=self._indices.dtype)
-        np.cumsum(np.bincount(urow, minlength=self.n), out=self._indptr[1:])
-        self._rows, self._cols = rows.detach().clone(), cols.detach().clone()
-        assert k * 9 == self._slot.shape[0]
-
-    def assemble(self, blocks: HessianBlocks) -> scipy.sparse.csr_matrix:
-        """The summed matrix of ``blocks`` as CSR (float64)."""
-        same = (
-            self._rows is not None
-            and self._rows.shape == blocks.rows.shape
-            and bool(torch.equal(self._rows, blocks.rows.to(self._rows.device)))
-            and bool(torch.equal(self._cols, blocks.cols.to(self._cols.device)))
-        )
-        if not same:
-            self._build_pattern(blocks.rows, blocks.cols)
-        vals = blocks.values.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
-        data = np.bincount(self._slot, weights=vals, minlength=self._indices.shape[0])
-        return scipy.sparse.csr_matrix((data, self._indices, self._indptr), shape=(self.n, self.n))
