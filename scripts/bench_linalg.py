@@ -8,10 +8,10 @@ Usage:
 The garment is meshed at the edge length that gives about each ``--vertices`` count; the matrix is the
 unprojected Hessian ``model.hessian_blocks(x, project_psd=False)`` (stretch, sew, bend, gravity) at the mesh's
 own positions, assembled by :class:`~torchgarment.linalg.CSRAssembler`, plus the Newton solver's first
-regularization ``1e-8 * mean|diag H| * I`` (the free garment's rigid motions are its null space). Backends that
-are not installed are skipped. Each backend is also checked for determinism: two factorizations and solves of
-the same matrix must give bit-identical results (``"deterministic"``), and its solution is compared with
-SuperLU's (``"max_rel_diff_vs_superlu"``).
+regularization ``1e-8 * mean|diag H| * I`` (the free garment's rigid motions are its null space). Backends
+that are not installed are skipped. Each backend is also checked for determinism: two factorizations and
+solves of the same matrix must give bit-identical results (``"deterministic"``), and its solution is compared
+with SuperLU's (``"max_rel_diff_vs_superlu"``).
 """
 
 from __future__ import annotations
@@ -62,7 +62,8 @@ def main() -> None:
         h = CSRAssembler(model.num_vertices).assemble(model.hessian_blocks(x, project_psd=False))
         shift = 1e-8 * float(np.abs(h.diagonal()).mean())
         rhs = np.random.default_rng(0).standard_normal(h.shape[0])
-        print(f"{args.garment} size {args.size}: {mesh.num_vertices} vertices, {h.shape[0]} dofs, {h.nnz} nonzeros")
+        print(f"{args.garment} size {args.size}: {mesh.num_vertices} vertices, {h.shape[0]} dofs, "
+              f"{h.nnz} nonzeros")
         reference = None
         for name in args.backends:
             backend = SparseBackend.resolve(name)
@@ -83,14 +84,16 @@ def main() -> None:
             if reference is None:
                 reference = results[0]
             residual = np.linalg.norm(h @ results[0] + shift * results[0] - rhs) / np.linalg.norm(rhs)
-            row = {"vertices": mesh.num_vertices, "dofs": h.shape[0], "nnz": int(h.nnz), "backend": backend.value,
+            row = {"vertices": mesh.num_vertices, "dofs": h.shape[0], "nnz": int(h.nnz),
+                   "backend": backend.value,
                    "factorize_s": statistics.median(fact_s), "solve_s": statistics.median(solve_s),
                    "factorize_all_s": fact_s, "solve_all_s": solve_s, "relative_residual": float(residual),
                    "deterministic": all(np.array_equal(results[0], r) for r in results[1:]),
                    "max_rel_diff_vs_superlu": float(np.abs(results[0] - reference).max()
                                                     / np.abs(reference).max())}
             rows.append(row)
-            print(f"  {backend.value:9s} factorize {row['factorize_s']:7.3f} s  solve {row['solve_s']:6.3f} s  "
+            print(f"  {backend.value:9s} factorize {row['factorize_s']:7.3f} s  "
+                  f"solve {row['solve_s']:6.3f} s  "
                   f"residual {residual:.1e}  deterministic {row['deterministic']}  "
                   f"vs superlu {row['max_rel_diff_vs_superlu']:.1e}")
     load = os.getloadavg()

@@ -6,6 +6,7 @@ finite differences."""
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -138,3 +139,28 @@ def test_tangent_matches_finite_differences_and_gn_product_is_symmetric():
     b = float((v * prob.gauss_newton_product(w)).sum())
     assert abs(a - b) <= 1e-6 * max(abs(a), abs(b))
     assert float((v * prob.gauss_newton_product(v)).sum()) > 0.0
+
+
+def test_hyperparameters_in_param_groups_and_counters_in_state_round_trip() -> None:
+    def quad_closure(q: torch.Tensor) -> Callable[[], torch.Tensor]:
+        def fn() -> torch.Tensor:
+            f = ((q - 1.0) ** 2).sum()
+            q.grad = torch.autograd.grad(f, q)[0]
+            return f.detach()
+        return fn
+
+    q = torch.zeros(4, 2, dtype=torch.float64, requires_grad=True)
+    opt = make_optimizer("lbfgs", [q], max_displacement=0.2)
+    group = opt.param_groups[0]
+    assert group["max_displacement"] == 0.2 and group["armijo_c"] == 1e-4 and group["backtrack"] == 0.5
+    for _ in range(3):
+        opt.step(quad_closure(q))
+    state = opt.state_dict()
+    q2 = q.detach().clone().requires_grad_(True)
+    other = LBFGS([q2], max_displacement=None)
+    other.load_state_dict(state)
+    assert other.param_groups[0]["max_displacement"] == 0.2
+    assert other.closure_calls == opt.closure_calls > 0 and other.last_step_length == opt.last_step_length
+    assert other.failed_calls == 0
+    with pytest.raises(InputError, match="max_displacement"):
+        PreconditionedGD([q], None, max_displacement=-1.0)

@@ -32,22 +32,24 @@ def _spd(n: int = 30, seed: int = 0) -> scipy.sparse.csr_matrix:
 
 
 @pytest.mark.parametrize("symmetric", [True, False])
-def test_factorize_matches_a_dense_solve(symmetric):
+def test_factorize_matches_a_dense_solve(symmetric: bool) -> None:
     a = _spd()
     b = np.random.default_rng(1).standard_normal((30, 3))
     fact = factorize(a, symmetric=symmetric)
     assert fact.shape == (30, 30) and fact.backend is SparseBackend.SUPERLU
     np.testing.assert_allclose(fact.solve(b), np.linalg.solve(a.toarray(), b), rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(fact.solve(b[:, 0]), np.linalg.solve(a.toarray(), b[:, 0]), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(fact.solve(b[:, 0]), np.linalg.solve(a.toarray(), b[:, 0]), rtol=1e-10,
+                               atol=1e-12)
     shifted = factorize(a, symmetric=symmetric, shift=0.5)
     assert shifted.shift == 0.5
-    np.testing.assert_allclose(shifted.solve(b), np.linalg.solve(a.toarray() + 0.5 * np.eye(30), b), rtol=1e-10)
+    np.testing.assert_allclose(shifted.solve(b), np.linalg.solve(a.toarray() + 0.5 * np.eye(30), b),
+                               rtol=1e-10)
     ns = (a + scipy.sparse.random(30, 30, density=0.05, random_state=3)).tocsc()
     np.testing.assert_allclose(factorize(ns, symmetric=False).solve(b[:, 0], transpose=True),
                                np.linalg.solve(ns.toarray().T, b[:, 0]), rtol=1e-10, atol=1e-12)
 
 
-def test_the_symmetric_superlu_call_is_unchanged():
+def test_the_symmetric_superlu_call_is_unchanged() -> None:
     """The default reproduces the project's SuperLU call bit for bit."""
     a = _spd(60, seed=4)
     b = np.random.default_rng(2).standard_normal(60)
@@ -56,7 +58,7 @@ def test_the_symmetric_superlu_call_is_unchanged():
     assert np.array_equal(factorize(a).solve(b), lu.solve(b))
 
 
-def test_singular_matrix_raises():
+def test_singular_matrix_raises() -> None:
     a = scipy.sparse.csr_matrix(np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
     with pytest.raises(SingularMatrixError, match="stiffness matrix is singular"):
         factorize(a, what="stiffness matrix").solve(np.ones(3))
@@ -65,7 +67,7 @@ def test_singular_matrix_raises():
         factorize(a, backend="umfpack")
 
 
-def test_cache_refactorizes_only_on_a_new_key():
+def test_cache_refactorizes_only_on_a_new_key() -> None:
     cache = FactorizationCache()
     a = _spd()
     builds = []
@@ -84,7 +86,7 @@ def test_cache_refactorizes_only_on_a_new_key():
     assert cache.factorizations == 3 and len(builds) == 3
 
 
-def test_factor_cache_solves_nearby_systems_by_pcg():
+def test_factor_cache_solves_nearby_systems_by_pcg() -> None:
     a = _spd()
     cache = FactorCache()
     assert cache.solve(a, np.ones(30), 1e-8, 20) is None  # nothing stored yet
@@ -95,7 +97,7 @@ def test_factor_cache_solves_nearby_systems_by_pcg():
     assert cache.pcg_solves == 1 and cache.factorizations == 1
 
 
-def test_pcg_matches_a_dense_solve_and_raises_at_negative_curvature():
+def test_pcg_matches_a_dense_solve_and_raises_at_negative_curvature() -> None:
     a = torch.from_numpy(_spd(40, seed=5).toarray())
     b = torch.randn(40, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     inv_diag = 1.0 / torch.diagonal(a)
@@ -114,18 +116,19 @@ def test_pcg_matches_a_dense_solve_and_raises_at_negative_curvature():
     assert k0 == 0 and r0 == 0.0 and not bool(z.any())
 
 
-def test_armijo_accepts_and_shrinks():
+def test_armijo_accepts_and_shrinks() -> None:
     f = lambda a: (a - 0.1) ** 2  # noqa: E731 - f(0) = 0.01, slope -0.2
-    alpha, value, ok = armijo_backtracking(f, 0.01, -0.2, 1.0, armijo_c=1e-4, backtrack=0.5, max_backtracks=20)
+    ls = {"armijo_c": 1e-4, "backtrack": 0.5}
+    alpha, value, ok = armijo_backtracking(f, 0.01, -0.2, 1.0, **ls, max_backtracks=20)
     assert ok and alpha == 0.125 and value == f(0.125)
-    assert armijo_backtracking(f, 0.01, -0.2, 0.1, armijo_c=1e-4, backtrack=0.5, max_backtracks=20)[:2] == (0.1, 0.0)
+    assert armijo_backtracking(f, 0.01, -0.2, 0.1, **ls, max_backtracks=20)[:2] == (0.1, 0.0)
     tried = []
 
     def bad(a: float) -> float:
         tried.append(a)
         return float("nan") if a > 0.3 else 1.0
 
-    alpha, value, ok = armijo_backtracking(bad, 0.0, -1.0, 1.0, armijo_c=1e-4, backtrack=0.5, max_backtracks=3)
+    alpha, value, ok = armijo_backtracking(bad, 0.0, -1.0, 1.0, **ls, max_backtracks=3)
     assert not ok and tried == [1.0, 0.5, 0.25] and alpha == 0.25 and value == 1.0
     tried.clear()
     *_, ok = armijo_backtracking(bad, 0.0, -1.0, 1.0, armijo_c=1e-4, backtrack=0.5, max_backtracks=50,
@@ -143,7 +146,7 @@ class _Blocks:
     values: torch.Tensor
 
 
-def test_assembler_matches_a_dense_sum():
+def test_assembler_matches_a_dense_sum() -> None:
     gen = torch.Generator().manual_seed(3)
     rows = torch.tensor([0, 1, 2, 0, 2, 1, 0])
     cols = torch.tensor([0, 1, 2, 1, 0, 1, 0])  # (1, 1) and (0, 0) twice: summed
@@ -160,7 +163,7 @@ def test_assembler_matches_a_dense_sum():
     assert np.count_nonzero(one[3:]) == 0
 
 
-def test_missing_backend_is_an_input_error(monkeypatch):
+def test_missing_backend_is_an_input_error(monkeypatch: pytest.MonkeyPatch) -> None:
     import importlib
 
     real = importlib.import_module

@@ -29,7 +29,8 @@ def _norm(v: torch.Tensor) -> torch.Tensor:
     return (v.pow(2).sum(-1) + _NORM_EPS2).sqrt()
 
 
-def _csr(indptr: torch.Tensor, indices: torch.Tensor, values: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+def _csr(indptr: torch.Tensor, indices: torch.Tensor, values: torch.Tensor,
+         shape: tuple[int, int]) -> torch.Tensor:
     with warnings.catch_warnings():  # "sparse CSR support is in beta"
         warnings.simplefilter("ignore", UserWarning)
         return torch.sparse_csr_tensor(indptr, indices, values, size=shape, check_invariants=False)
@@ -178,7 +179,8 @@ class SmoothnessCost(_LeastSquaresCost):
     faces: torch.Tensor
 
     def __init__(self, base_mesh: GarmentMesh, weight: float = 1.0) -> None:
-        """Args: base_mesh: base pattern ``p`` and base garment ``x`` (on the base body). weight: ``δ_smo``."""
+        """Args: base_mesh: base pattern ``p`` and base garment ``x`` (on the base body).
+        weight: ``δ_smo``."""
         super().__init__(weight)
         if base_mesh.p is None:
             raise InputError("SmoothnessCost needs a pattern mesh (base_mesh.p is None)")
@@ -267,8 +269,10 @@ class PositionalCost(_LeastSquaresCost):
     target: torch.Tensor
     vertex_weight: torch.Tensor
 
-    def __init__(self, target: torch.Tensor, vertex_weight: torch.Tensor | None = None, weight: float = 1.0) -> None:
-        """Args: target: (V, 3) transferred positions. vertex_weight: (V,) ``u_i`` (default 1). weight: ``δ_pos``."""
+    def __init__(self, target: torch.Tensor, vertex_weight: torch.Tensor | None = None,
+                 weight: float = 1.0) -> None:
+        """Args: target: (V, 3) transferred positions. vertex_weight: (V,) ``u_i`` (default 1).
+        weight: ``δ_pos``."""
         super().__init__(weight)
         if target.ndim != 2 or target.shape[1] != 3:
             raise InputError(f"target must be (V, 3), got {tuple(target.shape)}")

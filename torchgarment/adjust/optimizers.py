@@ -1,24 +1,27 @@
-"""Optimizers of the pattern parameters, each a ``torch.optim.Optimizer`` with ``step(closure)`` (Wang 2018, sec. 7).
+"""Optimizers of the pattern parameters, each a ``torch.optim.Optimizer`` with ``step(closure)`` (Wang 2018,
+sec. 7).
 
 Every closure call is a cloth solve (and usually an adjoint solve), so every optimizer counts them in
 ``closure_calls``. Hyperparameters (``lr``, ``armijo_c``, ``backtrack``, ``max_backtracks``,
 ``max_displacement``, ...) live in the param groups (torch's ``defaults``); counters (``closure_calls``,
 ``failed_calls``, ``last_step_length``) and memories in ``state``, so ``state_dict()`` / ``load_state_dict()``
-round-trip a run (a rollback to an earlier ``state_dict`` also rolls the counters back). A closure with attribute ``cacheable = True`` (an exact evaluation, see
+round-trip a run (a rollback to an earlier ``state_dict`` also rolls the counters back). A closure with
+attribute ``cacheable = True`` (an exact evaluation, see
 :meth:`~torchgarment.adjust.inexact.AdjustProblem.closure`) is not called again at the last two points it was
 called at: their values and gradients are reused (the accepted line-search point, and the start point after a
 failed line search; re-solving there from another warm start could find another equilibrium).
 
 * :class:`PreconditionedGD` (``"pgd"``, the paper's method): ``q <- q - s P^-1 grad`` with ``P`` the constant
   approximate Hessian of the regularizers (:meth:`AdjustObjective.regularizer_hessian`), factorized once
-  (:func:`~torchgarment.linalg.factorize`). With ``line_search=True`` the step ``s`` is found by Armijo backtracking (and grown after an
-  accepted step); with ``False`` it is the fixed ``lr`` (Algorithm 1 controls it).
+  (:func:`~torchgarment.linalg.factorize`). With ``line_search=True`` the step ``s`` is found by Armijo
+  backtracking (and grown after an accepted step); with ``False`` it is the fixed ``lr`` (Algorithm 1 controls
+  it).
 * :class:`LBFGS` (``"lbfgs"``): L-BFGS two-loop recursion with a trust-capped Armijo line search.
-* :class:`GaussNewton` (``"gn"``): ``(J^T H J + R) d = -grad`` by preconditioned CG (``P = R``, Steihaug stop at
-  negative curvature), products from :meth:`AdjustProblem.gauss_newton_product` (a tangent and an adjoint solve
-  each), then Armijo backtracking.
-* :class:`FixedPoint` (``"fixed-point"``): the fixed-point method of Bartle et al. 2016 as Wang 2018 implement it
-  on a mass-spring model (section 8.1): no gradient; every spring's rest vector is scaled by
+* :class:`GaussNewton` (``"gn"``): ``(J^T H J + R) d = -grad`` by preconditioned CG (``P = R``, Steihaug stop
+  at negative curvature), products from :meth:`AdjustProblem.gauss_newton_product` (a tangent and an adjoint
+  solve each), then Armijo backtracking.
+* :class:`FixedPoint` (``"fixed-point"``): the fixed-point method of Bartle et al. 2016 as Wang 2018 implement
+  it on a mass-spring model (section 8.1): no gradient; every spring's rest vector is scaled by
   ``|target edge| / |simulated edge|`` and the pattern is refit to these edge vectors in the least-squares
   sense; the boundary of the refit pattern becomes the new ``q``.
 
@@ -51,13 +54,15 @@ PreconditionerMatrix = scipy.sparse.spmatrix | np.ndarray | None
 
 
 class GaussNewtonProblem(Protocol):
-    """What :class:`GaussNewton` needs of the problem (:class:`~torchgarment.adjust.inexact.AdjustProblem`)."""
+    """What :class:`GaussNewton` needs of the problem (an
+    :class:`~torchgarment.adjust.inexact.AdjustProblem`): ``gauss_newton_product(v (B, 2)) -> (B, 2)``."""
 
     def gauss_newton_product(self, v: torch.Tensor) -> torch.Tensor: ...
 
 
 class FixedPointProblem(Protocol):
-    """What :class:`FixedPoint` needs of the problem: the pattern (V, 2) and simulation (V, 3) of the last call."""
+    """What :class:`FixedPoint` needs of the problem: the pattern ``last_p`` (V, 2) and simulation ``last_x``
+    (V, 3) of the last call."""
 
     last_p: torch.Tensor
     last_x: torch.Tensor
@@ -73,7 +78,8 @@ class OptimizerKind(OptionEnum):
 
     @classmethod
     def aliases(cls) -> dict[str, str]:
-        return {"preconditioned": "pgd", "l-bfgs": "lbfgs", "gauss-newton": "gn", "fixed_point": "fixed-point",
+        return {"preconditioned": "pgd", "l-bfgs": "lbfgs", "gauss-newton": "gn",
+                "fixed_point": "fixed-point",
                 "fixedpoint": "fixed-point", "bartle": "fixed-point"}
 
 
@@ -82,7 +88,8 @@ def _flat_params(params: list[torch.Tensor]) -> torch.Tensor:
 
 
 def _flat_grads(params: list[torch.Tensor]) -> torch.Tensor:
-    return torch.cat([(torch.zeros_like(p) if p.grad is None else p.grad.detach()).reshape(-1) for p in params])
+    return torch.cat([(torch.zeros_like(p) if p.grad is None else p.grad.detach()).reshape(-1)
+                      for p in params])
 
 
 def _set_flat(params: list[torch.Tensor], flat: torch.Tensor) -> None:
@@ -95,7 +102,8 @@ def _set_flat(params: list[torch.Tensor], flat: torch.Tensor) -> None:
 
 
 class _Counting:
-    """Mixin: counts closure calls (in ``state``) and reuses the last cacheable evaluation at an unchanged point."""
+    """Mixin: counts closure calls (in ``state``) and reuses the last cacheable evaluation at an unchanged
+    point."""
 
     _cache: list | None
     param_groups: list[dict]
@@ -164,7 +172,8 @@ class _Counting:
             self.closure_calls += 1
             loss_t = torch.as_tensor(loss).detach()
             if cacheable:  # the last two points: a failed line search returns to the one before the trials
-                entry = (flat, loss_t.clone(), [None if p.grad is None else p.grad.detach().clone() for p in params])
+                grads = [None if p.grad is None else p.grad.detach().clone() for p in params]
+                entry = (flat, loss_t.clone(), grads)
                 self._cache = ([entry] + list(self._cache or []))[:2]
             else:
                 self._cache = None
@@ -200,15 +209,16 @@ class _PrecondSolve:
 
     def __init__(self, P: scipy.sparse.spmatrix, n: int) -> None:
         if not scipy.sparse.issparse(P) and not isinstance(P, np.ndarray):
-            raise InputError(f"the preconditioner must be a scipy sparse matrix or an array, got {type(P).__name__}")
+            raise InputError(f"the preconditioner must be a scipy sparse matrix or an array, "
+                             f"got {type(P).__name__}")
         P = scipy.sparse.csc_matrix(P, dtype=np.float64)
         if P.shape != (n, n):
             raise InputError(f"the preconditioner must be ({n}, {n}) for {n} parameters, got {P.shape}")
         try:
             self.lu = factorize(P, symmetric=False, what="preconditioner")
         except SingularMatrixError as exc:
-            raise InputError(f"the preconditioner is singular ({exc}); the fixing regularizer keeps it positive "
-                             f"definite: give it a positive weight") from exc
+            raise InputError(f"the preconditioner is singular ({exc}); the fixing regularizer keeps it "
+                             f"positive definite: give it a positive weight") from exc
         self.P = P
 
     def solve(self, v: torch.Tensor) -> torch.Tensor:
@@ -250,14 +260,15 @@ def _line_search(fn: Closure, params: list[torch.Tensor], x0: torch.Tensor, f0: 
 def _check_line_search(armijo_c: float, backtrack: float, max_backtracks: int,
                        max_displacement: float | None) -> None:
     if not (0.0 < armijo_c < 1.0 and 0.0 < backtrack < 1.0 and max_backtracks >= 1):
-        raise InputError(f"the line search needs armijo_c and backtrack in (0, 1) and max_backtracks >= 1, got "
-                         f"{armijo_c}, {backtrack}, {max_backtracks}")
+        raise InputError(f"the line search needs armijo_c and backtrack in (0, 1) and max_backtracks >= 1, "
+                         f"got {armijo_c}, {backtrack}, {max_backtracks}")
     if max_displacement is not None and not max_displacement > 0:
         raise InputError(f"max_displacement must be > 0 or None, got {max_displacement}")
 
 
 class PreconditionedGD(_Counting, torch.optim.Optimizer):
-    """Preconditioned gradient descent ``q <- q - s P^-1 grad`` (the paper's method; see the module docstring).
+    """Preconditioned gradient descent ``q <- q - s P^-1 grad`` (the paper's method; see the module
+    docstring).
 
     Args:
         params: the parameters (usually ``[q]``, q (B, 2)); flattened in order, so ``P`` is (n, n) over them.
@@ -272,9 +283,9 @@ class PreconditionedGD(_Counting, torch.optim.Optimizer):
 
     needs_gradient = True
 
-    def __init__(self, params: Iterable[torch.Tensor], preconditioner: PreconditionerMatrix = None, *, lr: float = 1.0,
-                 line_search: bool = True, armijo_c: float = 1e-4, backtrack: float = 0.5, grow: float = 2.0,
-                 max_backtracks: int = 20, max_displacement: float | None = 0.01) -> None:
+    def __init__(self, params: Iterable[torch.Tensor], preconditioner: PreconditionerMatrix = None, *,
+                 lr: float = 1.0, line_search: bool = True, armijo_c: float = 1e-4, backtrack: float = 0.5,
+                 grow: float = 2.0, max_backtracks: int = 20, max_displacement: float | None = 0.01) -> None:
         if not lr > 0:
             raise InputError(f"lr must be > 0, got {lr}")
         if math.isinf(lr) and max_displacement is None:
@@ -317,27 +328,29 @@ class PreconditionedGD(_Counting, torch.optim.Optimizer):
 
 
 class LBFGS(_Counting, torch.optim.Optimizer):
-    """L-BFGS (torch.optim.LBFGS's two-loop recursion and curvature-pair memory) with a safeguarded line search.
+    """L-BFGS (torch.optim.LBFGS's two-loop recursion and curvature-pair memory) with a safeguarded line
+    search.
 
     torch's strong-Wolfe search extrapolates trial steps up to 10x, far outside what a cloth solve starting
     from the previous equilibrium can follow; here every trial is capped so that no parameter moves more than
-    ``max_displacement`` metres, and the step is accepted by Armijo backtracking. The initial inverse Hessian is
-    ``(s^T y / y^T y) I`` (torch's scaling) or, with a preconditioner ``P`` (the regularizer Hessian, as the
-    paper combines L-BFGS with its preconditioning), ``(s^T y / y^T P^-1 y) P^-1``; the first iteration is a
-    (preconditioned) gradient step of length ``max_displacement``. A curvature pair is kept only when
+    ``max_displacement`` metres, and the step is accepted by Armijo backtracking. The initial inverse Hessian
+    is ``(s^T y / y^T y) I`` (torch's scaling) or, with a preconditioner ``P`` (the regularizer Hessian, as
+    the paper combines L-BFGS with its preconditioning), ``(s^T y / y^T P^-1 y) P^-1``; the first iteration is
+    a (preconditioned) gradient step of length ``max_displacement``. A curvature pair is kept only when
     ``s^T y > 1e-10 |s| |y|``.
 
     Args:
         params: the parameters. preconditioner: sparse SPD (n, n) or None.
         lr: initial trial step (1 = the quasi-Newton step). history_size: memory.
-        max_displacement: trust length in metres (None = no cap). armijo_c, backtrack, max_backtracks: line search.
+        max_displacement: trust length in metres (None = no cap). armijo_c, backtrack, max_backtracks: line
+            search.
     """
 
     needs_gradient = True
 
-    def __init__(self, params: Iterable[torch.Tensor], preconditioner: PreconditionerMatrix = None, *, lr: float = 1.0,
-                 history_size: int = 10, max_displacement: float | None = 0.01, armijo_c: float = 1e-4,
-                 backtrack: float = 0.5, max_backtracks: int = 20) -> None:
+    def __init__(self, params: Iterable[torch.Tensor], preconditioner: PreconditionerMatrix = None, *,
+                 lr: float = 1.0, history_size: int = 10, max_displacement: float | None = 0.01,
+                 armijo_c: float = 1e-4, backtrack: float = 0.5, max_backtracks: int = 20) -> None:
         if not lr > 0 or history_size < 1:
             raise InputError("LBFGS needs lr > 0 and history_size >= 1")
         _check_line_search(armijo_c, backtrack, max_backtracks, max_displacement)
@@ -413,9 +426,9 @@ class GaussNewton(_Counting, torch.optim.Optimizer):
         params: ``[q]``.
         problem: an object with ``gauss_newton_product(v (B, 2)) -> (B, 2)`` valid at the point of the last
             closure call (:class:`~torchgarment.adjust.inexact.AdjustProblem`).
-        preconditioner: the regularizer Hessian ``R`` (n, n) sparse SPD: added to the system (it is part of the
-            objective but the products of the problem only hold the costs when ``include_regularizer``), and
-            used as CG's preconditioner.
+        preconditioner: the regularizer Hessian ``R`` (n, n) sparse SPD: added to the system (it is part of
+            the objective but the products of the problem only hold the costs when ``include_regularizer``),
+            and used as CG's preconditioner.
         include_regularizer: add ``R v`` to each product. The problem's products already hold the regularizers
             when they are part of the objective module; then keep False.
         lr: initial trial step. cg_iterations: CG budget per step (each a tangent + adjoint solve).
@@ -426,9 +439,10 @@ class GaussNewton(_Counting, torch.optim.Optimizer):
     needs_gradient = True
 
     def __init__(self, params: Iterable[torch.Tensor], problem: GaussNewtonProblem,
-                 preconditioner: PreconditionerMatrix = None, *, include_regularizer: bool = False, lr: float = 1.0,
-                 cg_iterations: int = 10, cg_rtol: float = 1e-2, armijo_c: float = 1e-4, backtrack: float = 0.5,
-                 max_backtracks: int = 20, max_displacement: float | None = 0.01) -> None:
+                 preconditioner: PreconditionerMatrix = None, *, include_regularizer: bool = False,
+                 lr: float = 1.0, cg_iterations: int = 10, cg_rtol: float = 1e-2, armijo_c: float = 1e-4,
+                 backtrack: float = 0.5, max_backtracks: int = 20,
+                 max_displacement: float | None = 0.01) -> None:
         _check_line_search(armijo_c, backtrack, max_backtracks, max_displacement)
         super().__init__(params, {
             "lr": float(lr), "cg_iterations": int(cg_iterations), "cg_rtol": float(cg_rtol),
@@ -456,12 +470,14 @@ class GaussNewton(_Counting, torch.optim.Optimizer):
         return hv
 
     def _cg(self, g: torch.Tensor, shape: torch.Size) -> torch.Tensor:
-        """Preconditioned CG for ``A d = -g``, stopped at negative curvature (Steihaug), ``cg_rtol`` or the budget;
-        a zero direction when the first direction already has non-positive curvature (the caller then takes the
-        preconditioned steepest descent)."""
+        """Preconditioned CG for ``A d = -g``, stopped at negative curvature (Steihaug), ``cg_rtol`` or the
+        budget;
+        a zero direction when the first direction already has non-positive curvature (the caller then takes
+        the preconditioned steepest descent)."""
         group = self.param_groups[0]
-        d, k, _ = pcg(lambda v: self._product(v, shape), -g, None if self.precond is None else self.precond.solve,
-                      group["cg_rtol"], group["cg_iterations"], stop_at_negative_curvature=True)
+        pre = None if self.precond is None else self.precond.solve
+        d, k, _ = pcg(lambda v: self._product(v, shape), -g, pre, group["cg_rtol"], group["cg_iterations"],
+                      stop_at_negative_curvature=True)
         self._counters()["last_cg_iterations"] = k
         return d
 
@@ -490,7 +506,8 @@ class GaussNewton(_Counting, torch.optim.Optimizer):
             d = -(g if self.precond is None else self.precond.solve(g))
         x0 = _flat_params(params)
         group = self.param_groups[0]
-        t, ok = _line_search(fn, params, x0, f0, g, d, _trust(group["lr"], d, group["max_displacement"]), group)
+        t0 = _trust(group["lr"], d, group["max_displacement"])
+        t, ok = _line_search(fn, params, x0, f0, g, d, t0, group)
         self.last_step_length = t if ok else 0.0
         return loss
 
@@ -500,9 +517,9 @@ class FixedPoint(_Counting, torch.optim.Optimizer):
 
     Each step simulates the current pattern (one closure call, no gradient needed), scales every pattern edge
     ``e = p_j - p_i`` by ``r_e = |x~_j - x~_i| / |x_j - x_i|`` (target over simulated 3D length: a spring
-    stretched too much in the simulation gets a longer rest length), and refits the whole pattern to the scaled
-    edge vectors: ``p' = argmin sum_e |p'_j - p'_i - r_e e|^2 + eps |p' - p|^2`` (a graph Laplacian system,
-    factorized once). The update is relaxed by ``lr``: ``q <- q + lr (p'_B - q)``.
+    stretched too much in the simulation gets a longer rest length), and refits the whole pattern to the
+    scaled edge vectors: ``p' = argmin sum_e |p'_j - p'_i - r_e e|^2 + eps |p' - p|^2`` (a graph Laplacian
+    system, factorized once). The update is relaxed by ``lr``: ``q <- q + lr (p'_B - q)``.
 
     Args:
         params: ``[q]`` (B, 2).
@@ -531,8 +548,9 @@ class FixedPoint(_Counting, torch.optim.Optimizer):
         self.boundary_index = boundary_index.detach().to(torch.long)
         self.x_target = x_target.detach()
         E = e.shape[0]
-        D = scipy.sparse.csr_matrix((np.r_[np.ones(E), -np.ones(E)], (np.r_[np.arange(E), np.arange(E)],
-                                                                        np.r_[e[:, 1], e[:, 0]])), shape=(E, V))
+        D = scipy.sparse.csr_matrix((np.r_[np.ones(E), -np.ones(E)],
+                                     (np.r_[np.arange(E), np.arange(E)], np.r_[e[:, 1], e[:, 0]])),
+                                    shape=(E, V))
         self.D = D
         self.eps = float(eps) * float(np.mean(np.asarray((D.T @ D).diagonal())))
         self.lu = factorize((D.T @ D + self.eps * scipy.sparse.eye(V)).tocsc(), symmetric=False,
@@ -561,8 +579,8 @@ class FixedPoint(_Counting, torch.optim.Optimizer):
         group = self.param_groups[0]
         loss = self._counted(closure)()
         if not math.isfinite(float(loss)):
-            # the last update gave a pattern the simulator cannot solve: go back to the previous pattern (whose
-            # simulation is still the problem's last one) and halve the relaxation
+            # the last update gave a pattern the simulator cannot solve: go back to the previous pattern
+            # (whose simulation is still the problem's last one) and halve the relaxation
             prev = self.state[q].get("q_prev")
             if prev is None or group["lr"] < 1e-3:
                 raise InputError("the fixed-point iteration reached patterns the simulator cannot solve")
@@ -576,7 +594,8 @@ class FixedPoint(_Counting, torch.optim.Optimizer):
         return loss
 
 
-def make_optimizer(kind: "str | OptimizerKind", params: list[torch.Tensor], *, preconditioner: PreconditionerMatrix = None,
+def make_optimizer(kind: "str | OptimizerKind", params: list[torch.Tensor], *,
+                   preconditioner: PreconditionerMatrix = None,
                    problem: GaussNewtonProblem | FixedPointProblem | None = None, lr: float | None = None,
                    line_search: bool = True, max_displacement: float | None = 0.01,
                    edges: torch.Tensor | None = None, boundary_index: torch.Tensor | None = None,

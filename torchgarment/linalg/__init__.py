@@ -4,8 +4,8 @@ It depends on torch, numpy and scipy only (and on :mod:`torchgarment.errors` and
 every solver and optimizer of the package builds on it.
 
 * :func:`factorize` -> :class:`Factorization` (``solve(b)``), backends :class:`SparseBackend` (SuperLU by
-  default); :class:`FactorizationCache` keeps one factorization per key (a state); :class:`FactorCache` keeps the
-  last one as the preconditioner of :func:`pcg` for nearby systems (inexact Newton).
+  default); :class:`FactorizationCache` keeps one factorization per key (a state); :class:`FactorCache` keeps
+  the last one as the preconditioner of :func:`pcg` for nearby systems (inexact Newton).
 * :func:`pcg`: preconditioned conjugate gradients on torch tensors.
 * :func:`armijo_backtracking`: the sufficient-decrease line search.
 * :class:`CSRAssembler`: 3x3 vertex blocks -> scipy CSR.

@@ -15,8 +15,8 @@ Preconditioner = Callable[[torch.Tensor], torch.Tensor]
 
 
 def pcg(
-    matvec: MatVec, b: torch.Tensor, preconditioner: Preconditioner | None, rtol: float, max_iterations: int, *,
-    x0: torch.Tensor | None = None, stop_at_negative_curvature: bool = False,
+    matvec: MatVec, b: torch.Tensor, preconditioner: Preconditioner | None, rtol: float, max_iterations: int,
+    *, x0: torch.Tensor | None = None, stop_at_negative_curvature: bool = False,
 ) -> tuple[torch.Tensor, int, float]:
     """Preconditioned conjugate gradients for ``K y = b`` with ``K`` symmetric positive definite.
 

@@ -16,7 +16,8 @@ def armijo_backtracking(
     Args:
         f: the objective at step ``alpha`` (the caller moves its state there); a NaN or infinite value rejects
             the step.
-        f0: the objective at ``alpha = 0``. slope: its directional derivative along the step (< 0 for descent).
+        f0: the objective at ``alpha = 0``. slope: its directional derivative along the step (< 0 for
+            descent).
         alpha0: the first trial step (already capped by any step bound: a trust length, a barrier's
             ``max_step``, a collision-free step).
         armijo_c: sufficient-decrease constant in (0, 1).
@@ -26,8 +27,9 @@ def armijo_backtracking(
         min_alpha: no step below this is tried (0: the trials end only after ``max_backtracks``).
 
     Returns:
-        ``(alpha, f(alpha), True)`` for the accepted step; else ``(alpha, f(alpha), False)`` for the last tried
-        step (``(alpha0, f0, False)`` when none was tried). The caller restores its state after a failure.
+        ``(alpha, f(alpha), True)`` for the accepted step; else ``(alpha, f(alpha), False)`` for the last
+        tried step (``(alpha0, f0, False)`` when none was tried). The caller restores its state after a
+        failure.
     """
     alpha, last, value = alpha0, alpha0, f0
     for trial in range(max_backtracks):

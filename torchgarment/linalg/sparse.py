@@ -1,4 +1,4 @@
-"""Sparse direct solves: factorizations with a pluggable backend, a keyed cache, and CSR assembly from 3x3 blocks.
+"""Sparse direct solves: factorizations with a pluggable backend, caches, and CSR assembly from 3x3 blocks.
 
 Every sparse factorization of the project goes through :func:`factorize`. The default backend,
 :attr:`SparseBackend.SUPERLU`, is scipy's SuperLU; for symmetric matrices (``symmetric=True``, the default) it
@@ -7,13 +7,16 @@ is called with the minimum-degree ordering on ``A^T + A``, no partial pivoting a
     splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 and with scipy's defaults (COLAMD ordering, partial pivoting) for ``symmetric=False``. The optional backends
-``"pardiso"`` (Intel MKL Pardiso through PyPI's ``pypardiso``) and ``"cholespy"`` (a supernodal Cholesky, SPD
-matrices only) are imported only when asked for; a missing one raises :class:`~torchgarment.errors.InputError`.
+``"pardiso"`` (Intel MKL Pardiso through PyPI's ``pypardiso``, run with ``MKL_CBWR=COMPATIBLE`` so that
+results are reproducible on several threads) and ``"cholespy"`` (a supernodal Cholesky, SPD
+matrices only) are imported only when asked for; a missing one raises
+:class:`~torchgarment.errors.InputError`.
 """
 
 from __future__ import annotations
 
 import importlib
+import os
 from types import ModuleType
 from typing import Callable, Protocol
 
@@ -32,7 +35,8 @@ class SparseBackend(OptionEnum):
 
     #: scipy's SuperLU (always available; the default)
     SUPERLU = "superlu"
-    #: Intel MKL Pardiso, symmetric indefinite (``mtype=-2``) or nonsymmetric (``mtype=11``); needs ``pypardiso``
+    #: Intel MKL Pardiso, symmetric indefinite (``mtype=-2``) or nonsymmetric (``mtype=11``); needs
+    # ``pypardiso``
     PARDISO = "pardiso"
     #: supernodal Cholesky of an SPD matrix (CPU); needs ``cholespy``
     CHOLESPY = "cholespy"
@@ -64,7 +68,8 @@ class Factorization:
         """
         y = self._solve(np.asarray(b, dtype=np.float64), transpose)
         if not np.all(np.isfinite(y)):
-            raise SingularMatrixError(f"the {self.what} is singular: its sparse solve returned non-finite values")
+            raise SingularMatrixError(f"the {self.what} is singular: its sparse solve returned non-finite "
+                                      f"values")
         return y
 
 
@@ -86,6 +91,9 @@ def _superlu(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
 
 
 def _pardiso(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
+    # MKL's conditional numerical reproducibility: without it two factorizations of one matrix on several
+    # threads differ in the last bits (measured at 2 threads). MKL reads the variable when it is loaded.
+    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
     pypardiso = _import_backend("pypardiso", SparseBackend.PARDISO)
     solver = pypardiso.PyPardisoSolver(mtype=-2 if symmetric else 11)
     # the symmetric types read the upper triangle only (CSR, sorted)
@@ -98,7 +106,8 @@ def _pardiso(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
 
     def solve(b: np.ndarray, transpose: bool) -> np.ndarray:
         if transpose and not symmetric:
-            raise InputError("the pardiso backend has no transposed solve of a nonsymmetric matrix; use superlu")
+            raise InputError("the pardiso backend has no transposed solve of a nonsymmetric matrix; "
+                             "use superlu")
         return solver.solve(m, b)
 
     return solve
@@ -135,7 +144,8 @@ def _import_backend(module: str, backend: SparseBackend) -> ModuleType:
                          f"(pip install {module}); or use backend='superlu'") from exc
 
 
-_BACKENDS = {SparseBackend.SUPERLU: _superlu, SparseBackend.PARDISO: _pardiso, SparseBackend.CHOLESPY: _cholespy}
+_BACKENDS = {SparseBackend.SUPERLU: _superlu, SparseBackend.PARDISO: _pardiso,
+             SparseBackend.CHOLESPY: _cholespy}
 
 
 def factorize(matrix: scipy.sparse.spmatrix, *, backend: "str | SparseBackend" = SparseBackend.SUPERLU,
@@ -214,12 +224,13 @@ class FactorizationCache:
 
 
 class FactorCache:
-    """The last factorization of a sequence of nearby systems (Newton iterations), reused as the preconditioner of
-    :func:`~torchgarment.linalg.pcg` on the next ones (inexact Newton): a fresh factorization is needed only when
-    PCG does not reach its tolerance within its budget.
+    """The last factorization of a sequence of nearby systems (Newton iterations), reused as the
+    preconditioner of :func:`~torchgarment.linalg.pcg` on the next ones (inexact Newton): a fresh
+    factorization is needed only when PCG does not reach its tolerance within its budget.
 
     Attributes:
-        factorization: the stored :class:`Factorization` (or anything with ``solve(b)`` and ``shape``), or None.
+        factorization: the stored :class:`Factorization` (or anything with ``solve(b)`` and ``shape``), or
+            None.
         shift: the diagonal shift it was made with.
         factorizations, pcg_solves: counters.
     """
@@ -235,10 +246,11 @@ class FactorCache:
         self.factorization, self.shift = factorization, float(shift)
         self.factorizations += 1
 
-    def solve(self, h: scipy.sparse.spmatrix, rhs: np.ndarray, rtol: float, maxiter: int) -> np.ndarray | None:
-        """``y`` (n,) with ``(H + shift I) y ~ rhs`` to relative residual ``rtol`` by PCG preconditioned with the
-        stored factorization; None when there is none of this size or PCG does not get there within ``maxiter``
-        iterations (or meets non-positive curvature)."""
+    def solve(self, h: scipy.sparse.spmatrix, rhs: np.ndarray, rtol: float,
+              maxiter: int) -> np.ndarray | None:
+        """``y`` (n,) with ``(H + shift I) y ~ rhs`` to relative residual ``rtol`` by PCG preconditioned with
+        the stored factorization; None when there is none of this size or PCG does not get there within
+        ``maxiter`` iterations (or meets non-positive curvature)."""
         n = h.shape[0]
         fact = self.factorization
         if fact is None or tuple(fact.shape) != (n, n):
@@ -266,7 +278,8 @@ class FactorCache:
 
 
 class BlockMatrix(Protocol):
-    """A block-sparse matrix in COO form over vertices (e.g. :class:`~torchgarment.sim.energies.base.HessianBlocks`).
+    """A block-sparse matrix in COO form over vertices (e.g.
+    :class:`~torchgarment.sim.energies.base.HessianBlocks`).
 
     ``rows, cols``: (K,) long block indices; ``values``: (K, 3, 3) blocks, duplicates summed.
     """

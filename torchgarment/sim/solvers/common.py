@@ -56,7 +56,8 @@ class Preconditioner(OptionEnum):
 class Safeguard(OptionEnum):
     """How the gradient-descent solver keeps barriers finite after each step."""
 
-    #: scale the step by ``0.9 * model.max_step(x, dx)`` when that is below 1 (works for any barrier, incl. CCD)
+    #: scale the step by ``0.9 * model.max_step(x, dx)`` when that is below 1 (works for any barrier, incl.
+    # CCD)
     MAX_STEP = "max-step"
     #: take the step, then ``model.project_feasible`` per vertex (Wang 2018; only for barriers it can project)
     PROJECT = "project"
@@ -85,9 +86,10 @@ class SolveSettings:
             that of the elastic terms (springs) only every this many iterations, and reused in between
             (``SimModel.value_grad_hessian_diagonal(reuse_elastic=True)``). 1 = always fresh.
         preconditioner: BLOCK (3x3 block Jacobi) or SCALAR (diagonal Jacobi).
-        seam_blocks: with BLOCK, precondition each seam pair (two vertices joined by a sewing spring, each in no
-            other pair) with its exact 6x6 block instead of two 3x3 blocks, so that stiff seams do not freeze
-            the pair's common motion (see :func:`~torchgarment.sim.solvers.chebyshev.seam_block_inverse`).
+        seam_blocks: with BLOCK, precondition each seam pair (two vertices joined by a sewing spring, each in
+            no other pair) with its exact 6x6 block instead of two 3x3 blocks, so that stiff seams do not
+            freeze the pair's common motion (see
+            :func:`~torchgarment.sim.solvers.chebyshev.seam_block_inverse`).
         diagonal_floor: relative floor of the preconditioner, times the mean Hessian diagonal, so that
             vertices without stiffness do not get infinite steps.
         safeguard: how GD keeps barriers finite (MAX_STEP or PROJECT).
@@ -97,13 +99,14 @@ class SolveSettings:
         armijo_c: Armijo sufficient-decrease constant of Newton's backtracking line search.
         backtrack: step shrink factor of the line search.
         max_backtracks: line-search trials before the solve stops as stalled.
-        step_fraction: fraction of ``model.max_step`` Newton steps are capped to when the full step is infeasible.
-        regularization: initial ``lambda`` (relative to the mean Hessian diagonal) added as ``lambda * I`` when
-            the factorization fails or the direction is not a descent direction; grows by 10 per retry.
+        step_fraction: fraction of ``model.max_step`` Newton steps are capped to when the full step is
+            infeasible.
+        regularization: initial ``lambda`` (relative to the mean Hessian diagonal) added as ``lambda * I``
+            when the factorization fails or the direction is not a descent direction; grows by 10 per retry.
         max_regularizations: retries of the regularized factorization before giving up.
-        reuse_factorization: Newton solves each system by CG preconditioned with the last sparse LU factorization
-            (an inexact Newton step to relative residual ``pcg_rtol``) and factorizes afresh only when CG needs
-            more than ``pcg_max_iterations`` iterations or gives no descent direction
+        reuse_factorization: Newton solves each system by CG preconditioned with the last sparse LU
+            factorization (an inexact Newton step to relative residual ``pcg_rtol``) and factorizes afresh
+            only when CG needs more than ``pcg_max_iterations`` iterations or gives no descent direction
             (:class:`~torchgarment.linalg.FactorCache`).
             Large meshes (the drape's settle stage) spend most of a Newton iteration in the factorization.
         pcg_rtol: relative residual of those CG solves, in (0, 1).
@@ -158,8 +161,10 @@ class SolveSettings:
             (self.check_interval >= 1 and self.diagonal_interval >= 1 and self.elastic_diagonal_interval >= 1,
              "check/diagonal intervals must be >= 1"),
             (self.diagonal_floor > 0, "diagonal_floor must be > 0"),
-            (self.max_displacement is None or self.max_displacement > 0, "max_displacement must be > 0 or None"),
-            (0.0 < self.armijo_c < 1.0 and 0.0 < self.backtrack < 1.0, "armijo_c and backtrack must lie in (0, 1)"),
+            (self.max_displacement is None or self.max_displacement > 0,
+             "max_displacement must be > 0 or None"),
+            (0.0 < self.armijo_c < 1.0 and 0.0 < self.backtrack < 1.0,
+             "armijo_c and backtrack must lie in (0, 1)"),
             (self.max_backtracks >= 1 and self.max_regularizations >= 0, "max_backtracks must be >= 1"),
             (0.0 < self.step_fraction < 1.0, "step_fraction must lie in (0, 1)"),
             (self.regularization > 0, "regularization must be > 0"),
@@ -235,7 +240,8 @@ def check_x0(model: SolverModel, x0: torch.Tensor) -> None:
         raise InputError("x0 contains NaN or infinite coordinates")
 
 
-def evaluate(model: SolverModel, x: torch.Tensor, iteration: int, what: str = "") -> tuple[float, torch.Tensor, float]:
+def evaluate(model: SolverModel, x: torch.Tensor, iteration: int,
+             what: str = "") -> tuple[float, torch.Tensor, float]:
     """Energy, gradient and gradient norm at ``x``; raises :class:`NonFiniteError` naming the iteration.
 
     Returns:
@@ -247,7 +253,8 @@ def evaluate(model: SolverModel, x: torch.Tensor, iteration: int, what: str = ""
     if not (math.isfinite(ef) and math.isfinite(gn)):
         where = f" ({what})" if what else ""
         bad = "energy" if not math.isfinite(ef) else "gradient"
-        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: E={ef}, |g|={gn}")
+        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: "
+                             f"E={ef}, |g|={gn}")
     return ef, g, gn
 
 
@@ -255,8 +262,9 @@ def evaluate_with_diagonal(
     model: SolverModel, x: torch.Tensor, iteration: int, what: str = "", *, reuse_elastic: bool = False
 ) -> tuple[float, torch.Tensor, float, torch.Tensor]:
     """Like :func:`evaluate`, plus the Hessian diagonal blocks (V, 3, 3); uses the model's fused
-    ``value_grad_hessian_diagonal`` when it has one (terms share their work), else two calls. ``reuse_elastic``
-    is passed on; only ask for it when :func:`supports_elastic_reuse` holds for the model."""
+    ``value_grad_hessian_diagonal`` when it has one (terms share their work), else two calls.
+    ``reuse_elastic`` is passed on; only ask for it when :func:`supports_elastic_reuse` holds for the
+    model."""
     fused = getattr(model, "value_grad_hessian_diagonal", None)
     if fused is None:
         e, g, gn = evaluate(model, x, iteration, what)
@@ -270,7 +278,8 @@ def evaluate_with_diagonal(
     if not (math.isfinite(ef) and math.isfinite(gn)):
         where = f" ({what})" if what else ""
         bad = "energy" if not math.isfinite(ef) else "gradient"
-        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: E={ef}, |g|={gn}")
+        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: "
+                             f"E={ef}, |g|={gn}")
     return ef, g, gn, h
 
 
@@ -290,7 +299,8 @@ def checked_max_step(model: SolverModel, x: torch.Tensor, dx: torch.Tensor, iter
     """``model.max_step(x, dx)`` validated to lie in (0, 1]."""
     t = float(model.max_step(x, dx))
     if not (math.isfinite(t) and 0.0 < t <= 1.0 + 1e-12):
-        raise NonFiniteError(f"model.max_step returned {t} at solver iteration {iteration}; expected a value in (0, 1]")
+        raise NonFiniteError(f"model.max_step returned {t} at solver iteration {iteration}; expected a value "
+                             f"in (0, 1]")
     return min(t, 1.0)
 
 

@@ -48,8 +48,9 @@ LEVENBERG_RETRIES = 8
 
 def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, cache: FactorCache | None = None,
                  shift: float = 0.0) -> np.ndarray | None:
-    """Solve ``h y = rhs`` with SuperLU (symmetric mode); None if the factorization fails or is not finite. With
-    a ``cache``, a successful factorization is stored in it (as one of ``h`` made with diagonal ``shift``)."""
+    """Solve ``h y = rhs`` by :func:`~torchgarment.linalg.factorize` (SuperLU, symmetric mode); None if the
+    factorization fails or is not finite. With a ``cache``, a successful factorization is stored in it (as one
+    of ``h`` made with diagonal ``shift``)."""
     try:
         fact = factorize(h, what="Newton system")
         y = fact.solve(rhs)
