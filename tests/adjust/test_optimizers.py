@@ -1,6 +1,6 @@
-"""Optimizers of torchgarment.adjust.optimizers: each reduces the objective of a small simulated inverse problem
-(a hanging sheet whose target is the equilibrium of a 5 % larger pattern), closure calls are counted and
-cached, name resolution, Gauss-Newton products against finite differences, the adjoint gradient against
+"""Optimizers of torchgarment.adjust.optimizers: each reduces the objective of a small simulated inverse
+problem (a hanging sheet whose target is the equilibrium of a 5 % larger pattern), closure calls are counted
+and cached, name resolution, Gauss-Newton products against finite differences, the adjoint gradient against
 finite differences."""
 
 from __future__ import annotations
@@ -65,7 +65,8 @@ def test_names_resolve_and_types():
     assert OptimizerKind.resolve("bartle") is OptimizerKind.FIXED_POINT
     with pytest.raises(InputError, match="expected one of"):
         OptimizerKind.resolve("adam")
-    for kind, cls in [("pgd", PreconditionedGD), ("lbfgs", LBFGS), ("gn", GaussNewton), ("fixed-point", FixedPoint)]:
+    kinds = [("pgd", PreconditionedGD), ("lbfgs", LBFGS), ("gn", GaussNewton), ("fixed-point", FixedPoint)]
+    for kind, cls in kinds:
         _, _, opt = _setup(kind)
         assert isinstance(opt, cls) and isinstance(opt, torch.optim.Optimizer)
     q = torch.zeros(3, 2, requires_grad=True)
@@ -119,7 +120,8 @@ def test_adjoint_gradient_matches_finite_differences():
 
 def test_tangent_matches_finite_differences_and_gn_product_is_symmetric():
     model, param, obj, x0, q0, _ = problem_parts()
-    prob = AdjustProblem(model, param, obj, x0, exact_settings=SolveSettings(rtol=0, atol=3e-9, max_iterations=300))
+    prob = AdjustProblem(model, param, obj, x0,
+                         exact_settings=SolveSettings(rtol=0, atol=3e-9, max_iterations=300))
     prob.evaluate(q0, exact=True)
     x0 = prob.last_x.clone()
     gen = torch.Generator().manual_seed(1)

@@ -19,7 +19,7 @@ from typing import Callable, Protocol
 import torch
 
 from torchgarment.errors import InputError, TorchGarmentError
-from torchgarment.linalg import CSRAssembler, FactorCache
+from torchgarment.linalg import CSRAssembler, FactorCache, SparseBackend
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.base import HessianBlocks
 
@@ -111,6 +111,9 @@ class SolveSettings:
             Large meshes (the drape's settle stage) spend most of a Newton iteration in the factorization.
         pcg_rtol: relative residual of those CG solves, in (0, 1).
         pcg_max_iterations: CG iterations before a fresh factorization (>= 1).
+        sparse_backend: the sparse direct solver of Newton's systems
+            (:class:`~torchgarment.linalg.SparseBackend`; ``"superlu"``, always installed and deterministic,
+            by default).
     """
 
     rtol: float = 1e-4
@@ -139,18 +142,22 @@ class SolveSettings:
     reuse_factorization: bool = False
     pcg_rtol: float = 1e-2
     pcg_max_iterations: int = 25
+    sparse_backend: SparseBackend = SparseBackend.SUPERLU
 
     def __post_init__(self) -> None:
         self.preconditioner = Preconditioner.resolve(self.preconditioner)
         self.safeguard = Safeguard.resolve(self.safeguard)
+        self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
         self.validate()
 
     def validate(self) -> None:
         """Raise :class:`InputError` for out-of-range settings (called on construction; changes nothing)."""
         checks = [
-            (isinstance(self.preconditioner, Preconditioner) and isinstance(self.safeguard, Safeguard),
-             f"preconditioner and safeguard must be one of {[p.value for p in Preconditioner]} and "
-             f"{[g.value for g in Safeguard]}"),
+            (isinstance(self.preconditioner, Preconditioner) and isinstance(self.safeguard, Safeguard)
+             and isinstance(self.sparse_backend, SparseBackend),
+             f"preconditioner, safeguard and sparse_backend must be one of "
+             f"{[p.value for p in Preconditioner]}, {[g.value for g in Safeguard]} and "
+             f"{[b.value for b in SparseBackend]}"),
             (self.rtol >= 0 and self.atol >= 0, "rtol and atol must be >= 0"),
             (self.max_iterations >= 0, "max_iterations must be >= 0"),
             (0.0 <= self.chebyshev_rho < 1.0, "chebyshev_rho must lie in [0, 1)"),

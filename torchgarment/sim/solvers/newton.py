@@ -22,7 +22,7 @@ import scipy.sparse.linalg
 import torch
 
 from torchgarment.errors import SingularMatrixError
-from torchgarment.linalg import factorize
+from torchgarment.linalg import SparseBackend, factorize
 from torchgarment.sim.solvers.common import (
     Callback,
     CSRAssembler,
@@ -47,12 +47,12 @@ LEVENBERG_RETRIES = 8
 
 
 def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, cache: FactorCache | None = None,
-                 shift: float = 0.0) -> np.ndarray | None:
-    """Solve ``h y = rhs`` by :func:`~torchgarment.linalg.factorize` (SuperLU, symmetric mode); None if the
-    factorization fails or is not finite. With a ``cache``, a successful factorization is stored in it (as one
-    of ``h`` made with diagonal ``shift``)."""
+                 shift: float = 0.0, backend: SparseBackend = SparseBackend.SUPERLU) -> np.ndarray | None:
+    """Solve ``h y = rhs`` by :func:`~torchgarment.linalg.factorize` (symmetric mode of ``backend``); None if
+    the factorization fails or is not finite. With a ``cache``, a successful factorization is stored in it (as
+    one of ``h`` made with diagonal ``shift``)."""
     try:
-        fact = factorize(h, what="Newton system")
+        fact = factorize(h, backend=backend, what="Newton system")
         y = fact.solve(rhs)
     except SingularMatrixError:
         return None
