@@ -20,3 +20,11 @@ class MeshError(InputError):
 
 class PatternError(InputError):
     """A sewing pattern is malformed: open panels, self-crossing outlines, bad stitches."""
+
+
+class NonConvergenceError(TorchGarmentError, RuntimeError):
+    """A solve did not reach its tolerance (or met a direction of non-positive curvature)."""
+
+
+class SingularMatrixError(NonConvergenceError):
+    """A sparse factorization failed: the matrix is singular, or its solve returned non-finite values."""

@@ -1,11 +1,12 @@
-"""Optimizers of torchgarment.adjust.optimizers: each reduces the objective of a small simulated inverse problem
-(a hanging sheet whose target is the equilibrium of a 5 % larger pattern), closure calls are counted and
-cached, name resolution, Gauss-Newton products against finite differences, the adjoint gradient against
+"""Optimizers of torchgarment.adjust.optimizers: each reduces the objective of a small simulated inverse
+problem (a hanging sheet whose target is the equilibrium of a 5 % larger pattern), closure calls are counted
+and cached, name resolution, Gauss-Newton products against finite differences, the adjoint gradient against
 finite differences."""
 
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -64,7 +65,8 @@ def test_names_resolve_and_types():
     assert OptimizerKind.resolve("bartle") is OptimizerKind.FIXED_POINT
     with pytest.raises(InputError, match="expected one of"):
         OptimizerKind.resolve("adam")
-    for kind, cls in [("pgd", PreconditionedGD), ("lbfgs", LBFGS), ("gn", GaussNewton), ("fixed-point", FixedPoint)]:
+    kinds = [("pgd", PreconditionedGD), ("lbfgs", LBFGS), ("gn", GaussNewton), ("fixed-point", FixedPoint)]
+    for kind, cls in kinds:
         _, _, opt = _setup(kind)
         assert isinstance(opt, cls) and isinstance(opt, torch.optim.Optimizer)
     q = torch.zeros(3, 2, requires_grad=True)
@@ -88,14 +90,14 @@ def test_closure_calls_counted_and_cached_for_exact_closures():
         return fn
 
     q = torch.zeros(4, 2, dtype=torch.float64, requires_grad=True)
-    opt = PreconditionedGD([q], None, lr=0.25, line_search=False, max_move=None)
+    opt = PreconditionedGD([q], None, lr=0.25, line_search=False, max_displacement=None)
     for _ in range(5):
         opt.step(quad_closure(q))
     assert opt.closure_calls == 5 and len(calls) == 5
     assert torch.allclose(q.detach(), torch.full((4, 2), 1 - 0.5**5, dtype=torch.float64))
     # L-BFGS on the same quadratic: the accepted line-search point is not evaluated twice
     q2 = torch.zeros(4, 2, dtype=torch.float64, requires_grad=True)
-    lb = LBFGS([q2], max_move=None)
+    lb = LBFGS([q2], max_displacement=None)
     calls.clear()
     for _ in range(3):
         lb.step(quad_closure(q2))
@@ -118,7 +120,8 @@ def test_adjoint_gradient_matches_finite_differences():
 
 def test_tangent_matches_finite_differences_and_gn_product_is_symmetric():
     model, param, obj, x0, q0, _ = problem_parts()
-    prob = AdjustProblem(model, param, obj, x0, exact_settings=SolveSettings(rtol=0, atol=3e-9, max_iterations=300))
+    prob = AdjustProblem(model, param, obj, x0,
+                         exact_settings=SolveSettings(rtol=0, atol=3e-9, max_iterations=300))
     prob.evaluate(q0, exact=True)
     x0 = prob.last_x.clone()
     gen = torch.Generator().manual_seed(1)
@@ -138,3 +141,28 @@ def test_tangent_matches_finite_differences_and_gn_product_is_symmetric():
     b = float((v * prob.gauss_newton_product(w)).sum())
     assert abs(a - b) <= 1e-6 * max(abs(a), abs(b))
     assert float((v * prob.gauss_newton_product(v)).sum()) > 0.0
+
+
+def test_hyperparameters_in_param_groups_and_counters_in_state_round_trip() -> None:
+    def quad_closure(q: torch.Tensor) -> Callable[[], torch.Tensor]:
+        def fn() -> torch.Tensor:
+            f = ((q - 1.0) ** 2).sum()
+            q.grad = torch.autograd.grad(f, q)[0]
+            return f.detach()
+        return fn
+
+    q = torch.zeros(4, 2, dtype=torch.float64, requires_grad=True)
+    opt = make_optimizer("lbfgs", [q], max_displacement=0.2)
+    group = opt.param_groups[0]
+    assert group["max_displacement"] == 0.2 and group["armijo_c"] == 1e-4 and group["backtrack"] == 0.5
+    for _ in range(3):
+        opt.step(quad_closure(q))
+    state = opt.state_dict()
+    q2 = q.detach().clone().requires_grad_(True)
+    other = LBFGS([q2], max_displacement=None)
+    other.load_state_dict(state)
+    assert other.param_groups[0]["max_displacement"] == 0.2
+    assert other.closure_calls == opt.closure_calls > 0 and other.last_step_length == opt.last_step_length
+    assert other.failed_calls == 0
+    with pytest.raises(InputError, match="max_displacement"):
+        PreconditionedGD([q], None, max_displacement=-1.0)

@@ -18,6 +18,7 @@ import torch
 
 from torchgarment.adjust.linear_map import StoredTransposeMatmul
 from torchgarment.errors import InputError
+from torchgarment.sim.energies.bend import hinge_weights
 from torchgarment.structures.garment_mesh import GarmentMesh
 
 _NORM_EPS2 = 1e-24
@@ -28,7 +29,8 @@ def _norm(v: torch.Tensor) -> torch.Tensor:
     return (v.pow(2).sum(-1) + _NORM_EPS2).sqrt()
 
 
-def _csr(indptr: torch.Tensor, indices: torch.Tensor, values: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+def _csr(indptr: torch.Tensor, indices: torch.Tensor, values: torch.Tensor,
+         shape: tuple[int, int]) -> torch.Tensor:
     with warnings.catch_warnings():  # "sparse CSR support is in beta"
         warnings.simplefilter("ignore", UserWarning)
         return torch.sparse_csr_tensor(indptr, indices, values, size=shape, check_invariants=False)
@@ -131,7 +133,8 @@ def hinge_kernel(p: torch.Tensor, hinges: torch.Tensor) -> torch.Tensor:
     """Bergou et al. 2006 edge kernel ``K`` (H, 4) of hinges ``[v0, v1, v2, v3]`` from the rest pattern.
 
     With ``α0, α1`` the angles at ``v0, v1`` of triangle ``(v0, v1, v2)`` and ``β0, β1`` those of
-    ``(v1, v0, v3)``: ``K = [cot α1 + cot β1, cot α0 + cot β0, -(cot α0 + cot α1), -(cot β0 + cot β1)]``.
+    ``(v1, v0, v3)``: ``K = [cot α1 + cot β1, cot α0 + cot β0, -(cot α0 + cot α1), -(cot β0 + cot β1)]``
+    (the four-vertex form of :func:`~torchgarment.sim.energies.bend.hinge_weights`, the bending energy's).
     ``sum_k K_k x_k`` vanishes on any flat (isometric) embedding and is ``-|e| (m_A + m_B)`` otherwise, with
     ``m`` the unit in-plane normals of the two triangles pointing away from the edge.
 
@@ -141,16 +144,10 @@ def hinge_kernel(p: torch.Tensor, hinges: torch.Tensor) -> torch.Tensor:
     Returns:
         (H, 4) dimensionless constants.
     """
-
-    def cot(o: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # angle at o
-        u, v = a - o, b - o
-        cross = (u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).abs()
-        return (u * v).sum(-1) / cross
-
-    x0, x1, x2, x3 = (p[hinges[:, k]] for k in range(4))
-    ca0, ca1 = cot(x0, x1, x2), cot(x1, x0, x2)
-    cb0, cb1 = cot(x0, x1, x3), cot(x1, x0, x3)
-    return torch.stack([ca1 + cb1, ca0 + cb0, -(ca0 + ca1), -(cb0 + cb1)], dim=1)
+    rest = torch.cat([p, torch.zeros_like(p[:, :1])], dim=1)
+    stencils = hinges[:, [0, 1, 2, 0, 1, 3]]
+    w, _, _ = hinge_weights(rest, stencils)
+    return torch.stack([w[:, 0] + w[:, 3], w[:, 1] + w[:, 4], w[:, 2], w[:, 5]], dim=1)
 
 
 def _hinge_normals(x: torch.Tensor, hinges: torch.Tensor) -> torch.Tensor:
@@ -182,7 +179,8 @@ class SmoothnessCost(_LeastSquaresCost):
     faces: torch.Tensor
 
     def __init__(self, base_mesh: GarmentMesh, weight: float = 1.0) -> None:
-        """Args: base_mesh: base pattern ``p`` and base garment ``x`` (on the base body). weight: ``δ_smo``."""
+        """Args: base_mesh: base pattern ``p`` and base garment ``x`` (on the base body).
+        weight: ``δ_smo``."""
         super().__init__(weight)
         if base_mesh.p is None:
             raise InputError("SmoothnessCost needs a pattern mesh (base_mesh.p is None)")
@@ -271,8 +269,10 @@ class PositionalCost(_LeastSquaresCost):
     target: torch.Tensor
     vertex_weight: torch.Tensor
 
-    def __init__(self, target: torch.Tensor, vertex_weight: torch.Tensor | None = None, weight: float = 1.0) -> None:
-        """Args: target: (V, 3) transferred positions. vertex_weight: (V,) ``u_i`` (default 1). weight: ``δ_pos``."""
+    def __init__(self, target: torch.Tensor, vertex_weight: torch.Tensor | None = None,
+                 weight: float = 1.0) -> None:
+        """Args: target: (V, 3) transferred positions. vertex_weight: (V,) ``u_i`` (default 1).
+        weight: ``δ_pos``."""
         super().__init__(weight)
         if target.ndim != 2 or target.shape[1] != 3:
             raise InputError(f"target must be (V, 3), got {tuple(target.shape)}")

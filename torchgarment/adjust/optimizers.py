@@ -1,21 +1,27 @@
-"""Optimizers of the pattern parameters, each a ``torch.optim.Optimizer`` with ``step(closure)`` (Wang 2018, sec. 7).
+"""Optimizers of the pattern parameters, each a ``torch.optim.Optimizer`` with ``step(closure)`` (Wang 2018,
+sec. 7).
 
 Every closure call is a cloth solve (and usually an adjoint solve), so every optimizer counts them in
-``closure_calls``. A closure with attribute ``cacheable = True`` (an exact evaluation, see
+``closure_calls``. Hyperparameters (``lr``, ``armijo_c``, ``backtrack``, ``max_backtracks``,
+``max_displacement``, ...) live in the param groups (torch's ``defaults``); counters (``closure_calls``,
+``failed_calls``, ``last_step_length``) and memories in ``state``, so ``state_dict()`` / ``load_state_dict()``
+round-trip a run (a rollback to an earlier ``state_dict`` also rolls the counters back). A closure with
+attribute ``cacheable = True`` (an exact evaluation, see
 :meth:`~torchgarment.adjust.inexact.AdjustProblem.closure`) is not called again at the last two points it was
 called at: their values and gradients are reused (the accepted line-search point, and the start point after a
 failed line search; re-solving there from another warm start could find another equilibrium).
 
 * :class:`PreconditionedGD` (``"pgd"``, the paper's method): ``q <- q - s P^-1 grad`` with ``P`` the constant
-  approximate Hessian of the regularizers (:meth:`AdjustObjective.regularizer_hessian`), factorized once with
-  SuperLU. With ``line_search=True`` the step ``s`` is found by Armijo backtracking (and grown after an
-  accepted step); with ``False`` it is the fixed ``lr`` (Algorithm 1 controls it).
+  approximate Hessian of the regularizers (:meth:`AdjustObjective.regularizer_hessian`), factorized once
+  (:func:`~torchgarment.linalg.factorize`). With ``line_search=True`` the step ``s`` is found by Armijo
+  backtracking (and grown after an accepted step); with ``False`` it is the fixed ``lr`` (Algorithm 1 controls
+  it).
 * :class:`LBFGS` (``"lbfgs"``): L-BFGS two-loop recursion with a trust-capped Armijo line search.
-* :class:`GaussNewton` (``"gn"``): ``(J^T H J + R) d = -grad`` by preconditioned CG (``P = R``, Steihaug stop at
-  negative curvature), products from :meth:`AdjustProblem.gauss_newton_product` (a tangent and an adjoint solve
-  each), then Armijo backtracking.
-* :class:`FixedPoint` (``"fixed-point"``): the fixed-point method of Bartle et al. 2016 as Wang 2018 implement it
-  on a mass-spring model (section 8.1): no gradient; every spring's rest vector is scaled by
+* :class:`GaussNewton` (``"gn"``): ``(J^T H J + R) d = -grad`` by preconditioned CG (``P = R``, Steihaug stop
+  at negative curvature), products from :meth:`AdjustProblem.gauss_newton_product` (a tangent and an adjoint
+  solve each), then Armijo backtracking.
+* :class:`FixedPoint` (``"fixed-point"``): the fixed-point method of Bartle et al. 2016 as Wang 2018 implement
+  it on a mass-spring model (section 8.1): no gradient; every spring's rest vector is scaled by
   ``|target edge| / |simulated edge|`` and the pattern is refit to these edge vectors in the least-squares
   sense; the boundary of the refit pattern becomes the new ``q``.
 
@@ -31,18 +37,35 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable
+from typing import Protocol
 
 import numpy as np
 import scipy.sparse
-import scipy.sparse.linalg
 import torch
 
-from torchgarment.errors import InputError
+from torchgarment.errors import InputError, NonConvergenceError, SingularMatrixError
+from torchgarment.linalg import armijo_backtracking, factorize, pcg
 from torchgarment.options import OptionEnum
-from torchgarment.sim.diff import NonConvergenceError
 from torchgarment.sim.solvers import NonFiniteError
 
 Closure = Callable[[], torch.Tensor]
+#: the regularizer Hessian (n, n): a scipy sparse matrix or a dense array, or None (identity)
+PreconditionerMatrix = scipy.sparse.spmatrix | np.ndarray | None
+
+
+class GaussNewtonProblem(Protocol):
+    """What :class:`GaussNewton` needs of the problem (an
+    :class:`~torchgarment.adjust.inexact.AdjustProblem`): ``gauss_newton_product(v (B, 2)) -> (B, 2)``."""
+
+    def gauss_newton_product(self, v: torch.Tensor) -> torch.Tensor: ...
+
+
+class FixedPointProblem(Protocol):
+    """What :class:`FixedPoint` needs of the problem: the pattern ``last_p`` (V, 2) and simulation ``last_x``
+    (V, 3) of the last call."""
+
+    last_p: torch.Tensor
+    last_x: torch.Tensor
 
 
 class OptimizerKind(OptionEnum):
@@ -55,7 +78,8 @@ class OptimizerKind(OptionEnum):
 
     @classmethod
     def aliases(cls) -> dict[str, str]:
-        return {"preconditioned": "pgd", "l-bfgs": "lbfgs", "gauss-newton": "gn", "fixed_point": "fixed-point",
+        return {"preconditioned": "pgd", "l-bfgs": "lbfgs", "gauss-newton": "gn",
+                "fixed_point": "fixed-point",
                 "fixedpoint": "fixed-point", "bartle": "fixed-point"}
 
 
@@ -64,7 +88,8 @@ def _flat_params(params: list[torch.Tensor]) -> torch.Tensor:
 
 
 def _flat_grads(params: list[torch.Tensor]) -> torch.Tensor:
-    return torch.cat([(torch.zeros_like(p) if p.grad is None else p.grad.detach()).reshape(-1) for p in params])
+    return torch.cat([(torch.zeros_like(p) if p.grad is None else p.grad.detach()).reshape(-1)
+                      for p in params])
 
 
 def _set_flat(params: list[torch.Tensor], flat: torch.Tensor) -> None:
@@ -77,15 +102,46 @@ def _set_flat(params: list[torch.Tensor], flat: torch.Tensor) -> None:
 
 
 class _Counting:
-    """Mixin: counts closure calls and reuses the last cacheable evaluation at an unchanged point."""
+    """Mixin: counts closure calls (in ``state``) and reuses the last cacheable evaluation at an unchanged
+    point."""
 
-    closure_calls: int
     _cache: list | None
+    param_groups: list[dict]
+    state: dict
 
     def _init_counting(self) -> None:
-        self.closure_calls = 0
-        self.failed_calls = 0
         self._cache = None
+
+    def _counters(self) -> dict:
+        """The state entry of the first parameter, which holds the counters."""
+        return self.state[self._all_params()[0]]
+
+    @property
+    def closure_calls(self) -> int:
+        """Closure calls (simulations) so far."""
+        return int(self._counters().get("closure_calls", 0))
+
+    @closure_calls.setter
+    def closure_calls(self, value: int) -> None:
+        self._counters()["closure_calls"] = int(value)
+
+    @property
+    def failed_calls(self) -> int:
+        """Closure calls at which the simulator failed (counted as an infinite objective)."""
+        return int(self._counters().get("failed_calls", 0))
+
+    @failed_calls.setter
+    def failed_calls(self, value: int) -> None:
+        self._counters()["failed_calls"] = int(value)
+
+    @property
+    def last_step_length(self) -> float:
+        """The step length ``t`` of the last step along the search direction (0 when it did not move)."""
+        return float(self._counters().get("last_step_length", 0.0))
+
+    @last_step_length.setter
+    def last_step_length(self, value: float) -> None:
+        self._counters()["last_step_length"] = float(value)
 
     def _all_params(self) -> list[torch.Tensor]:
         return [p for g in self.param_groups for p in g["params"]]  # type: ignore[attr-defined]
@@ -116,7 +172,8 @@ class _Counting:
             self.closure_calls += 1
             loss_t = torch.as_tensor(loss).detach()
             if cacheable:  # the last two points: a failed line search returns to the one before the trials
-                entry = (flat, loss_t.clone(), [None if p.grad is None else p.grad.detach().clone() for p in params])
+                grads = [None if p.grad is None else p.grad.detach().clone() for p in params]
+                entry = (flat, loss_t.clone(), grads)
                 self._cache = ([entry] + list(self._cache or []))[:2]
             else:
                 self._cache = None
@@ -148,19 +205,20 @@ class _Counting:
 
 
 class _PrecondSolve:
-    """``v -> P^-1 v`` with a sparse SPD ``P`` (n, n) factorized once by SuperLU (float64, CPU)."""
+    """``v -> P^-1 v`` with a sparse SPD ``P`` (n, n) factorized once (float64, CPU)."""
 
     def __init__(self, P: scipy.sparse.spmatrix, n: int) -> None:
         if not scipy.sparse.issparse(P) and not isinstance(P, np.ndarray):
-            raise InputError(f"the preconditioner must be a scipy sparse matrix or an array, got {type(P).__name__}")
+            raise InputError(f"the preconditioner must be a scipy sparse matrix or an array, "
+                             f"got {type(P).__name__}")
         P = scipy.sparse.csc_matrix(P, dtype=np.float64)
         if P.shape != (n, n):
             raise InputError(f"the preconditioner must be ({n}, {n}) for {n} parameters, got {P.shape}")
         try:
-            self.lu = scipy.sparse.linalg.splu(P)
-        except RuntimeError as exc:
-            raise InputError(f"the preconditioner is singular ({exc}); the fixing regularizer keeps it positive "
-                             f"definite: give it a positive weight") from exc
+            self.lu = factorize(P, symmetric=False, what="preconditioner")
+        except SingularMatrixError as exc:
+            raise InputError(f"the preconditioner is singular ({exc}); the fixing regularizer keeps it "
+                             f"positive definite: give it a positive weight") from exc
         self.P = P
 
     def solve(self, v: torch.Tensor) -> torch.Tensor:
@@ -172,32 +230,45 @@ class _PrecondSolve:
         return torch.from_numpy(y).to(device=v.device, dtype=v.dtype)
 
 
-def _trust(t: float, d: torch.Tensor, max_move: float | None) -> float:
-    """``t`` capped so that no parameter moves more than ``max_move`` (metres) along ``d``."""
+def _trust(t: float, d: torch.Tensor, max_displacement: float | None) -> float:
+    """``t`` capped so that no parameter moves more than ``max_displacement`` (metres) along ``d``."""
     dmax = float(d.abs().max()) if d.numel() else 0.0
     if dmax == 0.0:
         return 0.0 if math.isinf(t) else t
-    if max_move is None:
+    if max_displacement is None:
         return t
-    return min(t, max_move / dmax)
+    return min(t, max_displacement / dmax)
 
 
-def _armijo(fn: Closure, params: list[torch.Tensor], x0: torch.Tensor, f0: float, g0: torch.Tensor,
-            d: torch.Tensor, t: float, c: float, shrink: float, max_backtracks: int) -> tuple[float, float, bool]:
-    """Backtracking along ``d`` from ``x0``: returns ``(t, f(x0 + t d), accepted)``; on failure restores ``x0``."""
-    slope = float(torch.dot(g0, d))
-    for _ in range(max_backtracks):
-        _set_flat(params, x0 + t * d)
-        f = float(fn())
-        if math.isfinite(f) and f <= f0 + c * t * slope:
-            return t, f, True
-        t *= shrink
-    _set_flat(params, x0)
-    return t, f0, False
+def _line_search(fn: Closure, params: list[torch.Tensor], x0: torch.Tensor, f0: float, g0: torch.Tensor,
+                 d: torch.Tensor, t: float, group: dict) -> tuple[float, bool]:
+    """Armijo backtracking along ``d`` from ``x0`` with the group's ``armijo_c``, ``backtrack`` and
+    ``max_backtracks``: ``(t, accepted)``, the parameters left at ``x0 + t d``; on failure ``t`` is the last
+    tried step and the parameters are restored to ``x0``."""
+
+    def f(alpha: float) -> float:
+        _set_flat(params, x0 + alpha * d)
+        return float(fn())
+
+    t, _, ok = armijo_backtracking(f, f0, float(torch.dot(g0, d)), t, armijo_c=group["armijo_c"],
+                                   backtrack=group["backtrack"], max_backtracks=group["max_backtracks"])
+    if not ok:
+        _set_flat(params, x0)
+    return t, ok
+
+
+def _check_line_search(armijo_c: float, backtrack: float, max_backtracks: int,
+                       max_displacement: float | None) -> None:
+    if not (0.0 < armijo_c < 1.0 and 0.0 < backtrack < 1.0 and max_backtracks >= 1):
+        raise InputError(f"the line search needs armijo_c and backtrack in (0, 1) and max_backtracks >= 1, "
+                         f"got {armijo_c}, {backtrack}, {max_backtracks}")
+    if max_displacement is not None and not max_displacement > 0:
+        raise InputError(f"max_displacement must be > 0 or None, got {max_displacement}")
 
 
 class PreconditionedGD(_Counting, torch.optim.Optimizer):
-    """Preconditioned gradient descent ``q <- q - s P^-1 grad`` (the paper's method; see the module docstring).
+    """Preconditioned gradient descent ``q <- q - s P^-1 grad`` (the paper's method; see the module
+    docstring).
 
     Args:
         params: the parameters (usually ``[q]``, q (B, 2)); flattened in order, so ``P`` is (n, n) over them.
@@ -205,27 +276,28 @@ class PreconditionedGD(_Counting, torch.optim.Optimizer):
             (plain gradient descent).
         lr: the step length ``s`` (initial trial step with a line search).
         line_search: Armijo backtracking (True) or the fixed step ``lr`` (False, one closure call per step).
-        armijo: sufficient-decrease constant. shrink: backtracking factor. grow: ``lr`` factor after an
+        armijo_c: sufficient-decrease constant. backtrack: backtracking factor. grow: ``lr`` factor after an
             accepted step (line search only). max_backtracks: trials per step.
+        max_displacement: trust length in metres: no parameter moves more than this per step (None: no cap).
     """
 
     needs_gradient = True
 
-    def __init__(self, params: Iterable[torch.Tensor], preconditioner=None, *, lr: float = 1.0,  # noqa: ANN001
-                 line_search: bool = True, armijo: float = 1e-4, shrink: float = 0.5, grow: float = 2.0,
-                 max_backtracks: int = 20, max_move: float | None = 0.01) -> None:
+    def __init__(self, params: Iterable[torch.Tensor], preconditioner: PreconditionerMatrix = None, *,
+                 lr: float = 1.0, line_search: bool = True, armijo_c: float = 1e-4, backtrack: float = 0.5,
+                 grow: float = 2.0, max_backtracks: int = 20, max_displacement: float | None = 0.01) -> None:
         if not lr > 0:
             raise InputError(f"lr must be > 0, got {lr}")
-        if math.isinf(lr) and max_move is None:
-            raise InputError("an unbounded step (lr = inf) needs a trust length max_move")
-        super().__init__(params, {"lr": float(lr)})
+        if math.isinf(lr) and max_displacement is None:
+            raise InputError("an unbounded step (lr = inf) needs a trust length max_displacement")
+        _check_line_search(armijo_c, backtrack, max_backtracks, max_displacement)
+        super().__init__(params, {
+            "lr": float(lr), "line_search": bool(line_search), "armijo_c": float(armijo_c),
+            "backtrack": float(backtrack), "grow": float(grow), "max_backtracks": int(max_backtracks),
+            "max_displacement": None if max_displacement is None else float(max_displacement)})
         self._init_counting()
         n = sum(p.numel() for p in self._all_params())
         self.precond = None if preconditioner is None else _PrecondSolve(preconditioner, n)
-        self.line_search, self.armijo, self.shrink, self.grow = bool(line_search), armijo, shrink, grow
-        self.max_backtracks = int(max_backtracks)
-        self.max_move = None if max_move is None else float(max_move)
-        self.last_step_length = 0.0
 
     def direction(self, g: torch.Tensor) -> torch.Tensor:
         """``-P^-1 g``."""
@@ -241,52 +313,54 @@ class PreconditionedGD(_Counting, torch.optim.Optimizer):
         d = self.direction(g)
         x0 = _flat_params(params)
         group = self.param_groups[0]
-        t0 = _trust(group["lr"], d, self.max_move)
-        if not self.line_search:
+        t0 = _trust(group["lr"], d, group["max_displacement"])
+        if not group["line_search"]:
             _set_flat(params, x0 + t0 * d)
             self.last_step_length = t0
             return loss
         if float(torch.dot(g, d)) >= 0.0:
             self.last_step_length = 0.0
             return loss
-        t, _, ok = _armijo(fn, params, x0, f0, g, d, t0, self.armijo, self.shrink, self.max_backtracks)
+        t, ok = _line_search(fn, params, x0, f0, g, d, t0, group)
         self.last_step_length = t if ok else 0.0
-        group["lr"] = t * self.grow if ok else t
+        group["lr"] = t * group["grow"] if ok else t * group["backtrack"]
         return loss
 
 
 class LBFGS(_Counting, torch.optim.Optimizer):
-    """L-BFGS (torch.optim.LBFGS's two-loop recursion and curvature-pair memory) with a safeguarded line search.
+    """L-BFGS (torch.optim.LBFGS's two-loop recursion and curvature-pair memory) with a safeguarded line
+    search.
 
     torch's strong-Wolfe search extrapolates trial steps up to 10x, far outside what a cloth solve starting
     from the previous equilibrium can follow; here every trial is capped so that no parameter moves more than
-    ``max_move`` metres, and the step is accepted by Armijo backtracking. The initial inverse Hessian is
-    ``(s^T y / y^T y) I`` (torch's scaling) or, with a preconditioner ``P`` (the regularizer Hessian, as the
-    paper combines L-BFGS with its preconditioning), ``(s^T y / y^T P^-1 y) P^-1``; the first iteration is a
-    (preconditioned) gradient step of length ``max_move``. A curvature pair is kept only when
+    ``max_displacement`` metres, and the step is accepted by Armijo backtracking. The initial inverse Hessian
+    is ``(s^T y / y^T y) I`` (torch's scaling) or, with a preconditioner ``P`` (the regularizer Hessian, as
+    the paper combines L-BFGS with its preconditioning), ``(s^T y / y^T P^-1 y) P^-1``; the first iteration is
+    a (preconditioned) gradient step of length ``max_displacement``. A curvature pair is kept only when
     ``s^T y > 1e-10 |s| |y|``.
 
     Args:
         params: the parameters. preconditioner: sparse SPD (n, n) or None.
         lr: initial trial step (1 = the quasi-Newton step). history_size: memory.
-        max_move: trust length in metres (None = no cap). armijo, shrink, max_backtracks: line search.
+        max_displacement: trust length in metres (None = no cap). armijo_c, backtrack, max_backtracks: line
+            search.
     """
 
     needs_gradient = True
 
-    def __init__(self, params: Iterable[torch.Tensor], preconditioner=None, *, lr: float = 1.0,  # noqa: ANN001
-                 history_size: int = 10, max_move: float | None = 0.01, armijo: float = 1e-4, shrink: float = 0.5,
-                 max_backtracks: int = 20) -> None:
+    def __init__(self, params: Iterable[torch.Tensor], preconditioner: PreconditionerMatrix = None, *,
+                 lr: float = 1.0, history_size: int = 10, max_displacement: float | None = 0.01,
+                 armijo_c: float = 1e-4, backtrack: float = 0.5, max_backtracks: int = 20) -> None:
         if not lr > 0 or history_size < 1:
             raise InputError("LBFGS needs lr > 0 and history_size >= 1")
-        super().__init__(params, {"lr": float(lr)})
+        _check_line_search(armijo_c, backtrack, max_backtracks, max_displacement)
+        super().__init__(params, {
+            "lr": float(lr), "history_size": int(history_size), "armijo_c": float(armijo_c),
+            "backtrack": float(backtrack), "max_backtracks": int(max_backtracks),
+            "max_displacement": None if max_displacement is None else float(max_displacement)})
         self._init_counting()
         n = sum(p.numel() for p in self._all_params())
         self.precond = None if preconditioner is None else _PrecondSolve(preconditioner, n)
-        self.history_size = int(history_size)
-        self.max_move = None if max_move is None else float(max_move)
-        self.armijo, self.shrink, self.max_backtracks = armijo, shrink, int(max_backtracks)
-        self.last_step_length = 0.0
 
     def _memory(self) -> dict:
         return self.state[self._all_params()[0]]
@@ -297,7 +371,8 @@ class LBFGS(_Counting, torch.optim.Optimizer):
         if not S:
             pg = h0(g)
             gm = float(pg.abs().max())
-            scale = (self.max_move / gm) if (self.max_move is not None and gm > 0) else 1.0 / max(
+            max_displacement = self.param_groups[0]["max_displacement"]
+            scale = (max_displacement / gm) if (max_displacement is not None and gm > 0) else 1.0 / max(
                 float(pg.abs().sum()), 1e-300)
             return -scale * pg
         qv = g.clone()
@@ -323,13 +398,14 @@ class LBFGS(_Counting, torch.optim.Optimizer):
         g = _flat_grads(params)
         x0 = _flat_params(params)
         mem = self._memory()
+        group = self.param_groups[0]
         if "x_prev" in mem:
             s_, y_ = x0 - mem["x_prev"], g - mem["g_prev"]
             sy = float(torch.dot(s_, y_))
             if sy > 1e-10 * float(torch.linalg.vector_norm(s_)) * float(torch.linalg.vector_norm(y_)):
                 mem.setdefault("s", []).append(s_)
                 mem.setdefault("y", []).append(y_)
-                if len(mem["s"]) > self.history_size:
+                if len(mem["s"]) > group["history_size"]:
                     mem["s"].pop(0)
                     mem["y"].pop(0)
         d = self._direction(g, mem)
@@ -337,8 +413,8 @@ class LBFGS(_Counting, torch.optim.Optimizer):
             mem["s"], mem["y"] = [], []
             d = self._direction(g, mem)
         mem["x_prev"], mem["g_prev"] = x0.clone(), g.clone()
-        t0 = _trust(self.param_groups[0]["lr"], d, self.max_move)
-        t, _, ok = _armijo(fn, params, x0, f0, g, d, t0, self.armijo, self.shrink, self.max_backtracks)
+        t0 = _trust(group["lr"], d, group["max_displacement"])
+        t, ok = _line_search(fn, params, x0, f0, g, d, t0, group)
         self.last_step_length = t if ok else 0.0
         return loss
 
@@ -350,22 +426,28 @@ class GaussNewton(_Counting, torch.optim.Optimizer):
         params: ``[q]``.
         problem: an object with ``gauss_newton_product(v (B, 2)) -> (B, 2)`` valid at the point of the last
             closure call (:class:`~torchgarment.adjust.inexact.AdjustProblem`).
-        preconditioner: the regularizer Hessian ``R`` (n, n) sparse SPD: added to the system (it is part of the
-            objective but the products of the problem only hold the costs when ``include_regularizer``), and
-            used as CG's preconditioner.
+        preconditioner: the regularizer Hessian ``R`` (n, n) sparse SPD: added to the system (it is part of
+            the objective but the products of the problem only hold the costs when ``include_regularizer``),
+            and used as CG's preconditioner.
         include_regularizer: add ``R v`` to each product. The problem's products already hold the regularizers
             when they are part of the objective module; then keep False.
         lr: initial trial step. cg_iterations: CG budget per step (each a tangent + adjoint solve).
-        cg_rtol: CG relative residual tolerance. armijo, shrink, max_backtracks: line search.
+        cg_rtol: CG relative residual tolerance. armijo_c, backtrack, max_backtracks: line search.
+        max_displacement: trust length in metres (None = no cap).
     """
 
     needs_gradient = True
 
-    def __init__(self, params: Iterable[torch.Tensor], problem, preconditioner=None, *,  # noqa: ANN001
-                 include_regularizer: bool = False, lr: float = 1.0, cg_iterations: int = 10,
-                 cg_rtol: float = 1e-2, armijo: float = 1e-4, shrink: float = 0.5, max_backtracks: int = 20,
-                 max_move: float | None = 0.01) -> None:
-        super().__init__(params, {"lr": float(lr)})
+    def __init__(self, params: Iterable[torch.Tensor], problem: GaussNewtonProblem,
+                 preconditioner: PreconditionerMatrix = None, *, include_regularizer: bool = False,
+                 lr: float = 1.0, cg_iterations: int = 10, cg_rtol: float = 1e-2, armijo_c: float = 1e-4,
+                 backtrack: float = 0.5, max_backtracks: int = 20,
+                 max_displacement: float | None = 0.01) -> None:
+        _check_line_search(armijo_c, backtrack, max_backtracks, max_displacement)
+        super().__init__(params, {
+            "lr": float(lr), "cg_iterations": int(cg_iterations), "cg_rtol": float(cg_rtol),
+            "armijo_c": float(armijo_c), "backtrack": float(backtrack), "max_backtracks": int(max_backtracks),
+            "max_displacement": None if max_displacement is None else float(max_displacement)})
         self._init_counting()
         if not hasattr(problem, "gauss_newton_product"):
             raise InputError("GaussNewton needs a problem with gauss_newton_product(v)")
@@ -375,11 +457,11 @@ class GaussNewton(_Counting, torch.optim.Optimizer):
         if include_regularizer and self.precond is None:
             raise InputError("include_regularizer needs the regularizer Hessian as preconditioner")
         self.include_regularizer = bool(include_regularizer)
-        self.cg_iterations, self.cg_rtol = int(cg_iterations), float(cg_rtol)
-        self.armijo, self.shrink, self.max_backtracks = armijo, shrink, int(max_backtracks)
-        self.max_move = None if max_move is None else float(max_move)
-        self.last_cg_iterations = 0
-        self.last_step_length = 0.0
+
+    @property
+    def last_cg_iterations(self) -> int:
+        """CG iterations of the last step."""
+        return int(self._counters().get("last_cg_iterations", 0))
 
     def _product(self, v: torch.Tensor, shape: torch.Size) -> torch.Tensor:
         hv = self.problem.gauss_newton_product(v.view(shape)).reshape(-1).to(v.dtype)
@@ -388,32 +470,15 @@ class GaussNewton(_Counting, torch.optim.Optimizer):
         return hv
 
     def _cg(self, g: torch.Tensor, shape: torch.Size) -> torch.Tensor:
-        """Preconditioned CG for ``A d = -g``, stopped at negative curvature (Steihaug) or the budget."""
-        d = torch.zeros_like(g)
-        r = -g.clone()
-        z = r if self.precond is None else self.precond.solve(r)
-        pdir = z.clone()
-        rz = float(torch.dot(r, z))
-        r0 = float(torch.linalg.vector_norm(r))
-        k = 0
-        for k in range(1, self.cg_iterations + 1):
-            ap = self._product(pdir, shape)
-            curv = float(torch.dot(pdir, ap))
-            if not curv > 0.0:
-                if k == 1:
-                    d = z.clone()  # preconditioned steepest descent
-                k -= 1
-                break
-            a = rz / curv
-            d = d + a * pdir
-            r = r - a * ap
-            if float(torch.linalg.vector_norm(r)) <= self.cg_rtol * r0:
-                break
-            z = r if self.precond is None else self.precond.solve(r)
-            rz_new = float(torch.dot(r, z))
-            pdir = z + (rz_new / rz) * pdir
-            rz = rz_new
-        self.last_cg_iterations = k
+        """Preconditioned CG for ``A d = -g``, stopped at negative curvature (Steihaug), ``cg_rtol`` or the
+        budget;
+        a zero direction when the first direction already has non-positive curvature (the caller then takes
+        the preconditioned steepest descent)."""
+        group = self.param_groups[0]
+        pre = None if self.precond is None else self.precond.solve
+        d, k, _ = pcg(lambda v: self._product(v, shape), -g, pre, group["cg_rtol"], group["cg_iterations"],
+                      stop_at_negative_curvature=True)
+        self._counters()["last_cg_iterations"] = k
         return d
 
     @torch.no_grad()
@@ -441,8 +506,8 @@ class GaussNewton(_Counting, torch.optim.Optimizer):
             d = -(g if self.precond is None else self.precond.solve(g))
         x0 = _flat_params(params)
         group = self.param_groups[0]
-        t, _, ok = _armijo(fn, params, x0, f0, g, d, _trust(group["lr"], d, self.max_move), self.armijo,
-                           self.shrink, self.max_backtracks)
+        t0 = _trust(group["lr"], d, group["max_displacement"])
+        t, ok = _line_search(fn, params, x0, f0, g, d, t0, group)
         self.last_step_length = t if ok else 0.0
         return loss
 
@@ -452,9 +517,9 @@ class FixedPoint(_Counting, torch.optim.Optimizer):
 
     Each step simulates the current pattern (one closure call, no gradient needed), scales every pattern edge
     ``e = p_j - p_i`` by ``r_e = |x~_j - x~_i| / |x_j - x_i|`` (target over simulated 3D length: a spring
-    stretched too much in the simulation gets a longer rest length), and refits the whole pattern to the scaled
-    edge vectors: ``p' = argmin sum_e |p'_j - p'_i - r_e e|^2 + eps |p' - p|^2`` (a graph Laplacian system,
-    factorized once). The update is relaxed by ``lr``: ``q <- q + lr (p'_B - q)``.
+    stretched too much in the simulation gets a longer rest length), and refits the whole pattern to the
+    scaled edge vectors: ``p' = argmin sum_e |p'_j - p'_i - r_e e|^2 + eps |p' - p|^2`` (a graph Laplacian
+    system, factorized once). The update is relaxed by ``lr``: ``q <- q + lr (p'_B - q)``.
 
     Args:
         params: ``[q]`` (B, 2).
@@ -467,8 +532,9 @@ class FixedPoint(_Counting, torch.optim.Optimizer):
 
     needs_gradient = False
 
-    def __init__(self, params: Iterable[torch.Tensor], problem, edges: torch.Tensor,  # noqa: ANN001
-                 boundary_index: torch.Tensor, x_target: torch.Tensor, *, lr: float = 1.0, eps: float = 1e-6) -> None:
+    def __init__(self, params: Iterable[torch.Tensor], problem: FixedPointProblem, edges: torch.Tensor,
+                 boundary_index: torch.Tensor, x_target: torch.Tensor, *, lr: float = 1.0,
+                 eps: float = 1e-6) -> None:
         if not 0.0 < lr <= 1.0:
             raise InputError(f"FixedPoint lr (relaxation) must lie in (0, 1], got {lr}")
         super().__init__(params, {"lr": float(lr)})
@@ -482,11 +548,13 @@ class FixedPoint(_Counting, torch.optim.Optimizer):
         self.boundary_index = boundary_index.detach().to(torch.long)
         self.x_target = x_target.detach()
         E = e.shape[0]
-        D = scipy.sparse.csr_matrix((np.r_[np.ones(E), -np.ones(E)], (np.r_[np.arange(E), np.arange(E)],
-                                                                        np.r_[e[:, 1], e[:, 0]])), shape=(E, V))
+        D = scipy.sparse.csr_matrix((np.r_[np.ones(E), -np.ones(E)],
+                                     (np.r_[np.arange(E), np.arange(E)], np.r_[e[:, 1], e[:, 0]])),
+                                    shape=(E, V))
         self.D = D
         self.eps = float(eps) * float(np.mean(np.asarray((D.T @ D).diagonal())))
-        self.lu = scipy.sparse.linalg.splu((D.T @ D + self.eps * scipy.sparse.eye(V)).tocsc())
+        self.lu = factorize((D.T @ D + self.eps * scipy.sparse.eye(V)).tocsc(), symmetric=False,
+                            what="fixed-point refit Laplacian")
 
     def refit(self, p: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """The refit pattern p' (V, 2) for the current pattern ``p`` (V, 2) and simulation ``x`` (V, 3)."""
@@ -511,8 +579,8 @@ class FixedPoint(_Counting, torch.optim.Optimizer):
         group = self.param_groups[0]
         loss = self._counted(closure)()
         if not math.isfinite(float(loss)):
-            # the last update gave a pattern the simulator cannot solve: go back to the previous pattern (whose
-            # simulation is still the problem's last one) and halve the relaxation
+            # the last update gave a pattern the simulator cannot solve: go back to the previous pattern
+            # (whose simulation is still the problem's last one) and halve the relaxation
             prev = self.state[q].get("q_prev")
             if prev is None or group["lr"] < 1e-3:
                 raise InputError("the fixed-point iteration reached patterns the simulator cannot solve")
@@ -526,8 +594,10 @@ class FixedPoint(_Counting, torch.optim.Optimizer):
         return loss
 
 
-def make_optimizer(kind: "str | OptimizerKind", params: list[torch.Tensor], *, preconditioner=None,  # noqa: ANN001
-                   problem=None, lr: float | None = None, line_search: bool = True,  # noqa: ANN001
+def make_optimizer(kind: "str | OptimizerKind", params: list[torch.Tensor], *,
+                   preconditioner: PreconditionerMatrix = None,
+                   problem: GaussNewtonProblem | FixedPointProblem | None = None, lr: float | None = None,
+                   line_search: bool = True, max_displacement: float | None = 0.01,
                    edges: torch.Tensor | None = None, boundary_index: torch.Tensor | None = None,
                    x_target: torch.Tensor | None = None) -> torch.optim.Optimizer:
     """Build an optimizer by name (:class:`OptimizerKind`).
@@ -539,6 +609,7 @@ def make_optimizer(kind: "str | OptimizerKind", params: list[torch.Tensor], *, p
         problem: the :class:`AdjustProblem` (gn, fixed-point).
         lr: step length / relaxation (default 1).
         line_search: pgd's Armijo line search (False inside Algorithm 1).
+        max_displacement: trust length in metres of pgd, lbfgs and gn (None: no cap).
         edges, boundary_index, x_target: fixed-point's pattern edges, boundary map and target garment.
     """
     k = OptimizerKind.resolve(kind)
@@ -546,13 +617,14 @@ def make_optimizer(kind: "str | OptimizerKind", params: list[torch.Tensor], *, p
     if math.isinf(lr) and k != OptimizerKind.PGD:
         lr = 1.0
     if k == OptimizerKind.PGD:
-        return PreconditionedGD(params, preconditioner, lr=lr, line_search=line_search)
+        return PreconditionedGD(params, preconditioner, lr=lr, line_search=line_search,
+                                max_displacement=max_displacement)
     if k == OptimizerKind.LBFGS:
-        return LBFGS(params, preconditioner, lr=lr)
+        return LBFGS(params, preconditioner, lr=lr, max_displacement=max_displacement)
     if k == OptimizerKind.GN:
         if problem is None:
             raise InputError("the gn optimizer needs the problem (for Jacobian products)")
-        return GaussNewton(params, problem, preconditioner, lr=lr)
+        return GaussNewton(params, problem, preconditioner, lr=lr, max_displacement=max_displacement)
     if problem is None or edges is None or boundary_index is None or x_target is None:
         raise InputError("the fixed-point optimizer needs problem, edges, boundary_index and x_target")
     return FixedPoint(params, problem, edges, boundary_index, x_target, lr=min(lr, 1.0))

@@ -11,22 +11,22 @@ backward pass is the transposed solve.
 
 Laplacian weights (:class:`LaplacianWeights`):
 
-* ``cotangent`` (default): the cotangent weights ``(cot a + cot b) / 2`` of the flat pattern, the weights of the
-  hinge-edge kernel of Bergou et al. 2006 that the paper names; ``L_II`` is symmetric positive definite as the
-  paper states. On a planar mesh the cotangent Laplacian of a linear function vanishes at interior vertices, so
-  the map reproduces affine maps of the boundary exactly.
-* ``mean_value``: Floater's mean value weights (the paper notes the scheme is equivalent to positive mean value
-  coordinates); also reproduces affine maps, weights always positive (no fold-over for convex one-rings),
-  ``L_II`` non-symmetric.
+* ``cotangent`` (default): the cotangent weights ``(cot a + cot b) / 2`` of the flat pattern, the weights of
+  the hinge-edge kernel of Bergou et al. 2006 that the paper names; ``L_II`` is symmetric positive definite as
+  the paper states. On a planar mesh the cotangent Laplacian of a linear function vanishes at interior
+  vertices, so the map reproduces affine maps of the boundary exactly.
+* ``mean_value``: Floater's mean value weights (the paper notes the scheme is equivalent to positive mean
+  value coordinates); also reproduces affine maps, weights always positive (no fold-over for convex
+  one-rings), ``L_II`` non-symmetric.
 * ``uniform``: graph Laplacian; does NOT reproduce affine maps (only translations).
 
 Seams: the two sides of a seam are separate boundary vertices (both are variables). Their consistency (equal
 stitched lengths up to the base pattern's gathering ratio) is the job of
-:class:`torchgarment.adjust.regularizers.SeamLengthRegularizer`; this module exposes the stitched boundary edge
-pairs (:attr:`BoundaryParametrization.seam_edge_pairs`) it needs. A hard tie is impossible in a linear
+:class:`torchgarment.adjust.regularizers.SeamLengthRegularizer`; this module exposes the stitched boundary
+edge pairs (:attr:`BoundaryParametrization.seam_edge_pairs`) it needs. A hard tie is impossible in a linear
 parametrization of two panels with different shapes, so the constraint is soft (like every term of the paper).
 
-Solve modes (:class:`ParametrizationSolve`): ``factorized`` keeps a SuperLU factorization of ``L_II`` (CPU,
+Solve modes (:class:`ParametrizationSolve`): ``factorized`` keeps a sparse factorization of ``L_II`` (CPU,
 two triangular solves per call); ``explicit`` precomputes the block-diagonal dense operator
 ``-L_II^{-1} L_IB`` per panel and applies it as a sparse matrix product (stays on the device, memory
 ``sum_k I_k B_k``); ``auto`` picks ``factorized`` on the CPU and ``explicit`` on other devices when it has at
@@ -42,11 +42,11 @@ import warnings
 
 import numpy as np
 import scipy.sparse
-import scipy.sparse.linalg
 import torch
 
 from torchgarment.adjust.linear_map import StoredTransposeMatmul
 from torchgarment.errors import MeshError
+from torchgarment.linalg import factorize
 from torchgarment.options import OptionEnum
 from torchgarment.structures.garment_mesh import GarmentMesh
 
@@ -132,12 +132,12 @@ class _FactorizedMap(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, v: torch.Tensor, param: "BoundaryParametrization",  # type: ignore[override]
+    def forward(ctx: torch.autograd.function.FunctionCtx, v: torch.Tensor, param: "BoundaryParametrization",  # type: ignore[override]
                 transpose: bool) -> torch.Tensor:
         ctx.param, ctx.transpose = param, transpose
         vn = v.detach().cpu().numpy()
         if transpose:
-            y = param._lu.solve(np.ascontiguousarray(vn), trans="T") if vn.shape[0] else vn
+            y = param._lu.solve(np.ascontiguousarray(vn), transpose=True) if vn.shape[0] else vn
             out = -(param._L_IB.T @ y)
         else:
             rhs = -(param._L_IB @ vn)
@@ -145,7 +145,8 @@ class _FactorizedMap(torch.autograd.Function):
         return torch.as_tensor(out, dtype=v.dtype, device=v.device)
 
     @staticmethod
-    def backward(ctx, g: torch.Tensor) -> tuple[torch.Tensor, None, None]:  # type: ignore[override]
+    def backward(ctx: torch.autograd.function.FunctionCtx,  # type: ignore[override]
+                 g: torch.Tensor) -> tuple[torch.Tensor, None, None]:
         return _FactorizedMap.apply(g.contiguous(), ctx.param, not ctx.transpose), None, None
 
 
@@ -154,7 +155,8 @@ class BoundaryParametrization(torch.nn.Module):
 
     Attributes:
         boundary_index: (B,) long, the boundary vertices (the variables), loop by loop (each panel outline and
-            hole in face orientation), so that ``q[k]``'s outline neighbours are :attr:`boundary_prev`/``next``.
+            hole in face orientation), so that ``q[k]``'s outline neighbours are
+            :attr:`boundary_prev`/``next``.
         interior_index: (I,) long, the other vertices.
         boundary_prev, boundary_next: (B,) long, positions in ``q`` of the previous/next vertex of the loop.
         corner_mask: (B,) bool, panel corners (outline turning by more than ``corner_angle`` or a change of
@@ -202,7 +204,8 @@ class BoundaryParametrization(torch.nn.Module):
         used = np.zeros(V, dtype=bool)
         used[faces.reshape(-1)] = True
         if not used.all():
-            raise MeshError(f"{int((~used).sum())} vertices are not used by any face (first {int(np.argmin(used))})")
+            raise MeshError(f"{int((~used).sum())} vertices are not used by any face "
+                            f"(first {int(np.argmin(used))})")
         loops = [lp.cpu().numpy() for lp in mesh.boundary_loops]
         if not loops:
             raise MeshError("the pattern mesh has no boundary")
@@ -222,14 +225,16 @@ class BoundaryParametrization(torch.nn.Module):
         L_II = L[iidx][:, iidx].tocsc()
         self._L_IB = L[iidx][:, bidx].tocsr()
         mode = ParametrizationSolve.resolve(solve)
-        panel = mesh.vertex_panel_ids.cpu().numpy() if mesh.panel_ids is not None else np.zeros(V, dtype=np.int64)
+        panel = (mesh.vertex_panel_ids.cpu().numpy() if mesh.panel_ids is not None
+                 else np.zeros(V, dtype=np.int64))
         if mode is ParametrizationSolve.AUTO:
-            entries = sum(int((panel[iidx] == k).sum()) * int((panel[bidx] == k).sum()) for k in np.unique(panel))
+            entries = sum(int((panel[iidx] == k).sum()) * int((panel[bidx] == k).sum())
+                          for k in np.unique(panel))
             mode = ParametrizationSolve.EXPLICIT if device.type != "cpu" and entries <= EXPLICIT_MAX_ENTRIES \
                 else ParametrizationSolve.FACTORIZED
         self.solve = mode
         self._L_II = L_II
-        self._lu = scipy.sparse.linalg.splu(L_II) if len(iidx) else None
+        self._lu = factorize(L_II, symmetric=False, what="interior Laplacian") if len(iidx) else None
         if mode is ParametrizationSolve.EXPLICIT:
             M = self._explicit_operator(L_II.tocsr(), panel, iidx, bidx)
             self.register_buffer("_M", _torch_csr(M, dtype, device), persistent=False)
@@ -256,7 +261,8 @@ class BoundaryParametrization(torch.nn.Module):
 
     # ------------------------------------------------------------------ pickling
     def __getstate__(self) -> dict:
-        """Pickle without the SuperLU object (not picklable); :meth:`__setstate__` factorizes ``L_II`` again."""
+        """Pickle without the factorization (not picklable); :meth:`__setstate__` factorizes ``L_II``
+        again."""
         state = self.__dict__.copy()
         state["_lu"] = None
         return state
@@ -264,7 +270,7 @@ class BoundaryParametrization(torch.nn.Module):
     def __setstate__(self, state: dict) -> None:
         super().__setstate__(state)
         if self._L_II.shape[0]:
-            self._lu = scipy.sparse.linalg.splu(self._L_II)
+            self._lu = factorize(self._L_II, symmetric=False, what="interior Laplacian")
 
     # ------------------------------------------------------------------ construction helpers
     def _explicit_operator(self, L_II: scipy.sparse.csr_matrix, panel: np.ndarray, iidx: np.ndarray,
@@ -279,7 +285,8 @@ class BoundaryParametrization(torch.nn.Module):
                 raise MeshError(f"panel {k} has interior vertices but no boundary")
             rhs = -self._L_IB[ri][:, cb].toarray()
             # panels share no vertices, so the panel's rows/columns of L_II are its own system
-            blk = scipy.sparse.linalg.splu(L_II[ri][:, ri].tocsc()).solve(np.ascontiguousarray(rhs))
+            blk = factorize(L_II[ri][:, ri].tocsc(), symmetric=False, what="panel Laplacian").solve(
+                np.ascontiguousarray(rhs))
             rr, cc = np.meshgrid(ri, cb, indexing="ij")
             rows.append(rr.ravel())
             cols.append(cc.ravel())
@@ -290,7 +297,8 @@ class BoundaryParametrization(torch.nn.Module):
                                        shape=(len(iidx), len(bidx))).tocsr()
 
     @staticmethod
-    def _seam_edge_pairs(bidx: np.ndarray, slot: np.ndarray, nxt: np.ndarray, seam_pairs: np.ndarray) -> np.ndarray:
+    def _seam_edge_pairs(bidx: np.ndarray, slot: np.ndarray, nxt: np.ndarray,
+                         seam_pairs: np.ndarray) -> np.ndarray:
         """(K, 4) positions in q of stitched boundary edge pairs ``[a0, a1, b0, b1]``."""
         if seam_pairs.shape[0] == 0:
             return np.zeros((0, 4), dtype=np.int64)
@@ -347,7 +355,8 @@ class BoundaryParametrization(torch.nn.Module):
     def linear(self, dq: torch.Tensor) -> torch.Tensor:
         """(V, 2) ``dp = (dp/dq) dq`` for a boundary displacement ``dq`` (B, 2) (the map is affine).
 
-        Differentiable to any order; ``torch.autograd.grad(P.linear(dq), dq, g)`` gives the transposed product.
+        Differentiable to any order; ``torch.autograd.grad(P.linear(dq), dq, g)`` gives the transposed
+        product.
         """
         if dq.shape != (self.num_boundary, 2):
             raise MeshError(f"dq must be ({self.num_boundary}, 2), got {tuple(dq.shape)}")
@@ -359,7 +368,8 @@ class BoundaryParametrization(torch.nn.Module):
         return d.index_copy(0, self.boundary_index, dq).index_copy(0, self.interior_index, di)
 
     def extra_repr(self) -> str:
-        return (f"{self.num_vertices} vertices, {self.num_boundary} boundary, {int(self.corner_mask.sum())} corners, "
+        return (f"{self.num_vertices} vertices, {self.num_boundary} boundary, "
+                f"{int(self.corner_mask.sum())} corners, "
                 f"{self.seam_edge_pairs.shape[0]} seam edge pairs, {self.weights.value}, {self.solve.value}")
 
 
@@ -383,7 +393,8 @@ def _corner_mask(qb: np.ndarray, prev: np.ndarray, nxt: np.ndarray, angle: float
 
 
 def _seam_change_mask(pairs_q: np.ndarray, panel_b: np.ndarray, prev: np.ndarray, B: int) -> np.ndarray:
-    """(B,) bool: the outgoing and incoming boundary edges are stitched to different panels (or one is free)."""
+    """(B,) bool: the outgoing and incoming boundary edges are stitched to different panels (or one is
+    free)."""
     out_partner = np.full(B, -1, dtype=np.int64)  # partner panel of the edge k -> next(k)
     # edges are directed a0 -> a1 by construction (a1 = next(a0)); b0/b1 may be in either direction
     if pairs_q.size:

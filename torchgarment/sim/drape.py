@@ -6,8 +6,9 @@
    panels projected out of the body (``project_feasible``: placed panels may start slightly inside). The
    seams pull the flat panels around the body; the stage stops once the largest seam gap is below
    :attr:`DrapeSettings.sew_gap` (or at its iteration budget / tolerance).
-2. **settle**: the full scene (gravity on) with sewing springs stiffened to :attr:`DrapeSettings.final_sew_stiffness`
-   so that seams close to well under a millimetre against the cloth tension, solved to equilibrium.
+2. **settle**: the full scene (gravity on) with sewing springs stiffened to
+   :attr:`DrapeSettings.final_sew_stiffness` so that seams close to well under a millimetre against the cloth
+   tension, solved to equilibrium.
 
 Every stage keeps its :class:`~torchgarment.sim.solvers.SolveInfo` (residual and energy histories). The
 result reports the body clearance ``min phi`` (SDF), the largest distance between paired seam vertices and
@@ -27,7 +28,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 
@@ -36,6 +37,11 @@ from torchgarment.sdf.grid import SDFSampling
 from torchgarment.sim.scene import Effect, Material, Scene, SimModel
 from torchgarment.sim.solvers import SolveInfo, SolverKind, SolveSettings, solve
 from torchgarment.structures.garment_mesh import GarmentMesh
+
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.sdf import BodySDF
 
 #: ``progress(stage_name, iteration, residual)`` called after every solver iteration (e.g. a tqdm update).
 ProgressFn = Callable[[str, int, float], None]
@@ -62,11 +68,11 @@ class DrapeSettings:
         sew_rtol: relative force tolerance of the sewing stage.
         sew_max_iterations: iteration budget of the sewing stage.
         final_sew_stiffness: sewing spring constant (N/m) of the settle stage; None keeps ``material``'s.
-        barrier_mu: body-barrier weight (J) of the settle stage; None (default) keeps ``material``'s (the paper's
-            0.01 J, range-limited to ``material.barrier_dhat`` = 3 mm). With the unbounded ``-mu log phi``
-            (``material.barrier_dhat = None``) the paper's weight pushes with ``mu / phi`` at every distance
-            (0.25 N at 4 cm, hundreds of times a 3 cm cloth vertex's weight): loose cloth floats on the far
-            field and the settle stage stalls; use about 1e-3 J with that form.
+        barrier_mu: body-barrier weight (J) of the settle stage; None (default) keeps ``material``'s (the
+            paper's 0.01 J, range-limited to ``material.barrier_dhat`` = 3 mm). With the unbounded ``-mu log
+            phi`` (``material.barrier_dhat = None``) the paper's weight pushes with ``mu / phi`` at every
+            distance (0.25 N at 4 cm, hundreds of times a 3 cm cloth vertex's weight): loose cloth floats on
+            the far field and the settle stage stalls; use about 1e-3 J with that form.
         rtol: relative force tolerance of the settle stage (relative to its initial force norm); default 0:
             the initial force of the settle stage is dominated by the stiffened seam springs (hundreds of
             newtons for a 2 mm gap), so a relative test would accept whatever that leftover happens to be.
@@ -79,7 +85,8 @@ class DrapeSettings:
             GarmentCode pencil dress needs about 1,150 Newton iterations as its skirt slides into place).
         reuse_factorization: the settle stage's Newton reuses its last factorization as a CG preconditioner
             (``SolveSettings.reuse_factorization``). Measured on the straight skirt, size 12: 7,349 vertices
-            settle in 62.6 s instead of 96.8 s (138 and 136 iterations), 1,877 vertices in 5.5 s instead of 7.2 s.
+            settle in 62.6 s instead of 96.8 s (138 and 136 iterations), 1,877 vertices in 5.5 s instead of
+            7.2 s.
         max_displacement: GD trust region per iteration in metres.
         check_interval: iterations between seam-gap checks in the sewing stage.
         max_seam_gap: largest acceptable seam gap in metres for :attr:`DrapeResult.ok`.
@@ -104,18 +111,26 @@ class DrapeSettings:
     check_interval: int = 5
     max_seam_gap: float = 1.0e-3
 
-    def validate(self) -> None:
-        """Raise :class:`InputError` for out-of-range settings (and normalize the solver names)."""
+    def __post_init__(self) -> None:
         self.sew_solver = SolverKind.resolve(self.sew_solver)
         self.solver = SolverKind.resolve(self.solver)
         self.sdf_sampling = SDFSampling.resolve(self.sdf_sampling)
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` for out-of-range settings (called on construction; changes nothing)."""
+        for name, kind in (("sew_solver", SolverKind), ("solver", SolverKind), ("sdf_sampling", SDFSampling)):
+            if not isinstance(getattr(self, name), kind):
+                raise InputError(f"DrapeSettings.{name} must be one of {[k.value for k in kind]}, "
+                                 f"got {getattr(self, name)!r}")
         positive = {"edge_length": self.edge_length, "voxel_size": self.voxel_size, "sew_gap": self.sew_gap,
                     "max_seam_gap": self.max_seam_gap}
         for name, v in positive.items():
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise InputError(f"DrapeSettings.{name} must be a positive number, got {v!r}")
         if self.final_sew_stiffness is not None and not self.final_sew_stiffness > 0:
-            raise InputError(f"DrapeSettings.final_sew_stiffness must be > 0 or None, got {self.final_sew_stiffness}")
+            raise InputError(f"DrapeSettings.final_sew_stiffness must be > 0 or None, "
+                             f"got {self.final_sew_stiffness}")
         if self.barrier_mu is not None and not self.barrier_mu > 0:
             raise InputError(f"DrapeSettings.barrier_mu must be > 0 or None, got {self.barrier_mu}")
         if self.sew_max_iterations < 0 or self.max_iterations < 0 or self.check_interval < 1:
@@ -135,7 +150,8 @@ class DrapeStage:
 
     def to_dict(self) -> dict:
         return {"name": self.name, "effects": list(self.effects), "max_seam_gap_mm": 1e3 * self.max_seam_gap,
-                "seconds_per_iteration": self.info.seconds / max(self.info.iterations, 1), **self.info.to_dict()}
+                "seconds_per_iteration": self.info.seconds / max(self.info.iterations, 1),
+                **self.info.to_dict()}
 
 
 @dataclass
@@ -147,9 +163,10 @@ class DrapeResult:
         mesh: the garment mesh at ``x`` (same topology, ``p`` and seams as the input).
         info: the settle stage's :class:`SolveInfo` (final residual, histories).
         stages: every stage of the schedule, in order, with its histories.
-        metrics: JSON-serializable numbers: ``vertices``, ``faces``, ``iterations``, ``seconds``, ``residual``,
-            ``tolerance``, ``min_sdf_mm``, ``inside_vertices``, ``max_seam_gap_mm``, ``mean_seam_gap_mm``,
-            ``energy_start``, ``energy``, ``energy_terms`` (J per term), ``converged``, ``ok``.
+        metrics: JSON-serializable numbers: ``vertices``, ``faces``, ``iterations``, ``seconds``,
+            ``residual``, ``tolerance``, ``min_sdf_mm``, ``inside_vertices``, ``max_seam_gap_mm``,
+            ``mean_seam_gap_mm``, ``energy_start``, ``energy``, ``energy_terms`` (J per term), ``converged``,
+            ``ok``.
         model: the settle stage's :class:`SimModel` (to evaluate energies or continue solving).
     """
 
@@ -201,10 +218,12 @@ def vertex_stretch_ratio(mesh: GarmentMesh, x: torch.Tensor) -> torch.Tensor:
     return sums / cnt.clamp_min(1.0)
 
 
-def _as_mesh(pattern_or_mesh, settings: DrapeSettings, dtype: torch.dtype, device) -> GarmentMesh:  # noqa: ANN001
+def _as_mesh(pattern_or_mesh: SewingPattern | GarmentMesh, settings: DrapeSettings, dtype: torch.dtype,
+             device: torch.device | str | None) -> GarmentMesh:
     if isinstance(pattern_or_mesh, GarmentMesh):
         if pattern_or_mesh.seam_pairs.shape[0] == 0 and pattern_or_mesh.p is None:
-            raise InputError("drape needs a sewn garment: the mesh has neither rest positions p nor seam pairs")
+            raise InputError("drape needs a sewn garment: the mesh has neither rest positions p nor seam "
+                             "pairs")
         return pattern_or_mesh.to(device=device, dtype=dtype)
     from torchgarment.pattern.spec import SewingPattern
 
@@ -215,7 +234,8 @@ def _as_mesh(pattern_or_mesh, settings: DrapeSettings, dtype: torch.dtype, devic
     raise InputError(f"drape takes a SewingPattern or a GarmentMesh, got {type(pattern_or_mesh).__name__}")
 
 
-def _body_sdf(body, settings: DrapeSettings, dtype: torch.dtype, device):  # noqa: ANN001, ANN202
+def _body_sdf(body: Body | BodySDF | torch.nn.Module | None, settings: DrapeSettings, dtype: torch.dtype,
+              device: torch.device | str | None) -> torch.nn.Module:
     from torchgarment.sdf import BodySDF, SDFSettings
 
     if isinstance(body, BodySDF):
@@ -224,12 +244,15 @@ def _body_sdf(body, settings: DrapeSettings, dtype: torch.dtype, device):  # noq
         return body  # another SDF module: used as given
     verts, faces = getattr(body, "vertices", None), getattr(body, "faces", None)
     if verts is None or faces is None:
-        raise InputError(f"drape needs a body with vertices and faces (a Body) or a BodySDF, got {type(body).__name__}")
-    sdf = BodySDF.cached(verts, faces, SDFSettings(voxel_size=settings.voxel_size), device=device, dtype=dtype)
+        raise InputError(f"drape needs a body with vertices and faces (a Body) or a BodySDF, "
+                         f"got {type(body).__name__}")
+    sdf = BodySDF.cached(verts, faces, SDFSettings(voxel_size=settings.voxel_size), device=device,
+                         dtype=dtype)
     return sdf.with_sampling(settings.sdf_sampling)
 
 
-def _callback(name: str, mesh: GarmentMesh, gap_stop: float | None, every: int, progress: ProgressFn | None):
+def _callback(name: str, mesh: GarmentMesh, gap_stop: float | None, every: int,
+              progress: ProgressFn | None) -> Callable[[int, torch.Tensor, float, float], bool]:
     def cb(k: int, x: torch.Tensor, residual: float, energy: float) -> bool:
         if progress is not None:
             progress(name, k, residual)
@@ -252,11 +275,11 @@ def _run_stage(name: str, scene: Scene, x: torch.Tensor, solver: SolverKind, sol
 
 
 def drape(
-    pattern_or_mesh,  # noqa: ANN001 - SewingPattern | GarmentMesh
-    body,  # noqa: ANN001 - Body | BodySDF
+    pattern_or_mesh: SewingPattern | GarmentMesh,
+    body: Body | BodySDF | None,
     *,
     settings: DrapeSettings | None = None,
-    sdf=None,  # noqa: ANN001 - BodySDF | None
+    sdf: BodySDF | None = None,
     progress: ProgressFn | None = None,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
@@ -267,8 +290,8 @@ def drape(
         pattern_or_mesh: a :class:`~torchgarment.pattern.spec.SewingPattern` (meshed at
             ``settings.edge_length``, panels at their 3D placement) or a sewn :class:`GarmentMesh` whose ``x``
             holds the placed panels.
-        body: a :class:`~torchgarment.body.Body` (anything with ``vertices`` (B, 3) and ``faces`` (G, 3)), whose
-            SDF is built at ``settings.voxel_size`` through the disk cache, or a ready :class:`BodySDF`.
+        body: a :class:`~torchgarment.body.Body` (anything with ``vertices`` (B, 3) and ``faces`` (G, 3)),
+            whose SDF is built at ``settings.voxel_size`` through the disk cache, or a ready :class:`BodySDF`.
         settings: schedule and tolerances; default :class:`DrapeSettings()`.
         sdf: a prebuilt SDF of ``body`` (skips building); it is also what the clearance is checked with.
         progress: ``progress(stage, iteration, residual)`` after every solver iteration.
@@ -309,9 +332,11 @@ def drape(
     if settings.barrier_mu is not None:
         final_mat.barrier_mu = float(settings.barrier_mu)
     scene = Scene(mesh, body_sdf=sdf, effects=base | {Effect.GRAVITY}, material=final_mat)
-    weight = float(mesh.rest_face_areas.abs().sum()) * mat.density * mat.gravity if mesh.p is not None else 0.0
+    weight = (float(mesh.rest_face_areas.abs().sum()) * mat.density * mat.gravity if mesh.p is not None
+              else 0.0)
     settle_settings = SolveSettings(rtol=settings.rtol, atol=settings.atol_weight * weight,
-                                    max_iterations=settings.max_iterations, max_displacement=settings.max_displacement,
+                                    max_iterations=settings.max_iterations,
+                                    max_displacement=settings.max_displacement,
                                     reuse_factorization=settings.reuse_factorization)
     model = scene.build()
     x_start = model.project_feasible(x)
@@ -351,4 +376,5 @@ def drape(
         "stages": [s.to_dict() for s in stages],
     }
     metrics["ok"] = bool(info.converged and min_phi >= 0 and gap <= settings.max_seam_gap)
-    return DrapeResult(x=x, mesh=mesh.with_positions(x), info=info, stages=stages, metrics=metrics, model=model)
+    return DrapeResult(x=x, mesh=mesh.with_positions(x), info=info, stages=stages, metrics=metrics,
+                       model=model)

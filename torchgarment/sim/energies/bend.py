@@ -133,7 +133,8 @@ class QuadraticBending(EnergyTerm):
         """Six-vertex hinge stencils with cotangent weights from the rest triangles.
 
         Returns:
-            stencils (H, 6) long ``[x0, x1, x2, x0', x1', x3]``, weights (H, 6), coeffs (H,) ``c / (A0 + A1)``.
+            stencils (H, 6) long ``[x0, x1, x2, x0', x1', x3]``, weights (H, 6), coeffs (H,)
+            ``c / (A0 + A1)``.
 
         Raises:
             MeshError: a rest triangle of a hinge is degenerate.
@@ -162,15 +163,11 @@ class QuadraticBending(EnergyTerm):
             rest = torch.cat([mesh.p, torch.zeros_like(mesh.p[:, :1])], dim=1)
         else:
             rest = mesh.x
-        rest = rest.detach()
-        ca0, ca1, A0 = _cotangents(rest[stencils[:, 0]], rest[stencils[:, 1]], rest[stencils[:, 2]])
-        cb0, cb1, A1 = _cotangents(rest[stencils[:, 3]], rest[stencils[:, 4]], rest[stencils[:, 5]])
-        area = A0 + A1
+        weights, A0, A1 = hinge_weights(rest.detach(), stencils)
         tiny = torch.finfo(rest.dtype).tiny
         if stencils.shape[0] and bool((torch.minimum(A0, A1) <= tiny).any()):
             raise MeshError("bending: a hinge has a degenerate rest triangle")
-        weights = torch.stack([ca1, ca0, -(ca0 + ca1), cb1, cb0, -(cb0 + cb1)], dim=1)
-        return stencils, weights, HINGE_COEFFICIENT / area
+        return stencils, weights, HINGE_COEFFICIENT / (A0 + A1)
 
     # ------------------------------------------------------------------ evaluation
     def _q(self, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -179,7 +176,8 @@ class QuadraticBending(EnergyTerm):
             V = self.num_vertices
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # "sparse CSR support is in beta"
-                coo = torch.sparse_coo_tensor(self.q_indices.to(device), self.q_values.to(device=device, dtype=dtype),
+                coo = torch.sparse_coo_tensor(self.q_indices.to(device),
+                                              self.q_values.to(device=device, dtype=dtype),
                                               (V, V), is_coalesced=True)
                 self._csr[key] = coo.to_sparse_csr()
         return self._csr[key]
@@ -215,7 +213,28 @@ class QuadraticBending(EnergyTerm):
         return f"hinges={self.stencils.shape[0]}, stiffness={self.stiffness} N m"
 
 
-def _cotangents(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def hinge_weights(rest: torch.Tensor,
+                  stencils: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bergou et al. 2006 cotangent weights of six-vertex hinge stencils ``[x0, x1, x2, x0', x1', x3]``.
+
+    With ``a0, a1`` the rest angles at ``x0, x1`` of triangle ``(x0, x1, x2)`` and ``b0, b1`` those at ``x0',
+    x1'`` of ``(x0', x1', x3)``, the weights are ``[cot a1, cot a0, -(cot a0 + cot a1), cot b1, cot b0,
+    -(cot b0 + cot b1)]``; inside a panel (``x0' = x0``, ``x1' = x1``) the four-vertex kernel is
+    ``[w0 + w3, w1 + w4, w2, w5]``, which vanishes on every flat (isometric) embedding.
+
+    Args:
+        rest: (V, 3) rest positions (metres; a 2D pattern padded with z = 0). stencils: (H, 6) long.
+
+    Returns:
+        weights (H, 6) (dimensionless), areas (H,) and (H,) of the two rest triangles (square metres).
+    """
+    ca0, ca1, A0 = _cotangents(rest[stencils[:, 0]], rest[stencils[:, 1]], rest[stencils[:, 2]])
+    cb0, cb1, A1 = _cotangents(rest[stencils[:, 3]], rest[stencils[:, 4]], rest[stencils[:, 5]])
+    return torch.stack([ca1, ca0, -(ca0 + ca1), cb1, cb0, -(cb0 + cb1)], dim=1), A0, A1
+
+
+def _cotangents(a: torch.Tensor, b: torch.Tensor,
+                c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Cotangents of the angles at ``a`` and ``b`` of triangles (a, b, c) (each (H, 3)), and their areas."""
     ab, ac, bc = b - a, c - a, c - b
     cross = torch.linalg.vector_norm(torch.linalg.cross(ab, ac, dim=1), dim=1)

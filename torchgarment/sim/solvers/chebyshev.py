@@ -1,24 +1,26 @@
 """Jacobi-preconditioned gradient descent with Chebyshev acceleration (Wang & Yang 2016).
 
-The method Wang et al. 2018 (section 4.2) use for their quasistatic garment simulator. With ``D`` the Hessian's
-diagonal (3x3 blocks per vertex, or its scalar diagonal) and ``alpha`` an under-relaxation step, each iteration is
+The method Wang et al. 2018 (section 4.2) use for their quasistatic garment simulator. With ``D`` the
+Hessian's diagonal (3x3 blocks per vertex, or its scalar diagonal) and ``alpha`` an under-relaxation step,
+each iteration is
 
     x_bar    = x_k - alpha * D^-1 g(x_k)
     x_{k+1}  = omega_{k+1} (x_bar - x_{k-1}) + x_{k-1}
 
 with the Chebyshev weights ``omega_1..S = 1`` (``S`` = ``chebyshev_delay`` plain steps), ``omega_{S+1} =
-2 / (2 - rho^2)`` and ``omega_{k+1} = 4 / (4 - rho^2 omega_k)`` afterwards, ``rho`` an estimate of the spectral
-radius of the Jacobi iteration. Every ``check_interval`` iterations the energy is compared with the last
-checkpoint; if it increased, the solver rolls back to the checkpoint, multiplies ``alpha`` by ``step_decrease``
-and restarts the Chebyshev sequence (Wang & Yang's step-length adjustment).
+2 / (2 - rho^2)`` and ``omega_{k+1} = 4 / (4 - rho^2 omega_k)`` afterwards, ``rho`` an estimate of the
+spectral radius of the Jacobi iteration. Every ``check_interval`` iterations the energy is compared with the
+last checkpoint; if it increased, the solver rolls back to the checkpoint, multiplies ``alpha`` by
+``step_decrease`` and restarts the Chebyshev sequence (Wang & Yang's step-length adjustment).
 
 To keep barriers finite each step is either capped by ``0.9 * model.max_step`` (``Safeguard.MAX_STEP``) or
-followed by ``model.project_feasible`` (``Safeguard.PROJECT``, Wang 2018's per-vertex projection onto the body).
+followed by ``model.project_feasible`` (``Safeguard.PROJECT``, Wang 2018's per-vertex projection onto the
+body).
 
 One iteration costs one ``model.value_and_grad`` plus, every ``diagonal_interval`` iterations (default 1), the
-Hessian diagonal and a batched 3x3 inverse, plus the safeguard (``max_step`` or ``project_feasible``). The diagonal
-of the volatile terms (barriers, contact) is evaluated at the current positions; that of the elastic terms, which
-changes slowly, every ``elastic_diagonal_interval`` iterations (default 4) and reused in between.
+Hessian diagonal and a batched 3x3 inverse, plus the safeguard (``max_step`` or ``project_feasible``). The
+diagonal of the volatile terms (barriers, contact) is evaluated at the current positions; that of the elastic
+terms, which changes slowly, every ``elastic_diagonal_interval`` iterations (default 4) and reused in between.
 """
 
 from __future__ import annotations
@@ -61,8 +63,8 @@ def jacobi_inverse(diag_blocks: torch.Tensor, kind: Preconditioner, floor: float
             ``floor * I`` use the inverse of their clamped scalar diagonal ``max(|H_ii|, floor)`` instead.
             SCALAR always uses the clamped scalar diagonal.
         floor: relative floor, multiplied by ``scale``.
-        scale: the floor's scale; None = :func:`diagonal_scale` of ``diag_blocks`` (pass the full matrix's scale
-            when inverting a subset of the rows).
+        scale: the floor's scale; None = :func:`diagonal_scale` of ``diag_blocks`` (pass the full matrix's
+            scale when inverting a subset of the rows).
 
     Returns:
         (V, 3, 3) inverse blocks for BLOCK, (V, 3) inverse diagonal for SCALAR.
@@ -100,8 +102,8 @@ class SeamBlockInverse:
     A sewing spring of stiffness ``k`` couples its two vertices by ``-k I``; with 3x3 blocks each vertex sees
     ``A = A0 + k I`` alone, so the pair's common motion (governed by the soft cloth ``A0 + B0``) gets steps
     ``k`` times too small and GD stalls once seams are stiff. The 6x6 block ``[[A, -k I], [-k I, B]]`` is
-    inverted exactly through its Schur complement: ``u = S^-1 (g_i + k B^-1 g_j)``, ``v = B^-1 (g_j + k u)`` with
-    ``S = A - k^2 B^-1``.
+    inverted exactly through its Schur complement: ``u = S^-1 (g_i + k B^-1 g_j)``, ``v = B^-1 (g_j + k u)``
+    with ``S = A - k^2 B^-1``.
 
     Attributes:
         base: (V, 3, 3) 3x3 block inverses (used for every vertex not in a seam block).
@@ -127,9 +129,9 @@ class SeamBlockInverse:
         return out
 
 
-def seam_pairs(model) -> tuple[torch.Tensor, float] | None:  # noqa: ANN001
-    """The seam pairs ``(P, 2)`` that belong to no other pair, and the sewing stiffness, of a model's ``sew`` term;
-    None without one."""
+def seam_pairs(model: SolverModel) -> tuple[torch.Tensor, float] | None:
+    """The seam pairs ``(P, 2)`` that belong to no other pair, and the sewing stiffness, of a model's ``sew``
+    term; None without one."""
     term = None
     for t in getattr(model, "terms", ()):
         if getattr(t, "name", None) == "sew" and hasattr(t, "pairs") and hasattr(t, "stiffness"):
@@ -174,9 +176,9 @@ def spd_inverse_3x3(blocks: torch.Tensor, shift: float = 0.0) -> tuple[torch.Ten
 def seam_block_inverse(diag_blocks: torch.Tensor, base: torch.Tensor, pairs: torch.Tensor, k: float,
                        floor: float, scale: float | None = None) -> SeamBlockInverse:
     """The :class:`SeamBlockInverse` of the Hessian diagonal blocks ``(V, 3, 3)`` (which include each seam
-    spring's ``k I``) for disjoint seam ``pairs`` ``(P, 2)``; pairs whose 6x6 block is not positive definite keep
-    their 3x3 inverses from ``base``. ``floor * scale`` is added to the diagonal (``scale`` None: the mean
-    absolute diagonal entry of ``diag_blocks``)."""
+    spring's ``k I``) for disjoint seam ``pairs`` ``(P, 2)``; pairs whose 6x6 block is not positive definite
+    keep their 3x3 inverses from ``base``. ``floor * scale`` is added to the diagonal (``scale`` None: the
+    mean absolute diagonal entry of ``diag_blocks``)."""
     i, j = pairs[:, 0], pairs[:, 1]
     f = floor * (diagonal_scale(diag_blocks) if scale is None else scale)
     a, b = diag_blocks.index_select(0, i), diag_blocks.index_select(0, j)  # only the pairs' rows
@@ -189,13 +191,13 @@ def seam_block_inverse(diag_blocks: torch.Tensor, base: torch.Tensor, pairs: tor
 
 
 class JacobiState:
-    """The GD-Chebyshev preconditioner ``D^-1`` (3x3 blocks or scalars, with seam blocks when asked for), rebuilt
-    in full or, between elastic refreshes, only on the rows whose diagonal changed.
+    """The GD-Chebyshev preconditioner ``D^-1`` (3x3 blocks or scalars, with seam blocks when asked for),
+    rebuilt in full or, between elastic refreshes, only on the rows whose diagonal changed.
 
     Between two full rebuilds only the volatile terms' diagonal changes (barriers, contact; see
-    ``SimModel.value_grad_hessian_diagonal(reuse_elastic=True)``), and a range-limited barrier touches only the
-    vertices within its range, a few percent of a garment. :meth:`update` re-inverts just the rows it touches
-    now or touched at the last update (a vertex that left the barrier's range must lose its barrier
+    ``SimModel.value_grad_hessian_diagonal(reuse_elastic=True)``), and a range-limited barrier touches only
+    the vertices within its range, a few percent of a garment. :meth:`update` re-inverts just the rows it
+    touches now or touched at the last update (a vertex that left the barrier's range must lose its barrier
     stiffness), keeping the floor's scale of the last full rebuild; the result equals a full rebuild up to
     that scale.
 
@@ -212,8 +214,8 @@ class JacobiState:
         self._rows: torch.Tensor | None = None  # volatile rows of the last build or update (None: unknown)
 
     def rebuild(self, h: torch.Tensor, rows: torch.Tensor | None = None) -> None:
-        """Invert the full diagonal ``h`` (V, 3, 3); ``rows`` (long) are the rows the volatile terms touched in
-        ``h`` (None: unknown, which makes the next :meth:`update` a full rebuild)."""
+        """Invert the full diagonal ``h`` (V, 3, 3); ``rows`` (long) are the rows the volatile terms touched
+        in ``h`` (None: unknown, which makes the next :meth:`update` a full rebuild)."""
         st = self.settings
         self._scale = diagonal_scale(h)
         self._base = jacobi_inverse(h, st.preconditioner, st.diagonal_floor, self._scale)
@@ -306,9 +308,10 @@ def solve_gd_chebyshev(
     info = SolveInfo(solver=SolverKind.GD_CHEBYSHEV.value)
     rho = settings.chebyshev_rho
     alpha = settings.step
-    # Energies are compared in float64 even for a float32 solve: float32 energies carry round-off (~eps times the
-    # energy's terms) far above the decrease per iteration near convergence, which made the test below roll back
-    # good steps until the step fell below min_step. One extra float64 energy evaluation per checkpoint.
+    # Energies are compared in float64 even for a float32 solve: float32 energies carry round-off (~eps times
+    # the energy's terms) far above the decrease per iteration near convergence, which made the test below
+    # roll back good steps until the step fell below min_step. One extra float64 energy evaluation per
+    # checkpoint.
     low_precision = x0.dtype != torch.float64
     slack = 16.0 * torch.finfo(torch.float64).eps
 
@@ -375,7 +378,8 @@ def solve_gd_chebyshev(
                     info.restarts += 1
                     elastic_interval = 1  # a stale elastic diagonal may have caused it: fresh from now on
                     if alpha < settings.min_step:
-                        info.message = f"step fell below min_step={settings.min_step:g} (energy keeps increasing)"
+                        info.message = (f"step fell below min_step={settings.min_step:g} "
+                                        f"(energy keeps increasing)")
                         info.residual_history.append(gn)
                         info.energy_history.append(e)
                         break

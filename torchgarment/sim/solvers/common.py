@@ -14,17 +14,20 @@ import inspect
 import math
 import time
 from dataclasses import asdict, dataclass, field
-from enum import Enum
 from typing import Callable, Protocol
 
-import numpy as np
-import scipy.sparse
-import scipy.sparse.linalg
 import torch
 
 from torchgarment.errors import InputError, TorchGarmentError
+from torchgarment.linalg import CSRAssembler, FactorCache, SparseBackend
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.base import HessianBlocks
+
+__all__ = [
+    "Callback", "CSRAssembler", "FactorCache", "NonFiniteError", "Preconditioner", "Safeguard", "SolveInfo",
+    "SolveSettings", "SolverKind", "SolverModel", "Timer", "check_x0", "checked_max_step", "evaluate",
+    "evaluate_with_diagonal", "supports_elastic_reuse", "tolerance",
+]
 
 #: ``callback(iteration, x, residual, energy) -> stop``; return True to stop the solve early.
 Callback = Callable[[int, torch.Tensor, float, float], "bool | None"]
@@ -41,7 +44,7 @@ class SolverKind(OptionEnum):
     NEWTON = "newton"
 
 
-class Preconditioner(str, Enum):
+class Preconditioner(OptionEnum):
     """Jacobi preconditioner of the gradient-descent solver."""
 
     #: 3x3 Hessian diagonal blocks, inverted per vertex (non positive-definite blocks fall back to SCALAR)
@@ -50,10 +53,11 @@ class Preconditioner(str, Enum):
     SCALAR = "scalar"
 
 
-class Safeguard(str, Enum):
+class Safeguard(OptionEnum):
     """How the gradient-descent solver keeps barriers finite after each step."""
 
-    #: scale the step by ``0.9 * model.max_step(x, dx)`` when that is below 1 (works for any barrier, incl. CCD)
+    #: scale the step by ``0.9 * model.max_step(x, dx)`` when that is below 1 (works for any barrier, incl.
+    # CCD)
     MAX_STEP = "max-step"
     #: take the step, then ``model.project_feasible`` per vertex (Wang 2018; only for barriers it can project)
     PROJECT = "project"
@@ -82,9 +86,10 @@ class SolveSettings:
             that of the elastic terms (springs) only every this many iterations, and reused in between
             (``SimModel.value_grad_hessian_diagonal(reuse_elastic=True)``). 1 = always fresh.
         preconditioner: BLOCK (3x3 block Jacobi) or SCALAR (diagonal Jacobi).
-        seam_blocks: with BLOCK, precondition each seam pair (two vertices joined by a sewing spring, each in no
-            other pair) with its exact 6x6 block instead of two 3x3 blocks, so that stiff seams do not freeze
-            the pair's common motion (see :func:`~torchgarment.sim.solvers.chebyshev.seam_block_inverse`).
+        seam_blocks: with BLOCK, precondition each seam pair (two vertices joined by a sewing spring, each in
+            no other pair) with its exact 6x6 block instead of two 3x3 blocks, so that stiff seams do not
+            freeze the pair's common motion (see
+            :func:`~torchgarment.sim.solvers.chebyshev.seam_block_inverse`).
         diagonal_floor: relative floor of the preconditioner, times the mean Hessian diagonal, so that
             vertices without stiffness do not get infinite steps.
         safeguard: how GD keeps barriers finite (MAX_STEP or PROJECT).
@@ -94,16 +99,21 @@ class SolveSettings:
         armijo_c: Armijo sufficient-decrease constant of Newton's backtracking line search.
         backtrack: step shrink factor of the line search.
         max_backtracks: line-search trials before the solve stops as stalled.
-        step_fraction: fraction of ``model.max_step`` Newton steps are capped to when the full step is infeasible.
-        regularization: initial ``lambda`` (relative to the mean Hessian diagonal) added as ``lambda * I`` when
-            the factorization fails or the direction is not a descent direction; grows by 10 per retry.
+        step_fraction: fraction of ``model.max_step`` Newton steps are capped to when the full step is
+            infeasible.
+        regularization: initial ``lambda`` (relative to the mean Hessian diagonal) added as ``lambda * I``
+            when the factorization fails or the direction is not a descent direction; grows by 10 per retry.
         max_regularizations: retries of the regularized factorization before giving up.
-        reuse_factorization: Newton solves each system by CG preconditioned with the last sparse LU factorization
-            (an inexact Newton step to relative residual ``pcg_rtol``) and factorizes afresh only when CG needs
-            more than ``pcg_max_iterations`` iterations or gives no descent direction (:class:`FactorCache`).
+        reuse_factorization: Newton solves each system by CG preconditioned with the last sparse LU
+            factorization (an inexact Newton step to relative residual ``pcg_rtol``) and factorizes afresh
+            only when CG needs more than ``pcg_max_iterations`` iterations or gives no descent direction
+            (:class:`~torchgarment.linalg.FactorCache`).
             Large meshes (the drape's settle stage) spend most of a Newton iteration in the factorization.
         pcg_rtol: relative residual of those CG solves, in (0, 1).
         pcg_max_iterations: CG iterations before a fresh factorization (>= 1).
+        sparse_backend: the sparse direct solver of Newton's systems
+            (:class:`~torchgarment.linalg.SparseBackend`; ``"superlu"``, always installed and deterministic,
+            by default).
     """
 
     rtol: float = 1e-4
@@ -132,12 +142,22 @@ class SolveSettings:
     reuse_factorization: bool = False
     pcg_rtol: float = 1e-2
     pcg_max_iterations: int = 25
+    sparse_backend: SparseBackend = SparseBackend.SUPERLU
+
+    def __post_init__(self) -> None:
+        self.preconditioner = Preconditioner.resolve(self.preconditioner)
+        self.safeguard = Safeguard.resolve(self.safeguard)
+        self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
+        self.validate()
 
     def validate(self) -> None:
-        """Raise :class:`InputError` for out-of-range settings."""
-        self.preconditioner = Preconditioner(self.preconditioner)
-        self.safeguard = Safeguard(self.safeguard)
+        """Raise :class:`InputError` for out-of-range settings (called on construction; changes nothing)."""
         checks = [
+            (isinstance(self.preconditioner, Preconditioner) and isinstance(self.safeguard, Safeguard)
+             and isinstance(self.sparse_backend, SparseBackend),
+             f"preconditioner, safeguard and sparse_backend must be one of "
+             f"{[p.value for p in Preconditioner]}, {[g.value for g in Safeguard]} and "
+             f"{[b.value for b in SparseBackend]}"),
             (self.rtol >= 0 and self.atol >= 0, "rtol and atol must be >= 0"),
             (self.max_iterations >= 0, "max_iterations must be >= 0"),
             (0.0 <= self.chebyshev_rho < 1.0, "chebyshev_rho must lie in [0, 1)"),
@@ -148,8 +168,10 @@ class SolveSettings:
             (self.check_interval >= 1 and self.diagonal_interval >= 1 and self.elastic_diagonal_interval >= 1,
              "check/diagonal intervals must be >= 1"),
             (self.diagonal_floor > 0, "diagonal_floor must be > 0"),
-            (self.max_displacement is None or self.max_displacement > 0, "max_displacement must be > 0 or None"),
-            (0.0 < self.armijo_c < 1.0 and 0.0 < self.backtrack < 1.0, "armijo_c and backtrack must lie in (0, 1)"),
+            (self.max_displacement is None or self.max_displacement > 0,
+             "max_displacement must be > 0 or None"),
+            (0.0 < self.armijo_c < 1.0 and 0.0 < self.backtrack < 1.0,
+             "armijo_c and backtrack must lie in (0, 1)"),
             (self.max_backtracks >= 1 and self.max_regularizations >= 0, "max_backtracks must be >= 1"),
             (0.0 < self.step_fraction < 1.0, "step_fraction must lie in (0, 1)"),
             (self.regularization > 0, "regularization must be > 0"),
@@ -225,7 +247,8 @@ def check_x0(model: SolverModel, x0: torch.Tensor) -> None:
         raise InputError("x0 contains NaN or infinite coordinates")
 
 
-def evaluate(model: SolverModel, x: torch.Tensor, iteration: int, what: str = "") -> tuple[float, torch.Tensor, float]:
+def evaluate(model: SolverModel, x: torch.Tensor, iteration: int,
+             what: str = "") -> tuple[float, torch.Tensor, float]:
     """Energy, gradient and gradient norm at ``x``; raises :class:`NonFiniteError` naming the iteration.
 
     Returns:
@@ -237,7 +260,8 @@ def evaluate(model: SolverModel, x: torch.Tensor, iteration: int, what: str = ""
     if not (math.isfinite(ef) and math.isfinite(gn)):
         where = f" ({what})" if what else ""
         bad = "energy" if not math.isfinite(ef) else "gradient"
-        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: E={ef}, |g|={gn}")
+        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: "
+                             f"E={ef}, |g|={gn}")
     return ef, g, gn
 
 
@@ -245,8 +269,9 @@ def evaluate_with_diagonal(
     model: SolverModel, x: torch.Tensor, iteration: int, what: str = "", *, reuse_elastic: bool = False
 ) -> tuple[float, torch.Tensor, float, torch.Tensor]:
     """Like :func:`evaluate`, plus the Hessian diagonal blocks (V, 3, 3); uses the model's fused
-    ``value_grad_hessian_diagonal`` when it has one (terms share their work), else two calls. ``reuse_elastic``
-    is passed on; only ask for it when :func:`supports_elastic_reuse` holds for the model."""
+    ``value_grad_hessian_diagonal`` when it has one (terms share their work), else two calls.
+    ``reuse_elastic`` is passed on; only ask for it when :func:`supports_elastic_reuse` holds for the
+    model."""
     fused = getattr(model, "value_grad_hessian_diagonal", None)
     if fused is None:
         e, g, gn = evaluate(model, x, iteration, what)
@@ -260,43 +285,9 @@ def evaluate_with_diagonal(
     if not (math.isfinite(ef) and math.isfinite(gn)):
         where = f" ({what})" if what else ""
         bad = "energy" if not math.isfinite(ef) else "gradient"
-        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: E={ef}, |g|={gn}")
+        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: "
+                             f"E={ef}, |g|={gn}")
     return ef, g, gn, h
-
-
-class FactorCache:
-    """The last sparse LU factorization of a Newton system, reused as the preconditioner of conjugate gradients on
-    the next systems (inexact Newton; see ``SolveSettings.reuse_factorization``).
-
-    Attributes:
-        lu: the ``scipy.sparse.linalg.SuperLU`` object, or None. shift: the diagonal shift it was made with.
-        factorizations, pcg_solves: counters.
-    """
-
-    def __init__(self) -> None:
-        self.lu = None
-        self.shift = 0.0
-        self.factorizations = 0
-        self.pcg_solves = 0
-
-    def store(self, lu, shift: float = 0.0) -> None:  # noqa: ANN001 - SuperLU
-        """Keep ``lu`` (a factorization of ``H + shift I``) for the next systems."""
-        self.lu, self.shift = lu, float(shift)
-        self.factorizations += 1
-
-    def solve(self, h: scipy.sparse.spmatrix, rhs: np.ndarray, rtol: float, maxiter: int) -> np.ndarray | None:
-        """``y`` with ``(H + shift I) y ~ rhs`` to relative residual ``rtol`` by CG preconditioned with the cached
-        factorization; None when there is none of this size or CG does not get there within ``maxiter``."""
-        n = h.shape[0]
-        if self.lu is None or self.lu.shape != (n, n):
-            return None
-        a = h + self.shift * scipy.sparse.identity(n, format="csr") if self.shift > 0 else h
-        m = scipy.sparse.linalg.LinearOperator((n, n), matvec=self.lu.solve, dtype=np.float64)
-        y, info = scipy.sparse.linalg.cg(a, rhs, rtol=rtol, atol=0.0, maxiter=maxiter, M=m)
-        if info != 0 or not np.all(np.isfinite(y)):
-            return None
-        self.pcg_solves += 1
-        return y
 
 
 def supports_elastic_reuse(model: SolverModel) -> bool:
@@ -315,7 +306,8 @@ def checked_max_step(model: SolverModel, x: torch.Tensor, dx: torch.Tensor, iter
     """``model.max_step(x, dx)`` validated to lie in (0, 1]."""
     t = float(model.max_step(x, dx))
     if not (math.isfinite(t) and 0.0 < t <= 1.0 + 1e-12):
-        raise NonFiniteError(f"model.max_step returned {t} at solver iteration {iteration}; expected a value in (0, 1]")
+        raise NonFiniteError(f"model.max_step returned {t} at solver iteration {iteration}; expected a value "
+                             f"in (0, 1]")
     return min(t, 1.0)
 
 
@@ -332,51 +324,3 @@ class Timer:
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.start
-
-
-class CSRAssembler:
-    """Assembles :class:`HessianBlocks` into a scipy CSR matrix (3V, 3V), float64, on the CPU.
-
-    The COO -> CSR permutation is computed once per sparsity pattern and reused while the block rows and
-    columns stay the same (they do for the elastic terms; contact terms may change them), so assembly is one
-    ``np.bincount`` per iteration.
-    """
-
-    def __init__(self, num_vertices: int) -> None:
-        self.n = 3 * int(num_vertices)
-        self._rows: torch.Tensor | None = None
-        self._cols: torch.Tensor | None = None
-        self._slot: np.ndarray | None = None
-        self._indptr: np.ndarray | None = None
-        self._indices: np.ndarray | None = None
-
-    def _build_pattern(self, rows: torch.Tensor, cols: torch.Tensor) -> None:
-        r = rows.detach().cpu().numpy().astype(np.int64)
-        c = cols.detach().cpu().numpy().astype(np.int64)
-        k = r.shape[0]
-        ar = np.arange(3, dtype=np.int64)
-        rr = (3 * r[:, None, None] + ar[None, :, None]).repeat(3, axis=2).reshape(-1)
-        cc = (3 * c[:, None, None] + ar[None, None, :]).repeat(3, axis=1).reshape(-1)
-        key = rr * self.n + cc
-        uniq, slot = np.unique(key, return_inverse=True)
-        self._slot = slot.reshape(-1)
-        urow = uniq // self.n
-        self._indices = (uniq % self.n).astype(np.int32 if self.n < 2**31 else np.int64)
-        self._indptr = np.zeros(self.n + 1, dtype=self._indices.dtype)
-        np.cumsum(np.bincount(urow, minlength=self.n), out=self._indptr[1:])
-        self._rows, self._cols = rows.detach().clone(), cols.detach().clone()
-        assert k * 9 == self._slot.shape[0]
-
-    def assemble(self, blocks: HessianBlocks) -> scipy.sparse.csr_matrix:
-        """The summed matrix of ``blocks`` as CSR (float64)."""
-        same = (
-            self._rows is not None
-            and self._rows.shape == blocks.rows.shape
-            and bool(torch.equal(self._rows, blocks.rows.to(self._rows.device)))
-            and bool(torch.equal(self._cols, blocks.cols.to(self._cols.device)))
-        )
-        if not same:
-            self._build_pattern(blocks.rows, blocks.cols)
-        vals = blocks.values.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
-        data = np.bincount(self._slot, weights=vals, minlength=self._indices.shape[0])
-        return scipy.sparse.csr_matrix((data, self._indices, self._indptr), shape=(self.n, self.n))

@@ -21,6 +21,8 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
+from torchgarment.errors import SingularMatrixError
+from torchgarment.linalg import SparseBackend, factorize
 from torchgarment.sim.solvers.common import (
     Callback,
     CSRAssembler,
@@ -45,20 +47,17 @@ LEVENBERG_RETRIES = 8
 
 
 def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, cache: FactorCache | None = None,
-                 shift: float = 0.0) -> np.ndarray | None:
-    """Solve ``h y = rhs`` with SuperLU (symmetric mode); None if the factorization fails or is not finite. With
-    a ``cache``, a successful factorization is stored in it (as one of ``h`` made with diagonal ``shift``)."""
+                 shift: float = 0.0, backend: SparseBackend = SparseBackend.SUPERLU) -> np.ndarray | None:
+    """Solve ``h y = rhs`` by :func:`~torchgarment.linalg.factorize` (symmetric mode of ``backend``); None if
+    the factorization fails or is not finite. With a ``cache``, a successful factorization is stored in it (as
+    one of ``h`` made with diagonal ``shift``)."""
     try:
-        lu = scipy.sparse.linalg.splu(
-            h.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-        )
-        y = lu.solve(rhs)
-    except RuntimeError:  # "Factor is exactly singular"
-        return None
-    if not np.all(np.isfinite(y)):
+        fact = factorize(h, backend=backend, what="Newton system")
+        y = fact.solve(rhs)
+    except SingularMatrixError:
         return None
     if cache is not None:
-        cache.store(lu, shift)
+        cache.store(fact, shift)
     return y
 
 

@@ -1,0 +1,179 @@
+"""torchgarment.linalg: sparse factorizations against dense solves, singular matrices, the keyed cache, PCG
+against a dense solve and at negative curvature, Armijo backtracking, CSR assembly from 3x3 blocks."""
+
+from __future__ import annotations
+
+import types
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import scipy.sparse
+import torch
+
+from torchgarment.errors import InputError, NonConvergenceError, SingularMatrixError
+from torchgarment.linalg import (
+    CSRAssembler,
+    FactorCache,
+    FactorizationCache,
+    SparseBackend,
+    armijo_backtracking,
+    factorize,
+    pcg,
+)
+
+
+def _spd(n: int = 30, seed: int = 0) -> scipy.sparse.csr_matrix:
+    """A sparse SPD matrix: a 1D Laplacian plus a random sparse symmetric part and a diagonal."""
+    rng = np.random.default_rng(seed)
+    lap = scipy.sparse.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    r = scipy.sparse.random(n, n, density=0.05, random_state=seed)
+    return (lap + 0.1 * (r + r.T) + scipy.sparse.diags(1.0 + rng.random(n))).tocsr()
+
+
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_factorize_matches_a_dense_solve(symmetric: bool) -> None:
+    a = _spd()
+    b = np.random.default_rng(1).standard_normal((30, 3))
+    fact = factorize(a, symmetric=symmetric)
+    assert fact.shape == (30, 30) and fact.backend is SparseBackend.SUPERLU
+    np.testing.assert_allclose(fact.solve(b), np.linalg.solve(a.toarray(), b), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(fact.solve(b[:, 0]), np.linalg.solve(a.toarray(), b[:, 0]), rtol=1e-10,
+                               atol=1e-12)
+    shifted = factorize(a, symmetric=symmetric, shift=0.5)
+    assert shifted.shift == 0.5
+    np.testing.assert_allclose(shifted.solve(b), np.linalg.solve(a.toarray() + 0.5 * np.eye(30), b),
+                               rtol=1e-10)
+    ns = (a + scipy.sparse.random(30, 30, density=0.05, random_state=3)).tocsc()
+    np.testing.assert_allclose(factorize(ns, symmetric=False).solve(b[:, 0], transpose=True),
+                               np.linalg.solve(ns.toarray().T, b[:, 0]), rtol=1e-10, atol=1e-12)
+
+
+def test_the_symmetric_superlu_call_is_unchanged() -> None:
+    """The default reproduces the project's SuperLU call bit for bit."""
+    a = _spd(60, seed=4)
+    b = np.random.default_rng(2).standard_normal(60)
+    lu = scipy.sparse.linalg.splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                  options={"SymmetricMode": True})
+    assert np.array_equal(factorize(a).solve(b), lu.solve(b))
+
+
+def test_singular_matrix_raises() -> None:
+    a = scipy.sparse.csr_matrix(np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
+    with pytest.raises(SingularMatrixError, match="stiffness matrix is singular"):
+        factorize(a, what="stiffness matrix").solve(np.ones(3))
+    assert issubclass(SingularMatrixError, NonConvergenceError)
+    with pytest.raises(InputError, match="expected one of"):
+        factorize(a, backend="umfpack")
+
+
+def test_cache_refactorizes_only_on_a_new_key() -> None:
+    cache = FactorizationCache()
+    a = _spd()
+    builds = []
+
+    def build() -> scipy.sparse.csr_matrix:
+        builds.append(1)
+        return a
+
+    k1 = torch.zeros(4, 3, dtype=torch.float64)
+    f1 = cache.factorize(k1, build)
+    assert cache.factorize(k1.clone(), build) is f1 and cache.factorizations == 1 and len(builds) == 1
+    f2 = cache.factorize(k1 + 1.0, build)
+    assert f2 is not f1 and cache.factorizations == 2
+    cache.clear()
+    cache.factorize(k1 + 1.0, build)
+    assert cache.factorizations == 3 and len(builds) == 3
+
+
+def test_factor_cache_solves_nearby_systems_by_pcg() -> None:
+    a = _spd()
+    cache = FactorCache()
+    assert cache.solve(a, np.ones(30), 1e-8, 20) is None  # nothing stored yet
+    cache.store(factorize(a))
+    near = (a + scipy.sparse.diags(0.01 * np.ones(30))).tocsr()
+    y = cache.solve(near, np.ones(30), 1e-10, 50)
+    np.testing.assert_allclose(y, np.linalg.solve(near.toarray(), np.ones(30)), rtol=1e-8)
+    assert cache.pcg_solves == 1 and cache.factorizations == 1
+
+
+def test_pcg_matches_a_dense_solve_and_raises_at_negative_curvature() -> None:
+    a = torch.from_numpy(_spd(40, seed=5).toarray())
+    b = torch.randn(40, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    inv_diag = 1.0 / torch.diagonal(a)
+    y, k, res = pcg(lambda v: a @ v, b, lambda r: inv_diag * r, 1e-12, 200)
+    torch.testing.assert_close(y, torch.linalg.solve(a, b), rtol=1e-9, atol=1e-10)
+    assert 0 < k <= 40 and res <= 1e-12
+    y2, k2, _ = pcg(lambda v: a @ v, b, None, 1e-12, 200, x0=y)  # warm start at the answer
+    assert k2 <= 1
+    indefinite = torch.diag(torch.tensor([1.0, -1.0, 2.0], dtype=torch.float64))
+    rhs = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)  # p^T K p = -1 at the first direction
+    with pytest.raises(NonConvergenceError, match="non-positive curvature"):
+        pcg(lambda v: indefinite @ v, rhs, None, 1e-10, 10)
+    _, k3, res3 = pcg(lambda v: indefinite @ v, rhs, None, 1e-10, 10, stop_at_negative_curvature=True)
+    assert k3 == 0 and res3 == 1.0
+    z, k0, r0 = pcg(lambda v: a @ v, torch.zeros(40, dtype=torch.float64), None, 1e-10, 10)
+    assert k0 == 0 and r0 == 0.0 and not bool(z.any())
+
+
+def test_armijo_accepts_and_shrinks() -> None:
+    f = lambda a: (a - 0.1) ** 2  # noqa: E731 - f(0) = 0.01, slope -0.2
+    ls = {"armijo_c": 1e-4, "backtrack": 0.5}
+    alpha, value, ok = armijo_backtracking(f, 0.01, -0.2, 1.0, **ls, max_backtracks=20)
+    assert ok and alpha == 0.125 and value == f(0.125)
+    assert armijo_backtracking(f, 0.01, -0.2, 0.1, **ls, max_backtracks=20)[:2] == (0.1, 0.0)
+    tried = []
+
+    def bad(a: float) -> float:
+        tried.append(a)
+        return float("nan") if a > 0.3 else 1.0
+
+    alpha, value, ok = armijo_backtracking(bad, 0.0, -1.0, 1.0, **ls, max_backtracks=3)
+    assert not ok and tried == [1.0, 0.5, 0.25] and alpha == 0.25 and value == 1.0
+    tried.clear()
+    *_, ok = armijo_backtracking(bad, 0.0, -1.0, 1.0, armijo_c=1e-4, backtrack=0.5, max_backtracks=50,
+                                 min_alpha=0.2)
+    assert not ok and tried == [1.0, 0.5, 0.25]
+    # slack accepts a step that does not decrease within round-off
+    assert armijo_backtracking(lambda a: 1.0 + 1e-17, 1.0, -1e-20, 1.0, armijo_c=0.5, backtrack=0.5,
+                               max_backtracks=1, slack=1e-15)[2]
+
+
+@dataclass
+class _Blocks:
+    rows: torch.Tensor
+    cols: torch.Tensor
+    values: torch.Tensor
+
+
+def test_assembler_matches_a_dense_sum() -> None:
+    gen = torch.Generator().manual_seed(3)
+    rows = torch.tensor([0, 1, 2, 0, 2, 1, 0])
+    cols = torch.tensor([0, 1, 2, 1, 0, 1, 0])  # (1, 1) and (0, 0) twice: summed
+    vals = torch.randn(7, 3, 3, dtype=torch.float64, generator=gen)
+    dense = torch.zeros(9, 9, dtype=torch.float64)
+    for r, c, v in zip(rows.tolist(), cols.tolist(), vals):
+        dense[3 * r:3 * r + 3, 3 * c:3 * c + 3] += v
+    asm = CSRAssembler(3)
+    np.testing.assert_allclose(asm.assemble(_Blocks(rows, cols, vals)).toarray(), dense.numpy(), rtol=1e-15)
+    # the cached pattern is reused for new values and rebuilt for a new pattern
+    np.testing.assert_allclose(asm.assemble(_Blocks(rows, cols, 2 * vals)).toarray(), 2 * dense.numpy())
+    one = asm.assemble(_Blocks(rows[:1], cols[:1], vals[:1])).toarray()
+    np.testing.assert_allclose(one[:3, :3], vals[0].numpy())
+    assert np.count_nonzero(one[3:]) == 0
+
+
+def test_missing_backend_is_an_input_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib
+
+    real = importlib.import_module
+
+    def fake(name: str, package: str | None = None) -> types.ModuleType:
+        if name in ("pypardiso", "cholespy"):
+            raise ImportError(name)
+        return real(name, package)
+
+    monkeypatch.setattr(importlib, "import_module", fake)
+    for backend in ("pardiso", "cholespy"):
+        with pytest.raises(InputError, match="pip install"):
+            factorize(_spd(), backend=backend)

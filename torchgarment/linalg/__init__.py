@@ -1,0 +1,38 @@
+"""The linear-algebra layer: sparse factorizations, conjugate gradients, Armijo backtracking, CSR assembly.
+
+It depends on torch, numpy and scipy only (and on :mod:`torchgarment.errors` and :mod:`torchgarment.options`);
+every solver and optimizer of the package builds on it.
+
+* :func:`factorize` -> :class:`Factorization` (``solve(b)``), backends :class:`SparseBackend` (SuperLU by
+  default); :class:`FactorizationCache` keeps one factorization per key (a state); :class:`FactorCache` keeps
+  the last one as the preconditioner of :func:`pcg` for nearby systems (inexact Newton).
+* :func:`pcg`: preconditioned conjugate gradients on torch tensors.
+* :func:`armijo_backtracking`: the sufficient-decrease line search.
+* :class:`CSRAssembler`: 3x3 vertex blocks -> scipy CSR.
+
+Example:
+    >>> fact = factorize(hessian, what="simulation Hessian")
+    >>> dx = fact.solve(-g)
+"""
+
+from torchgarment.linalg.iterative import pcg
+from torchgarment.linalg.line_search import armijo_backtracking
+from torchgarment.linalg.sparse import (
+    CSRAssembler,
+    FactorCache,
+    Factorization,
+    FactorizationCache,
+    SparseBackend,
+    factorize,
+)
+
+__all__ = [
+    "CSRAssembler",
+    "FactorCache",
+    "Factorization",
+    "FactorizationCache",
+    "SparseBackend",
+    "armijo_backtracking",
+    "factorize",
+    "pcg",
+]

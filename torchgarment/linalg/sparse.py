@@ -1,0 +1,335 @@
+"""Sparse direct solves: factorizations with a pluggable backend, caches, and CSR assembly from 3x3 blocks.
+
+Every sparse factorization of the project goes through :func:`factorize`. The default backend,
+:attr:`SparseBackend.SUPERLU`, is scipy's SuperLU; for symmetric matrices (``symmetric=True``, the default) it
+is called with the minimum-degree ordering on ``A^T + A``, no partial pivoting and SuperLU's symmetric mode::
+
+    splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+and with scipy's defaults (COLAMD ordering, partial pivoting) for ``symmetric=False``. The optional backends
+``"pardiso"`` (Intel MKL Pardiso through PyPI's ``pypardiso``, run with ``MKL_CBWR=COMPATIBLE`` so that
+results are reproducible on several threads) and ``"cholespy"`` (a supernodal Cholesky, SPD
+matrices only) are imported only when asked for; a missing one raises
+:class:`~torchgarment.errors.InputError`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from types import ModuleType
+from typing import Callable, Protocol
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+
+from torchgarment.errors import InputError, SingularMatrixError
+from torchgarment.linalg.iterative import pcg
+from torchgarment.options import OptionEnum
+
+
+class SparseBackend(OptionEnum):
+    """Sparse direct solvers :func:`factorize` can use."""
+
+    #: scipy's SuperLU (always available; the default)
+    SUPERLU = "superlu"
+    #: Intel MKL Pardiso, symmetric indefinite (``mtype=-2``) or nonsymmetric (``mtype=11``); needs
+    # ``pypardiso``
+    PARDISO = "pardiso"
+    #: supernodal Cholesky of an SPD matrix (CPU); needs ``cholespy``
+    CHOLESPY = "cholespy"
+
+
+class Factorization:
+    """A factorized sparse square matrix ``A`` (n, n), float64, on the CPU; :meth:`solve` applies ``A^-1``.
+
+    Attributes:
+        shape: ``(n, n)``.
+        backend: the :class:`SparseBackend` that factorized it.
+        shift: the diagonal shift ``s`` it was made with (the factorized matrix is ``A + s I``).
+        what: the matrix's name in error messages.
+    """
+
+    def __init__(self, solve: Callable[[np.ndarray, bool], np.ndarray], shape: tuple[int, int],
+                 backend: SparseBackend, shift: float = 0.0, what: str = "matrix") -> None:
+        self._solve = solve
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.backend = backend
+        self.shift = float(shift)
+        self.what = what
+
+    def solve(self, b: np.ndarray, *, transpose: bool = False) -> np.ndarray:
+        """``A^-1 b`` (``A^-T b`` with ``transpose``) for ``b`` (n,) or (n, k) float64; the same shape.
+
+        Raises:
+            SingularMatrixError: the solve returned NaN or infinite values (a numerically singular ``A``).
+        """
+        y = self._solve(np.asarray(b, dtype=np.float64), transpose)
+        if not np.all(np.isfinite(y)):
+            raise SingularMatrixError(f"the {self.what} is singular: its sparse solve returned non-finite "
+                                      f"values")
+        return y
+
+
+Solve = Callable[[np.ndarray, bool], np.ndarray]
+"""``(b, transpose) -> A^-1 b`` (or ``A^-T b``)."""
+
+
+def _superlu(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
+    if symmetric:
+        lu = scipy.sparse.linalg.splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                      options={"SymmetricMode": True})
+    else:
+        lu = scipy.sparse.linalg.splu(a if a.format == "csc" else a.tocsc())
+
+    def solve(b: np.ndarray, transpose: bool) -> np.ndarray:
+        return lu.solve(b, trans="T") if transpose else lu.solve(b)
+
+    return solve
+
+
+def _pardiso(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
+    # MKL's conditional numerical reproducibility: without it two factorizations of one matrix on several
+    # threads differ in the last bits (measured at 2 threads). MKL reads the variable when it is loaded.
+    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
+    pypardiso = _import_backend("pypardiso", SparseBackend.PARDISO)
+    solver = pypardiso.PyPardisoSolver(mtype=-2 if symmetric else 11)
+    # the symmetric types read the upper triangle only (CSR, sorted)
+    m = scipy.sparse.triu(a, format="csr") if symmetric else a.tocsr()
+    m.sort_indices()
+    try:
+        solver.factorize(m)
+    except (pypardiso.pardiso_wrapper.PyPardisoError, ValueError) as exc:
+        raise RuntimeError(str(exc)) from exc
+
+    def solve(b: np.ndarray, transpose: bool) -> np.ndarray:
+        if transpose and not symmetric:
+            raise InputError("the pardiso backend has no transposed solve of a nonsymmetric matrix; "
+                             "use superlu")
+        return solver.solve(m, b)
+
+    return solve
+
+
+def _cholespy(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
+    cholespy = _import_backend("cholespy", SparseBackend.CHOLESPY)
+    if not symmetric:
+        raise InputError("the cholespy backend factorizes symmetric positive definite matrices only")
+    c = a.tocsc()
+    c.sort_indices()
+    n = c.shape[0]
+    try:
+        chol = cholespy.CholeskySolverD(n, torch.from_numpy(c.indptr.astype(np.int32)),
+                                        torch.from_numpy(c.indices.astype(np.int32)),
+                                        torch.from_numpy(c.data.astype(np.float64)), cholespy.MatrixType.CSC)
+    except ValueError as exc:
+        raise RuntimeError(str(exc)) from exc
+
+    def solve(b: np.ndarray, transpose: bool) -> np.ndarray:  # A is symmetric: A^-T = A^-1
+        rhs = torch.from_numpy(np.ascontiguousarray(b.reshape(n, -1)))
+        out = torch.zeros_like(rhs)
+        chol.solve(rhs, out)
+        return out.numpy().reshape(b.shape)
+
+    return solve
+
+
+def _import_backend(module: str, backend: SparseBackend) -> ModuleType:
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise InputError(f"the sparse backend {backend.value!r} needs the package {module!r} "
+                         f"(pip install {module}); or use backend='superlu'") from exc
+
+
+_BACKENDS = {SparseBackend.SUPERLU: _superlu, SparseBackend.PARDISO: _pardiso,
+             SparseBackend.CHOLESPY: _cholespy}
+
+
+def factorize(matrix: scipy.sparse.spmatrix, *, backend: "str | SparseBackend" = SparseBackend.SUPERLU,
+              symmetric: bool = True, shift: float = 0.0, what: str = "matrix") -> Factorization:
+    """Factorize the sparse square matrix ``matrix + shift I`` (n, n).
+
+    Args:
+        matrix: scipy sparse (n, n), converted to float64.
+        backend: a :class:`SparseBackend` or its name.
+        symmetric: ``matrix`` is symmetric: SuperLU's symmetric mode with the MMD ordering on ``A^T + A`` and
+            no pivoting (see the module docstring); False: scipy's general ``splu(A)`` (COLAMD, pivoting).
+        shift: diagonal shift ``s`` added as ``A + s I`` (in ``A``'s units) when nonzero.
+        what: the matrix's name in error messages (e.g. ``"simulation Hessian"``).
+
+    Returns:
+        A :class:`Factorization`; its ``shift`` records ``shift``.
+
+    Raises:
+        SingularMatrixError: the factorization failed (an exactly singular pivot).
+        InputError: an unknown or missing backend, or a non-square matrix.
+    """
+    kind = SparseBackend.resolve(backend)
+    if matrix.shape[0] != matrix.shape[1]:
+        raise InputError(f"factorize needs a square matrix, got shape {matrix.shape}")
+    n = int(matrix.shape[0])
+    a = matrix if matrix.dtype == np.float64 else matrix.astype(np.float64)
+    if shift != 0.0:
+        a = a.tocsc() + float(shift) * scipy.sparse.identity(n, format="csc", dtype=np.float64)
+    try:
+        solve = _BACKENDS[kind](a, symmetric)
+    except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"
+        raise SingularMatrixError(f"the {what} is singular: its sparse factorization failed ({exc})") from exc
+    return Factorization(solve, (n, n), kind, shift, what)
+
+
+class FactorizationCache:
+    """One factorization kept while its key (e.g. the state the matrix was assembled at) does not change.
+
+    Args:
+        backend: the :class:`SparseBackend` of the factorizations. symmetric: see :func:`factorize`.
+        what: the matrix's name in error messages.
+
+    Attributes:
+        factorizations: how many times :meth:`factorize` built and factorized a matrix.
+    """
+
+    def __init__(self, backend: "str | SparseBackend" = SparseBackend.SUPERLU, *, symmetric: bool = True,
+                 what: str = "matrix") -> None:
+        self.backend = SparseBackend.resolve(backend)
+        self.symmetric = bool(symmetric)
+        self.what = what
+        self.factorizations = 0
+        self._key: torch.Tensor | None = None
+        self._factorization: Factorization | None = None
+
+    def factorize(self, key: torch.Tensor, build: Callable[[], scipy.sparse.spmatrix]) -> Factorization:
+        """The factorization of ``build()``, refactorized only when ``key`` differs (``torch.equal``) from the
+        key of the cached one.
+
+        Raises:
+            SingularMatrixError: the new matrix is singular (the cache then holds nothing).
+        """
+        if (self._factorization is not None and self._key is not None and self._key.shape == key.shape
+                and bool(torch.equal(self._key, key))):
+            return self._factorization
+        self._factorization, self._key = None, None
+        matrix = build()
+        self.factorizations += 1
+        fact = factorize(matrix, backend=self.backend, symmetric=self.symmetric, what=self.what)
+        self._factorization, self._key = fact, key.detach().clone()
+        return fact
+
+    def clear(self) -> None:
+        """Forget the cached factorization (the counter stays)."""
+        self._factorization, self._key = None, None
+
+
+class FactorCache:
+    """The last factorization of a sequence of nearby systems (Newton iterations), reused as the
+    preconditioner of :func:`~torchgarment.linalg.pcg` on the next ones (inexact Newton): a fresh
+    factorization is needed only when PCG does not reach its tolerance within its budget.
+
+    Attributes:
+        factorization: the stored :class:`Factorization` (or anything with ``solve(b)`` and ``shape``), or
+            None.
+        shift: the diagonal shift it was made with.
+        factorizations, pcg_solves: counters.
+    """
+
+    def __init__(self) -> None:
+        self.factorization: Factorization | None = None
+        self.shift = 0.0
+        self.factorizations = 0
+        self.pcg_solves = 0
+
+    def store(self, factorization: Factorization, shift: float = 0.0) -> None:
+        """Keep ``factorization`` (of ``H + shift I``) for the next systems."""
+        self.factorization, self.shift = factorization, float(shift)
+        self.factorizations += 1
+
+    def solve(self, h: scipy.sparse.spmatrix, rhs: np.ndarray, rtol: float,
+              maxiter: int) -> np.ndarray | None:
+        """``y`` (n,) with ``(H + shift I) y ~ rhs`` to relative residual ``rtol`` by PCG preconditioned with
+        the stored factorization; None when there is none of this size or PCG does not get there within
+        ``maxiter`` iterations (or meets non-positive curvature)."""
+        n = h.shape[0]
+        fact = self.factorization
+        if fact is None or tuple(fact.shape) != (n, n):
+            return None
+        a = h + self.shift * scipy.sparse.identity(n, format="csr") if self.shift > 0 else h
+
+        def matvec(v: torch.Tensor) -> torch.Tensor:
+            return torch.from_numpy(a @ v.numpy())
+
+        def precondition(r: torch.Tensor) -> torch.Tensor:
+            return torch.from_numpy(np.asarray(fact.solve(r.numpy()), dtype=np.float64))
+
+        try:
+            y, _, res = pcg(matvec, torch.from_numpy(np.asarray(rhs, dtype=np.float64)), precondition, rtol,
+                            maxiter, stop_at_negative_curvature=True)
+        except SingularMatrixError:
+            return None
+        if not res <= rtol:
+            return None
+        out = y.numpy()
+        if not np.all(np.isfinite(out)):
+            return None
+        self.pcg_solves += 1
+        return out
+
+
+class BlockMatrix(Protocol):
+    """A block-sparse matrix in COO form over vertices (e.g.
+    :class:`~torchgarment.sim.energies.base.HessianBlocks`).
+
+    ``rows, cols``: (K,) long block indices; ``values``: (K, 3, 3) blocks, duplicates summed.
+    """
+
+    rows: torch.Tensor
+    cols: torch.Tensor
+    values: torch.Tensor
+
+
+class CSRAssembler:
+    """Assembles 3x3 blocks (a :class:`BlockMatrix`) into a scipy CSR matrix (3V, 3V), float64, on the CPU.
+
+    The COO -> CSR permutation is computed once per sparsity pattern and reused while the block rows and
+    columns stay the same (they do for the elastic terms; contact terms may change them), so assembly is one
+    ``np.bincount`` per iteration.
+    """
+
+    def __init__(self, num_vertices: int) -> None:
+        self.n = 3 * int(num_vertices)
+        self._rows: torch.Tensor | None = None
+        self._cols: torch.Tensor | None = None
+        self._slot: np.ndarray | None = None
+        self._indptr: np.ndarray | None = None
+        self._indices: np.ndarray | None = None
+
+    def _build_pattern(self, rows: torch.Tensor, cols: torch.Tensor) -> None:
+        r = rows.detach().cpu().numpy().astype(np.int64)
+        c = cols.detach().cpu().numpy().astype(np.int64)
+        ar = np.arange(3, dtype=np.int64)
+        rr = (3 * r[:, None, None] + ar[None, :, None]).repeat(3, axis=2).reshape(-1)
+        cc = (3 * c[:, None, None] + ar[None, None, :]).repeat(3, axis=1).reshape(-1)
+        key = rr * self.n + cc
+        uniq, slot = np.unique(key, return_inverse=True)
+        self._slot = slot.reshape(-1)
+        urow = uniq // self.n
+        self._indices = (uniq % self.n).astype(np.int32 if self.n < 2**31 else np.int64)
+        self._indptr = np.zeros(self.n + 1, dtype=self._indices.dtype)
+        np.cumsum(np.bincount(urow, minlength=self.n), out=self._indptr[1:])
+        self._rows, self._cols = rows.detach().clone(), cols.detach().clone()
+
+    def assemble(self, blocks: BlockMatrix) -> scipy.sparse.csr_matrix:
+        """The summed matrix (3V, 3V) of ``blocks`` (``rows``, ``cols`` (K,), ``values`` (K, 3, 3)) as CSR."""
+        same = (
+            self._rows is not None
+            and self._rows.shape == blocks.rows.shape
+            and bool(torch.equal(self._rows, blocks.rows.to(self._rows.device)))
+            and bool(torch.equal(self._cols, blocks.cols.to(self._cols.device)))
+        )
+        if not same:
+            self._build_pattern(blocks.rows, blocks.cols)
+        vals = blocks.values.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
+        data = np.bincount(self._slot, weights=vals, minlength=self._indices.shape[0])
+        return scipy.sparse.csr_matrix((data, self._indices, self._indptr), shape=(self.n, self.n))
