@@ -371,6 +371,10 @@ class InexactSettings:
                 raise InputError(f"invalid InexactSettings: {msg}")
 
 
+_WORK_COUNTERS = ("closure_calls", "failed_calls", "last_step_length")
+"""Optimizer counters (kept in its ``state``) that a long-range backtrack does not roll back."""
+
+
 @dataclass
 class IterationRecord:
     """What one outer iteration did (for logs, TensorBoard and metrics)."""
@@ -469,8 +473,6 @@ class InexactRunner:
         self.start_objective, self.checkpoint = state["start_objective"], state["checkpoint"]
         self.records = [IterationRecord(**r) for r in state["records"]]
         p.best_q, p.best_x, p.best_objective = state["best_q"], state["best_x"], float(state["best_objective"])
-        if hasattr(self.optimizer, "closure_calls"):
-            self.optimizer.closure_calls = int(state["closure_calls"])
         self.seconds_before = float(state["seconds"])
         self.t_start = time.perf_counter()
 
@@ -531,7 +533,12 @@ class InexactRunner:
                     # shrink the step actually taken (a step capped by a trust length is shorter than lr)
                     s_now = min(self.step_length, float(getattr(self.optimizer, "last_step_length", math.inf))
                                 or self.step_length)
+                    # the optimizer's state goes back to the checkpoint; its work counters (closure calls, failed
+                    # calls) and the step just taken do not
+                    work = {k: getattr(self.optimizer, k) for k in _WORK_COUNTERS if hasattr(self.optimizer, k)}
                     self.optimizer.load_state_dict(copy.deepcopy(self.checkpoint["optimizer"]))
+                    for k, v in work.items():
+                        setattr(self.optimizer, k, v)
                     self.S = min(st.max_inner_iterations, int(math.ceil(self.S * st.inner_increase)))
                     self._set_step(max(st.min_step, s_now * st.step_decrease))
                     self.restart = True

@@ -65,10 +65,11 @@ class AdjustSettings:
         inner_solver: solver of the S-iteration simulations (``"newton"``: S Newton steps).
         solver: solver of the exact simulations.
         step: step length ``s`` (``lr``) of the optimizer; None = pgd: unbounded (every step is capped by
-            ``max_move``, so the first steps move the boundary by ``max_move``; long-range backtracking then
+            ``max_displacement``, so the first steps move the boundary by ``max_displacement``; long-range
+            backtracking then
             shrinks it), the others 1 (the quasi-Newton / Gauss-Newton step, the fixed point's full update).
-        max_move: largest move of a boundary vertex per step in metres (caps the steps of pgd, gn and
-            L-BFGS).
+        max_displacement: largest move of a boundary vertex per step in metres (caps the steps of pgd, gn
+            and L-BFGS).
         weights: cost coefficients (an ``AdjustObjective`` ``CostWeights``); None = its defaults.
         initialize: run the section-7 initialization.
         init_iterations: L-BFGS iterations of the initialization.
@@ -99,7 +100,7 @@ class AdjustSettings:
     inner_solver: SolverKind = SolverKind.NEWTON
     solver: SolverKind = SolverKind.NEWTON
     step: float | None = None
-    max_move: float = 0.005
+    max_displacement: float = 0.005
     weights: object | None = None
     initialize: bool = True
     init_iterations: int = 100
@@ -124,7 +125,8 @@ class AdjustSettings:
         checks = [
             (self.iterations >= 0, "iterations must be >= 0"),
             (self.inner_iterations >= 1 and self.exact_interval >= 1, "inner_iterations/exact_interval must be >= 1"),
-            ((self.step is None or self.step > 0) and self.max_move > 0, "step and max_move must be > 0"),
+            ((self.step is None or self.step > 0) and self.max_displacement > 0,
+             "step and max_displacement must be > 0"),
             (self.init_iterations >= 0, "init_iterations must be >= 0"),
             (self.edge_length > 0 and self.voxel_size > 0, "edge_length and voxel_size must be > 0"),
             (self.atol_weight > 0 and self.max_solver_iterations >= 1, "atol_weight and max_solver_iterations"),
@@ -488,7 +490,7 @@ def optimize(
 
     Args:
         setup: from :func:`prepare`.
-        settings: optimizer settings (optimizer, iterations, inexact, S, M, step, max_move, checkpoint_every);
+        settings: optimizer settings (optimizer, iterations, inexact, S, M, step, max_displacement, checkpoint_every);
             default ``setup.settings``.
         log_dir, checkpoint_dir, progress, resume: see :func:`adjust`.
         callback: ``callback(record, terms)`` after every outer iteration.
@@ -504,10 +506,9 @@ def optimize(
     use_inexact = settings.inexact and kind == OptimizerKind.PGD
     opt = make_optimizer(kind, [q], preconditioner=setup.objective.regularizer_hessian(), problem=problem,
                          lr=settings.step if settings.step is not None else (
-                             math.inf if kind == OptimizerKind.PGD else 1.0), line_search=not use_inexact, edges=setup.mesh_base.edges,
+                             math.inf if kind == OptimizerKind.PGD else 1.0), line_search=not use_inexact,
+                         max_displacement=settings.max_displacement, edges=setup.mesh_base.edges,
                          boundary_index=setup.param.boundary_index, x_target=setup.x_transfer)
-    if hasattr(opt, "max_move"):
-        opt.max_move = settings.max_move
     runner = InexactRunner(problem, opt, q, InexactSettings(
         inner_iterations=settings.inner_iterations, exact_interval=settings.exact_interval, exact=not use_inexact))
     term_history: list[dict[str, float]] = []

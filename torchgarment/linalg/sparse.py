@@ -50,11 +50,14 @@ class Factorization:
         backend: the :class:`SparseBackend` that factorized it.
         shift: the diagonal shift ``s`` it was made with (the factorized matrix is ``A + s I``).
         what: the matrix's name in error messages.
+        matrix: the factorized matrix ``A + s I`` (scipy sparse, float64), e.g. for residual checks.
     """
 
     def __init__(self, solve: Callable[[np.ndarray, bool], np.ndarray], shape: tuple[int, int],
-                 backend: SparseBackend, shift: float = 0.0, what: str = "matrix") -> None:
+                 backend: SparseBackend, shift: float = 0.0, what: str = "matrix",
+                 matrix: scipy.sparse.spmatrix | None = None) -> None:
         self._solve = solve
+        self.matrix = matrix
         self.shape = (int(shape[0]), int(shape[1]))
         self.backend = backend
         self.shift = float(shift)
@@ -178,7 +181,7 @@ def factorize(matrix: scipy.sparse.spmatrix, *, backend: "str | SparseBackend" =
         solve = _BACKENDS[kind](a, symmetric)
     except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"
         raise SingularMatrixError(f"the {what} is singular: its sparse factorization failed ({exc})") from exc
-    return Factorization(solve, (n, n), kind, shift, what)
+    return Factorization(solve, (n, n), kind, shift, what, a)
 
 
 class FactorizationCache:

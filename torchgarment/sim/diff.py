@@ -79,17 +79,14 @@ import torch
 from torch.autograd.function import FunctionCtx
 from torch.func import functional_call, grad as func_grad, jvp as func_jvp
 
-from torchgarment.errors import InputError, TorchGarmentError
+from torchgarment.errors import InputError, NonConvergenceError
+from torchgarment.linalg import CSRAssembler, FactorizationCache, armijo_backtracking, pcg
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.barrier import BodyBarrier
 from torchgarment.sim.energies.base import HessianBlocks
 from torchgarment.sim.solvers import SolveInfo, SolverKind, SolveSettings, solve
 from torchgarment.sim.solvers.chebyshev import JacobiState, apply_inverse, seam_pairs
-from torchgarment.sim.solvers.common import CSRAssembler, Preconditioner
-
-
-class NonConvergenceError(TorchGarmentError, RuntimeError):
-    """A solve that a gradient depends on did not reach its tolerance (the gradient would be wrong)."""
+from torchgarment.sim.solvers.common import Preconditioner
 
 
 class NonConvergenceWarning(UserWarning):
@@ -258,97 +255,6 @@ def _torch_csr(blocks: HessianBlocks, num_vertices: int) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------------------------------- linear solves
-def conjugate_gradients(
-    matvec, b: torch.Tensor, inv_diag, rtol: float, max_iterations: int, *,  # noqa: ANN001
-    x0: torch.Tensor | None = None, stop_at_negative_curvature: bool = False,
-) -> tuple[torch.Tensor, int, float]:
-    """Block-Jacobi preconditioned CG for ``K y = b``.
-
-    Args:
-        matvec: ``v (V, 3) -> K v (V, 3)``.
-        b: (V, 3) right-hand side.
-        inv_diag: the preconditioner: (V, 3, 3) inverse diagonal blocks, or a
-            :class:`~torchgarment.sim.solvers.chebyshev.SeamBlockInverse` (seam pairs as 6x6 blocks).
-        rtol: stop when ``|r| <= rtol |b|``.
-        max_iterations: iteration budget.
-        x0: (V, 3) warm start (default zero).
-        stop_at_negative_curvature: return the iterate reached so far at a direction with ``p^T K p <= 0``
-            instead of raising (for inexact solves that accept an approximate answer).
-
-    Returns:
-        ``(y, iterations, |r| / |b|)``; the caller checks convergence.
-
-    Raises:
-        NonConvergenceError: negative or zero curvature ``p^T K p <= 0`` (``K`` is not positive definite), unless
-            ``stop_at_negative_curvature``.
-    """
-    y = torch.zeros_like(b) if x0 is None else x0.detach().to(b.dtype).clone()
-    bn = float(torch.linalg.vector_norm(b))
-    if bn == 0.0:
-        return torch.zeros_like(b), 0, 0.0
-    r = b - matvec(y) if x0 is not None and bool(y.any()) else b.clone()
-    z = apply_inverse(inv_diag, r)
-    p = z.clone()
-    rz = float(torch.sum(r * z))
-    rn = float(torch.linalg.vector_norm(r))
-    k = 0
-    while k < max_iterations and rn > rtol * bn:
-        kp = matvec(p)
-        pkp = float(torch.sum(p * kp))
-        if not pkp > 0.0:
-            if stop_at_negative_curvature:
-                break
-            raise NonConvergenceError(
-                f"adjoint CG met non-positive curvature p^T K p = {pkp:.3g} at iteration {k + 1}: the Hessian at "
-                f"the solution is not positive definite (a saddle or an unconverged state); try the 'sparse' solver")
-        k += 1
-        a = rz / pkp
-        y.add_(p, alpha=a)
-        r.add_(kp, alpha=-a)
-        rn = float(torch.linalg.vector_norm(r))
-        z = apply_inverse(inv_diag, r)
-        rz_new = float(torch.sum(r * z))
-        p.mul_(rz_new / rz).add_(z)
-        rz = rz_new
-    return y, k, rn / bn
-
-
-class _Factorization:  # TEMPORARY: replaced by torchgarment.linalg at the merge
-    def __init__(self, matrix: scipy.sparse.csr_matrix) -> None:
-        self.matrix = matrix
-        try:
-            self.lu = scipy.sparse.linalg.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                               options={"SymmetricMode": True})
-        except RuntimeError as exc:  # "Factor is exactly singular"
-            raise NonConvergenceError(f"the Hessian at the solution is singular ({exc}); is the garment free to "
-                                      f"move (no pins, no body)?") from exc
-
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        y = self.lu.solve(b)
-        if not np.all(np.isfinite(y)):
-            raise NonConvergenceError("sparse solve returned non-finite values (singular Hessian)")
-        return y
-
-
-class FactorizationCache:  # TEMPORARY: replaced by torchgarment.linalg at the merge
-    def __init__(self) -> None:
-        self.key: torch.Tensor | None = None
-        self.value: _Factorization | None = None
-        self.factorizations = 0
-
-    def factorize(self, key: torch.Tensor, build) -> _Factorization:  # noqa: ANN001
-        if self.value is not None and self.key is not None and self.key.shape == key.shape \
-                and torch.equal(self.key, key):
-            return self.value
-        self.value = _Factorization(build())
-        self.key = key.detach().clone()
-        self.factorizations += 1
-        return self.value
-
-    def clear(self) -> None:
-        self.key, self.value = None, None
-
-
 def solve_adjoint(
     model: torch.nn.Module,
     x: torch.Tensor,
@@ -401,7 +307,7 @@ def solve_adjoint(
     bn = float(torch.linalg.vector_norm(rhs))
     assembler = CSRAssembler(V) if assembler is None else assembler
     if kind == AdjointLinearSolver.SPARSE:
-        cache = FactorizationCache() if cache is None else cache
+        cache = FactorizationCache(what="simulation Hessian") if cache is None else cache
         fact = cache.factorize(x, lambda: assembler.assemble(exact_hessian_blocks(model, x)))
         b64 = rhs.to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
         y = fact.solve(b64)
@@ -433,8 +339,8 @@ def solve_adjoint(
     pre = JacobiState(SolveSettings(preconditioner=Preconditioner.BLOCK, diagonal_floor=1e-10), seam_pairs(model))
     pre.rebuild(diag)
     n_max = max(200, 3 * V) if max_iterations is None else int(max_iterations)
-    lam, k, res = conjugate_gradients(matvec, rhs, pre.inverse, rtol, n_max, x0=x0,
-                                      stop_at_negative_curvature=not require_convergence)
+    lam, k, res = pcg(matvec, rhs, lambda r: apply_inverse(pre.inverse, r), rtol, n_max, x0=x0,
+                      stop_at_negative_curvature=not require_convergence)
     if not bool(torch.isfinite(lam).all()):
         raise NonConvergenceError("adjoint CG returned non-finite values")
     if require_convergence and not res <= rtol:
@@ -643,7 +549,7 @@ class DifferentiableSolver(torch.nn.Module):
         self._x_last: torch.Tensor | None = None
         self._adjoint_last: torch.Tensor | None = None
         self._assembler = CSRAssembler(model.num_vertices)
-        self._factorizations = FactorizationCache()
+        self._factorizations = FactorizationCache(self.settings.sparse_backend, what="simulation Hessian")
         self.last_info: SolveInfo | None = None
         self.last_adjoint_info: AdjointInfo | None = None
         self.sim_iterations = 0
@@ -933,12 +839,13 @@ class DifferentiableSolver(torch.nn.Module):
         if slope >= 0.0:  # not a descent direction (cannot happen with a PD matrix); take the capped step
             return a
         slack = 16.0 * torch.finfo(x.dtype).eps * abs(e)
-        for _ in range(s.max_backtracks):
-            et = float(self.model.value_and_grad(x + a * dx)[0])
-            if et <= e + s.armijo_c * a * slope + slack:
-                return a
-            a *= s.backtrack
-        return a
+
+        def energy(t: float) -> float:
+            return float(self.model.value_and_grad(x + t * dx)[0])
+
+        a, _, ok = armijo_backtracking(energy, e, slope, a, armijo_c=s.armijo_c, backtrack=s.backtrack,
+                                       max_backtracks=s.max_backtracks, slack=slack)
+        return a if ok else a * s.backtrack  # out of backtracks: the step shrunk once more
 
 
 SolveLayer = DifferentiableSolver
@@ -958,7 +865,6 @@ __all__ = [
     "SolveRequest",
     "barrier_curvature_blocks",
     "check_twice_differentiable",
-    "conjugate_gradients",
     "exact_hessian_blocks",
     "parameter_vjp",
     "solve_adjoint",
