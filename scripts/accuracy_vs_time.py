@@ -1,43 +1,46 @@
-"""What accuracy costs in time: every garment-fitting method of torchgarment against a converged reference drape.
+"""What accuracy costs in time: every garment-fitting method of torchgarment against a converged reference
+drape.
 
 For ``--bodies`` held-out anny adults (sampled with seed ``--seed + 1000``, the convention of
 ``scripts/pca_heldout.py``) one garment pattern, drafted from the measurements of the PCA mean body of
 ``--train`` training bodies, is fitted to each body by:
 
 * ``pca k=<k>``: the data-driven fit (Gillies et al. 2004): weights of the body in the PCA body model, then
-  ``mean garment + sum_i w_i G_i`` (piecewise interpolation) from a clothing basis draped offline on the mean and
-  the +-1 sigma example bodies; ``pca k=<kmax>+push`` adds the SDF push-out of vertices inside the body;
-* ``sim e=<edge> tol=<atol>``: the simulator (:func:`torchgarment.sim.drape.drape`) at several mesh edge lengths
-  and settle tolerances (``atol_weight``: the residual force 2-norm over the garment's weight); the setting at the
-  methods' edge length and the default tolerance 1e-3 is *draping the unadjusted base pattern*;
+  ``mean garment + sum_i w_i G_i`` (piecewise interpolation) from a clothing basis draped offline on the mean
+  and the +-1 sigma example bodies; ``pca k=<kmax>+push`` adds the SDF push-out of vertices inside the body;
+* ``sim e=<edge> tol=<atol>``: the simulator (:func:`torchgarment.sim.drape.drape`) at several mesh edge
+  lengths and settle tolerances (``atol_weight``: the residual force 2-norm over the garment's weight); the
+  setting at the methods' edge length and the default tolerance 1e-3 is *draping the unadjusted base pattern*;
 * ``retarget``: intersection-free retargeting (Huang et al. 2025) of the garment draped on the mean-phenotype
   anny body (rigged, the source) onto each held-out body (rigged with the same phenotype);
-* ``adjust <optimizer> <inexact|exact> it=<n>``: sewing-pattern adjustment (Wang et al. 2018) of the pattern from
-  the mean-phenotype body to each held-out body (the result is the adjusted pattern's equilibrium).
+* ``adjust <optimizer> <inexact|exact> it=<n>``: sewing-pattern adjustment (Wang et al. 2018) of the pattern
+  from the mean-phenotype body to each held-out body (the result is the adjusted pattern's equilibrium).
 
-Reference per body: the same pattern meshed finer (``--ref-edge``) draped with a finer SDF (``--ref-voxel``) to a
-tolerance ten times tighter than the default (``atol_weight`` 1e-4), placed by the same rule as every drape here
-(:func:`torchgarment.datadriven.basis.drape_on_body`). References and the clothing basis are cached on disk.
+Reference per body: the same pattern meshed finer (``--ref-edge``) draped with a finer SDF (``--ref-voxel``)
+to a tolerance ten times tighter than the default (``atol_weight`` 1e-4), placed by the same rule as every
+drape here (:func:`torchgarment.datadriven.basis.drape_on_body`). References and the clothing basis are cached
+on disk.
 
 Metrics per method and body (the garments have different meshes, so distances are **point-to-surface**: from
 every vertex of the method's garment to the welded reference surface, ``igl.point_mesh_squared_distance``):
 ``mean_mm``/``max_mm``; waist and hip ease (garment girth minus body girth, mm, both measured by
-:func:`torchgarment.body.measure.section_girths` — convex-hull perimeter of the section loop — on the body's own
-waist/hip planes from :func:`~torchgarment.body.measure.find_section_planes`; the garment is welded first; when
-the natural waist lies above the reference garment's top, as for a skirt whose waistband settles lower, the waist
-plane is moved down to 1 cm below the lowest point of its upper boundary and the body re-measured there, i.e. the "waist" ease is the ease at
-the waistband; NaN when a plane misses a garment) and their absolute difference from the
-reference's ease (``waist_ease_err_mm``, ``hip_ease_err_mm``); ``inside``: garment vertices with exact signed
-distance < 0 to the body mesh (``igl.signed_distance``, winding-number sign). ``seconds``: wall time of the
-method on that body (online part only); ``offline_seconds``: one-off work shared by all bodies (the clothing
-basis; the retarget source drape), reported apart. Body measurements used to place panels are taken once per
-body and not timed (about 0.4 s).
+:func:`torchgarment.body.measure.section_girths` — convex-hull perimeter of the section loop — on the body's
+own waist/hip planes from :func:`~torchgarment.body.measure.find_section_planes`; the garment is welded first;
+when the natural waist lies above the reference garment's top, as for a skirt whose waistband settles lower,
+the waist plane is moved down to 1 cm below the lowest point of its upper boundary and the body re-measured
+there, i.e. the "waist" ease is the ease at the waistband; NaN when a plane misses a garment) and their
+absolute difference from the reference's ease (``waist_ease_err_mm``, ``hip_ease_err_mm``); ``inside``:
+garment vertices with exact signed distance < 0 to the body mesh (``igl.signed_distance``, winding-number
+sign). ``seconds``: wall time of the method on that body (online part only); ``offline_seconds``: one-off work
+shared by all bodies (the clothing basis; the retarget source drape), reported apart. Body measurements used
+to place panels are taken once per body and not timed (about 0.4 s).
 
 Methods whose module fails to import or whose run raises are skipped with a printed reason (never faked).
 
-Outputs under ``--out`` (default ``out/accuracy_vs_time``): ``accuracy_vs_time.csv`` (one row per method setting
-and body), ``pareto.png`` (mean error vs median seconds, log x, one marker per setting, Pareto front drawn),
-``summary.json``; TensorBoard scalars under ``--log-dir/<run>`` (default ``logs/accuracy_vs_time/<time>``).
+Outputs under ``--out`` (default ``out/accuracy_vs_time``): ``accuracy_vs_time.csv`` (one row per method
+setting and body), ``pareto.png`` (mean error vs median seconds, log x, one marker per setting, Pareto front
+drawn), ``summary.json``; TensorBoard scalars under ``--log-dir/<run>`` (default
+``logs/accuracy_vs_time/<time>``).
 
 Examples::
 
@@ -99,7 +102,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--skip", nargs="*", default=[], choices=("pca", "sim", "retarget", "adjust"),
                     help="methods to leave out")
     ap.add_argument("--out", default="out/accuracy_vs_time", help="output folder")
-    ap.add_argument("--log-dir", default="logs/accuracy_vs_time", help="TensorBoard root (run = a time stamp)")
+    ap.add_argument("--log-dir", default="logs/accuracy_vs_time",
+                    help="TensorBoard root (run = a time stamp)")
     ap.add_argument("--cache", default=None, help="cache folder (default $TORCHGARMENT_CACHE/clothing_basis)")
     args = ap.parse_args(argv)
     if args.quick:
@@ -118,8 +122,10 @@ def _method_settings(args: argparse.Namespace) -> dict[str, list]:
             "adjust": [("pgd", True, 2)],
         }
     return {
-        # (edge length, atol_weight, settle iteration budget); (edge, 1e-3) = the unadjusted base pattern drape
-        "sim": [(args.edge, 1e-3, 500), (args.edge, 1e-2, 500), (args.edge, 1e-1, 500), (args.edge * 1.4, 1e-3, 500)],
+        # (edge length, atol_weight, settle iteration budget); (edge, 1e-3) = the unadjusted base pattern
+        # drape
+        "sim": [(args.edge, 1e-3, 500), (args.edge, 1e-2, 500), (args.edge, 1e-1, 500),
+                (args.edge * 1.4, 1e-3, 500)],
         # (optimizer, inexact, outer iterations)
         "adjust": [("pgd", True, 4), ("pgd", True, 16), ("pgd", False, 4)],
     }
@@ -132,8 +138,14 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
 
     from torchgarment.body.anny_phenotype import body_from_phenotype
     from torchgarment.body.measure import find_section_planes, measure_body, section_girths
-    from torchgarment.datadriven.basis import BasisSettings, BodyFrame, basis_cache_dir, build_basis, drape_on_body
-    from torchgarment.datadriven.basis import mesh_hash
+    from torchgarment.datadriven.basis import (
+        BasisSettings,
+        BodyFrame,
+        basis_cache_dir,
+        build_basis,
+        drape_on_body,
+        mesh_hash,
+    )
     from torchgarment.datadriven.dataset import BodyDataset
     from torchgarment.datadriven.online import OnlineFitter, push_out
     from torchgarment.datadriven.pca import BodyPCA
@@ -150,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
     sweeps = _method_settings(args)
     skipped: dict[str, str] = {}
 
-    # -- data, PCA model, pattern -----------------------------------------------------------------------------
+    # -- data, PCA model, pattern ----------------------------------------------------------------------------
     train = BodyDataset.from_anny(args.train, seed=args.seed)
     held = BodyDataset.from_anny(args.bodies, seed=args.seed + 1000)
     pca = BodyPCA.fit(train)
@@ -167,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
           f"reference {ref_mesh.num_vertices} vertices (edge {args.ref_edge} m, voxel {args.ref_voxel} m, "
           f"atol_weight 1e-4); {args.train} training / {args.bodies} held-out bodies", flush=True)
 
-    # -- held-out bodies and references (cached) --------------------------------------------------------------
+    # -- held-out bodies and references (cached) -------------------------------------------------------------
     cases: list[BodyCase] = []
     for i in range(len(held)):
         v = held.vertices[i].double()
@@ -213,14 +225,16 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
         rows.append({"method": method, "setting": setting, "body": case.index, "seconds": float(seconds),
                      "offline_seconds": float(offline), **evaluate(case, x, wv, wf), "note": note})
 
-    # -- simulator sweep (incl. the unadjusted base pattern) --------------------------------------------------
+    # -- simulator sweep (incl. the unadjusted base pattern) -------------------------------------------------
     if "sim" not in args.skip:
         for edge, atol, iters in sweeps["sim"]:
             gm = mesh if edge == args.edge else mesh_pattern(pattern, edge)
-            st = DrapeSettings(edge_length=edge, voxel_size=args.voxel, atol_weight=atol, max_iterations=iters)
+            st = DrapeSettings(edge_length=edge, voxel_size=args.voxel, atol_weight=atol,
+                               max_iterations=iters)
             name = f"sim e={edge * 100:.3g}cm tol={atol:g}"
             for case in tqdm(cases, desc=name):
-                BodySDF.cached(case.vertices, case.faces, SDFSettings(voxel_size=args.voxel))  # SDF build not timed
+                # SDF build not timed
+                BodySDF.cached(case.vertices, case.faces, SDFSettings(voxel_size=args.voxel))
                 t = time.perf_counter()
                 r = drape_on_body(gm, case.vertices, case.faces, mean_frame, st, frame=case.frame)
                 sec = time.perf_counter() - t
@@ -228,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
                 record("sim", name, case, sec, 0.0, r.x, wv, wf,
                        f"{'ok' if r.ok else 'NOT ok'} it={r.metrics['iterations']}")
 
-    # -- data-driven PCA fit ----------------------------------------------------------------------------------
+    # -- data-driven PCA fit ---------------------------------------------------------------------------------
     if "pca" not in args.skip:
         try:
             t = time.perf_counter()
@@ -236,7 +250,8 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
                 edge_length=args.edge, voxel_size=args.voxel)), name=args.garment, cache_dir=cache)
             t_basis = time.perf_counter() - t
             offline = sum(float(mm.get("seconds", 0.0)) for mm in basis.metrics.values())
-            print(f"clothing basis: {2 * kmax + 1} drapes, {offline:.0f} s of drapes ({t_basis:.0f} s this run)")
+            print(f"clothing basis: {2 * kmax + 1} drapes, {offline:.0f} s of drapes ({t_basis:.0f} s this "
+                  "run)")
             hv = held.vertices.double()
             for k in range(kmax + 1):
                 fitter = OnlineFitter(pca, {args.garment: basis}, k=k)
@@ -263,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
             skipped["pca"] = f"{type(exc).__name__}: {exc}"
             traceback.print_exc()
 
-    # -- the mean-phenotype source body (retarget and adjust) -------------------------------------------------
+    # -- the mean-phenotype source body (retarget and adjust) ------------------------------------------------
     need_source = any(mth not in args.skip for mth in ("retarget", "adjust"))
     source = None
     if need_source:
@@ -274,9 +289,10 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
         for c, tb in zip(cases, targets, strict=True):
             dv = float((tb.vertices - c.vertices).abs().max())
             if dv > 1e-5:
-                print(f"note: rigged body {c.index} differs from the data set body by {dv * 1e3:.2f} mm (max)")
+                print(f"note: rigged body {c.index} differs from the data set body by {dv * 1e3:.2f} mm "
+                      "(max)")
 
-    # -- retargeting ------------------------------------------------------------------------------------------
+    # -- retargeting -----------------------------------------------------------------------------------------
     if "retarget" not in args.skip:
         try:
             from torchgarment.retarget.inputs import problem_from_bodies
@@ -288,7 +304,8 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
                                DrapeSettings(edge_length=args.edge, voxel_size=args.voxel), frame=src_frame)
             offline = time.perf_counter() - t
             gv, gf = welded_surface(r0.x, mesh)
-            print(f"retarget source drape on the mean-phenotype body: {offline:.0f} s, {'ok' if r0.ok else 'NOT ok'}")
+            print(f"retarget source drape on the mean-phenotype body: {offline:.0f} s, "
+                  f"{'ok' if r0.ok else 'NOT ok'}")
             for case, tb in tqdm(list(zip(cases, targets, strict=True)), desc="retarget"):
                 t = time.perf_counter()
                 prob = problem_from_bodies(gv, gf, source, tb)
@@ -310,19 +327,20 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
             skipped["retarget"] = f"{type(exc).__name__}: {exc}"
             traceback.print_exc()
 
-    # -- pattern adjustment -----------------------------------------------------------------------------------
+    # -- pattern adjustment ----------------------------------------------------------------------------------
     if "adjust" not in args.skip:
         try:
             from torchgarment.adjust.pipeline import AdjustSettings, adjust
 
-            # the target bodies' SDFs are built untimed, as for the simulator sweep (rigged bodies can differ from
-            # the data set's by round-off, so they may not hit the SDF cache entries made there)
+            # the target bodies' SDFs are built untimed, as for the simulator sweep (rigged bodies can differ
+            # from the data set's by round-off, so they may not hit the SDF cache entries made there)
             for b in [source, *targets]:
                 BodySDF.cached(b.vertices, b.faces, SDFSettings(voxel_size=args.voxel), dtype=torch.float64)
             for opt, inexact, iters in sweeps["adjust"]:
                 name = f"adjust {opt} {'inexact' if inexact else 'exact'} it={iters}"
                 for case, tb in tqdm(list(zip(cases, targets, strict=True)), desc=name):
-                    st = AdjustSettings(optimizer=opt, inexact=inexact, iterations=iters, edge_length=args.edge,
+                    st = AdjustSettings(optimizer=opt, inexact=inexact, iterations=iters,
+                                        edge_length=args.edge,
                                         voxel_size=args.voxel)
                     t = time.perf_counter()
                     res = adjust(pattern, source, tb, st, progress=False)
@@ -332,9 +350,10 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
                     mt = res.metrics
                     record("adjust", name, case, sec, 0.0, x, wv, wf,
                            f"reduction {mt.get('reduction_percent', math.nan):.0f}%; base drape "
-                           f"{mt.get('drape_seconds', math.nan):.1f} s, setup {mt.get('setup_seconds', math.nan):.1f} s, "
-                           f"init {mt.get('initialization_seconds', math.nan):.1f} s, "
-                           f"optimization {mt.get('seconds', math.nan):.1f} s")
+                           f"{mt.get('drape_seconds', math.nan):.1f} s, setup "
+                           f"{mt.get('setup_seconds', math.nan):.1f} s, init "
+                           f"{mt.get('initialization_seconds', math.nan):.1f} s, optimization "
+                           f"{mt.get('seconds', math.nan):.1f} s")
         except Exception as exc:  # noqa: BLE001
             skipped["adjust"] = f"{type(exc).__name__}: {exc}"
             traceback.print_exc()
@@ -343,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
         print("no method produced a result", file=sys.stderr)
         return 1
 
-    # -- outputs ----------------------------------------------------------------------------------------------
+    # -- outputs ---------------------------------------------------------------------------------------------
     write_csv(rows, out / "accuracy_vs_time.csv")
     summary = summarize(rows)
     idx = pareto_front([s["median_seconds"] for s in summary], [s["mean_mm"] for s in summary])

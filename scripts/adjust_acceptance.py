@@ -1,30 +1,33 @@
 """Acceptance checks of sewing-pattern adjustment (issue 4, Wang et al. 2018) at a coarse resolution.
 
-Every case drafts a library garment for chart size 12, adjusts it with :func:`torchgarment.adjust.pipeline.adjust`
-(pgd, Algorithm 1) and measures the adjusted pattern. Resolution (documented, coarse to fit 2 CPU cores): 5 cm
-triangle edges (``--edge-length``), 10 mm SDF voxels (``--voxel``), ``--iterations`` outer iterations (default 32,
-``--quick`` 16), exact check every 8 iterations. ``--quick``: straight skirt only, sizes 20 and 6 (cached bodies).
+Every case drafts a library garment for chart size 12, adjusts it with
+:func:`torchgarment.adjust.pipeline.adjust` (pgd, Algorithm 1) and measures the adjusted pattern. Resolution
+(documented, coarse to fit 2 CPU cores): 5 cm triangle edges (``--edge-length``), 10 mm SDF voxels
+(``--voxel``), ``--iterations`` outer iterations (default 32, ``--quick`` 16), exact check every 8 iterations.
+``--quick``: straight skirt only, sizes 20 and 6 (cached bodies).
 
 1. Manufactured solution: target body = base body scaled uniformly by s (1.05, 0.95) about its feet centre
-   (vertices, skeleton joints and landmarks scaled). Per panel the adjusted boundary vertices are compared with s
-   times the base boundary vertices after removing a rigid motion (2D Procrustes without scale); reported in mm
-   and in % of the panel size (the base panel's bounding-box diagonal). The unadjusted pattern's deviation is
-   reported as the reference (what the adjustment has to recover).
-2. Grading: straight skirt (and T-shirt unless ``--quick``) from size 12 to chart sizes up and down. The width of
-   a panel at a construction line is the distance between the line's two corner vertices of the pattern (skirt:
-   waist = the ends of the waist edges, hip = the side-seam corners between ``side_low`` and ``side_hip``; T-shirt:
-   bust = the underarm corners, waist = the corners between ``side_low`` and ``side_up``), summed over panels,
-   i.e. the pattern's girth at that line. Its change from the base pattern is compared with the chart's girth
-   difference (:func:`torchgarment.body.size_chart.chart_row`); the discrepancy is in cm. Also reported for the
-   skirt, as a diagnostic: ``body@band``, the bodies' own girth change at the height where the waistband sits
-   (its corners in the base drape on the base body, and in the transferred garment on the target body). A tight
-   band's fit-preserving girth follows it; the fitted bodies match the chart only at their landmark planes.
-3. Hips-only change: the base body with x, z of the torso vertices scaled about the hip axis by ``1 + a w(y)``,
-   ``w`` a cos^2 bump equal to 1 at the hip landmark height and 0 at the waist landmark and at the thigh landmark
-   (arms and hands, by skin weight, excluded). Reported: hip-width change, largest move of the side-seam boundary
-   vertices and the largest move of the waistband boundary vertices (waist edges), in mm (the pass test); also
-   the waistband's shape change after its own best rigid motion per panel, and its length change. A row with the
-   target equal to the base body (amount 0) is the control: what the adjustment moves when nothing should change.
+   (vertices, skeleton joints and landmarks scaled). Per panel the adjusted boundary vertices are compared
+   with s times the base boundary vertices after removing a rigid motion (2D Procrustes without scale);
+   reported in mm and in % of the panel size (the base panel's bounding-box diagonal). The unadjusted
+   pattern's deviation is reported as the reference (what the adjustment has to recover).
+2. Grading: straight skirt (and T-shirt unless ``--quick``) from size 12 to chart sizes up and down. The width
+   of a panel at a construction line is the distance between the line's two corner vertices of the pattern
+   (skirt: waist = the ends of the waist edges, hip = the side-seam corners between ``side_low`` and
+   ``side_hip``; T-shirt: bust = the underarm corners, waist = the corners between ``side_low`` and
+   ``side_up``), summed over panels, i.e. the pattern's girth at that line. Its change from the base pattern
+   is compared with the chart's girth difference (:func:`torchgarment.body.size_chart.chart_row`); the
+   discrepancy is in cm. Also reported for the skirt, as a diagnostic: ``body@band``, the bodies' own girth
+   change at the height where the waistband sits (its corners in the base drape on the base body, and in the
+   transferred garment on the target body). A tight band's fit-preserving girth follows it; the fitted bodies
+   match the chart only at their landmark planes.
+3. Hips-only change: the base body with x, z of the torso vertices scaled about the hip axis by
+   ``1 + a w(y)``, ``w`` a cos^2 bump equal to 1 at the hip landmark height and 0 at the waist landmark and at
+   the thigh landmark (arms and hands, by skin weight, excluded). Reported: hip-width change, largest move of
+   the side-seam boundary vertices and the largest move of the waistband boundary vertices (waist edges), in
+   mm (the pass test); also the waistband's shape change after its own best rigid motion per panel, and its
+   length change. A row with the target equal to the base body (amount 0) is the control: what the adjustment
+   moves when nothing should change.
 
 Run: ``python scripts/adjust_acceptance.py [--quick] [--only manufactured grading hips] [--garments ...]
 [--sizes ...] [--weights JSON] [--json FILE]``.
@@ -39,6 +42,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -57,25 +61,31 @@ from torchgarment.adjust.acceptance import (
     scaled_body,
 )
 
+if TYPE_CHECKING:
+    from torchgarment.adjust.pipeline import AdjustResult, AdjustSettings
+    from torchgarment.body import Body
+    from torchgarment.pattern.spec import SewingPattern
+
 ACCEPT_MS_PERCENT = 1.0
 ACCEPT_GRADING_CM = 1.0
 ACCEPT_WAISTBAND_MM = 2.0
 
 # ---------------------------------------------------------------------------------------------- cases
-def _run(pattern, base, target, settings):  # noqa: ANN001, ANN202
+def _run(pattern: SewingPattern, base: Body, target: Body, settings: AdjustSettings) -> AdjustResult:
     from torchgarment.adjust.pipeline import adjust
 
     return adjust(pattern, base, target, settings, progress=False)
 
 
-def _summary(res) -> dict:  # noqa: ANN001
+def _summary(res: AdjustResult) -> dict:
     m = res.metrics
-    return {k: m.get(k) for k in ("objective_base", "objective_initial", "objective_final", "reduction_percent",
-                                  "initialization_used", "stopped", "backtracks", "max_boundary_displacement_mm",
-                                  "total_seconds")}
+    return {k: m.get(k)
+            for k in ("objective_base", "objective_initial", "objective_final", "reduction_percent",
+                      "initialization_used", "stopped", "backtracks", "max_boundary_displacement_mm",
+                      "total_seconds")}
 
 
-def manufactured(pattern, base, s: float, settings) -> dict:  # noqa: ANN001
+def manufactured(pattern: SewingPattern, base: Body, s: float, settings: AdjustSettings) -> dict:
     res = _run(pattern, base, scaled_body(base, s), settings)
     bidx = res.boundary_index.cpu().numpy()
     vp = res.mesh_base.vertex_panel_ids.cpu().numpy()[bidx]
@@ -95,7 +105,7 @@ def manufactured(pattern, base, s: float, settings) -> dict:  # noqa: ANN001
             "adjust": _summary(res)}
 
 
-def grading(garment: str, base_size: str, target_size: str, base, settings) -> dict:  # noqa: ANN001
+def grading(garment: str, base_size: str, target_size: str, base: Body, settings: AdjustSettings) -> dict:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.pattern.library import draft
@@ -118,13 +128,15 @@ def grading(garment: str, base_size: str, target_size: str, base, settings) -> d
         # a diagnostic: the skirt's waistband is a tight band whose girth is the pattern's waist width, so a
         # fit-preserving pattern follows the bodies' girth change where the band sits (the base drape's waist
         # corners on the base body, the transferred ones on the target body), not at the chart's waist plane.
-        # (Lines that cross loose cloth, the hips and the bust, are set by the fullest girth below them instead.)
+        # (Lines that cross loose cloth, the hips and the bust, are set by the fullest girth below them
+        # instead.)
         idx = line_vertices(pattern, res.mesh_base, *lines["waist"])
         yb, yt = float(res.mesh_base.x[idx, 1].mean()), float(res.x_transfer[idx, 1].mean())
         at_band = 100 * (body_girth_at(target, yt) - body_girth_at(base, yb))
-        out["lines"]["waist"].update({"body_at_band_cm": at_band,
-                                      "discrepancy_body_at_band_cm": out["lines"]["waist"]["pattern_change_cm"] - at_band,
-                                      "band_height_base_m": yb, "band_height_target_m": yt})
+        out["lines"]["waist"].update({
+            "body_at_band_cm": at_band,
+            "discrepancy_body_at_band_cm": out["lines"]["waist"]["pattern_change_cm"] - at_band,
+            "band_height_base_m": yb, "band_height_target_m": yt})
     if "skirt" in garment:  # the waistband's length along the (possibly curved) waist edges, reported only
         wb = [edges_length(p, ("waist_r", "waist_l")) for p in (pattern, res.pattern)]
         out["waistband_length_change_cm"] = 100 * (wb[1] - wb[0])
@@ -133,7 +145,7 @@ def grading(garment: str, base_size: str, target_size: str, base, settings) -> d
     return out
 
 
-def hips_only(pattern, base, amount: float, settings) -> dict:  # noqa: ANN001
+def hips_only(pattern: SewingPattern, base: Body, amount: float, settings: AdjustSettings) -> dict:
     target = hips_body(base, amount)
     res = _run(pattern, base, target, settings)
     verts, labels = boundary_vertex_labels(pattern, res.mesh_base)
@@ -180,14 +192,15 @@ def print_tables(results: dict) -> None:
                   f"{p['max_percent']:6.2f} {p['mean_percent']:7.2f} {p['unadjusted_max_mm']:13.1f}  "
                   f"{'yes' if r['pass'] else 'NO'}")
     print("\n2. grading from size 12 (pattern girth change vs chart girth change, cm)")
-    print("   body@band (skirt waist only): the bodies' girth change at the height where the waistband sits, not at"
-          " the chart's waist plane; err@band: pattern - body@band (a diagnostic, not the pass test)")
+    print("   body@band (skirt waist only): the bodies' girth change at the height where the waistband sits, "
+          "not at the chart's waist plane; err@band: pattern - body@band (a diagnostic, not the pass test)")
     print(f"{'garment':>15} {'to':>3} {'line':>6} {'chart':>7} {'pattern':>8} {'drafted':>8} {'error':>7} "
           f"{'body@band':>9} {'err@band':>8}  pass")
     for r in results["grading"]:
         for line, v in r["lines"].items():
-            print(f"{r['garment']:>15} {r['to']:>3} {line:>6} {v['chart_cm']:7.2f} {v['pattern_change_cm']:8.2f} "
-                  f"{v['drafted_change_cm']:8.2f} {v['discrepancy_cm']:7.2f} {v.get('body_at_band_cm', math.nan):9.2f} "
+            print(f"{r['garment']:>15} {r['to']:>3} {line:>6} {v['chart_cm']:7.2f} "
+                  f"{v['pattern_change_cm']:8.2f} {v['drafted_change_cm']:8.2f} {v['discrepancy_cm']:7.2f} "
+                  f"{v.get('body_at_band_cm', math.nan):9.2f} "
                   f"{v.get('discrepancy_body_at_band_cm', math.nan):8.2f}  {'yes' if r['pass'] else 'NO'}")
         if "waistband_length_change_cm" in r:
             print(f"{'':>15} {r['to']:>3} waistband length (along the waist edges) change "
@@ -195,9 +208,10 @@ def print_tables(results: dict) -> None:
     print("\n3. hips-only change (straight skirt, mm)")
     for r in results["hips_only"]:
         print(f"amount {r['amount']:.3f}: body hips {r['body_hips_change_mm']:+.1f}, pattern hip width "
-              f"{r['hip_width_change_mm']:+.1f}, waist width {r['waist_width_change_mm']:+.1f}, side seam max move "
-              f"{r['side_seam_max_move_mm']:.1f}, waistband max move {r['waistband_max_move_mm']:.1f} "
-              f"(<= {ACCEPT_WAISTBAND_MM} mm: {'yes' if r['pass'] else 'NO'}), without its corners "
+              f"{r['hip_width_change_mm']:+.1f}, waist width {r['waist_width_change_mm']:+.1f}, side seam "
+              f"max move {r['side_seam_max_move_mm']:.1f}, waistband max move "
+              f"{r['waistband_max_move_mm']:.1f} (<= {ACCEPT_WAISTBAND_MM} mm: "
+              f"{'yes' if r['pass'] else 'NO'}), without its corners "
               f"{r.get('waistband_interior_max_move_mm', math.nan):.1f}, after its own rigid motion "
               f"{r.get('waistband_shape_change_mm', math.nan):.1f}, waistband length "
               f"{r.get('waistband_length_change_mm', math.nan):+.1f}, body waist "
@@ -223,17 +237,21 @@ def main(argv: list[str] | None = None) -> int:
     from torchgarment.pattern.library import draft
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="skirt only, sizes 20 and 6 (cached bodies), 16 iterations")
+    ap.add_argument("--quick", action="store_true",
+                    help="skirt only, sizes 20 and 6 (cached bodies), 16 iterations")
     ap.add_argument("--iterations", type=int, default=None, help="outer iterations (default 32, --quick 16)")
-    ap.add_argument("--edge-length", type=float, default=0.05, help="triangle edge length in metres (default 0.05)")
+    ap.add_argument("--edge-length", type=float, default=0.05,
+                    help="triangle edge length in metres (default 0.05)")
     ap.add_argument("--voxel", type=float, default=0.01, help="body SDF voxel size in metres (default 0.01)")
     ap.add_argument("--hips", type=float, default=0.10,
-                    help="hips-only enlargement factor (default 0.10, about +9 cm hip girth: more than the skirt's "
-                         "4 cm hip ease); a 0.0 row (target = base body) is run as the noise-floor control")
+                    help="hips-only enlargement factor (default 0.10, about +9 cm hip girth: more than the "
+                         "skirt's 4 cm hip ease); a 0.0 row (target = base body) is run as the noise-floor "
+                         "control")
     ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     ap.add_argument("--weights", type=json.loads, default=None,
-                    help='cost weights overriding the paper\'s, as JSON, e.g. \'{"fixing": 4, "curvature": 1600}\'')
+                    help="cost weights overriding the paper's, as JSON, "
+                         'e.g. \'{"fixing": 4, "curvature": 1600}\'')
     ap.add_argument("--only", choices=("manufactured", "grading", "hips"), nargs="+", default=None,
                     help="run only these checks (default all)")
     ap.add_argument("--garments", nargs="+", choices=("straight_skirt", "tshirt"), default=None,
@@ -246,7 +264,8 @@ def main(argv: list[str] | None = None) -> int:
     from torchgarment.adjust.objective import CostWeights
 
     weights = CostWeights.from_dict(args.weights) if args.weights else None
-    settings = AdjustSettings(edge_length=args.edge_length, voxel_size=args.voxel, iterations=it, exact_interval=8,
+    settings = AdjustSettings(edge_length=args.edge_length, voxel_size=args.voxel, iterations=it,
+                              exact_interval=8,
                               weights=weights)
     base = Body.from_size("12")
     skirt = draft("straight_skirt", chart_row("12"))

@@ -84,8 +84,10 @@ def test_skirt_widths_match_the_draft(acc):
     w = acc.pattern_line_widths(draft("straight_skirt", chart_row("12")), acc.SKIRT_LINES)
     w2 = acc.pattern_line_widths(draft("straight_skirt", chart_row("20")), acc.SKIRT_LINES)
     # the draft adds a constant ease: the pattern girths grow exactly as the chart's
-    assert w2["hips"] - w["hips"] == pytest.approx(chart_row("20")["hips"] - chart_row("12")["hips"], abs=1e-9)
-    assert w2["waist"] - w["waist"] == pytest.approx(chart_row("20")["waist"] - chart_row("12")["waist"], abs=1e-9)
+    assert w2["hips"] - w["hips"] == pytest.approx(chart_row("20")["hips"] - chart_row("12")["hips"],
+                                                   abs=1e-9)
+    assert w2["waist"] - w["waist"] == pytest.approx(chart_row("20")["waist"] - chart_row("12")["waist"],
+                                                     abs=1e-9)
     assert chart_row("12")["hips"] < w["hips"] < chart_row("12")["hips"] + 0.1
 
 
@@ -168,7 +170,8 @@ def test_line_vertices_are_the_measured_corners(acc):
         idx = acc.line_vertices(pattern, mesh, first, second)
         assert idx.shape == (2 * len(pattern.panels),)
         pairs = p[idx].reshape(-1, 2, 2)
-        assert np.linalg.norm(pairs[:, 1] - pairs[:, 0], axis=1).sum() == pytest.approx(widths[line], abs=1e-9)
+        assert (np.linalg.norm(pairs[:, 1] - pairs[:, 0], axis=1).sum()
+                == pytest.approx(widths[line], abs=1e-9))
     with pytest.raises(PatternError):
         acc.line_vertices(pattern, mesh, "armhole_r", "armhole_l")
     # a mesh without a layout (not made by mesh_pattern) is refused
@@ -185,7 +188,8 @@ def test_body_girth_at_on_a_cylinder(acc):
     r = 0.15
     m = trimesh.creation.cylinder(radius=r, height=1.0, sections=64)
     v = torch.as_tensor(m.vertices[:, [0, 2, 1]] + [0.0, 0.5, 0.0])  # Y up, from y = 0 to 1
-    f = torch.as_tensor(m.faces[:, [0, 2, 1]].copy(), dtype=torch.long)  # keep the winding outward after the swap
+    # keep the winding outward after the swap
+    f = torch.as_tensor(m.faces[:, [0, 2, 1]].copy(), dtype=torch.long)
     body = Body(vertices=v, faces=f, skeleton=None, skin_weights=None, landmarks={}, params={})
     perimeter = 64 * 2 * r * math.sin(math.pi / 64)  # the inscribed 64-gon
     for y in (0.2, 0.5, 0.83):

@@ -1,6 +1,6 @@
-"""Algorithm 1 (torchgarment.adjust.inexact.InexactRunner): the returned pattern comes from an exact solve and is
-never worse than the start; long-range backtracking raises S, shrinks the step and goes back to the last exact
-iterate; the run is resumable from its state_dict."""
+"""Algorithm 1 (torchgarment.adjust.inexact.InexactRunner): the returned pattern comes from an exact solve and
+is never worse than the start; long-range backtracking raises S, shrinks the step and goes back to the last
+exact iterate; the run is resumable from its state_dict."""
 
 from __future__ import annotations
 
@@ -37,7 +37,8 @@ def _runner(step: float = 1.0, max_move: float | None = 0.01, S: int = 1, M: int
 def test_result_is_exact_and_better_than_start():
     prob, q, runner = _runner()
     res = runner.run(24)
-    assert res.objective < 0.9 * res.objective_start  # measured: 35.1 -> ~12 in 24 iterations (S = 1 Newton step)
+    # measured: 35.1 -> ~12 in 24 iterations (S = 1 Newton step)
+    assert res.objective < 0.9 * res.objective_start
     # the reported garment is an equilibrium of the returned pattern (an exact solve from it does not move it)
     # and the reported objective is its objective
     prob.reset_state(res.x)
@@ -51,8 +52,8 @@ def test_result_is_exact_and_better_than_start():
 
 
 def test_never_worse_than_start_with_a_diverging_step():
-    """Absurd steps (no trust cap) make every inexact phase worse: backtracking must raise S, shrink the step and
-    the result must still be the start (or better), from an exact solve."""
+    """Absurd steps (no trust cap) make every inexact phase worse: backtracking must raise S, shrink the step
+    and the result must still be the start (or better), from an exact solve."""
     prob, q, runner = _runner(step=50.0, max_move=None, M=2)
     res = runner.run(16)
     assert res.backtracks >= 1

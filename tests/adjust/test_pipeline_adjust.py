@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -14,6 +15,10 @@ from torchgarment.adjust.inexact import AdjustProblem
 from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
 from torchgarment.errors import InputError
 from torchgarment.sim.diff import AdjointLinearSolver
+
+if TYPE_CHECKING:
+    from torchgarment.adjust.inexact import IterationRecord
+    from torchgarment.pattern.spec import SewingPattern
 
 SETTINGS = AdjustSettings(edge_length=0.05, voxel_size=0.01, iterations=16, exact_interval=8)
 
@@ -36,20 +41,22 @@ def skirt_case():
     return pattern, setup, result
 
 
-def _panel_areas(pattern) -> float:  # noqa: ANN001
+def _panel_areas(pattern: SewingPattern) -> float:
     return sum(abs(p.area()) for p in pattern.panels.values())
 
 
 def test_initialization_then_optimization_reduce_the_objective(skirt_case):
     _, setup, result = skirt_case
     m = result.metrics
-    # measured: base 118.9 -> initialized 64.9 -> 17.9 after 16 pgd iterations (72 % reduction), 16 closure calls
+    # measured: base 118.9 -> initialized 64.9 -> 17.9 after 16 pgd iterations (72 % reduction),
+    # 16 closure calls
     assert m["objective_initial"] < 0.8 * m["objective_base"]
     assert m["objective_final"] < 0.5 * m["objective_initial"]
     assert m["reduction_percent"] > 50.0
     assert m["iterations"] == 16 and m["closure_calls"] >= 16
     assert set(m["terms"]) == {"base", "initial", "final"}
-    assert set(m["terms"]["final"]) >= {"distance", "smoothness", "stretching", "positional", "fixing", "curvature"}
+    assert set(m["terms"]["final"]) >= {"distance", "smoothness", "stretching", "positional", "fixing",
+                                        "curvature"}
     assert math.isclose(sum(m["terms"]["final"].values()), m["objective_final"], rel_tol=1e-6)
     assert 1.0 < m["max_boundary_displacement_mm"] < 200.0
     assert len(result.records) == 16 and len(result.term_history) == 16
@@ -103,7 +110,8 @@ def test_ctrl_c_leaves_a_resumable_checkpoint(skirt_case, tmp_path):
     try:
         settings = AdjustSettings(**{**SETTINGS.__dict__, "iterations": 4})
 
-        def interrupt(rec, terms):  # noqa: ANN001 - stands for the user's Ctrl-C after iteration 3
+        def interrupt(rec: IterationRecord, terms: dict[str, float]) -> None:
+            # stands for the user's Ctrl-C after iteration 3
             if rec.iteration == 2:
                 raise KeyboardInterrupt
 
@@ -124,8 +132,9 @@ def test_ctrl_c_leaves_a_resumable_checkpoint(skirt_case, tmp_path):
 
 
 def test_iterative_adjoint_matches_the_direct_one_on_the_real_skirt(skirt_case):
-    """Seams (6x6 seam blocks in the preconditioner), the body barrier and its curvature: CG to a tight tolerance
-    gives the direct (SuperLU) gradient; capped at a few iterations it is warm-started from the last adjoint."""
+    """Seams (6x6 seam blocks in the preconditioner), the body barrier and its curvature: CG to a tight
+    tolerance gives the direct (SuperLU) gradient; capped at a few iterations it is warm-started from the last
+    adjoint."""
     _, setup, result = skirt_case
     q = result.q
     direct = setup.new_problem(result.mesh_target.x)
@@ -134,7 +143,8 @@ def test_iterative_adjoint_matches_the_direct_one_on_the_real_skirt(skirt_case):
         setup.settings, adjoint=AdjointLinearSolver.CG, adjoint_rtol=1e-10, adjoint_max_iterations=5000))
     g_it = it.evaluate(q, exact=True).grad
     # measured: 4e-10 relative after ~300 CG iterations
-    assert float(torch.linalg.vector_norm(g_it - g_direct)) <= 1e-6 * float(torch.linalg.vector_norm(g_direct))
+    assert (float(torch.linalg.vector_norm(g_it - g_direct))
+            <= 1e-6 * float(torch.linalg.vector_norm(g_direct)))
     first = it.adjoint_iterations
     assert first > 10
     it.evaluate(q, exact=True)  # same system: the warm start is already the solution
@@ -146,7 +156,8 @@ def test_iterative_adjoint_matches_the_direct_one_on_the_real_skirt(skirt_case):
 
 
 def test_setup_pickles_and_optimizes_after_loading(skirt_case, tmp_path):
-    """torch.save/torch.load of a prepared setup (the Laplacian's SuperLU factorization is rebuilt on load)."""
+    """torch.save/torch.load of a prepared setup (the Laplacian's SuperLU factorization is rebuilt on
+    load)."""
     _, setup, _ = skirt_case
     path = tmp_path / "setup.pt"
     torch.save(setup, path)
@@ -157,7 +168,8 @@ def test_setup_pickles_and_optimizes_after_loading(skirt_case, tmp_path):
 
 
 def test_adjust_with_the_large_mesh_path_reduces_the_objective(skirt_case):
-    """gd-chebyshev S-iteration simulations and the iterative adjoint (bench_adjust.py's large-mesh options)."""
+    """gd-chebyshev S-iteration simulations and the iterative adjoint (bench_adjust.py's large-mesh
+    options)."""
     _, setup, _ = skirt_case
     st = replace(setup.settings, iterations=8, inner_solver="gd-chebyshev", inner_iterations=8,
                  adjoint="iterative", adjoint_max_iterations=50)
@@ -168,16 +180,17 @@ def test_adjust_with_the_large_mesh_path_reduces_the_objective(skirt_case):
 
 
 def test_pipeline_gradient_is_loss_backward_through_the_solve_function(skirt_case):
-    """The adjust pipeline's gradient is ``f.backward()`` through :class:`QuasistaticSolve` (the Function is on
-    the graph of the evaluation), and it equals central finite differences of the whole objective (exact solves
-    to 1e-10 of the weight, float64) within 1e-4 relative on the real skirt."""
+    """The adjust pipeline's gradient is ``f.backward()`` through :class:`QuasistaticSolve` (the Function is
+    on the graph of the evaluation), and it equals central finite differences of the whole objective (exact
+    solves to 1e-10 of the weight, float64) within 1e-4 relative on the real skirt."""
     from torchgarment.sim.diff import QuasistaticSolve
     from torchgarment.sim.solvers import SolveSettings
 
     _, setup, result = skirt_case
     weight = setup.exact_settings.atol / setup.settings.atol_weight
     tight = SolveSettings(rtol=0.0, atol=1e-10 * weight, max_iterations=400)
-    prob = AdjustProblem(setup.model, setup.param, setup.objective, result.mesh_target.x, exact_settings=tight)
+    prob = AdjustProblem(setup.model, setup.param, setup.objective, result.mesh_target.x,
+                         exact_settings=tight)
     q0 = result.q.detach()
     ev = prob.evaluate(q0, exact=True)
     qr, p, x = prob.last_graph

@@ -30,7 +30,8 @@ def meshed(garmentcode_dir, name, h):
 
 
 def arc_fraction(panel, edge_index, points, resolution=4096):
-    """Arc-length fraction along an edge of points lying on it (nearest point of a fine polyline) and distance."""
+    """Arc-length fraction along an edge of points lying on it (nearest point of a fine polyline) and
+    distance."""
     a, b = panel.edge_endpoints(edge_index)
     poly = panel.edges[edge_index].evaluate(a, b, np.linspace(0.0, 1.0, resolution + 1))
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
@@ -167,6 +168,7 @@ def test_dtype_device_and_bad_arguments():
     with pytest.raises(InputError, match="min_angle"):
         mesh_pattern(p, 0.01, min_angle=40.0)
     d = square_pair(False)
-    d["pattern"]["panels"]["front"]["vertices"] = [[0, 0], [10, 0], [10, 10], [12, 5]]  # last edge crosses edge 1
+    # the last edge crosses edge 1
+    d["pattern"]["panels"]["front"]["vertices"] = [[0, 0], [10, 0], [10, 10], [12, 5]]
     with pytest.raises(PatternError, match="crosses itself"):
         mesh_pattern(pattern_from_dict(d, "bad", validate=False), 0.01)

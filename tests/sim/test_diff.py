@@ -1,5 +1,6 @@
 """The differentiable quasistatic solve (torchgarment.sim.diff): adjoint gradients against central finite
-differences of the whole solve, backward modes and adjoint linear solvers against each other, failure modes."""
+differences of the whole solve, backward modes and adjoint linear solvers against each other, failure
+modes."""
 
 from __future__ import annotations
 
@@ -65,12 +66,14 @@ def trampoline(n: int = 6, h: float = 0.02, y: float = 0.0, wave: float = 0.01):
     pts, faces, vid = _panel(n, n, h)
     p = torch.tensor(pts, dtype=torch.float64)
     mesh = GarmentMesh(_lay_flat(p, y), torch.tensor(faces), p=p)
-    bnd = torch.tensor(sorted({vid(i, j) for i in range(n + 1) for j in range(n + 1) if i in (0, n) or j in (0, n)}))
+    bnd = torch.tensor(sorted({vid(i, j) for i in range(n + 1) for j in range(n + 1)
+                               if i in (0, n) or j in (0, n)}))
     return mesh, bnd, _stretched_targets(_lay_flat(p), bnd, wave)
 
 
 def sewn_panels(n: int = 4, m: int = 6, h: float = 0.02, gap: float = 0.01):
-    """Two panels side by side with a gap, sewn along the facing edges; the outer boundary pinned (stretched)."""
+    """Two panels side by side with a gap, sewn along the facing edges; the outer boundary pinned
+    (stretched)."""
     pa, fa, va = _panel(n, m, h)
     pb, fb, vb = _panel(n, m, h, x0=n * h + gap, base=(n + 1) * (m + 1))
     p = torch.tensor(pa + pb, dtype=torch.float64)
@@ -114,7 +117,8 @@ def build(case: str, icosphere_sdf=None):
     """(model, x0) for a named test case."""
     if case == "sew":
         mesh, bnd, tgt = sewn_panels()
-        return Scene(mesh, pin_indices=bnd, pin_targets=tgt, effects={"stretch", "pins", "sew"}).build(), mesh.x
+        return (Scene(mesh, pin_indices=bnd, pin_targets=tgt, effects={"stretch", "pins", "sew"}).build(),
+                mesh.x)
     effects = {"stretch": {"stretch", "pins"}, "gravity": {"stretch", "pins", "gravity"},
                "bend": {"stretch", "pins", "bend"}, "pins": {"stretch", "pins"},
                "barrier_sphere": {"stretch", "pins", "gravity", "body_barrier"},
@@ -170,7 +174,7 @@ def test_backward_mode_resolve():
     assert SolveLayer is DifferentiableSolver
 
 
-# ---------------------------------------------------------------------------------------------- gradients vs FD
+# -------------------------------------------------------------------------------------------- gradients vs FD
 @pytest.mark.parametrize("case, param", [
     ("stretch", "p"),
     ("stretch", "shirring"),
@@ -203,7 +207,8 @@ def test_barrier_is_active_and_curvature_matters():
     # against the autograd Hessian of the analytic barrier energy (twice differentiable)
     xr = x.reshape(-1).clone()
     H = torch.autograd.functional.hessian(lambda y: model.term("body_barrier")(y.view(-1, 3)), xr)
-    full = model.term("body_barrier").hessian_blocks(x, project_psd=False).to_sparse(model.num_vertices).to_dense()
+    full = (model.term("body_barrier").hessian_blocks(x, project_psd=False)
+            .to_sparse(model.num_vertices).to_dense())
     ar = torch.arange(model.num_vertices)
     full = full + torch.block_diag(*curv[ar])
     assert float((full - H).abs().max()) <= 1e-6 * float(H.abs().max())
@@ -215,7 +220,7 @@ def test_barrier_is_active_and_curvature_matters():
         assert bool(far.any()) and bool((curv[far] == 0).all())
 
 
-# ---------------------------------------------------------------------------------------------- modes and solvers
+# ------------------------------------------------------------------------------------------ modes and solvers
 def test_adjoint_unroll_truncated_agree():
     mesh, bnd, tgt = trampoline(n=4, h=0.03)
     model = Scene(mesh, pin_indices=bnd, pin_targets=tgt, effects={"stretch", "pins", "gravity", "bend"},
@@ -264,7 +269,7 @@ def test_exact_hessian_blocks_match_autograd():
     assert float((H - Ha).abs().max()) <= 1e-9 * float(Ha.abs().max())
 
 
-# ---------------------------------------------------------------------------------------------- warm start, errors
+# ----------------------------------------------------------------------------------------- warm start, errors
 def test_warm_start_same_solution_fewer_iterations():
     model, x0 = build("gravity")
     layer = DifferentiableSolver(model, x0, TIGHT)

@@ -151,7 +151,8 @@ def test_validate_accepts_good_and_rejects_bad():
 
 def two_triangles_sewn() -> GarmentMesh:
     """Two separate triangles whose shared side is duplicated and joined by two seam pairs."""
-    x = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0.1], [0, 1, 0.1], [1, 1, 0]], dtype=torch.float64)
+    x = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0.1], [0, 1, 0.1], [1, 1, 0]],
+                     dtype=torch.float64)
     p = x[:, :2].clone()
     faces = torch.tensor([[0, 1, 2], [3, 5, 4]])
     return GarmentMesh(x, faces, p=p, panel_ids=torch.tensor([0, 1]), panel_names=["a", "b"],

@@ -1,4 +1,5 @@
-"""The simulate-then-differentiate problem of pattern adjustment and the inexact strategy (Wang 2018, Algorithm 1).
+"""The simulate-then-differentiate problem of pattern adjustment and the inexact strategy (Wang 2018,
+Algorithm 1).
 
 :class:`AdjustProblem` evaluates the objective of Eq. 17 for pattern parameters ``q`` (B, 2), the boundary
 vertices of the pattern (section 5)::
@@ -8,23 +9,23 @@ vertices of the pattern (section 5)::
     f = objective(x, p)              scalar, Eq. 17
 
 and its gradient by the adjoint method (Eq. 18-19) through the autograd Function of the simulator
-(:class:`~torchgarment.sim.diff.DifferentiableSolver`): ``f.backward()`` solves ``K lambda = df/dx`` with ``K``
-the exact unprojected Hessian of the simulation energy at ``x`` (a cached sparse factorization, or with
+(:class:`~torchgarment.sim.diff.DifferentiableSolver`): ``f.backward()`` solves ``K lambda = df/dx`` with
+``K`` the exact unprojected Hessian of the simulation energy at ``x`` (a cached sparse factorization, or with
 ``adjoint="iterative"`` block-Jacobi conjugate gradients warm-started from the previous adjoint), adds
 ``-lambda^T d(grad_x E)/dp`` (matrix-free, :func:`~torchgarment.sim.diff.parameter_vjp`) to ``df/dp`` and goes
 on through the parametrization to ``df/dq``. Simulations are warm-started from the previous state. An *exact*
 evaluation solves to the force tolerance; an *inexact* one runs ``S`` solver iterations only, and its gradient
-uses the adjoint at the unconverged state (the paper's inexact gradient). The problem also provides Gauss-Newton
-products (a tangent solve ``K dx = -(d grad_x E / dp) dp`` with the cached factorization, then ``J^T`` by autograd
-back through the evaluation's graph) and records the best exact evaluation it has seen.
+uses the adjoint at the unconverged state (the paper's inexact gradient). The problem also provides
+Gauss-Newton products (a tangent solve ``K dx = -(d grad_x E / dp) dp`` with the cached factorization, then
+``J^T`` by autograd back through the evaluation's graph) and records the best exact evaluation it has seen.
 
 :class:`InexactRunner` is Algorithm 1 generalized to any :class:`~torchgarment.adjust.optimizers` optimizer:
 ``S`` simulation iterations per outer iteration, an exact evaluation every ``M`` outer iterations (default
 32) compared with the last exact one; when the objective fails to drop, the run goes back to the last exact
 iterate (parameters, optimizer state and simulation state), doubles ``S`` and halves the step; when it drops,
-``S`` shrinks and the step grows. The result is the best *exactly evaluated* iterate, which includes the start:
-it is never worse than the start. With ``exact=True`` every evaluation is exact (the optimizers' own line
-searches then see true values) and the same best-exact rule applies.
+``S`` shrinks and the step grows. The result is the best *exactly evaluated* iterate, which includes the
+start: it is never worse than the start. With ``exact=True`` every evaluation is exact (the optimizers' own
+line searches then see true values) and the same best-exact rule applies.
 
 Example::
 
@@ -72,12 +73,13 @@ class Evaluation:
 
 
 class AdjustProblem:
-    """``q -> f(Sim(param(q)), param(q))`` with adjoint gradients and Gauss-Newton products (module docstring).
+    """``q -> f(Sim(param(q)), param(q))`` with adjoint gradients and Gauss-Newton products (module
+    docstring).
 
     The simulation is a :class:`~torchgarment.sim.diff.DifferentiableSolver` (the autograd Function
-    :class:`~torchgarment.sim.diff.QuasistaticSolve`): an evaluation builds ``p = param(q)``, ``x = solver(p)``,
-    ``f = objective(x, p)`` on the autograd graph and ``f.backward()`` produces ``df/dq`` (the adjoint solve runs
-    in the Function's backward).
+    :class:`~torchgarment.sim.diff.QuasistaticSolve`): an evaluation builds ``p = param(q)``,
+    ``x = solver(p)``, ``f = objective(x, p)`` on the autograd graph and ``f.backward()`` produces ``df/dq``
+    (the adjoint solve runs in the Function's backward).
 
     Args:
         model: the :class:`~torchgarment.sim.scene.SimModel` of the garment on the target body; its
@@ -86,21 +88,22 @@ class AdjustProblem:
         objective: module ``(x (V, 3), p (V, 2)) -> ()`` (the :class:`AdjustObjective`); ``term_values(x, p)``
             is used for reporting when it exists.
         x0: (V, 3) initial garment positions in metres (the warm start of the first solve).
-        exact_settings: settings of exact solves (their tolerance ``atol`` in newtons is also the early stop of
-            inexact ones).
+        exact_settings: settings of exact solves (their tolerance ``atol`` in newtons is also the early stop
+            of inexact ones).
         solver: quasistatic solver of the simulations (``"newton"`` or ``"gd-chebyshev"``).
         inexact_solver: solver of the S-iteration simulations (default: ``solver``).
         parameter: qualified name of the model parameter ``p`` is written to.
         strict: raise :class:`NonConvergenceError` when an exact solve misses its tolerance.
         adjoint: :class:`~torchgarment.sim.diff.AdjointLinearSolver` of the gradients: ``"direct"`` (alias of
-            ``"sparse"``: a factorization per new state) or ``"iterative"`` (alias of ``"cg"``: block-Jacobi CG
-            warm-started from the previous adjoint, stopping at ``adjoint_rtol`` or after
-            ``adjoint_max_iterations``, converged or not: an inexact gradient that Algorithm 1's exact checks and
-            backtracking keep safe). Gauss-Newton's tangent solves are always direct.
+            ``"sparse"``: a factorization per new state) or ``"iterative"`` (alias of ``"cg"``: block-Jacobi
+            CG warm-started from the previous adjoint, stopping at ``adjoint_rtol`` or after
+            ``adjoint_max_iterations``, converged or not: an inexact gradient that Algorithm 1's exact checks
+            and backtracking keep safe). Gauss-Newton's tangent solves are always direct.
         adjoint_rtol: relative residual at which the iterative adjoint stops.
         adjoint_max_iterations: CG iterations of an iterative adjoint.
-        retain_graph: keep the autograd graph of the last evaluation until the next one (Gauss-Newton's ``J^T``
-            products go back through it); False saves its memory for optimizers that make no such products.
+        retain_graph: keep the autograd graph of the last evaluation until the next one (Gauss-Newton's
+            ``J^T`` products go back through it); False saves its memory for optimizers that make no such
+            products.
     """
 
     def __init__(self, model: torch.nn.Module, parametrization: torch.nn.Module, objective: torch.nn.Module,
@@ -114,18 +117,20 @@ class AdjustProblem:
         self.objective = objective
         self.adjoint = AdjointLinearSolver.resolve(adjoint)
         if not (0.0 < adjoint_rtol < 1.0 and int(adjoint_max_iterations) >= 1):
-            raise InputError(f"adjoint_rtol must be in (0, 1) and adjoint_max_iterations >= 1, got {adjoint_rtol}, "
-                             f"{adjoint_max_iterations}")
+            raise InputError("adjoint_rtol must be in (0, 1) and adjoint_max_iterations >= 1, got "
+                             f"{adjoint_rtol}, {adjoint_max_iterations}")
         term_name, _, attr = parameter.partition(".")
         try:
             term = model.term(term_name)
         except Exception as exc:  # noqa: BLE001 - SimModel.term raises InputError/KeyError
-            raise InputError(f"the simulation model has no term {term_name!r} for parameter {parameter!r}") from exc
+            raise InputError(f"the simulation model has no term {term_name!r} for parameter "
+                             f"{parameter!r}") from exc
         if not hasattr(term, attr):
             raise InputError(f"term {term_name!r} has no parameter {attr!r}")
         self.parameter = parameter
         iterative = self.adjoint is AdjointLinearSolver.CG
-        settings = exact_settings if exact_settings is not None else SolveSettings(rtol=1e-6, max_iterations=200)
+        settings = (exact_settings if exact_settings is not None
+                    else SolveSettings(rtol=1e-6, max_iterations=200))
         self.solver = DifferentiableSolver(
             model, x0, settings, solver=solver, inexact_solver=inexact_solver, linear_solver=self.adjoint,
             cg_rtol=float(adjoint_rtol) if iterative else 1e-10,
@@ -156,13 +161,15 @@ class AdjustProblem:
         return self.solver.state
 
     def reset_state(self, x: torch.Tensor) -> None:
-        """Set the warm start (V, 3) of the next simulation (used when a run goes back to an earlier iterate)."""
+        """Set the warm start (V, 3) of the next simulation (used when a run goes back to an earlier
+        iterate)."""
         self.solver.set_state(x)
 
     @property
     def last_graph(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
-        """``(q, p, x)`` of the last evaluation's autograd graph: the leaf (B, 2) whose ``grad`` holds ``df/dq``,
-        the rest positions (V, 2) and the Function's output (V, 3); None unless ``retain_graph`` and ``need_grad``."""
+        """``(q, p, x)`` of the last evaluation's autograd graph: the leaf (B, 2) whose ``grad`` holds
+        ``df/dq``, the rest positions (V, 2) and the Function's output (V, 3); None unless ``retain_graph``
+        and ``need_grad``."""
         return self._graph
 
     @property
@@ -196,8 +203,8 @@ class AdjustProblem:
     def simulate(self, p: torch.Tensor, *, exact: bool, iterations: int | None = None,
                  max_iterations: int | None = None) -> torch.Tensor:
         """Solve for the garment (V, 3) with rest positions ``p`` (V, 2) from the current state (warm start),
-        without a gradient: exactly (raising if the tolerance is missed and ``strict``) or ``iterations`` solver
-        iterations."""
+        without a gradient: exactly (raising if the tolerance is missed and ``strict``) or ``iterations``
+        solver iterations."""
         if not exact and (iterations is None or int(iterations) < 1):
             raise InputError(f"an inexact simulation needs iterations >= 1, got {iterations}")
         return self.solver({self.parameter: p.detach().to(self.model.dtype)},
@@ -226,7 +233,8 @@ class AdjustProblem:
             qr = q.detach().clone().requires_grad_(need_grad)
         with torch.enable_grad():
             p = self.param(qr)
-            x = self.solver({self.parameter: p.to(self.model.dtype)}, iterations=None if exact else int(iterations),
+            x = self.solver({self.parameter: p.to(self.model.dtype)},
+                            iterations=None if exact else int(iterations),
                             max_iterations=max_iterations if exact else None)
             f = self.objective(x, p)
             fval = float(f.detach())
@@ -254,11 +262,12 @@ class AdjustProblem:
         """A ``torch.optim`` closure over the leaf ``q`` (B, 2): evaluates at ``q``; ``f.backward()`` fills
         ``q.grad`` (when ``need_grad``).
 
-        The closure has attribute ``cacheable`` (True for exact closures: re-evaluating the same ``q`` gives the
-        same value, so optimizers may reuse it).
+        The closure has attribute ``cacheable`` (True for exact closures: re-evaluating the same ``q`` gives
+        the same value, so optimizers may reuse it).
         """
         if need_grad and not (q.is_leaf and q.requires_grad):
-            raise InputError("the closure's q must be a leaf tensor that requires grad (an optimizer's parameter)")
+            raise InputError("the closure's q must be a leaf tensor that requires grad "
+                             "(an optimizer's parameter)")
 
         def fn() -> torch.Tensor:
             ev = self.evaluate(q, exact=exact, iterations=iterations, need_grad=need_grad)
@@ -268,7 +277,8 @@ class AdjustProblem:
         return fn
 
     def term_values(self) -> dict[str, float]:
-        """Each objective term's value at the last evaluation (empty if the objective does not report terms)."""
+        """Each objective term's value at the last evaluation (empty if the objective does not report
+        terms)."""
         if self.last_x is None or not hasattr(self.objective, "term_values"):
             return {}
         with torch.no_grad():
@@ -301,7 +311,8 @@ class AdjustProblem:
         t = 1e-2 / scale
         with torch.no_grad():
             dp = (self.param(q + t * v) - p) / t
-        dx = self.solver.tangent({self.parameter: p.to(self.model.dtype)}, {self.parameter: dp.to(self.model.dtype)})
+        dx = self.solver.tangent({self.parameter: p.to(self.model.dtype)},
+                                 {self.parameter: dp.to(self.model.dtype)})
         return dx, dp
 
     def gauss_newton_product(self, v: torch.Tensor) -> torch.Tensor:
@@ -309,8 +320,8 @@ class AdjustProblem:
         objective in ``(x, p)`` (autograd double backward; the SDF's curvature is dropped, which for a squared
         distance residual is exactly the Gauss-Newton term), then ``J^T`` by autograd back through the last
         evaluation's graph (the adjoint solve of the Function's backward). Needs ``retain_graph`` and an
-        evaluation with ``need_grad``. The simulator's second derivative (the first term of Eq. 20) is left out,
-        as in Gauss-Newton."""
+        evaluation with ``need_grad``. The simulator's second derivative (the first term of Eq. 20) is left
+        out, as in Gauss-Newton."""
         if self._graph is None:
             raise InputError("Gauss-Newton products need AdjustProblem(retain_graph=True) and an evaluation "
                              "with need_grad")
@@ -335,7 +346,8 @@ class InexactSettings:
         inner_iterations: initial ``S``, solver iterations per inexact outer iteration.
         exact_interval: ``M``, outer iterations between exact evaluations (paper: 32).
         inner_increase: factor on ``S`` when the objective fails to drop (long-range backtracking).
-        inner_decrease: factor on ``S`` after a successful exact check (``S`` never goes below its initial value).
+        inner_decrease: factor on ``S`` after a successful exact check (``S`` never goes below its initial
+            value).
         step_decrease: factor on the step length (the optimizer's ``lr``) on failure.
         step_increase: factor on the step length on success (capped at ``max_step``).
         max_step: largest step length; None = the optimizer's initial ``lr``.
@@ -451,10 +463,12 @@ class InexactRunner:
     def state_dict(self) -> dict:
         """Everything needed to resume (tensors and plain values; ``torch.save``-able)."""
         p = self.problem
-        return {"q": self.q.detach().clone(), "x": p.x.clone(), "optimizer": copy.deepcopy(self.optimizer.state_dict()),
-                "S": self.S, "step": self.step_length, "iteration": self.iteration, "backtracks": self.backtracks,
-                "since_check": self.since_check, "restart": self.restart, "start_objective": self.start_objective,
-                "checkpoint": copy.deepcopy(self.checkpoint), "records": [r.__dict__.copy() for r in self.records],
+        return {"q": self.q.detach().clone(), "x": p.x.clone(),
+                "optimizer": copy.deepcopy(self.optimizer.state_dict()),
+                "S": self.S, "step": self.step_length, "iteration": self.iteration,
+                "backtracks": self.backtracks, "since_check": self.since_check, "restart": self.restart,
+                "start_objective": self.start_objective, "checkpoint": copy.deepcopy(self.checkpoint),
+                "records": [r.__dict__.copy() for r in self.records],
                 "best_q": None if p.best_q is None else p.best_q.clone(),
                 "best_x": None if p.best_x is None else p.best_x.clone(), "best_objective": p.best_objective,
                 "closure_calls": getattr(self.optimizer, "closure_calls", 0),
@@ -467,12 +481,14 @@ class InexactRunner:
             self.q.copy_(state["q"])
         p.reset_state(state["x"])
         self.optimizer.load_state_dict(state["optimizer"])
-        self.S, self.iteration, self.backtracks = int(state["S"]), int(state["iteration"]), int(state["backtracks"])
+        self.S, self.iteration, self.backtracks = (int(state["S"]), int(state["iteration"]),
+                                                   int(state["backtracks"]))
         self._set_step(state["step"])
         self.since_check, self.restart = int(state["since_check"]), bool(state["restart"])
         self.start_objective, self.checkpoint = state["start_objective"], state["checkpoint"]
         self.records = [IterationRecord(**r) for r in state["records"]]
-        p.best_q, p.best_x, p.best_objective = state["best_q"], state["best_x"], float(state["best_objective"])
+        p.best_q, p.best_x, p.best_objective = (state["best_q"], state["best_x"],
+                                                float(state["best_objective"]))
         self.seconds_before = float(state["seconds"])
         self.t_start = time.perf_counter()
 
@@ -494,7 +510,8 @@ class InexactRunner:
         stopped = "iteration budget"
         if self.start_objective is None:
             # the first solve may start from a state that is not this pattern's equilibrium: a larger budget
-            ev = p.evaluate(q, exact=True, need_grad=False, max_iterations=4 * p.exact_settings.max_iterations)
+            ev = p.evaluate(q, exact=True, need_grad=False,
+                            max_iterations=4 * p.exact_settings.max_iterations)
             self.start_objective = ev.objective
             self.checkpoint = self._snapshot(q, ev.objective, p.x, copy.deepcopy(self.optimizer.state_dict()))
         while self.iteration < iterations:
@@ -554,7 +571,8 @@ class InexactRunner:
             s_taken = float(getattr(self.optimizer, "last_step_length", self.step_length))
             rec = IterationRecord(self.iteration, loss, exact_eval, 0 if exact_eval else self.S, s_taken,
                                   step_norm, self.seconds_before + time.perf_counter() - self.t_start,
-                                  getattr(self.optimizer, "closure_calls", 0) - calls_before, accepted, backtracked)
+                                  getattr(self.optimizer, "closure_calls", 0) - calls_before, accepted,
+                                  backtracked)
             self.records.append(rec)
             if callback is not None:
                 callback(rec)
@@ -565,7 +583,8 @@ class InexactRunner:
     def finish(self, stopped: str = "") -> RunResult:
         """Evaluate the current iterate exactly and return the best exact iterate."""
         p, q = self.problem, self.q
-        if p.last_q is None or not torch.equal(p.last_q, q.detach()) or not (p.last is not None and p.last.exact):
+        if (p.last_q is None or not torch.equal(p.last_q, q.detach())
+                or not (p.last is not None and p.last.exact)):
             # after inexact iterations the state can be far from equilibrium: a larger budget for this solve
             try:
                 p.evaluate(q, exact=True, need_grad=False, max_iterations=4 * p.exact_settings.max_iterations)

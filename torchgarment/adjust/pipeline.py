@@ -7,16 +7,16 @@
    reported against the base pattern's (the paper sees 1/6 to 1/10);
 4. optimize with the chosen optimizer: ``pgd`` runs Algorithm 1 (inexact simulations, long-range backtracking,
    :class:`~torchgarment.adjust.inexact.InexactRunner`) unless ``inexact=False``; ``lbfgs``, ``gn`` and
-   ``fixed-point`` evaluate exactly (their line searches / updates need true equilibria). The result is the best
-   exactly evaluated pattern, never worse than the start of step 4.
+   ``fixed-point`` evaluate exactly (their line searches / updates need true equilibria). The result is the
+   best exactly evaluated pattern, never worse than the start of step 4.
 
 Every iteration records the objective, each term, the step length, ``S`` and the wall time (TensorBoard
-scalars under ``log_dir``); a tqdm bar shows progress; Ctrl-C (KeyboardInterrupt) writes a resumable checkpoint
-(``checkpoint_dir/adjust.pt``, atomic) before re-raising, and ``resume=True`` continues from it.
+scalars under ``log_dir``); a tqdm bar shows progress; Ctrl-C (KeyboardInterrupt) writes a resumable
+checkpoint (``checkpoint_dir/adjust.pt``, atomic) before re-raising, and ``resume=True`` continues from it.
 
-Objective numbers: ``objective_base`` is the objective of the base pattern on the target body, ``objective_initial``
-that of the initialized pattern (the start of the optimization, the reference of ``reduction_percent`` as in the
-paper's Table 1) and ``objective_final`` that of the result.
+Objective numbers: ``objective_base`` is the objective of the base pattern on the target body,
+``objective_initial`` that of the initialized pattern (the start of the optimization, the reference of
+``reduction_percent`` as in the paper's Table 1) and ``objective_final`` that of the result.
 """
 
 from __future__ import annotations
@@ -83,11 +83,11 @@ class AdjustSettings:
             adjoint, at most ``adjoint_max_iterations``: the large-mesh path, inexact gradients).
         adjoint_rtol, adjoint_max_iterations: stopping rule of the iterative adjoint.
         reuse_factorization: each Newton solve (exact or inexact) solves its systems by CG preconditioned with
-            its last sparse LU factorization (``SolveSettings.reuse_factorization``); a fresh factorization only
-            when CG stalls. Measured on the 2,960-vertex sheath dress (24 iterations, exact every 8, 1 thread):
-            62.3 s without, 35.8 s with. Off by default: CG's stopping decisions amplify round-off, so two runs
-            of one setup then differ (1e-3 of the objective on the 5 cm skirt, 15 % on the 3K dress; without it
-            by ~1e-10) and a resumed run no longer repeats the uninterrupted one.
+            its last sparse LU factorization (``SolveSettings.reuse_factorization``); a fresh factorization
+            only when CG stalls. Measured on the 2,960-vertex sheath dress (24 iterations, exact every 8, 1
+            thread): 62.3 s without, 35.8 s with. Off by default: CG's stopping decisions amplify round-off,
+            so two runs of one setup then differ (1e-3 of the objective on the 5 cm skirt, 15 % on the 3K
+            dress; without it by ~1e-10) and a resumed run no longer repeats the uninterrupted one.
         band: blending band ``B`` of the deformation transfer in metres; None = its default.
         checkpoint_every: also write a checkpoint every this many iterations (0 = only on Ctrl-C).
     """
@@ -124,12 +124,14 @@ class AdjustSettings:
         self.adjoint = AdjointLinearSolver.resolve(self.adjoint)
         checks = [
             (self.iterations >= 0, "iterations must be >= 0"),
-            (self.inner_iterations >= 1 and self.exact_interval >= 1, "inner_iterations/exact_interval must be >= 1"),
+            (self.inner_iterations >= 1 and self.exact_interval >= 1,
+             "inner_iterations/exact_interval must be >= 1"),
             ((self.step is None or self.step > 0) and self.max_displacement > 0,
              "step and max_displacement must be > 0"),
             (self.init_iterations >= 0, "init_iterations must be >= 0"),
             (self.edge_length > 0 and self.voxel_size > 0, "edge_length and voxel_size must be > 0"),
-            (self.atol_weight > 0 and self.max_solver_iterations >= 1, "atol_weight and max_solver_iterations"),
+            (self.atol_weight > 0 and self.max_solver_iterations >= 1,
+             "atol_weight and max_solver_iterations"),
             (self.checkpoint_every >= 0, "checkpoint_every must be >= 0"),
             (0.0 < self.adjoint_rtol < 1.0 and self.adjoint_max_iterations >= 1,
              "adjoint_rtol must be in (0, 1) and adjoint_max_iterations >= 1"),
@@ -147,7 +149,8 @@ class AdjustResult:
         pattern: the adjusted :class:`SewingPattern` (None when a mesh was given).
         base_pattern: the input pattern (None when a mesh was given).
         mesh_base: the base garment draped on the base body (``p`` the base pattern).
-        mesh_target: the adjusted garment on the target body (``p`` the adjusted pattern, ``x`` its equilibrium).
+        mesh_target: the adjusted garment on the target body (``p`` the adjusted pattern, ``x`` its
+            equilibrium).
         x_transfer: (V, 3) the transferred garment (the target of the positional cost).
         x_base_on_target: (V, 3) the equilibrium of the base pattern on the target body (the "before").
         q_base, q: (B, 2) base and adjusted boundary vertices in metres.
@@ -171,7 +174,7 @@ class AdjustResult:
     term_history: list[dict[str, float]] = field(default_factory=list)
 
 
-# ---------------------------------------------------------------------------------------------- pattern output
+# --------------------------------------------------------------------------------------------- pattern output
 def _cubic_fit(pts: np.ndarray) -> np.ndarray:
     """Inner control points (2, 2) of the cubic Bezier through the end points closest to ``pts`` (m, 2)."""
     a, b = pts[0], pts[-1]
@@ -265,7 +268,8 @@ def _target_sdf(body: Body, voxel: float, dtype: torch.dtype, device: torch.devi
 
 def _initialize(objective: AdjustObjective, param: BoundaryParametrization, q_base: torch.Tensor,
                 iterations: int) -> torch.Tensor:
-    """Section 7: minimize ``objective.initialization_objective(param(q))`` over q by L-BFGS (no simulation)."""
+    """Section 7: minimize ``objective.initialization_objective(param(q))`` over q by L-BFGS (no
+    simulation)."""
     q = q_base.detach().clone().requires_grad_(True)
     if iterations == 0:
         return q.detach()
@@ -300,7 +304,7 @@ def _save_checkpoint(directory: Path, state: dict) -> Path:
 class _Logger:
     """TensorBoard scalars (when ``log_dir``) and a tqdm bar (when ``progress``)."""
 
-    def __init__(self, log_dir, progress: bool, total: int, initial: int) -> None:  # noqa: ANN001
+    def __init__(self, log_dir: str | Path | None, progress: bool, total: int, initial: int) -> None:
         self.writer = None
         if log_dir is not None:
             from torch.utils.tensorboard import SummaryWriter
@@ -312,7 +316,8 @@ class _Logger:
 
             from tqdm import tqdm
 
-            self.bar = tqdm(total=total, initial=initial, desc="adjust", unit="it", file=sys.stderr, leave=False)
+            self.bar = tqdm(total=total, initial=initial, desc="adjust", unit="it", file=sys.stderr,
+                            leave=False)
 
     def log(self, rec: IterationRecord, terms: dict[str, float]) -> None:
         if self.writer is not None:
@@ -382,11 +387,13 @@ class AdjustSetup:
 
     def new_problem(self, x_start: torch.Tensor | None = None, settings: AdjustSettings | None = None
                     ) -> AdjustProblem:
-        """A fresh :class:`AdjustProblem` warm-started at ``x_start`` (default: the initialized equilibrium), with
-        the solvers, adjoint and factorization reuse of ``settings`` (default: ``self.settings``)."""
+        """A fresh :class:`AdjustProblem` warm-started at ``x_start`` (default: the initialized equilibrium),
+        with the solvers, adjoint and factorization reuse of ``settings`` (default: ``self.settings``)."""
         s = self.settings if settings is None else settings
-        return AdjustProblem(self.model, self.param, self.objective, self.x_init if x_start is None else x_start,
-                             exact_settings=replace(self.exact_settings, reuse_factorization=s.reuse_factorization),
+        return AdjustProblem(self.model, self.param, self.objective,
+                             self.x_init if x_start is None else x_start,
+                             exact_settings=replace(self.exact_settings,
+                                                    reuse_factorization=s.reuse_factorization),
                              solver=s.solver, inexact_solver=s.inner_solver, adjoint=s.adjoint,
                              adjoint_rtol=s.adjoint_rtol, adjoint_max_iterations=s.adjoint_max_iterations,
                              retain_graph=s.optimizer == OptimizerKind.GN)
@@ -413,11 +420,12 @@ def prepare(
     settings = replace(settings) if settings is not None else AdjustSettings()
     settings.validate()
     if not isinstance(pattern_or_mesh, (SewingPattern, GarmentMesh)):
-        raise InputError(f"adjust takes a SewingPattern or a GarmentMesh, got {type(pattern_or_mesh).__name__}")
+        raise InputError("adjust takes a SewingPattern or a GarmentMesh, got "
+                         f"{type(pattern_or_mesh).__name__}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    dset = settings.drape if settings.drape is not None else DrapeSettings(edge_length=settings.edge_length,
-                                                                           voxel_size=settings.voxel_size)
+    dset = (settings.drape if settings.drape is not None
+            else DrapeSettings(edge_length=settings.edge_length, voxel_size=settings.voxel_size))
     settings.drape = dset
     base = drape(pattern_or_mesh, base_body, settings=dset, dtype=dtype, device=device)
     mesh_base = base.mesh
@@ -425,7 +433,8 @@ def prepare(
 
     t1 = time.perf_counter()
     kw = {} if settings.band is None else {"band": settings.band}
-    x_transfer = transfer_deformation(base.x, base_body, target_body, **kw).to(dtype=dtype, device=mesh_base.device)
+    x_transfer = transfer_deformation(base.x, base_body, target_body,
+                                      **kw).to(dtype=dtype, device=mesh_base.device)
     timings["transfer_seconds"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
@@ -436,7 +445,8 @@ def prepare(
     # (quadratic sampling): the objective's own default grid (2.5 mm) cost 5-10 s per new body to build
     sdf = _target_sdf(target_body, dset.voxel_size, dtype, mesh_base.device)
     base_grid = _target_sdf(base_body, dset.voxel_size, dtype, mesh_base.device)
-    objective = AdjustObjective(mesh_base, base_body, target_body, param, settings.weights, x_transfer=x_transfer,
+    objective = AdjustObjective(mesh_base, base_body, target_body, param, settings.weights,
+                                x_transfer=x_transfer,
                                 base_sdf=base_grid.with_sampling(SDFSampling.TRILINEAR),
                                 target_sdf=sdf.with_sampling(SDFSampling.TRILINEAR))
     mat = replace(dset.material)
@@ -449,7 +459,8 @@ def prepare(
         effects.add(Effect.SEW)
     model = Scene(mesh_base.with_positions(x_transfer), body_sdf=sdf, effects=effects, material=mat).build()
     weight = float(mesh_base.rest_face_areas.abs().sum()) * mat.density * mat.gravity
-    exact = SolveSettings(rtol=0.0, atol=settings.atol_weight * weight, max_iterations=settings.max_solver_iterations,
+    exact = SolveSettings(rtol=0.0, atol=settings.atol_weight * weight,
+                          max_iterations=settings.max_solver_iterations,
                           reuse_factorization=settings.reuse_factorization)
     problem = AdjustProblem(model, param, objective, x_transfer, exact_settings=exact, solver=settings.solver,
                             inexact_solver=settings.inner_solver)
@@ -472,8 +483,9 @@ def prepare(
                 problem.term_values(), True
     timings["initialization_seconds"] = time.perf_counter() - t1
     pattern = pattern_or_mesh if isinstance(pattern_or_mesh, SewingPattern) else None
-    return AdjustSetup(settings, pattern, mesh_base, dict(base.metrics), x_transfer, param, objective, model, exact,
-                       q_base, x_before, f_base, terms_base, q_init, x_init, f_init, terms_init, init_used, timings)
+    return AdjustSetup(settings, pattern, mesh_base, dict(base.metrics), x_transfer, param, objective, model,
+                       exact, q_base, x_before, f_base, terms_base, q_init, x_init, f_init, terms_init,
+                       init_used, timings)
 
 
 def optimize(
@@ -506,11 +518,13 @@ def optimize(
     use_inexact = settings.inexact and kind == OptimizerKind.PGD
     opt = make_optimizer(kind, [q], preconditioner=setup.objective.regularizer_hessian(), problem=problem,
                          lr=settings.step if settings.step is not None else (
-                             math.inf if kind == OptimizerKind.PGD else 1.0), line_search=not use_inexact,
-                         max_displacement=settings.max_displacement, edges=setup.mesh_base.edges,
+                             math.inf if kind == OptimizerKind.PGD else 1.0),
+                         line_search=not use_inexact, max_displacement=settings.max_displacement,
+                         edges=setup.mesh_base.edges,
                          boundary_index=setup.param.boundary_index, x_target=setup.x_transfer)
     runner = InexactRunner(problem, opt, q, InexactSettings(
-        inner_iterations=settings.inner_iterations, exact_interval=settings.exact_interval, exact=not use_inexact))
+        inner_iterations=settings.inner_iterations, exact_interval=settings.exact_interval,
+        exact=not use_inexact))
     term_history: list[dict[str, float]] = []
     if resume:
         state = torch.load(ckpt_path, weights_only=False)
@@ -529,7 +543,8 @@ def optimize(
         logger.log(rec, terms)
         if callback is not None:
             callback(rec, terms)
-        if ckpt_path is not None and settings.checkpoint_every and rec.iteration % settings.checkpoint_every == 0:
+        if (ckpt_path is not None and settings.checkpoint_every
+                and rec.iteration % settings.checkpoint_every == 0):
             _save_checkpoint(ckpt_path.parent, checkpoint_state())
 
     try:
@@ -589,9 +604,10 @@ def optimize(
         **setup.timings,
     }
     return AdjustResult(pattern=pattern_out, base_pattern=setup.pattern, mesh_base=mesh_base,
-                        mesh_target=mesh_target, x_transfer=setup.x_transfer, x_base_on_target=setup.x_base_on_target,
-                        q_base=setup.q_base, q=run.q, boundary_index=param.boundary_index, metrics=metrics,
-                        records=run.records, term_history=term_history)
+                        mesh_target=mesh_target, x_transfer=setup.x_transfer,
+                        x_base_on_target=setup.x_base_on_target, q_base=setup.q_base, q=run.q,
+                        boundary_index=param.boundary_index, metrics=metrics, records=run.records,
+                        term_history=term_history)
 
 
 def adjust(
@@ -626,8 +642,8 @@ def adjust(
         The :class:`AdjustResult`; ``metrics`` holds ``objective_base``, ``objective_initial``,
         ``objective_final``, ``reduction_percent``, ``reduction_vs_base_percent``, ``terms`` (base, initial,
         final), ``max_boundary_displacement_mm``, ``iterations``, ``seconds`` (optimization),
-        ``seconds_per_iteration``, ``closure_calls``, ``sim_iterations``, ``backtracks``, ``exact_evaluations``
-        and the timings of each stage (``total_seconds`` included).
+        ``seconds_per_iteration``, ``closure_calls``, ``sim_iterations``, ``backtracks``,
+        ``exact_evaluations`` and the timings of each stage (``total_seconds`` included).
 
     Raises:
         InputError: bad settings or input; ``resume`` without a checkpoint.

@@ -30,7 +30,8 @@ from torchgarment.structures.garment_mesh import GarmentMesh, MeshLayout
 MAX_STITCH_LENGTH_RATIO = 1.5
 """Stitched edges may differ in length by this ratio (gathering); see :meth:`SewingPattern.validate`."""
 
-_MAX_MIN_ANGLE = 34.0  # Triangle's quality refinement is only guaranteed to terminate up to about 33.8 degrees
+# Triangle's quality refinement is only guaranteed to terminate up to about 33.8 degrees
+_MAX_MIN_ANGLE = 34.0
 
 
 def edge_segment_counts(pattern: SewingPattern, edge_length: float) -> dict[str, np.ndarray]:
@@ -45,7 +46,8 @@ def edge_segment_counts(pattern: SewingPattern, edge_length: float) -> dict[str,
         larger count of the two sides for stitched edges.
     """
     counts = {
-        name: np.array([max(1, math.ceil(panel.edge_length(i) / edge_length - 1e-9)) for i in range(len(panel.edges))],
+        name: np.array([max(1, math.ceil(panel.edge_length(i) / edge_length - 1e-9))
+                        for i in range(len(panel.edges))],
                        dtype=np.int64)
         for name, panel in pattern.panels.items()
     }
@@ -101,10 +103,12 @@ def mesh_pattern(
     # edge_length on the four GarmentCode specs (measured 0.83 edge_length with the plain equilateral area)
     max_area = 1.44 * math.sqrt(3.0) / 4.0 * edge_length**2
     # Triangle parses its switches itself: no exponent notation
-    opts = f"pq{np.format_float_positional(min_angle, trim='-')}a{np.format_float_positional(max_area, trim='-')}YQ"
+    opts = (f"pq{np.format_float_positional(min_angle, trim='-')}"
+            f"a{np.format_float_positional(max_area, trim='-')}YQ")
 
     xs, ps, fs, ids = [], [], [], []
-    runs: dict[str, list[np.ndarray]] = {}  # panel -> per edge, its (n + 1,) vertices from start to end vertex
+    # panel -> per edge, its (n + 1,) vertices from start to end vertex
+    runs: dict[str, list[np.ndarray]] = {}
     starts, nbs = [0], []
     offset = 0
     for k, (name, panel) in enumerate(pattern.panels.items()):
@@ -146,7 +150,8 @@ def mesh_pattern(
         tuple(pattern.panels),
         torch.as_tensor(starts, dtype=torch.long, device=dev),
         torch.as_tensor(nbs, dtype=torch.long, device=dev),
-        tuple(tuple(torch.as_tensor(r, dtype=torch.long, device=dev) for r in runs[name]) for name in pattern.panels),
+        tuple(tuple(torch.as_tensor(r, dtype=torch.long, device=dev) for r in runs[name])
+              for name in pattern.panels),
     )
     return GarmentMesh.from_arrays(
         np.concatenate(xs), np.concatenate(fs), p=np.concatenate(ps), panel_ids=np.concatenate(ids),

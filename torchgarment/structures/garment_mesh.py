@@ -12,15 +12,15 @@ each panel's vertices are contiguous, its outline comes first, edge by edge, and
 reads them there instead of re-deriving the meshing convention.
 
 Derived data (edges, boundary loops, hinge stencils, areas, normals) is computed on first use and cached,
-pytorch3d style. The topology cache is shared (by reference) with meshes made by :meth:`GarmentMesh.with_positions`;
-geometry caches are per mesh.
+pytorch3d style. The topology cache is shared (by reference) with meshes made by
+:meth:`GarmentMesh.with_positions`; geometry caches are per mesh.
 Treat the tensors of a mesh as immutable: make a new mesh (``with_positions``, ``clone``) instead of
 editing them in place, or the caches go stale.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,14 +33,16 @@ from torchgarment.structures.mesh_checks import DEFAULT_AREA_TOL, check_mesh, fi
 
 def _as_tensor(a: Any, dtype: torch.dtype, device: torch.device | str | None, what: str) -> torch.Tensor:
     try:
-        return torch.as_tensor(np.asarray(a) if not isinstance(a, torch.Tensor) else a, dtype=dtype, device=device)
+        return torch.as_tensor(np.asarray(a) if not isinstance(a, torch.Tensor) else a, dtype=dtype,
+                               device=device)
     except (TypeError, ValueError, RuntimeError) as exc:
         raise MeshError(f"{what} cannot be converted to a {dtype} tensor: {exc}") from exc
 
 
 @dataclass(frozen=True)
 class MeshLayout:
-    """Where a pattern's panels and edges lie in a mesh made by ``mesh_pattern``: a (panel, edge) -> vertices table.
+    """Where a pattern's panels and edges lie in a mesh made by ``mesh_pattern``: a (panel, edge) -> vertices
+    table.
 
     The vertices of panel ``k`` are ``panel_starts[k]`` to ``panel_starts[k + 1] - 1``; the first
     ``boundary_counts[k]`` of them are the panel's outline in the order of its edges (each edge's samples from
@@ -51,8 +53,9 @@ class MeshLayout:
         panel_starts: (P + 1,) long vertex index of each panel's first vertex; ``panel_starts[-1]`` is V.
         boundary_counts: (P,) long number of outline vertices of each panel.
         edge_runs: per panel (P entries), per edge in the panel's edge order, a (n + 1,) long tensor: the mesh
-            vertices of the edge's ``n`` boundary segments from its start vertex to its end vertex, both included
-            (the last edge ends at the panel's first vertex; consecutive runs share their corner vertex).
+            vertices of the edge's ``n`` boundary segments from its start vertex to its end vertex, both
+            included (the last edge ends at the panel's first vertex; consecutive runs share their corner
+            vertex).
     """
 
     panel_names: tuple[str, ...]
@@ -104,7 +107,8 @@ class MeshLayout:
         return runs[edge]
 
     def boundary(self, panel: str) -> torch.Tensor:
-        """(B,) long outline vertices of ``panel`` in edge order (each corner once, the first edge's start first)."""
+        """(B,) long outline vertices of ``panel`` in edge order (each corner once, the first edge's start
+        first)."""
         k = self.panel_index(panel)
         start = int(self.panel_starts[k])
         return torch.arange(start, start + int(self.boundary_counts[k]), dtype=torch.long, device=self.device)
@@ -151,14 +155,16 @@ class GarmentMesh:
         """
         if not isinstance(x, torch.Tensor) or x.ndim != 2 or x.shape[1] != 3 or not x.is_floating_point():
             raise MeshError(f"x must be a floating (V, 3) tensor, got {_describe(x)}")
-        if not isinstance(faces, torch.Tensor) or faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype != torch.long:
+        if (not isinstance(faces, torch.Tensor) or faces.ndim != 2 or faces.shape[1] != 3
+                or faces.dtype != torch.long):
             raise MeshError(f"faces must be a long (F, 3) tensor, got {_describe(faces)}")
         V, F = x.shape[0], faces.shape[0]
         if p is not None and (not isinstance(p, torch.Tensor) or p.shape != (V, 2) or p.dtype != x.dtype):
             raise MeshError(f"p must be a ({V}, 2) {x.dtype} tensor, got {_describe(p)}")
         if panel_ids is not None and (not isinstance(panel_ids, torch.Tensor) or panel_ids.shape != (F,)
                                       or panel_ids.dtype != torch.long):
-            raise MeshError(f"panel_ids must be a long ({F},) tensor (one id per face), got {_describe(panel_ids)}")
+            raise MeshError(f"panel_ids must be a long ({F},) tensor (one id per face), got "
+                            f"{_describe(panel_ids)}")
         if seam_pairs is None:
             seam_pairs = torch.zeros(0, 2, dtype=torch.long, device=x.device)
         if not isinstance(seam_pairs, torch.Tensor) or seam_pairs.ndim != 2 or seam_pairs.shape[1] != 2 \
@@ -171,8 +177,9 @@ class GarmentMesh:
             if not isinstance(layout, MeshLayout):
                 raise MeshError(f"layout must be a MeshLayout, got {type(layout).__name__}")
             if layout.num_vertices != V or layout.panel_names != tuple(str(n) for n in panel_names):
-                raise MeshError(f"layout describes {layout.num_vertices} vertices and panels {layout.panel_names}, "
-                                f"the mesh has {V} vertices and panels {tuple(panel_names)}")
+                raise MeshError(f"layout describes {layout.num_vertices} vertices and panels "
+                                f"{layout.panel_names}, the mesh has {V} vertices and panels "
+                                f"{tuple(panel_names)}")
             if layout.device != x.device:
                 raise MeshError(f"layout is on {layout.device} but x is on {x.device}")
         self.x = x
@@ -215,7 +222,8 @@ class GarmentMesh:
             p=None if p is None else _as_tensor(p, dtype, device, "p"),
             panel_ids=None if panel_ids is None else _as_tensor(panel_ids, torch.long, device, "panel_ids"),
             panel_names=panel_names,
-            seam_pairs=None if seam_pairs is None else _as_tensor(seam_pairs, torch.long, device, "seam_pairs"),
+            seam_pairs=(None if seam_pairs is None
+                        else _as_tensor(seam_pairs, torch.long, device, "seam_pairs")),
             layout=None if layout is None else layout.to(device),
         )
 
@@ -250,15 +258,17 @@ class GarmentMesh:
         return self.x.dtype
 
     def __repr__(self) -> str:
-        extra = f", {len(self.panel_names)} panels, {self.seam_pairs.shape[0]} seam pairs" if self.p is not None else ""
-        return f"GarmentMesh({self.num_vertices} vertices, {self.num_faces} faces{extra}, {self.dtype}, {self.device})"
+        extra = (f", {len(self.panel_names)} panels, {self.seam_pairs.shape[0]} seam pairs"
+                 if self.p is not None else "")
+        return (f"GarmentMesh({self.num_vertices} vertices, {self.num_faces} faces{extra}, {self.dtype}, "
+                f"{self.device})")
 
     # ------------------------------------------------------------------------------------ copies
-    def _new(self, x: torch.Tensor, faces: torch.Tensor, p: torch.Tensor | None, panel_ids: torch.Tensor | None,
-             seam_pairs: torch.Tensor) -> GarmentMesh:
+    def _new(self, x: torch.Tensor, faces: torch.Tensor, p: torch.Tensor | None,
+             panel_ids: torch.Tensor | None, seam_pairs: torch.Tensor) -> GarmentMesh:
         layout = None if self.layout is None else self.layout.to(x.device)
-        return GarmentMesh(x, faces, p=p, panel_ids=panel_ids, panel_names=self.panel_names, seam_pairs=seam_pairs,
-                           layout=layout)
+        return GarmentMesh(x, faces, p=p, panel_ids=panel_ids, panel_names=self.panel_names,
+                           seam_pairs=seam_pairs, layout=layout)
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> GarmentMesh:
         """A mesh on ``device`` with floating tensors of ``dtype`` (index tensors stay long).
@@ -296,7 +306,8 @@ class GarmentMesh:
                           panel_ids=None if self.panel_ids is None else self.panel_ids.to(x.device),
                           panel_names=self.panel_names, seam_pairs=self.seam_pairs.to(x.device),
                           layout=None if self.layout is None else self.layout.to(x.device))
-        out._topo = self._topo if x.device == self.device else {k: _move(v, x.device) for k, v in self._topo.items()}
+        out._topo = (self._topo if x.device == self.device
+                     else {k: _move(v, x.device) for k, v in self._topo.items()})
         return out
 
     # ------------------------------------------------------------------------------------ topology
@@ -327,7 +338,8 @@ class GarmentMesh:
 
     @property
     def face_edges(self) -> torch.Tensor:
-        """(F, 3) long: ``face_edges[f, k]`` indexes :attr:`edges` for the side ``faces[f, k]`` -> ``faces[f, k+1]``."""
+        """(F, 3) long: ``face_edges[f, k]`` indexes :attr:`edges` for the side ``faces[f, k]`` ->
+        ``faces[f, k+1]``."""
         if "face_edges" not in self._topo:
             self._edge_table()
         return self._topo["face_edges"]
@@ -399,7 +411,8 @@ class GarmentMesh:
         """(V,) long panel index of every vertex (from its faces), -1 for unreferenced vertices.
 
         Raises:
-            MeshError: no ``panel_ids``, or a vertex is used by faces of two panels (panels must stay separate).
+            MeshError: no ``panel_ids``, or a vertex is used by faces of two panels (panels must stay
+                separate).
         """
         if "vertex_panel_ids" not in self._topo:
             if self.panel_ids is None:
@@ -419,7 +432,7 @@ class GarmentMesh:
         return self._topo["vertex_panel_ids"]
 
     # ------------------------------------------------------------------------------------ geometry
-    def _cached_geometry(self, key: str, fn) -> torch.Tensor:  # noqa: ANN001
+    def _cached_geometry(self, key: str, fn: Callable[[], torch.Tensor]) -> torch.Tensor:
         if key not in self._cache:
             self._cache[key] = fn()
         return self._cache[key]
@@ -488,22 +501,23 @@ class GarmentMesh:
         V = self.num_vertices
         over = torch.nonzero(self.edge_face_counts > 2, as_tuple=False).flatten()
         if over.numel():
-            raise MeshError(f"{name}: {over.numel()} non-manifold edges (shared by more than two faces), first "
-                            f"{self.edges[over[0]].tolist()}")
+            raise MeshError(f"{name}: {over.numel()} non-manifold edges (shared by more than two faces), "
+                            f"first {self.edges[over[0]].tolist()}")
         f = self.faces
         directed = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], dim=0)
         key = torch.sort(directed[:, 0] * V + directed[:, 1]).values
         dup = torch.nonzero(key[1:] == key[:-1], as_tuple=False).flatten()
         if dup.numel():
             k = int(key[dup[0]])
-            raise MeshError(f"{name}: {dup.numel()} edges where neighbouring faces have opposite orientation, "
-                            f"first {(k // V, k % V)}")
+            raise MeshError(f"{name}: {dup.numel()} edges where neighbouring faces have opposite "
+                            f"orientation, first {(k // V, k % V)}")
         if self.p is not None:
             if not bool(torch.isfinite(self.p).all()):
                 raise MeshError(f"{name}: rest positions p are not finite")
             bad = find_degenerate_faces(self.p, self.faces, area_tol)
             if bad.numel():
-                raise MeshError(f"{name}: {bad.numel()} degenerate rest (2D) triangles, first {bad[:5].tolist()}")
+                raise MeshError(f"{name}: {bad.numel()} degenerate rest (2D) triangles, first "
+                                f"{bad[:5].tolist()}")
             # one orientation per panel (a panel drawn clockwise in 2D has all its rest triangles clockwise)
             group = self.panel_ids if self.panel_ids is not None else torch.zeros_like(self.faces[:, 0])
             sign = torch.sign(self.rest_face_areas).long()
@@ -519,7 +533,8 @@ class GarmentMesh:
         if self.panel_ids is not None:
             if self.panel_ids.numel() and (int(self.panel_ids.min()) < 0
                                            or int(self.panel_ids.max()) >= max(len(self.panel_names), 1)):
-                raise MeshError(f"{name}: panel_ids must lie in [0, {len(self.panel_names)}) (one per panel name)")
+                raise MeshError(f"{name}: panel_ids must lie in [0, {len(self.panel_names)}) "
+                                "(one per panel name)")
             if self.p is not None:  # rest positions are per panel: panels must not share vertices
                 self.vertex_panel_ids  # noqa: B018 - raises if they do
         s = self.seam_pairs

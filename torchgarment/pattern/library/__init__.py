@@ -73,7 +73,8 @@ def draft(name: str, measurements: DraftMeasurements | dict[str, float], **ease:
             raise InputError(f"option '{k}' must be a number, got {v!r}") from None
         if not math.isfinite(values[k]):
             raise InputError(f"option '{k}' must be finite, got {v!r}")
-    m = measurements if isinstance(measurements, DraftMeasurements) else DraftMeasurements.from_dict(measurements)
+    m = (measurements if isinstance(measurements, DraftMeasurements)
+         else DraftMeasurements.from_dict(measurements))
     pattern = fn(m, **values)
     pattern.validate()
     return pattern

@@ -5,7 +5,8 @@
 * :class:`QuadraticBending` - Bergou et al. 2006 cotangent hinge bending, also across seams.
 * :class:`Gravity` - lumped vertex masses from the rest areas.
 * :class:`Pins` - sticking springs to targets (pins, belts).
-* :class:`BodyBarrier` - ``-mu sum log phi`` on a body SDF (Eq. 4), with ``max_step`` and ``project_feasible``.
+* :class:`BodyBarrier` - ``-mu sum log phi`` on a body SDF (Eq. 4), with ``max_step`` and
+  ``project_feasible``.
 """
 
 from torchgarment.sim.energies.barrier import DEFAULT_BARRIER_DHAT, DEFAULT_BARRIER_MU, BodyBarrier
