@@ -4,11 +4,11 @@ Layers, lowest first (a module may import from its own layer and the layers belo
 
 | layer | packages and modules | what they hold |
 |---|---|---|
-| 0 foundations | errors, options, testing | error classes, option enums, finite-difference helpers |
+| 0 foundations | errors, options | error classes, option enums |
 | 1 linalg | linalg | sparse factorization, PCG, line search, CSR assembly |
 | 2 data | structures, io | GarmentMesh and mesh checks, files |
 | 3 domain | body, sdf, pattern | bodies, body distance fields, sewing patterns and meshing |
-| 4 simulation | sim | energies, scenes, solvers, the differentiable solve, draping |
+| 4 simulation | sim, testing | energies, scenes, solvers, differentiable solve, draping; FD checks |
 | 5 rendering | render | PNG renders (used by the command-line modules only) |
 | 6 methods | adjust, retarget, datadriven, studies | the three fitting methods, study metrics |
 | 7 commands | cli, __main__, adjust.cli, adjust.demo, retarget.cli, datadriven.cli, sim.drape_cli | CLI |
@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1] / "torchgarment"
 LAYERS: dict[str, int] = {
     "errors": 0,
     "options": 0,
-    "testing": 0,
+    "testing": 4,
     "linalg": 1,
     "structures": 2,
     "io": 2,

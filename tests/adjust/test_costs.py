@@ -25,7 +25,8 @@ _CACHE: dict = {}
 
 
 def base_mesh() -> GarmentMesh:
-    """A skirt whose 3D positions are the placed panels, wrapped onto a cylinder (bent, so hinges are non-flat)."""
+    """A skirt whose 3D positions are the placed panels, wrapped onto a cylinder (bent, so hinges are
+    non-flat)."""
     if "mesh" not in _CACHE:
         m = mesh_pattern(draft("straight_skirt", chart_row("12")), 0.05)
         x = m.x.clone()
@@ -147,4 +148,5 @@ def test_residuals_give_the_value():
     x, p = perturbed(m)
     for c in (StretchingCost(m, 3.0), SmoothnessCost(m, 0.5), PositionalCost.for_mesh(m, m.x, 7.0),
               DistanceCost.from_garment(m.x, SphereSDF(0.1), SphereSDF(0.12), 2.0)):
-        assert float(c(x, p)) == pytest.approx(0.5 * c.weight * float(c.residuals(x, p).pow(2).sum()), rel=1e-12)
+        assert float(c(x, p)) == pytest.approx(0.5 * c.weight * float(c.residuals(x, p).pow(2).sum()),
+                                               rel=1e-12)

@@ -30,7 +30,8 @@ def _runner(step: float = 1.0, max_move: float | None = 0.01, S: int = 1, M: int
     model, param, obj, x0, q0, _ = problem_parts()
     prob = AdjustProblem(model, param, obj, x0, exact_settings=EXACT, inexact_solver=solver)
     q = q0.clone().requires_grad_(True)
-    opt = PreconditionedGD([q], obj.regularizer_hessian(), lr=step, line_search=False, max_displacement=max_move)
+    opt = PreconditionedGD([q], obj.regularizer_hessian(), lr=step, line_search=False,
+                           max_displacement=max_move)
     return prob, q, InexactRunner(prob, opt, q, InexactSettings(inner_iterations=S, exact_interval=M))
 
 

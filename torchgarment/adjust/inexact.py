@@ -550,9 +550,10 @@ class InexactRunner:
                     # shrink the step actually taken (a step capped by a trust length is shorter than lr)
                     s_now = min(self.step_length, float(getattr(self.optimizer, "last_step_length", math.inf))
                                 or self.step_length)
-                    # the optimizer's state goes back to the checkpoint; its work counters (closure calls, failed
-                    # calls) and the step just taken do not
-                    work = {k: getattr(self.optimizer, k) for k in _WORK_COUNTERS if hasattr(self.optimizer, k)}
+                    # the optimizer's state goes back to the checkpoint; its work counters (closure calls,
+                    # failed calls) and the step just taken do not
+                    work = {k: getattr(self.optimizer, k) for k in _WORK_COUNTERS
+                            if hasattr(self.optimizer, k)}
                     self.optimizer.load_state_dict(copy.deepcopy(self.checkpoint["optimizer"]))
                     for k, v in work.items():
                         setattr(self.optimizer, k, v)

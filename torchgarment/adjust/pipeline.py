@@ -502,8 +502,8 @@ def optimize(
 
     Args:
         setup: from :func:`prepare`.
-        settings: optimizer settings (optimizer, iterations, inexact, S, M, step, max_displacement, checkpoint_every);
-            default ``setup.settings``.
+        settings: optimizer settings (optimizer, iterations, inexact, S, M, step, max_displacement,
+            checkpoint_every); default ``setup.settings``.
         log_dir, checkpoint_dir, progress, resume: see :func:`adjust`.
         callback: ``callback(record, terms)`` after every outer iteration.
     """

@@ -1,10 +1,10 @@
 """The differentiable quasistatic solve (Wang et al. 2018, section 7, Eq. 18-19).
 
-The equilibrium ``x*(theta)`` of a :class:`~torchgarment.sim.scene.SimModel` solves ``grad_x E(x*, theta) = 0``
-(the force ``f = -grad_x E`` vanishes), with ``theta`` the model's differentiable parameters: the planar springs'
-2D rest positions ``stretch.p`` (V, 2) in metres and per-edge shirring factors ``stretch.shirring`` (E,), the pin
-targets ``pins.targets`` (P, 3) in metres, and any other ``nn.Parameter`` a term owns directly. By the implicit
-function theorem, for a loss ``L(x*)``::
+The equilibrium ``x*(theta)`` of a :class:`~torchgarment.sim.scene.SimModel` solves ``grad_x E(x*, theta) =
+0`` (the force ``f = -grad_x E`` vanishes), with ``theta`` the model's differentiable parameters: the planar
+springs' 2D rest positions ``stretch.p`` (V, 2) in metres and per-edge shirring factors ``stretch.shirring``
+(E,), the pin targets ``pins.targets`` (P, 3) in metres, and any other ``nn.Parameter`` a term owns directly.
+By the implicit function theorem, for a loss ``L(x*)``::
 
     K lambda = dL/dx*,     K = d^2E/dx^2 (x*) = -df/dx (the UNPROJECTED Hessian, (3V, 3V), symmetric)
     dL/dtheta = -lambda^T d(grad_x E)/dtheta (x*, theta)
@@ -14,13 +14,13 @@ The second line is computed matrix-free (the paper's product): ``torch.autograd.
 (``create_graph=True``) from the terms' differentiable ``forward``. ``K`` is never formed densely: the adjoint
 system is solved by
 
-* :attr:`AdjointLinearSolver.SPARSE`: ``K`` assembled from ``model.hessian_blocks(x*, project_psd=False)`` into
-  a CSR matrix and factorized with SuperLU (scipy, on the CPU; GPU tensors are copied), or
-* :attr:`AdjointLinearSolver.CG`: preconditioned conjugate gradients with a 3x3 block-Jacobi preconditioner over
-  Hessian-vector products. The products come from the assembled blocks as a torch sparse CSR matrix
+* :attr:`AdjointLinearSolver.SPARSE`: ``K`` assembled from ``model.hessian_blocks(x*, project_psd=False)``
+  into a CSR matrix and factorized with SuperLU (scipy, on the CPU; GPU tensors are copied), or
+* :attr:`AdjointLinearSolver.CG`: preconditioned conjugate gradients with a 3x3 block-Jacobi preconditioner
+  over Hessian-vector products. The products come from the assembled blocks as a torch sparse CSR matrix
   (:attr:`HessianProduct.ASSEMBLED`, the default; scipy CSR on the CPU, torch CSR elsewhere) or from autograd
-  double-backward of ``model.energy`` (:attr:`HessianProduct.AUTOGRAD`; needs twice-differentiable terms, which
-  a :class:`~torchgarment.sdf.BodySDF` is not).
+  double-backward of ``model.energy`` (:attr:`HessianProduct.AUTOGRAD`; needs twice-differentiable terms,
+  which a :class:`~torchgarment.sdf.BodySDF` is not).
 
 Exactness of ``K``: every term's unprojected blocks are exact except the body barrier's, which drop
 ``-mu Hess(phi) / phi`` (see :mod:`torchgarment.sim.energies.barrier`). :func:`exact_hessian_blocks` adds that
@@ -69,15 +69,15 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.linalg
 import torch
 from torch.autograd.function import FunctionCtx
-from torch.func import functional_call, grad as func_grad, jvp as func_jvp
+from torch.func import functional_call
+from torch.func import grad as func_grad
+from torch.func import jvp as func_jvp
 
 from torchgarment.errors import InputError, NonConvergenceError
 from torchgarment.linalg import CSRAssembler, FactorizationCache, armijo_backtracking, pcg
@@ -188,10 +188,11 @@ def barrier_curvature_blocks(term: BodyBarrier, x: torch.Tensor) -> torch.Tensor
 
 
 def exact_hessian_blocks(model: torch.nn.Module, x: torch.Tensor) -> HessianBlocks:
-    """The unprojected Hessian ``d^2E/dx^2`` of ``model`` at ``x`` as block-COO, including the barrier curvature.
+    """The unprojected Hessian ``d^2E/dx^2`` of ``model`` at ``x`` as block-COO, including the barrier
+    curvature.
 
-    ``model.hessian_blocks(x, project_psd=False)`` plus, for every :class:`BodyBarrier` term, the diagonal blocks
-    of :func:`barrier_curvature_blocks` (zero for a planar SDF).
+    ``model.hessian_blocks(x, project_psd=False)`` plus, for every :class:`BodyBarrier` term, the diagonal
+    blocks of :func:`barrier_curvature_blocks` (zero for a planar SDF).
 
     Args:
         model: a SimModel. x: (V, 3) positions in metres.
@@ -237,8 +238,8 @@ def check_twice_differentiable(model: torch.nn.Module, x: torch.Tensor, rtol: fl
         err = float(torch.linalg.vector_norm(hv - ref)) / max(float(torch.linalg.vector_norm(ref)), 1e-300)
         if not err <= rtol:
             raise InputError(f"the body SDF ({type(t.sdf).__name__}) is not twice differentiable by autograd "
-                             f"(autograd Hessian-vector products are off by {err:.2g}, relative): autograd Hessians "
-                             f"would be wrong")
+                             f"(autograd Hessian-vector products are off by {err:.2g}, relative): autograd "
+                             f"Hessians would be wrong")
 
 
 def _diagonal_blocks(blocks: HessianBlocks, num_vertices: int) -> torch.Tensor:
@@ -283,8 +284,8 @@ def solve_adjoint(
         require_convergence: False accepts CG's iterate when the budget runs out or at a direction of
             non-positive curvature (an inexact adjoint; ``info.relative_residual`` says how inexact).
         assembler: a :class:`CSRAssembler` reused across calls (it caches the COO -> CSR permutation).
-        cache: a :class:`FactorizationCache` keyed on ``x``: SPARSE solves at the same ``x`` (an adjoint and the
-            tangent solves of Gauss-Newton products) share one factorization.
+        cache: a :class:`FactorizationCache` keyed on ``x``: SPARSE solves at the same ``x`` (an adjoint and
+            the tangent solves of Gauss-Newton products) share one factorization.
 
     CG is preconditioned with the simulator's block Jacobi, each seam pair of a ``sew`` term as one 6x6 block
     (:class:`~torchgarment.sim.solvers.chebyshev.JacobiState`): stiff seams otherwise slow CG down.
@@ -294,8 +295,8 @@ def solve_adjoint(
         :class:`AdjointInfo`.
 
     Raises:
-        NonConvergenceError: CG did not reach ``rtol`` or met negative curvature (with ``require_convergence``),
-            or ``K`` is singular.
+        NonConvergenceError: CG did not reach ``rtol`` or met negative curvature (with
+            ``require_convergence``), or ``K`` is singular.
         InputError: AUTOGRAD products on a model that is not twice differentiable.
     """
     kind = AdjointLinearSolver.resolve(linear_solver)
@@ -336,7 +337,8 @@ def solve_adjoint(
         check_twice_differentiable(model, x)
         diag = _diagonal_blocks(exact_hessian_blocks(model, x), V)
         matvec = _autograd_hvp(model, x)
-    pre = JacobiState(SolveSettings(preconditioner=Preconditioner.BLOCK, diagonal_floor=1e-10), seam_pairs(model))
+    pre = JacobiState(SolveSettings(preconditioner=Preconditioner.BLOCK, diagonal_floor=1e-10),
+                      seam_pairs(model))
     pre.rebuild(diag)
     n_max = max(200, 3 * V) if max_iterations is None else int(max_iterations)
     lam, k, res = pcg(matvec, rhs, lambda r: apply_inverse(pre.inverse, r), rtol, n_max, x0=x0,
@@ -344,8 +346,8 @@ def solve_adjoint(
     if not bool(torch.isfinite(lam).all()):
         raise NonConvergenceError("adjoint CG returned non-finite values")
     if require_convergence and not res <= rtol:
-        raise NonConvergenceError(f"adjoint CG did not converge: relative residual {res:.3g} > {rtol:g} after {k} "
-                                  f"iterations; raise cg_max_iterations or use the 'sparse' solver")
+        raise NonConvergenceError(f"adjoint CG did not converge: relative residual {res:.3g} > {rtol:g} "
+                                  f"after {k} iterations; raise cg_max_iterations or use the 'sparse' solver")
     return lam, AdjointInfo(kind.value, k, res, time.perf_counter() - t0)
 
 
@@ -387,7 +389,8 @@ def _parameter_slots(model: torch.nn.Module) -> list[_ParamSlot]:
 def parameter_vjp(
     model: torch.nn.Module, x: torch.Tensor, lam: torch.Tensor, values: Mapping[str, torch.Tensor]
 ) -> dict[str, torch.Tensor]:
-    """``-lambda^T d(grad_x E)/dtheta`` at ``x`` for the parameters in ``values``, matrix-free through autograd.
+    """``-lambda^T d(grad_x E)/dtheta`` at ``x`` for the parameters in ``values``, matrix-free through
+    autograd.
 
     Args:
         model: a SimModel.
@@ -396,7 +399,8 @@ def parameter_vjp(
         values: term parameter values by qualified name (``"stretch.p"``), each shaped like the parameter.
 
     Returns:
-        The gradient for each name in ``values``, shaped like it (zeros where the energy does not depend on it).
+        The gradient for each name in ``values``, shaped like it (zeros where the energy does not depend on
+        it).
     """
     slots = {s.name: s for s in _parameter_slots(model)}
     leafs = {n: v.detach().clone().requires_grad_(True) for n, v in values.items()}
@@ -413,16 +417,16 @@ def parameter_vjp(
     return {n: torch.zeros_like(leafs[n]) if gr is None else -gr for n, gr in zip(leafs, grads)}
 
 
-# ---------------------------------------------------------------------------------------------- autograd.Function
+# ----------------------------------------------------------------------------------- autograd.Function
 class QuasistaticSolve(torch.autograd.Function):
     """``x* = argmin_x E(x; theta)`` with the adjoint backward (see the module docstring).
 
-    ``forward(ctx, layer, names, request, *values)``: ``layer`` is the :class:`DifferentiableSolver` (it holds the
-    model, settings, warm start and factorization cache), ``names`` the qualified parameter names, ``request`` the
-    :class:`SolveRequest` of this call (exact, or ``S`` solver iterations) and ``values`` the parameter tensors.
-    Returns the equilibrium (V, 3). ``backward`` solves ``K lambda = dL/dx*`` with the layer's adjoint solver
-    (:meth:`DifferentiableSolver.adjoint`) and returns ``-lambda^T d(grad E)/dtheta`` for the values that need a
-    gradient. First-order only (no double backward).
+    ``forward(ctx, layer, names, request, *values)``: ``layer`` is the :class:`DifferentiableSolver` (it holds
+    the model, settings, warm start and factorization cache), ``names`` the qualified parameter names,
+    ``request`` the :class:`SolveRequest` of this call (exact, or ``S`` solver iterations) and ``values`` the
+    parameter tensors. Returns the equilibrium (V, 3). ``backward`` solves ``K lambda = dL/dx*`` with the
+    layer's adjoint solver (:meth:`DifferentiableSolver.adjoint`) and returns ``-lambda^T d(grad E)/dtheta``
+    for the values that need a gradient. First-order only (no double backward).
     """
 
     @staticmethod
@@ -451,10 +455,10 @@ class SolveRequest:
     """What one call of a :class:`DifferentiableSolver` solves.
 
     Attributes:
-        iterations: None for an exact solve (to the force tolerance; a miss raises with ``strict``), else ``S``:
-            run at most ``S`` iterations of the layer's ``inexact_solver`` from the warm start (Wang 2018,
-            Algorithm 1); the result need not be an equilibrium and its gradient is the paper's inexact one (the
-            adjoint at the state reached).
+        iterations: None for an exact solve (to the force tolerance; a miss raises with ``strict``), else
+            ``S``: run at most ``S`` iterations of the layer's ``inexact_solver`` from the warm start (Wang
+            2018, Algorithm 1); the result need not be an equilibrium and its gradient is the paper's inexact
+            one (the adjoint at the state reached).
         max_iterations: iteration budget of an exact solve (None: ``settings.max_iterations``).
     """
 
@@ -468,14 +472,14 @@ class DifferentiableSolver(torch.nn.Module):
 
     Parameters are named by their qualified name ``"<term>.<attribute>"`` (``"stretch.p"``,
     ``"stretch.shirring"``, ``"pins.targets"``) or by the bare attribute when that is unique (``"p"``). Each
-    call writes the given values into the model (in place, without grad; parameters not given keep their current
-    values), solves from the previous solution (the warm start; the cold start ``x0`` the first time and after
-    :meth:`reset`), and returns the equilibrium (V, 3) in metres. Gradients flow to every given value that
-    requires grad, through :class:`QuasistaticSolve` (ADJOINT) or autograd (UNROLL, TRUNCATED).
+    call writes the given values into the model (in place, without grad; parameters not given keep their
+    current values), solves from the previous solution (the warm start; the cold start ``x0`` the first time
+    and after :meth:`reset`), and returns the equilibrium (V, 3) in metres. Gradients flow to every given
+    value that requires grad, through :class:`QuasistaticSolve` (ADJOINT) or autograd (UNROLL, TRUNCATED).
 
-    Convergence: the force tolerance is ``max(settings.atol, settings.rtol * |g(x0)|)`` with ``g(x0)`` the force
-    at the cold start for the current parameters, so a warm start stops at the same accuracy as a cold one. A
-    solve that misses it raises :class:`NonConvergenceError` (``strict=True``) or warns.
+    Convergence: the force tolerance is ``max(settings.atol, settings.rtol * |g(x0)|)`` with ``g(x0)`` the
+    force at the cold start for the current parameters, so a warm start stops at the same accuracy as a cold
+    one. A solve that misses it raises :class:`NonConvergenceError` (``strict=True``) or warns.
 
     Args:
         model: the SimModel (frozen; its parameters are overwritten by calls).
@@ -490,8 +494,8 @@ class DifferentiableSolver(torch.nn.Module):
         cg_rtol: adjoint CG relative tolerance.
         cg_max_iterations: CG budget (None = ``max(200, 3V)``).
         cg_warm_start: start each adjoint CG from the previous adjoint (a sequence of nearby solves).
-        cg_require_convergence: False accepts CG's iterate at the budget or at non-positive curvature (an inexact
-            adjoint, Wang 2018 section 7; ``last_adjoint_info.relative_residual`` says how inexact).
+        cg_require_convergence: False accepts CG's iterate at the budget or at non-positive curvature (an
+            inexact adjoint, Wang 2018 section 7; ``last_adjoint_info.relative_residual`` says how inexact).
         truncated_steps: Newton steps unrolled in TRUNCATED mode (>= 1).
         unroll_iterations: Newton iteration budget of UNROLL mode.
         warm_start: start each solve from the last solution.
@@ -523,7 +527,8 @@ class DifferentiableSolver(torch.nn.Module):
     ) -> None:
         super().__init__()
         self.model = model
-        if not isinstance(x0, torch.Tensor) or x0.shape != (model.num_vertices, 3) or not x0.is_floating_point():
+        if (not isinstance(x0, torch.Tensor) or x0.shape != (model.num_vertices, 3)
+                or not x0.is_floating_point()):
             raise InputError(f"x0 must be a floating ({model.num_vertices}, 3) tensor, got "
                              f"{getattr(x0, 'shape', type(x0))}")
         self.settings = SolveSettings(rtol=1e-8, max_iterations=200) if settings is None else settings
@@ -575,7 +580,8 @@ class DifferentiableSolver(torch.nn.Module):
 
     @property
     def factorizations(self) -> int:
-        """Sparse factorizations of ``K`` done so far (one per new state a SPARSE adjoint or tangent needs)."""
+        """Sparse factorizations of ``K`` done so far (one per new state a SPARSE adjoint or tangent
+        needs)."""
         return self._factorizations.factorizations
 
     # ------------------------------------------------------------------ call
@@ -585,8 +591,8 @@ class DifferentiableSolver(torch.nn.Module):
 
         Args:
             params: values by name (qualified or bare attribute name).
-            iterations: None (an exact solve) or ``S``, the iterations of an inexact one (:class:`SolveRequest`;
-                ADJOINT mode only).
+            iterations: None (an exact solve) or ``S``, the iterations of an inexact one
+                (:class:`SolveRequest`; ADJOINT mode only).
             max_iterations: the budget of an exact solve (default ``settings.max_iterations``).
             **kwargs: more values by name (``p=...``); a name may not appear in both.
 
@@ -617,7 +623,8 @@ class DifferentiableSolver(torch.nn.Module):
             x = self._solve_no_grad(values, request)
             if self.truncated_steps > 1:
                 check_twice_differentiable(self.model, x)
-            return self._newton_unrolled(values, x, self.truncated_steps, tol=None, differentiate_hessian=False)
+            return self._newton_unrolled(values, x, self.truncated_steps, tol=None,
+                                         differentiate_hessian=False)
         with torch.no_grad():
             self._write(values)
             tol = self._tolerance()
@@ -636,7 +643,8 @@ class DifferentiableSolver(torch.nn.Module):
         given: dict[str, torch.Tensor] = {}
         for src in (params or {}, kwargs):
             if not isinstance(src, Mapping):
-                raise InputError(f"parameters must be given as a mapping of name -> tensor, got {type(src).__name__}")
+                raise InputError("parameters must be given as a mapping of name -> tensor, got "
+                                 f"{type(src).__name__}")
             for key, v in src.items():
                 slot = self._slot(key)
                 if slot.name in given:
@@ -645,8 +653,8 @@ class DifferentiableSolver(torch.nn.Module):
                 if not isinstance(v, torch.Tensor) or v.shape != ref.shape or v.dtype != ref.dtype \
                         or v.device != ref.device:
                     raise InputError(f"parameter {slot.name!r} must be a {ref.dtype} tensor of shape "
-                                     f"{tuple(ref.shape)} on {ref.device}, got {getattr(v, 'dtype', type(v))} "
-                                     f"{tuple(getattr(v, 'shape', ()))}")
+                                     f"{tuple(ref.shape)} on {ref.device}, got "
+                                     f"{getattr(v, 'dtype', type(v))} {tuple(getattr(v, 'shape', ()))}")
                 if not bool(torch.isfinite(v.detach()).all()):
                     raise InputError(f"parameter {slot.name!r} contains NaN or infinite values")
                 given[slot.name] = v
@@ -685,14 +693,17 @@ class DifferentiableSolver(torch.nn.Module):
         start = self._x_last if (self.warm_start and self._x_last is not None) else self.x_init
         settings = replace(self.settings, rtol=0.0, atol=tol)
         if request.iterations is not None:  # inexact: S iterations, stopping early at the tolerance
-            x, info = solve(self.model, start, settings, solver=self.inexact_solver, max_iterations=request.iterations)
+            x, info = solve(self.model, start, settings, solver=self.inexact_solver,
+                            max_iterations=request.iterations)
         else:
-            x, info = solve(self.model, start, settings, solver=self.solver, max_iterations=request.max_iterations)
+            x, info = solve(self.model, start, settings, solver=self.solver,
+                            max_iterations=request.max_iterations)
         self.last_info = info
         self.sim_iterations += info.iterations
         if request.iterations is None and not (info.residual <= tol):
-            self._fail(f"forward solve did not converge: force norm {info.residual:.3g} N > tolerance {tol:.3g} N "
-                       f"after {info.iterations} iterations ({info.message}); its gradient would be wrong")
+            self._fail(f"forward solve did not converge: force norm {info.residual:.3g} N > tolerance "
+                       f"{tol:.3g} N after {info.iterations} iterations ({info.message}); its gradient would "
+                       "be wrong")
         self._x_last = x.detach().clone()
         return x.detach()
 
@@ -709,7 +720,8 @@ class DifferentiableSolver(torch.nn.Module):
         """
         warm = self._adjoint_last if (self.cg_warm_start and self._adjoint_last is not None
                                       and self._adjoint_last.shape == x.shape) else None
-        lam, info = solve_adjoint(self.model, x, rhs, self.linear_solver, hessian_product=self.hessian_product,
+        lam, info = solve_adjoint(self.model, x, rhs, self.linear_solver,
+                                  hessian_product=self.hessian_product,
                                   rtol=self.cg_rtol, max_iterations=self.cg_max_iterations, x0=warm,
                                   require_convergence=self.cg_require_convergence, assembler=self._assembler,
                                   cache=self._factorizations)
@@ -719,11 +731,12 @@ class DifferentiableSolver(torch.nn.Module):
             self._adjoint_last = lam.detach().clone()
         return lam
 
-    def tangent(self, values: Mapping[str, torch.Tensor], dvalues: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    def tangent(self, values: Mapping[str, torch.Tensor],
+                dvalues: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """``dx = (dx*/dtheta) dtheta`` (V, 3) at the last solution: one tangent solve ``K dx = -(d grad_x E /
-        dtheta) dtheta``, with the SPARSE factorization cached on the state (the one an adjoint at the same state
-        uses), whatever the adjoint solver. ``(d grad_x E / dtheta) dtheta`` is forward-over-reverse autograd of
-        the terms that own the parameters.
+        dtheta) dtheta``, with the SPARSE factorization cached on the state (the one an adjoint at the same
+        state uses), whatever the adjoint solver. ``(d grad_x E / dtheta) dtheta`` is forward-over-reverse
+        autograd of the terms that own the parameters.
 
         Args:
             values: the parameter values of the last solve, by name (as for :meth:`forward`).
@@ -756,7 +769,8 @@ class DifferentiableSolver(torch.nn.Module):
         prim = tuple(vals[n].detach() for n in names)
         tang = tuple(dirs[n].to(vals[n].dtype) for n in names)
         _, dg = func_jvp(grad_x, prim, tang)
-        lam, _ = solve_adjoint(self.model, x, dg.detach(), AdjointLinearSolver.SPARSE, assembler=self._assembler,
+        lam, _ = solve_adjoint(self.model, x, dg.detach(), AdjointLinearSolver.SPARSE,
+                               assembler=self._assembler,
                                cache=self._factorizations)
         return -lam
 
@@ -775,13 +789,13 @@ class DifferentiableSolver(torch.nn.Module):
                          tol: float | None, differentiate_hessian: bool) -> torch.Tensor:
         """Newton iterations as an autograd graph in ``x`` and the parameter values.
 
-        Each step ``x <- x - a (H + l I)^-1 g`` uses the autograd gradient ``g`` (differentiable in ``x`` and the
-        parameters) and the exact dense Hessian ``H``: differentiable (autograd, batched double backward) when
-        ``differentiate_hessian``, else the detached assembled :func:`exact_hessian_blocks` (TRUNCATED: from a
-        converged start the dropped derivative multiplies ``g ~ 0``). The step length ``a`` (barrier-capped
-        Armijo backtracking) and the regularization ``l`` (0 unless ``H`` is not positive definite) are
-        decisions taken on detached values. With ``tol`` None, exactly ``steps`` steps; else until
-        ``|g| <= tol`` (at most ``steps``).
+        Each step ``x <- x - a (H + l I)^-1 g`` uses the autograd gradient ``g`` (differentiable in ``x`` and
+        the parameters) and the exact dense Hessian ``H``: differentiable (autograd, batched double backward)
+        when ``differentiate_hessian``, else the detached assembled :func:`exact_hessian_blocks` (TRUNCATED:
+        from a converged start the dropped derivative multiplies ``g ~ 0``). The step length ``a``
+        (barrier-capped Armijo backtracking) and the regularization ``l`` (0 unless ``H`` is not positive
+        definite) are decisions taken on detached values. With ``tol`` None, exactly ``steps`` steps; else
+        until ``|g| <= tol`` (at most ``steps``).
         """
         energy = self._energy_fn(values)
         s = self.settings
@@ -811,7 +825,8 @@ class DifferentiableSolver(torch.nn.Module):
                     H = rows.reshape(n, n)
                     H = 0.5 * (H + H.T)
                 else:
-                    H = exact_hessian_blocks(self.model, x.detach()).to_sparse(self.model.num_vertices).to_dense()
+                    H = exact_hessian_blocks(self.model, x.detach()).to_sparse(
+                        self.model.num_vertices).to_dense()
                 lam = 0.0
                 scale = float(H.detach().diagonal().abs().mean()) or 1.0
                 for _ in range(s.max_regularizations + 1):
@@ -826,8 +841,8 @@ class DifferentiableSolver(torch.nn.Module):
                 a = self._step_length(x.detach(), g.detach(), dx.detach(), float(e.detach()))
                 x = xr + a * dx
         if tol is not None and not converged:
-            self._fail(f"unrolled Newton did not converge: force norm {gn:.3g} N > tolerance {tol:.3g} N after "
-                       f"{steps} iterations")
+            self._fail(f"unrolled Newton did not converge: force norm {gn:.3g} N > tolerance {tol:.3g} N "
+                       f"after {steps} iterations")
         return x
 
     @torch.no_grad()
