@@ -140,7 +140,7 @@ def test_hessian_blocks_fd_and_psd():
         assert torch.allclose(diag[i], hp[3 * i:3 * i + 3, 3 * i:3 * i + 3])
 
 
-@pytest.mark.parametrize("method", [StepBound.CCD, StepBound.CONSERVATIVE])
+@pytest.mark.parametrize("method", [StepBound.TIGHT_INCLUSION, StepBound.CONSERVATIVE])
 def test_max_step_stops_before_intersection(method):
     x = two_triangles(1e-3)
     t = SelfContact(FACES2, x, dhat=DHAT, stiffness=1e3)
@@ -153,7 +153,7 @@ def test_max_step_stops_before_intersection(method):
     assert math.isfinite(t(x1).item()) and t.min_distance(x1) > 0
     assert t.max_step(x, torch.zeros_like(x), method) == 1.0
     away = -dx
-    assert t.max_step(x, away, StepBound.CCD) == 1.0
+    assert t.max_step(x, away, StepBound.TIGHT_INCLUSION) == 1.0
 
 
 @pytest.mark.parametrize("radius", [None, 10 * DHAT])
@@ -164,7 +164,7 @@ def test_conservative_step_below_ccd(radius):
     for _ in range(5):
         dx = 4e-3 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
         cons = t.max_step(x, dx, StepBound.CONSERVATIVE)
-        ccd = t.max_step(x, dx, StepBound.CCD)
+        ccd = t.max_step(x, dx, StepBound.TIGHT_INCLUSION)
         assert 0 < cons <= ccd + 1e-12
         assert not t.has_intersections(x + cons * dx)
 
@@ -262,7 +262,7 @@ def test_body_contact_sphere(sphere):
     through[:, 1] -= 0.004  # patch centre inside the sphere, its corners outside
     assert t.has_intersections(through) and t(through).item() == math.inf
     dx = through - near
-    ccd = t.max_step(near, dx, StepBound.CCD)
+    ccd = t.max_step(near, dx, StepBound.TIGHT_INCLUSION)
     cons = t.max_step(near, dx, StepBound.CONSERVATIVE)
     assert 0 < cons <= ccd < 0.25  # the patch centre (1 mm above the top) hits at alpha = 0.25
     for a in (cons, ccd):

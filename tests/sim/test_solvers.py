@@ -11,7 +11,14 @@ import torch
 
 from torchgarment.errors import InputError
 from torchgarment.sim.energies.base import HessianBlocks
-from torchgarment.sim.solvers import NonFiniteError, Preconditioner, Safeguard, SolverKind, SolveSettings, solve
+from torchgarment.sim.solvers import (
+    NonFiniteError,
+    Preconditioner,
+    Safeguard,
+    SolverKind,
+    SolveSettings,
+    solve,
+)
 from torchgarment.sim.solvers.chebyshev import jacobi_inverse
 from torchgarment.sim.solvers.common import CSRAssembler
 

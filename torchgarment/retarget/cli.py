@@ -26,7 +26,7 @@ from torchgarment.errors import InputError
 def add_retarget_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``retarget`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
     from torchgarment.retarget.pipeline import RetargetSettings
-    from torchgarment.retarget.solver import StepBound
+    from torchgarment.sim.contact import StepBound
 
     d = RetargetSettings()
     p = subparsers.add_parser(
