@@ -1,7 +1,8 @@
 """Run logging shared by the pipelines: TensorBoard scalars and a tqdm progress bar.
 
-:class:`RunLogger` writes scalars with a ``torch.utils.tensorboard.SummaryWriter`` when given a folder and shows a
-tqdm bar on stderr when asked; both are optional, so a pipeline logs unconditionally and the caller decides.
+:class:`RunLogger` writes scalars with a ``torch.utils.tensorboard.SummaryWriter`` when given a folder and
+shows a tqdm bar on stderr when asked; both are optional, so a pipeline logs unconditionally and the caller
+decides.
 """
 
 from __future__ import annotations
@@ -21,8 +22,14 @@ class RunLogger:
         total: the bar's total (None: open-ended). initial: its starting count (a resumed run).
     """
 
-    def __init__(self, log_dir: str | Path | None, progress: bool, desc: str, total: int | None = None,
-                 initial: int = 0) -> None:
+    def __init__(
+        self,
+        log_dir: str | Path | None,
+        progress: bool,
+        desc: str,
+        total: int | None = None,
+        initial: int = 0,
+    ) -> None:
         self.writer = None
         if log_dir is not None:
             from torch.utils.tensorboard import SummaryWriter
@@ -35,7 +42,8 @@ class RunLogger:
             self.bar = tqdm(total=total, initial=initial, desc=desc, unit="it", file=sys.stderr, leave=False)
 
     def scalars(self, values: Mapping[str, float], step: int, prefix: str = "") -> None:
-        """Write each value as the TensorBoard scalar ``prefix + name`` at ``step`` (no-op without a folder)."""
+        """Write each value as the TensorBoard scalar ``prefix + name`` at ``step`` (no-op without a
+        folder)."""
         if self.writer is not None:
             for name, v in values.items():
                 self.writer.add_scalar(f"{prefix}{name}", v, step)

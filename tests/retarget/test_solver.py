@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -33,19 +34,29 @@ from torchgarment.retarget.solver import (  # noqa: E402
 from torchgarment.sim.contact import StepBound  # noqa: E402
 from torchgarment.testing import check_gradient  # noqa: E402
 
+if TYPE_CHECKING:
+    import scipy.sparse
 
-def _square(z: float, n: int = 4, size: float = 0.2):
+    from torchgarment.sim.energies.base import HessianBlocks
+
+
+def _square(z: float, n: int = 4, size: float = 0.2) -> tuple[torch.Tensor, torch.Tensor]:
     """A flat n x n grid at height z (garment) and its faces."""
     u = torch.linspace(-size, size, n, dtype=torch.float64)
     gx, gy = torch.meshgrid(u, u, indexing="ij")
     v = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.full((n * n,), z, dtype=torch.float64)], 1)
     i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
     a = i * n + j
-    f = np.concatenate([np.stack([a, a + n, a + 1], -1).reshape(-1, 3), np.stack([a + 1, a + n, a + n + 1], -1).reshape(-1, 3)])
+    f = np.concatenate(
+        [
+            np.stack([a, a + n, a + 1], -1).reshape(-1, 3),
+            np.stack([a + 1, a + n, a + n + 1], -1).reshape(-1, 3),
+        ]
+    )
     return v, torch.as_tensor(f)
 
 
-def test_step_options_resolve():
+def test_step_options_resolve() -> None:
     assert StepBound.resolve("CCD") is StepBound.ADDITIVE
     assert StepBound.resolve("distance") is StepBound.CONSERVATIVE
     with pytest.raises(InputError):
@@ -55,7 +66,7 @@ def test_step_options_resolve():
 
 
 @pytest.mark.parametrize("method", list(StepBound))
-def test_collision_free_step_is_safe(method):
+def test_collision_free_step_is_safe(method: StepBound) -> None:
     # garment sheet 1 cm above an obstacle sheet, moving straight down by 3 cm: impact at alpha = 1/3
     g, gf = _square(0.01)
     a, af = _square(0.0, n=3, size=0.3)
@@ -72,7 +83,7 @@ def test_collision_free_step_is_safe(method):
 
 
 @pytest.mark.parametrize("method", list(StepBound))
-def test_collision_free_step_with_moving_avatar(method):
+def test_collision_free_step_with_moving_avatar(method: StepBound) -> None:
     # avatar inflating with t towards the garment: the avatar moves, the garment does not
     g, gf = _square(0.05)
     a_full, af = _square(0.09, n=3, size=0.3)
@@ -84,7 +95,7 @@ def test_collision_free_step_with_moving_avatar(method):
     assert 0.0 < alpha < 5.0 / 9.0
 
 
-def test_inflation_penalty_gradient():
+def test_inflation_penalty_gradient() -> None:
     al = InflationPenalty(3.0, 0.5)
     x = torch.zeros(2, 3, dtype=torch.float64)
     check_gradient(lambda t: al(make_state(x, t)), torch.tensor(0.3, dtype=torch.float64), rtol=1e-7)
@@ -93,22 +104,25 @@ def test_inflation_penalty_gradient():
     assert al.hessian_blocks(make_state(x, 0.3)).to_sparse(3).to_dense()[6, 6] == pytest.approx(3.0)
 
 
-def test_newton_pushes_garment_against_obstacle_without_crossing():
+def test_newton_pushes_garment_against_obstacle_without_crossing() -> None:
     # the positional term drags a sheet down through a fixed obstacle 1 cm below; contact must stop it
     g, gf = _square(0.01, n=5)
     a, af = _square(0.0, n=3, size=0.4)
-    joints_s = torch.tensor([[0.0, 0.0, 0.01], [0.0, 1.0, 0.01]], dtype=torch.float64)
-    bones = torch.tensor([[0, 1]])
+    torch.tensor([[0.0, 0.0, 0.01], [0.0, 1.0, 0.01]], dtype=torch.float64)
+    torch.tensor([[0, 1]])
     surf = SurfaceShape(g, gf)
     c = Contact(g, gf, a, af, None, dhat=2e-3)
+
     # a "pulling" quadratic: every vertex wants z = -0.02 (below the obstacle)
     class Pull(RetargetEnergy):
         name = "pull"
 
-        def energy(self, x, t):
+        def energy(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
             return 10.0 * ((x[:, 2] + 0.02) ** 2).sum()
 
-        def unweighted_blocks(self, x, t, project_psd=True):
+        def unweighted_blocks(
+            self, x: torch.Tensor, t: torch.Tensor, project_psd: bool = True
+        ) -> HessianBlocks:
             h = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype)
             h[:, 2, 2] = 20.0
             return element_blocks(h, torch.arange(x.shape[0])[:, None])
@@ -123,7 +137,7 @@ def test_newton_pushes_garment_against_obstacle_without_crossing():
     assert len(r.history) == r.iterations
 
 
-def test_inflation_reaches_t1_and_keeps_garment_outside():
+def test_inflation_reaches_t1_and_keeps_garment_outside() -> None:
     s = scene(rings=6, segments=16)
     x0, f = s["garment_vertices"], s["garment_faces"]
     surf = SurfaceShape(x0, f)
@@ -147,9 +161,9 @@ def test_inflation_reaches_t1_and_keeps_garment_outside():
     assert not c.ipc.has_intersections(x, t)
 
 
-def test_newton_solve_reuses_its_factorization_through_pcg():
-    """With a FactorCache the first system is factorized; a nearby one is solved by CG preconditioned with that
-    factorization (no new factorization), to the requested relative residual, as a descent direction."""
+def test_newton_solve_reuses_its_factorization_through_pcg() -> None:
+    """With a FactorCache the first system is factorized; a nearby one is solved by CG preconditioned with
+    that factorization (no new factorization), to the requested relative residual, as a descent direction."""
     import scipy.sparse as sp
 
     from torchgarment.retarget.solver import NewtonSettings as RetargetNewtonSettings
@@ -158,7 +172,14 @@ def test_newton_solve_reuses_its_factorization_through_pcg():
 
     options = NewtonOptions(regularize_first=True, regularization_growth=100.0, gradient_fallback=True)
 
-    def _solve(h, g, shift, cache, rtol=1e-2, maxiter=25):
+    def _solve(
+        h: scipy.sparse.csr_matrix,
+        g: np.ndarray,
+        shift: float,
+        cache: FactorCache,
+        rtol: float = 1e-2,
+        maxiter: int = 25,
+    ) -> tuple[np.ndarray, int]:
         st = RetargetNewtonSettings(pcg_rtol=rtol, pcg_max_iterations=maxiter).solve_settings()
         assert st.regularization == shift
         return newton_direction(h, g, st, 1, cache, options)

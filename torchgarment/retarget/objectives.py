@@ -1,17 +1,17 @@
 """Objectives of intersection-free garment retargeting (Huang et al. 2025, section 3.4).
 
-Every term is a simulation :class:`~torchgarment.sim.energies.base.EnergyTerm` (:class:`RetargetEnergy`) over the
-retargeting state ``y`` (N + 1, 3): the garment positions ``x = y[:N]`` and, in the last row, the inflation
-parameter ``t = y[N, 0]`` (Step 2 interpolates the avatar and the skeleton with it, Step 3 holds it at 1; the
-row's other two entries are unused and stay 0), see :func:`make_state` / :func:`split_state`. ``forward(y)`` is
-the weighted value (differentiable by autograd in ``x`` and ``t``), :meth:`RetargetEnergy.energy` the unweighted
-one of ``(x, t)``, and ``hessian_blocks(y)`` the 3x3 vertex blocks of the Hessian with every per-element
-Hessian positive semi-definite, the t-couplings in the blocks of vertex N (column 0). They are composed by a
-:class:`~torchgarment.sim.scene.SimModel` and minimised by the shared projected Newton
-(:func:`~torchgarment.retarget.solver.projected_newton`). The shape terms are sums of squared residuals, so their
-per-element Hessians are Gauss-Newton ``2 w J^T J`` (PSD by construction, exact where the residuals vanish,
-i.e. at the source shape; cheaper than an eigen-projection of the full Hessian); the barrier's come from ipctk
-with per-pair PSD clamping:
+Every term is a simulation :class:`~torchgarment.sim.energies.base.EnergyTerm` (:class:`RetargetEnergy`) over
+the retargeting state ``y`` (N + 1, 3): the garment positions ``x = y[:N]`` and, in the last row, the
+inflation parameter ``t = y[N, 0]`` (Step 2 interpolates the avatar and the skeleton with it, Step 3 holds it
+at 1; the row's other two entries are unused and stay 0), see :func:`make_state` / :func:`split_state`.
+``forward(y)`` is the weighted value (differentiable by autograd in ``x`` and ``t``),
+:meth:`RetargetEnergy.energy` the unweighted one of ``(x, t)``, and ``hessian_blocks(y)`` the 3x3 vertex
+blocks of the Hessian with every per-element Hessian positive semi-definite, the t-couplings in the blocks of
+vertex N (column 0). They are composed by a :class:`~torchgarment.sim.scene.SimModel` and minimised by the
+shared projected Newton (:func:`~torchgarment.retarget.solver.projected_newton`). The shape terms are sums of
+squared residuals, so their per-element Hessians are Gauss-Newton ``2 w J^T J`` (PSD by construction, exact
+where the residuals vanish, i.e. at the source shape; cheaper than an eigen-projection of the full Hessian);
+the barrier's come from ipctk with per-pair PSD clamping:
 
 * :class:`SurfaceShape` L_surf: deformation difference of adjacent triangles on the vector joining their
   opposite vertices, area weighted (eq. 2). Per-pair 12 x 12 Gauss-Newton Hessians from closed-form
@@ -27,8 +27,8 @@ with per-pair PSD clamping:
 Lengths are in the units of ``x``; the pipeline runs in a canonical frame where the avatar is 1.7 units tall
 (human scale in metres), so the paper's constants (dhat = 2 mm) apply unchanged.
 
-Surface-shape invariance: with the triangle basis ``[e1, e2, n / sqrt|n|]`` (``n = e1 x e2``) the deformation of
-a triangle maps source to current exactly for any similarity (rotation, translation, uniform scale), so
+Surface-shape invariance: with the triangle basis ``[e1, e2, n / sqrt|n|]`` (``n = e1 x e2``) the deformation
+of a triangle maps source to current exactly for any similarity (rotation, translation, uniform scale), so
 L_surf vanishes under every similarity, and under every affine map for pairs whose four vertices are coplanar
 (e.g. a flat panel). A general 3D affine map of a curved surface has no triangle-local representative out of
 the plane, so there L_surf is only small, not zero (the component of the opposite-vertex vector along the
@@ -62,21 +62,23 @@ def adjacent_triangle_pairs(faces: np.ndarray) -> np.ndarray:
 
     Returns:
         (P, 6) int64 rows ``(v1, v2, v3, v4, f1, f2)``: ``f1 = (v1, v2, v3)`` up to rotation and
-        ``f2`` holds ``v2, v1, v4``; the shared edge is ``v1 v2``. Edges of one face or of 3+ faces are left out.
+        ``f2`` holds ``v2, v1, v4``; the shared edge is ``v1 v2``. Edges of one face or of 3+ faces are left
+        out.
     """
     mesh = _topology(faces)
     return torch.cat([mesh.hinges, mesh.hinge_faces], dim=1).numpy()
 
 
 def _topology(faces: np.ndarray) -> GarmentMesh:
-    """A GarmentMesh holding only the connectivity ``faces`` (F, 3) (positions zero), for its lazy topology."""
+    """A GarmentMesh holding only the connectivity ``faces`` (F, 3) (positions zero), for its lazy
+    topology."""
     f = torch.as_tensor(np.asarray(faces, dtype=np.int64))
     return GarmentMesh(torch.zeros(int(f.max()) + 1 if f.numel() else 0, 3, dtype=torch.float64), f)
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
-    """Closed boundary loops of a triangle mesh, each an ordered vertex array (first vertex not repeated), in face
-    orientation, longest first (:attr:`GarmentMesh.boundary_loops <torchgarment.structures.garment_mesh.
+    """Closed boundary loops of a triangle mesh, each an ordered vertex array (first vertex not repeated), in
+    face orientation, longest first (:attr:`GarmentMesh.boundary_loops <torchgarment.structures.garment_mesh.
     GarmentMesh.boundary_loops>`).
 
     Args:
@@ -100,8 +102,11 @@ def vertex_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 def mean_incident_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """(N,) average length of the edges at each vertex."""
-    e = torch.as_tensor(np.unique(np.sort(np.asarray(ipctk.edges(faces.cpu().numpy().astype(np.int32))), 1), axis=0),
-                        device=vertices.device, dtype=torch.long)
+    e = torch.as_tensor(
+        np.unique(np.sort(np.asarray(ipctk.edges(faces.cpu().numpy().astype(np.int32))), 1), axis=0),
+        device=vertices.device,
+        dtype=torch.long,
+    )
     ln = (vertices[e[:, 0]] - vertices[e[:, 1]]).norm(dim=-1)
     s = torch.zeros(vertices.shape[0], dtype=vertices.dtype, device=vertices.device)
     c = torch.zeros_like(s)
@@ -111,7 +116,8 @@ def mean_incident_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> to
     return s / c.clamp_min(1)
 
 
-# ---------------------------------------------------------------------------------------------- Hessian helpers
+# ---------------------------------------------------------------------------------------------- Hessian
+# helpers
 
 
 def element_hessians(fn: Callable[..., torch.Tensor], z: torch.Tensor, *consts: torch.Tensor) -> torch.Tensor:
@@ -124,21 +130,28 @@ def element_hessians(fn: Callable[..., torch.Tensor], z: torch.Tensor, *consts: 
     with torch.enable_grad():
         v = fn(z, *consts)
         (g,) = torch.autograd.grad(v.sum(), z, create_graph=True)
-        cols = [torch.autograd.grad(g[:, j].sum(), z, retain_graph=j + 1 < z.shape[1], allow_unused=True)[0]
-                for j in range(z.shape[1])]
+        cols = [
+            torch.autograd.grad(g[:, j].sum(), z, retain_graph=j + 1 < z.shape[1], allow_unused=True)[0]
+            for j in range(z.shape[1])
+        ]
     cols = [torch.zeros_like(z) if c is None else c for c in cols]
     return torch.stack(cols, dim=2).detach()
 
 
-def element_gauss_newton(res_fn: Callable[..., torch.Tensor], z: torch.Tensor, weights: torch.Tensor,
-                         *consts: torch.Tensor) -> torch.Tensor:
-    """Gauss-Newton Hessians ``2 w J^T J`` (E, d, d) of ``sum_e w_e |r_e|^2`` for residuals ``res_fn(z, *consts)``
-    of shape (E,) or (E, R); PSD by construction. One backward pass per residual component."""
+def element_gauss_newton(
+    res_fn: Callable[..., torch.Tensor], z: torch.Tensor, weights: torch.Tensor, *consts: torch.Tensor
+) -> torch.Tensor:
+    """Gauss-Newton Hessians ``2 w J^T J`` (E, d, d) of ``sum_e w_e |r_e|^2`` for residuals
+    ``res_fn(z, *consts)`` of shape (E,) or (E, R); PSD by construction. One backward pass per residual
+    component."""
     z = z.detach().clone().requires_grad_(True)
     with torch.enable_grad():
         r = res_fn(z, *consts)
         r = r[:, None] if r.ndim == 1 else r
-        rows = [torch.autograd.grad(r[:, i].sum(), z, retain_graph=i + 1 < r.shape[1])[0] for i in range(r.shape[1])]
+        rows = [
+            torch.autograd.grad(r[:, i].sum(), z, retain_graph=i + 1 < r.shape[1])[0]
+            for i in range(r.shape[1])
+        ]
     j = torch.stack(rows, dim=1).detach()  # (E, R, d)
     return 2.0 * weights[:, None, None] * (j.transpose(1, 2) @ j)
 
@@ -181,7 +194,8 @@ def split_state(y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 class RetargetEnergy(EnergyTerm):
-    """Base of the retargeting terms: an :class:`EnergyTerm` over the state ``y`` (N + 1, 3) (module docstring).
+    """Base of the retargeting terms: an :class:`EnergyTerm` over the state ``y`` (N + 1, 3) (module
+    docstring).
 
     Subclasses implement :meth:`energy` (unweighted value of ``x`` (N, 3) and ``t``, differentiable by
     autograd) and :meth:`unweighted_blocks` (its PSD Hessian as vertex blocks over N + 1 vertices, the t
@@ -289,14 +303,18 @@ class SurfaceShape(RetargetEnergy):
         b2 = _tri_basis(v2, v1, v4)
         x = v4 - v3
         xl = x.norm(dim=-1, keepdim=True)
-        if bool((xl <= 0).any()) or bool((torch.linalg.det(b1).abs() <= 0).any()) \
-                or bool((torch.linalg.det(b2).abs() <= 0).any()):
+        if (
+            bool((xl <= 0).any())
+            or bool((torch.linalg.det(b1).abs() <= 0).any())
+            or bool((torch.linalg.det(b2).abs() <= 0).any())
+        ):
             raise MeshError("the source garment has degenerate triangles (zero area) next to a shared edge")
         xhat = x / xl
         k1 = torch.linalg.solve(b1, xhat)
         k2 = torch.linalg.solve(b2, xhat)
-        fa = 0.5 * torch.linalg.cross(vs[faces[:, 1]] - vs[faces[:, 0]], vs[faces[:, 2]] - vs[faces[:, 0]],
-                                      dim=-1).norm(dim=-1)
+        fa = 0.5 * torch.linalg.cross(
+            vs[faces[:, 1]] - vs[faces[:, 0]], vs[faces[:, 2]] - vs[faces[:, 0]], dim=-1
+        ).norm(dim=-1)
         w = fa[p[:, 4]] + fa[p[:, 5]]
         self.register_buffer("quads", p[:, :4].contiguous())
         self.register_buffer("pair_faces", p[:, 4:].contiguous())
@@ -315,12 +333,12 @@ class SurfaceShape(RetargetEnergy):
 
     def triangle_distortion(self, x: torch.Tensor) -> torch.Tensor:
         """(F,) per-triangle distortion: mean unweighted l_surf of the pairs a triangle belongs to."""
-        l = self.per_element(x).detach()
+        le = self.per_element(x).detach()
         s = torch.zeros(self.num_faces, dtype=x.dtype, device=x.device)
         c = torch.zeros_like(s)
         for k in range(2):
-            s.index_add_(0, self.pair_faces[:, k], l)
-            c.index_add_(0, self.pair_faces[:, k], torch.ones_like(l))
+            s.index_add_(0, self.pair_faces[:, k], le)
+            c.index_add_(0, self.pair_faces[:, k], torch.ones_like(le))
         return s / c.clamp_min(1)
 
     def residual_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -329,7 +347,9 @@ class SurfaceShape(RetargetEnergy):
         k1, k2 = self.k1, self.k2
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
 
-        def normal_part(a, b, c):
+        def normal_part(
+            a: torch.Tensor, b: torch.Tensor, c: torch.Tensor
+        ) -> tuple[torch.Tensor, torch.Tensor]:
             # ntilde = n / sqrt|n|, n = (b - a) x (c - a); d ntilde / d(a, b, c) as (P, 3, 9)
             e1, e2 = b - a, c - a
             n = torch.linalg.cross(e1, e2, dim=-1)
@@ -345,8 +365,14 @@ class SurfaceShape(RetargetEnergy):
         v1, v2, v3, v4 = v[:, 0], v[:, 1], v[:, 2], v[:, 3]
         nt1, jn1 = normal_part(v1, v2, v3)  # wrt (v1, v2, v3)
         nt2, jn2 = normal_part(v2, v1, v4)  # wrt (v2, v1, v4)
-        r = (k1[:, 0:1] * (v2 - v1) + k1[:, 1:2] * (v3 - v1) + k1[:, 2:3] * nt1
-             - k2[:, 0:1] * (v1 - v2) - k2[:, 1:2] * (v4 - v2) - k2[:, 2:3] * nt2)
+        r = (
+            k1[:, 0:1] * (v2 - v1)
+            + k1[:, 1:2] * (v3 - v1)
+            + k1[:, 2:3] * nt1
+            - k2[:, 0:1] * (v1 - v2)
+            - k2[:, 1:2] * (v4 - v2)
+            - k2[:, 2:3] * nt2
+        )
         P = v.shape[0]
         J = torch.zeros(P, 3, 12, dtype=x.dtype, device=x.device)
         a0, a1, b0, b1 = k1[:, 0], k1[:, 1], k2[:, 0], k2[:, 1]
@@ -360,8 +386,9 @@ class SurfaceShape(RetargetEnergy):
         J[:, :, 9:12] -= jn2s[:, :, 6:9]
         return r, J
 
-    def unweighted_blocks(self, x: torch.Tensor, t: torch.Tensor | None = None,
-                          project_psd: bool = True) -> HessianBlocks:
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | None = None, project_psd: bool = True
+    ) -> HessianBlocks:
         """Gauss-Newton Hessian ``2 w J^T J`` per pair (PSD by construction; exact at the source shape, where
         the residuals vanish)."""
         _, J = self.residual_jacobian(x)
@@ -372,9 +399,14 @@ class SurfaceShape(RetargetEnergy):
 def _skew(a: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) matrices with ``_skew(a) @ b = a x b``."""
     z = torch.zeros_like(a[..., 0])
-    return torch.stack([torch.stack([z, -a[..., 2], a[..., 1]], -1),
-                        torch.stack([a[..., 2], z, -a[..., 0]], -1),
-                        torch.stack([-a[..., 1], a[..., 0], z], -1)], -2)
+    return torch.stack(
+        [
+            torch.stack([z, -a[..., 2], a[..., 1]], -1),
+            torch.stack([a[..., 2], z, -a[..., 0]], -1),
+            torch.stack([-a[..., 1], a[..., 0], z], -1),
+        ],
+        -2,
+    )
 
 
 # ---------------------------------------------------------------------------------------------- L_pos
@@ -428,14 +460,23 @@ class Positional(RetargetEnergy):
     name = "pos"
     uses_t = True
 
-    def __init__(self, source_vertices: torch.Tensor, faces: torch.Tensor, source_joints: torch.Tensor,
-                 target_joints: torch.Tensor, bones: torch.Tensor, vertices: torch.Tensor | None = None,
-                 weight: float = 1.0) -> None:
+    def __init__(
+        self,
+        source_vertices: torch.Tensor,
+        faces: torch.Tensor,
+        source_joints: torch.Tensor,
+        target_joints: torch.Tensor,
+        bones: torch.Tensor,
+        vertices: torch.Tensor | None = None,
+        weight: float = 1.0,
+    ) -> None:
         super().__init__(weight)
         if vertices is None:
             loops = boundary_loops(faces.cpu().numpy())
-            vertices = torch.as_tensor(np.unique(np.concatenate(loops)) if loops else np.zeros(0, np.int64),
-                                       device=source_vertices.device)
+            vertices = torch.as_tensor(
+                np.unique(np.concatenate(loops)) if loops else np.zeros(0, np.int64),
+                device=source_vertices.device,
+            )
         vs = source_vertices.detach()
         self.register_buffer("vertices", vertices.long())
         if bones.shape[0] == 0:
@@ -446,8 +487,11 @@ class Positional(RetargetEnergy):
         usable = torch.nonzero((ls > 1e-4 * ls.max()) & (lt > 1e-4 * lt.max())).reshape(-1)
         if usable.numel() == 0:
             raise InputError("the skeletons have no bone of positive length")
-        bone = usable[nearest_bone(vs[self.vertices], source_joints, bones[usable])] if len(self.vertices) else \
-            torch.zeros(0, dtype=torch.long, device=vs.device)
+        bone = (
+            usable[nearest_bone(vs[self.vertices], source_joints, bones[usable])]
+            if len(self.vertices)
+            else torch.zeros(0, dtype=torch.long, device=vs.device)
+        )
         ja, jb = bones[bone, 0], bones[bone, 1]
         a_s, b_s, a_t, b_t = source_joints[ja], source_joints[jb], target_joints[ja], target_joints[jb]
         ab = b_s - a_s
@@ -465,13 +509,16 @@ class Positional(RetargetEnergy):
             return x.sum() * 0.0
         return (self.weights * _pos_vertex(self._z(x, t), self.consts)).sum()
 
-    def unweighted_blocks(self, x: torch.Tensor, t: torch.Tensor | float,
-                          project_psd: bool = True) -> HessianBlocks:
-        """Gauss-Newton 4 x 4 blocks over (x_i, t), placed on the vertex pair (i, N) (t in N's first entry)."""
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | float, project_psd: bool = True
+    ) -> HessianBlocks:
+        """Gauss-Newton 4 x 4 blocks over (x_i, t), placed on the vertex pair (i, N) (t in N's first
+        entry)."""
         if len(self.vertices) == 0:
             return _empty_blocks(x)
-        h4 = element_gauss_newton(_pos_residual, self._z(x.detach(), _t_tensor(t, x).detach()), self.weights,
-                                  self.consts)
+        h4 = element_gauss_newton(
+            _pos_residual, self._z(x.detach(), _t_tensor(t, x).detach()), self.weights, self.consts
+        )
         k = len(self.vertices)
         h = h4.new_zeros(k, 6, 6)
         h[:, :4, :4] = h4
@@ -501,8 +548,16 @@ class Fit(RetargetEnergy):
 
     name = "fit"
 
-    def __init__(self, sdf: nn.Module, source_vertices: torch.Tensor, faces: torch.Tensor, mask: torch.Tensor,
-                 fit_length: float, offset: float = 0.0, weight: float = 1.0) -> None:
+    def __init__(
+        self,
+        sdf: nn.Module,
+        source_vertices: torch.Tensor,
+        faces: torch.Tensor,
+        mask: torch.Tensor,
+        fit_length: float,
+        offset: float = 0.0,
+        weight: float = 1.0,
+    ) -> None:
         super().__init__(weight)
         if not fit_length > 0:
             raise InputError(f"fit_length must be positive, got {fit_length}")
@@ -512,7 +567,7 @@ class Fit(RetargetEnergy):
         self.sdf = sdf
         idx = torch.nonzero(mask.to(torch.bool), as_tuple=False).reshape(-1)
         self.register_buffer("vertices", idx)
-        self.register_buffer("weights", vertex_areas(source_vertices.detach(), faces)[idx] / fit_length ** 2)
+        self.register_buffer("weights", vertex_areas(source_vertices.detach(), faces)[idx] / fit_length**2)
 
     def energy(self, x: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:  # noqa: D102
         if len(self.vertices) == 0:
@@ -520,8 +575,9 @@ class Fit(RetargetEnergy):
         d = self.sdf(x[self.vertices].to(self.sdf.dtype)).to(x.dtype) - self.offset
         return (self.weights * d * d).sum()
 
-    def unweighted_blocks(self, x: torch.Tensor, t: torch.Tensor | None = None,
-                          project_psd: bool = True) -> HessianBlocks:
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | None = None, project_psd: bool = True
+    ) -> HessianBlocks:
         """Gauss-Newton 3 x 3 vertex blocks ``2 A_i / ell^2 grad D grad D^T``."""
         if len(self.vertices) == 0:
             return _empty_blocks(x)
@@ -610,8 +666,9 @@ class CurveShape(RetargetEnergy):
 
     name = "curve"
 
-    def __init__(self, source_vertices: torch.Tensor, curves: list, closed: bool = True,
-                 weight: float = 1.0) -> None:
+    def __init__(
+        self, source_vertices: torch.Tensor, curves: list, closed: bool = True, weight: float = 1.0
+    ) -> None:
         super().__init__(weight)
         vs = source_vertices.detach()
         n = vs.shape[0]
@@ -628,14 +685,28 @@ class CurveShape(RetargetEnergy):
         for name, e in (("triples", tri_t), ("quads", quad_t)):
             self.register_buffer(name, e)
         seg = lambda i, j: (vs[j] - vs[i]).norm(dim=-1)  # noqa: E731
-        if len(tri_t) and bool((seg(tri_t[:, 0], tri_t[:, 1]) <= 0).any() | (seg(tri_t[:, 1], tri_t[:, 2]) <= 0).any()):
+        if len(tri_t) and bool(
+            (seg(tri_t[:, 0], tri_t[:, 1]) <= 0).any() | (seg(tri_t[:, 1], tri_t[:, 2]) <= 0).any()
+        ):
             raise InputError("a curve has two consecutive coincident vertices")
-        wt = 0.5 * (seg(tri_t[:, 0], tri_t[:, 1]) + seg(tri_t[:, 1], tri_t[:, 2])) if len(tri_t) else vs.new_zeros(0)
-        wq = 0.5 * (seg(quad_t[:, 0], quad_t[:, 1]) + seg(quad_t[:, 1], quad_t[:, 2])) if len(quad_t) else vs.new_zeros(0)
+        wt = (
+            0.5 * (seg(tri_t[:, 0], tri_t[:, 1]) + seg(tri_t[:, 1], tri_t[:, 2]))
+            if len(tri_t)
+            else vs.new_zeros(0)
+        )
+        wq = (
+            0.5 * (seg(quad_t[:, 0], quad_t[:, 1]) + seg(quad_t[:, 1], quad_t[:, 2]))
+            if len(quad_t)
+            else vs.new_zeros(0)
+        )
         self.register_buffer("w_curv", wt)
         self.register_buffer("w_tors", wq)
-        self.register_buffer("alpha_s", _curvature(vs[tri_t].reshape(-1, 9)) if len(tri_t) else vs.new_zeros(0))
-        self.register_buffer("bg_s", _torsion(vs[quad_t].reshape(-1, 12)) if len(quad_t) else vs.new_zeros(0, 2))
+        self.register_buffer(
+            "alpha_s", _curvature(vs[tri_t].reshape(-1, 9)) if len(tri_t) else vs.new_zeros(0)
+        )
+        self.register_buffer(
+            "bg_s", _torsion(vs[quad_t].reshape(-1, 12)) if len(quad_t) else vs.new_zeros(0, 2)
+        )
 
     def energy(self, x: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:  # noqa: D102
         e = x.sum() * 0.0
@@ -647,8 +718,9 @@ class CurveShape(RetargetEnergy):
             e = e + (self.w_tors[:, None] * (bg - self.bg_s) ** 2).sum()
         return e
 
-    def unweighted_blocks(self, x: torch.Tensor, t: torch.Tensor | None = None,
-                          project_psd: bool = True) -> HessianBlocks:
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | None = None, project_psd: bool = True
+    ) -> HessianBlocks:
         """Gauss-Newton blocks of the curvature triples and the torsion quadruples."""
         xd = x.detach()
         parts = [_empty_blocks(x)]
@@ -666,34 +738,44 @@ class CurveShape(RetargetEnergy):
 
 class _ContactFn(torch.autograd.Function):
     @staticmethod
-    def forward(ctx: torch.autograd.function.FunctionCtx, x: torch.Tensor, t: torch.Tensor,  # noqa: D102
-                ipc: MovingObstacleContact) -> torch.Tensor:
+    def forward(
+        ctx: torch.autograd.function.FunctionCtx,
+        x: torch.Tensor,
+        t: torch.Tensor,  # noqa: D102
+        ipc: MovingObstacleContact,
+    ) -> torch.Tensor:
         e, gx, gt = ipc.value_grad(x, float(t.detach()))
-        ctx.save_for_backward(torch.as_tensor(gx, dtype=x.dtype, device=x.device),
-                              torch.as_tensor(gt, dtype=x.dtype, device=x.device))
+        ctx.save_for_backward(
+            torch.as_tensor(gx, dtype=x.dtype, device=x.device),
+            torch.as_tensor(gt, dtype=x.dtype, device=x.device),
+        )
         return torch.as_tensor(e, dtype=x.dtype, device=x.device)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx: torch.autograd.function.FunctionCtx,  # noqa: D102
-                 g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, None]:
+    def backward(
+        ctx: torch.autograd.function.FunctionCtx,  # noqa: D102
+        g: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, None]:
         gx, gt = ctx.saved_tensors
         return g * gx, g * gt, None
 
 
 class Contact(RetargetEnergy):
-    """L_contact: IPC barrier over garment-self and garment-avatar pairs, the avatar ``shrunk + t (full - shrunk)``.
+    """L_contact: IPC barrier over garment-self and garment-avatar pairs, the avatar ``shrunk + t (full -
+    shrunk)``.
 
-    The term wraps a :class:`~torchgarment.sim.contact.MovingObstacleContact` (:attr:`ipc`: the collision mesh,
-    culling, CCD step bound, stiffness, intersection and distance queries). ipctk evaluates the barrier on squared
-    distances, ``b = -(d^2 - dhat^2)^2 ln(d^2 / dhat^2)`` (the IPC convention), a monotone reparametrisation of the
-    paper's ``-(d - dhat)^2 ln(d / dhat)`` with the same support (0, dhat) and the same blow-up at 0; the adaptive
-    stiffness absorbs the different scale. With ``avatar_shrunk`` None the avatar is fixed at ``full`` (Step 3,
-    multi-layer).
+    The term wraps a :class:`~torchgarment.sim.contact.MovingObstacleContact` (:attr:`ipc`: the collision
+    mesh, culling, CCD step bound, stiffness, intersection and distance queries). ipctk evaluates the barrier
+    on squared distances, ``b = -(d^2 - dhat^2)^2 ln(d^2 / dhat^2)`` (the IPC convention), a monotone
+    reparametrisation of the paper's ``-(d - dhat)^2 ln(d / dhat)`` with the same support (0, dhat) and the
+    same blow-up at 0; the adaptive stiffness absorbs the different scale. With ``avatar_shrunk`` None the
+    avatar is fixed at ``full`` (Step 3, multi-layer).
 
     Args:
         garment_rest: (N, 3) garment rest positions (adjacency). garment_faces: (F, 3) long.
-        avatar_full: (A, 3) avatar at t = 1. avatar_faces: (G, 3) long. avatar_shrunk: (A, 3) at t = 0 or None.
+        avatar_full: (A, 3) avatar at t = 1. avatar_faces: (G, 3) long. avatar_shrunk: (A, 3) at t = 0 or
+            None.
         dhat: activation distance. stiffness: initial kappa.
         broad_phase: :class:`~torchgarment.sim.contact.BroadPhase` or an ipctk class name ("LBVH", ...).
         cull_radius: see :class:`~torchgarment.sim.contact.MovingObstacleContact`.
@@ -702,13 +784,30 @@ class Contact(RetargetEnergy):
     name = "contact"
     volatile_hessian = True
 
-    def __init__(self, garment_rest: torch.Tensor, garment_faces: torch.Tensor, avatar_full: torch.Tensor,
-                 avatar_faces: torch.Tensor, avatar_shrunk: torch.Tensor | None, dhat: float,
-                 stiffness: float = 1.0, broad_phase: BroadPhase | str = BroadPhase.LBVH,
-                 cull_radius: float | None = None) -> None:
+    def __init__(
+        self,
+        garment_rest: torch.Tensor,
+        garment_faces: torch.Tensor,
+        avatar_full: torch.Tensor,
+        avatar_faces: torch.Tensor,
+        avatar_shrunk: torch.Tensor | None,
+        dhat: float,
+        stiffness: float = 1.0,
+        broad_phase: BroadPhase | str = BroadPhase.LBVH,
+        cull_radius: float | None = None,
+    ) -> None:
         super().__init__(1.0)
-        self.ipc = MovingObstacleContact(garment_rest, garment_faces, avatar_full, avatar_faces, avatar_shrunk,
-                                         dhat, stiffness=stiffness, broad_phase=broad_phase, cull_radius=cull_radius)
+        self.ipc = MovingObstacleContact(
+            garment_rest,
+            garment_faces,
+            avatar_full,
+            avatar_faces,
+            avatar_shrunk,
+            dhat,
+            stiffness=stiffness,
+            broad_phase=broad_phase,
+            cull_radius=cull_radius,
+        )
         self.uses_t = self.ipc.uses_t
 
     @property
@@ -722,17 +821,22 @@ class Contact(RetargetEnergy):
             return _ContactFn.apply(x, t, self.ipc)
         return torch.as_tensor(self.ipc.value(x, float(t)), dtype=x.dtype, device=x.device)
 
-    def unweighted_blocks(self, x: torch.Tensor, t: torch.Tensor | float,
-                          project_psd: bool = True) -> HessianBlocks:
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | float, project_psd: bool = True
+    ) -> HessianBlocks:
         """ipctk's per-pair (PSD-clamped when ``project_psd``) Hessian chained to (x, t) as vertex blocks."""
         hxx, hxt, htt = self.ipc.hessian(x, float(t), project_psd)
         n = self.ipc.num_garment
         dev, dt = x.device, x.dtype
         h = hxx.tobsr(blocksize=(3, 3))
         rows = np.repeat(np.arange(n), np.diff(h.indptr))
-        parts = [HessianBlocks(torch.as_tensor(rows, dtype=torch.long, device=dev),
-                               torch.as_tensor(h.indices.astype(np.int64), device=dev),
-                               torch.as_tensor(h.data, dtype=dt, device=dev).reshape(-1, 3, 3))]
+        parts = [
+            HessianBlocks(
+                torch.as_tensor(rows, dtype=torch.long, device=dev),
+                torch.as_tensor(h.indices.astype(np.int64), device=dev),
+                torch.as_tensor(h.data, dtype=dt, device=dev).reshape(-1, 3, 3),
+            )
+        ]
         if self.uses_t:
             col = hxt.reshape(-1, 3)
             vi = np.nonzero(np.any(col != 0.0, axis=1))[0]
@@ -742,8 +846,13 @@ class Contact(RetargetEnergy):
             last = torch.full_like(vt, n)
             btt = np.zeros((1, 3, 3))
             btt[0, 0, 0] = htt
-            parts += [HessianBlocks(vt, last, torch.as_tensor(bxt, dtype=dt, device=dev)),
-                      HessianBlocks(last, vt, torch.as_tensor(bxt.transpose(0, 2, 1).copy(), dtype=dt, device=dev)),
-                      HessianBlocks(torch.tensor([n], device=dev), torch.tensor([n], device=dev),
-                                    torch.as_tensor(btt, dtype=dt, device=dev))]
+            parts += [
+                HessianBlocks(vt, last, torch.as_tensor(bxt, dtype=dt, device=dev)),
+                HessianBlocks(last, vt, torch.as_tensor(bxt.transpose(0, 2, 1).copy(), dtype=dt, device=dev)),
+                HessianBlocks(
+                    torch.tensor([n], device=dev),
+                    torch.tensor([n], device=dev),
+                    torch.as_tensor(btt, dtype=dt, device=dev),
+                ),
+            ]
         return HessianBlocks.cat(parts)

@@ -56,7 +56,8 @@ from torchgarment.sim.contact import BroadPhase, MovingObstacleContact, StepBoun
 
 
 class RetargetError(TorchGarmentError):
-    """Retargeting could not produce a guaranteed intersection-free garment (e.g. inflation never finished)."""
+    """Retargeting could not produce a guaranteed intersection-free garment (e.g. inflation never
+    finished)."""
 
 
 @dataclass
@@ -92,8 +93,8 @@ class RetargetSettings:
             MovingObstacleContact`); None keeps the
             whole avatar (slower broad phase on large or subdivided avatars).
         threads: torch intra-op threads during the run (restored afterwards); None keeps the current number.
-            The per-element work is many small tensor ops, for which one thread is fastest (measured: 2 threads
-            were 2-3x slower on a loaded 2-core machine).
+            The per-element work is many small tensor ops, for which one thread is fastest (measured: 2
+            threads were 2-3x slower on a loaded 2-core machine).
     """
 
     w_fit: float = 2.0
@@ -127,18 +128,26 @@ class RetargetSettings:
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"RetargetSettings.{name} must be a non-negative number, got {v}")
         if self.cull_radius is not None and not self.cull_radius >= 4 * self.dhat:
-            raise InputError(f"RetargetSettings.cull_radius must be None or >= 4 dhat, got {self.cull_radius}")
+            raise InputError(
+                f"RetargetSettings.cull_radius must be None or >= 4 dhat, got {self.cull_radius}"
+            )
         for name in ("dhat", "fit_length", "sdf_voxel", "max_displacement", "al_lambda", "stiffness_scale"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"RetargetSettings.{name} must be positive, got {v}")
         if not 0 < self.snap_min_distance < 1:
-            raise InputError(f"RetargetSettings.snap_min_distance must be in (0, 1), got {self.snap_min_distance}")
+            raise InputError(
+                f"RetargetSettings.snap_min_distance must be in (0, 1), got {self.snap_min_distance}"
+            )
         for name in ("inflation_rounds", "inflation_iterations", "fit_iterations"):
             if int(getattr(self, name)) < 0:
                 raise InputError(f"RetargetSettings.{name} must be >= 0")
-        if not (math.isfinite(self.rtol) and self.rtol >= 0 and math.isfinite(self.energy_tol)
-                and self.energy_tol >= 0):
+        if not (
+            math.isfinite(self.rtol)
+            and self.rtol >= 0
+            and math.isfinite(self.energy_tol)
+            and self.energy_tol >= 0
+        ):
             raise InputError("RetargetSettings.rtol and energy_tol must be non-negative numbers")
         if self.threads is not None and int(self.threads) < 1:
             raise InputError(f"RetargetSettings.threads must be >= 1 or None, got {self.threads}")
@@ -178,10 +187,18 @@ class _Progress:
     def __call__(self, stage: str, stats: dict) -> None:
         self.step += 1
         self.history.append({"stage": stage, **stats})
-        self.logger.scalars({k: v for k, v in stats.items() if isinstance(v, (int, float)) and math.isfinite(v)
-                             and k != "iteration"}, self.step, prefix=f"{stage}/")
-        self.logger.advance({"stage": stage, "t": f"{stats.get('t', 1.0):.3f}",
-                             "g": f"{stats.get('grad_norm', 0):.2e}"})
+        self.logger.scalars(
+            {
+                k: v
+                for k, v in stats.items()
+                if isinstance(v, (int, float)) and math.isfinite(v) and k != "iteration"
+            },
+            self.step,
+            prefix=f"{stage}/",
+        )
+        self.logger.advance(
+            {"stage": stage, "t": f"{stats.get('t', 1.0):.3f}", "g": f"{stats.get('grad_norm', 0):.2e}"}
+        )
 
     def close(self) -> None:
         self.logger.close()
@@ -198,8 +215,13 @@ def _min_distance(contact: MovingObstacleContact, x: torch.Tensor, t: float, sta
     return math.inf
 
 
-def check_result(x: torch.Tensor, faces: torch.Tensor, avatar_vertices: torch.Tensor, avatar_faces: torch.Tensor,
-                 search: float) -> dict:
+def check_result(
+    x: torch.Tensor,
+    faces: torch.Tensor,
+    avatar_vertices: torch.Tensor,
+    avatar_faces: torch.Tensor,
+    search: float,
+) -> dict:
     """Intersection checks of a garment on an avatar (any consistent length unit).
 
     Returns:
@@ -215,12 +237,21 @@ def check_result(x: torch.Tensor, faces: torch.Tensor, avatar_vertices: torch.Te
     gm = ipctk.CollisionMesh(xn, ipctk.edges(gf), gf)
     inter_self = bool(ipctk.has_intersections(gm, xn, ipctk.LBVH()))
     dmin = _min_distance(c, x, 1.0, search)
-    return {"intersects_avatar": bool(inter_av), "intersects_self": inter_self,
-            "intersections": int(inter_av) + int(inter_self), "min_distance": dmin}
+    return {
+        "intersects_avatar": bool(inter_av),
+        "intersects_self": inter_self,
+        "intersections": int(inter_av) + int(inter_self),
+        "min_distance": dmin,
+    }
 
 
-def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None, *, progress: bool = True,
-             log_dir: str | Path | None = None) -> RetargetResult:
+def retarget(
+    problem: RetargetProblem,
+    settings: RetargetSettings | None = None,
+    *,
+    progress: bool = True,
+    log_dir: str | Path | None = None,
+) -> RetargetResult:
     """Retarget ``problem.garment`` onto ``problem``'s target avatar without intersections.
 
     Args:
@@ -262,8 +293,14 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
         shrunk = shrink_avatar(problem, check=s.check_shrink)
         full = shrunk.vertices_full.to(dt) * k
         shr = shrunk.vertices_shrunk.to(dt) * k
-        steps.append({"step": "shrink", "seconds": time.perf_counter() - t0, "avatar_vertices": int(full.shape[0]),
-                      "subdivision_iterations": int(shrunk.iterations)})
+        steps.append(
+            {
+                "step": "shrink",
+                "seconds": time.perf_counter() - t0,
+                "avatar_vertices": int(full.shape[0]),
+                "subdivision_iterations": int(shrunk.iterations),
+            }
+        )
 
         # ---------------------------------------------------------------- objectives
         js = problem.source_skeleton.joints.to(dt) * k
@@ -276,20 +313,39 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
         curve = CurveShape(x_src, curves, weight=s.w_curve)
         area = float(vertex_areas(x_src, faces).sum())
         mean_area = area / x_src.shape[0]
-        weights = {"surf": s.w_surf, "pos": s.w_pos, "curve": s.w_curve, "contact": 1.0, "al": 1.0, "fit": s.w_fit}
+        weights = {
+            "surf": s.w_surf,
+            "pos": s.w_pos,
+            "curve": s.w_curve,
+            "contact": 1.0,
+            "al": 1.0,
+            "fit": s.w_fit,
+        }
 
         # ---------------------------------------------------------------- Step 2: inflation
         t0 = time.perf_counter()
-        contact = Contact(x_src, faces, full, shrunk.faces, shr, s.dhat, broad_phase=s.broad_phase,
-                          cull_radius=s.cull_radius)
+        contact = Contact(
+            x_src,
+            faces,
+            full,
+            shrunk.faces,
+            shr,
+            s.dhat,
+            broad_phase=s.broad_phase,
+            cull_radius=s.cull_radius,
+        )
         snap_contact = Contact(x_src, faces, full, shrunk.faces, shr, s.dhat, broad_phase=s.broad_phase)
         al = InflationPenalty(s.al_lambda * area)
         obj = retarget_model([surf, pos, curve, contact, al], x_src)
         x = x_src.clone()
         t = 0.0
         initial_stiffness(obj, x, t, mean_area * s.stiffness_scale)
-        ns = NewtonSettings(max_iterations=s.inflation_iterations, max_displacement=s.max_displacement,
-                            step_bound=s.step_bound, rtol=0.0)
+        ns = NewtonSettings(
+            max_iterations=s.inflation_iterations,
+            max_displacement=s.max_displacement,
+            step_bound=s.step_bound,
+            rtol=0.0,
+        )
         iters2, snapped, bound_s, rounds = 0, False, 0.0, 0
         snap_min = s.snap_min_distance * s.dhat
         for rounds in range(1, s.inflation_rounds + 1):
@@ -305,49 +361,95 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
             if t - t_prev < 0.05:
                 al.lambda1 *= 2.0
         if not snapped:
-            raise RetargetError(f"the avatar inflation stopped at t = {t:.3f} after {rounds} rounds "
-                                f"({iters2} Newton iterations); raise inflation_rounds")
+            raise RetargetError(
+                f"the avatar inflation stopped at t = {t:.3f} after {rounds} rounds "
+                f"({iters2} Newton iterations); raise inflation_rounds"
+            )
         t_snap = t
-        steps.append({"step": "inflate", "seconds": time.perf_counter() - t0, "newton_iterations": iters2,
-                      "rounds": rounds, "t_snap": t_snap, "step_bound_seconds": bound_s,
-                      "culls": contact.ipc.num_culls})
+        steps.append(
+            {
+                "step": "inflate",
+                "seconds": time.perf_counter() - t0,
+                "newton_iterations": iters2,
+                "rounds": rounds,
+                "t_snap": t_snap,
+                "step_bound_seconds": bound_s,
+                "culls": contact.ipc.num_culls,
+            }
+        )
 
         # ---------------------------------------------------------------- Step 3: fit
         t0 = time.perf_counter()
-        contact3 = Contact(x_src, faces, full, shrunk.faces, None, s.dhat, broad_phase=s.broad_phase,
-                           cull_radius=s.cull_radius)
+        contact3 = Contact(
+            x_src,
+            faces,
+            full,
+            shrunk.faces,
+            None,
+            s.dhat,
+            broad_phase=s.broad_phase,
+            cull_radius=s.cull_radius,
+        )
         if contact3.ipc.has_intersections(x, 1.0):  # cannot happen after a CCD-checked snap; never hide it
-            raise RetargetError(f"the garment intersects the avatar after snapping t = {t_snap} to 1 (unculled: "
-                                f"{snap_contact.ipc.has_intersections(x, t_snap)} at t_snap, "
-                                f"{snap_contact.ipc.has_intersections(x, 1.0)} at 1)")
+            raise RetargetError(
+                f"the garment intersects the avatar after snapping t = {t_snap} to 1 (unculled: "
+                f"{snap_contact.ipc.has_intersections(x, t_snap)} at t_snap, "
+                f"{snap_contact.ipc.has_intersections(x, 1.0)} at 1)"
+            )
         terms3 = [surf, pos, curve, contact3]
         sdf_s = 0.0
         if s.w_fit > 0 and bool(problem.fit_mask.any()):
             ts = time.perf_counter()
-            sdf = BodySDF.cached(problem.avatar_vertices.to(dt) * k, problem.avatar_faces,
-                                 SDFSettings(voxel_size=s.sdf_voxel), dtype=dt, device=dev)
+            sdf = BodySDF.cached(
+                problem.avatar_vertices.to(dt) * k,
+                problem.avatar_faces,
+                SDFSettings(voxel_size=s.sdf_voxel),
+                dtype=dt,
+                device=dev,
+            )
             sdf_s = time.perf_counter() - ts
-            terms3.append(Fit(sdf, x_src, faces, problem.fit_mask.to(dev), s.fit_length, s.dhat, weight=s.w_fit))
+            terms3.append(
+                Fit(sdf, x_src, faces, problem.fit_mask.to(dev), s.fit_length, s.dhat, weight=s.w_fit)
+            )
         obj3 = retarget_model(terms3, x)
         initial_stiffness(obj3, x, 1.0, mean_area * s.stiffness_scale)
         contact3.ipc.stiffness = max(contact3.stiffness, contact.stiffness)
-        r3 = projected_newton(obj3, x, 1.0, free_t=False,
-                              settings=NewtonSettings(max_iterations=s.fit_iterations,
-                                                      max_displacement=s.max_displacement,
-                                                      step_bound=s.step_bound, rtol=s.rtol,
-                                                      energy_tol=s.energy_tol),
-                              callback=lambda st: log("fit", st))
+        r3 = projected_newton(
+            obj3,
+            x,
+            1.0,
+            free_t=False,
+            settings=NewtonSettings(
+                max_iterations=s.fit_iterations,
+                max_displacement=s.max_displacement,
+                step_bound=s.step_bound,
+                rtol=s.rtol,
+                energy_tol=s.energy_tol,
+            ),
+            callback=lambda st: log("fit", st),
+        )
         x = r3.x
-        steps.append({"step": "fit", "seconds": time.perf_counter() - t0, "newton_iterations": r3.iterations,
-                      "grad_norm": r3.grad_norm, "converged": r3.converged, "reason": r3.reason,
-                      "sdf_seconds": sdf_s, "step_bound_seconds": r3.step_bound_seconds,
-                      "culls": contact3.ipc.num_culls})
+        steps.append(
+            {
+                "step": "fit",
+                "seconds": time.perf_counter() - t0,
+                "newton_iterations": r3.iterations,
+                "grad_norm": r3.grad_norm,
+                "converged": r3.converged,
+                "reason": r3.reason,
+                "sdf_seconds": sdf_s,
+                "step_bound_seconds": r3.step_bound_seconds,
+                "culls": contact3.ipc.num_culls,
+            }
+        )
 
         # ---------------------------------------------------------------- checks and metrics
         chk = check_result(x, faces, full, shrunk.faces, s.dhat)
         if chk["intersections"]:
-            raise RetargetError(f"final check failed: garment-avatar intersection {chk['intersects_avatar']}, "
-                                f"self-intersection {chk['intersects_self']}")
+            raise RetargetError(
+                f"final check failed: garment-avatar intersection {chk['intersects_avatar']}, "
+                f"self-intersection {chk['intersects_self']}"
+            )
         if not chk["min_distance"] > 0:
             raise RetargetError("final check failed: the garment touches the avatar or itself (distance 0)")
         vals = term_values(terms3, x, 1.0)
@@ -389,7 +491,9 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
     )
 
 
-def layer_problem(problem: RetargetProblem, inner_vertices: torch.Tensor, inner_faces: torch.Tensor) -> RetargetProblem:
+def layer_problem(
+    problem: RetargetProblem, inner_vertices: torch.Tensor, inner_faces: torch.Tensor
+) -> RetargetProblem:
     """``problem`` with an already retargeted garment added to its target avatar (multi-layer retargeting).
 
     Args:
@@ -405,19 +509,36 @@ def layer_problem(problem: RetargetProblem, inner_vertices: torch.Tensor, inner_
         raise InputError(f"inner_vertices must be (M, 3), got {tuple(inner_vertices.shape)}")
     iv = problem.to_work.apply(inner_vertices.to(problem.avatar_vertices.dtype))
     av = torch.cat([problem.avatar_vertices, iv])
-    af = torch.cat([problem.avatar_faces, inner_faces.to(problem.avatar_faces) + problem.avatar_vertices.shape[0]])
+    af = torch.cat(
+        [problem.avatar_faces, inner_faces.to(problem.avatar_faces) + problem.avatar_vertices.shape[0]]
+    )
     return RetargetProblem(
-        garment_vertices=problem.garment_vertices, garment_faces=problem.garment_faces,
-        source_skeleton=problem.source_skeleton, target_skeleton=problem.target_skeleton,
-        avatar_vertices=av, avatar_faces=af, skin_weights=None, fit_mask=problem.fit_mask, curves=problem.curves,
-        to_work=problem.to_work, length_scale=problem.length_scale,
-        source_avatar_vertices=problem.source_avatar_vertices, source_avatar_faces=problem.source_avatar_faces,
-        garment_index_map=problem.garment_index_map)
+        garment_vertices=problem.garment_vertices,
+        garment_faces=problem.garment_faces,
+        source_skeleton=problem.source_skeleton,
+        target_skeleton=problem.target_skeleton,
+        avatar_vertices=av,
+        avatar_faces=af,
+        skin_weights=None,
+        fit_mask=problem.fit_mask,
+        curves=problem.curves,
+        to_work=problem.to_work,
+        length_scale=problem.length_scale,
+        source_avatar_vertices=problem.source_avatar_vertices,
+        source_avatar_faces=problem.source_avatar_faces,
+        garment_index_map=problem.garment_index_map,
+    )
 
 
-def retarget_layers(problems: list[RetargetProblem], settings: RetargetSettings | None = None, *,
-                    progress: bool = True, log_dir: str | Path | None = None) -> list[RetargetResult]:
-    """Retarget several garments onto one avatar from the inside out; each result joins the avatar of the next.
+def retarget_layers(
+    problems: list[RetargetProblem],
+    settings: RetargetSettings | None = None,
+    *,
+    progress: bool = True,
+    log_dir: str | Path | None = None,
+) -> list[RetargetResult]:
+    """Retarget several garments onto one avatar from the inside out; each result joins the avatar of the
+    next.
 
     Args:
         problems: one problem per garment, innermost first, all with the same target avatar and skeletons.
@@ -427,6 +548,12 @@ def retarget_layers(problems: list[RetargetProblem], settings: RetargetSettings 
     for i, p in enumerate(problems):
         for r in results:
             p = layer_problem(p, r.garment_vertices, r.garment_faces)
-        results.append(retarget(p, settings, progress=progress,
-                                log_dir=None if log_dir is None else Path(log_dir) / f"layer{i}"))
+        results.append(
+            retarget(
+                p,
+                settings,
+                progress=progress,
+                log_dir=None if log_dir is None else Path(log_dir) / f"layer{i}",
+            )
+        )
     return results

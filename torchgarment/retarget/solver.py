@@ -1,10 +1,11 @@
 """Projected Newton with a collision-free step bound for the retargeting objectives (Huang et al. 2025, 3.7).
 
-The unknowns are the retargeting state ``y`` (N + 1, 3) of :func:`~torchgarment.retarget.objectives.make_state`:
-garment positions and the inflation parameter ``t``. Step 2 frees ``t`` (augmented Lagrangian
-:class:`InflationPenalty` pushes it to 1); Step 3 fixes it at 1. The objective is a
-:class:`~torchgarment.sim.scene.SimModel` of :class:`~torchgarment.retarget.objectives.RetargetEnergy` terms and
-the solver the simulator's projected Newton (:func:`~torchgarment.sim.solvers.newton.solve_newton`) with:
+The unknowns are the retargeting state ``y`` (N + 1, 3) of
+:func:`~torchgarment.retarget.objectives.make_state`: garment positions and the inflation parameter ``t``.
+Step 2 frees ``t`` (augmented Lagrangian :class:`InflationPenalty` pushes it to 1); Step 3 fixes it at 1. The
+objective is a :class:`~torchgarment.sim.scene.SimModel` of
+:class:`~torchgarment.retarget.objectives.RetargetEnergy` terms and the solver the simulator's projected
+Newton (:func:`~torchgarment.sim.solvers.newton.solve_newton`) with:
 
 * the free unknowns: the garment, plus ``t`` in Step 2;
 * the step bound :class:`CollisionFreeBound`: the largest vertex displacement (garment or avatar) capped at
@@ -65,8 +66,9 @@ class InflationPenalty(RetargetEnergy):
         c = 1.0 - _t_tensor(t, x)
         return 0.5 * self.lambda1 * c * c + self.lambda2 * c
 
-    def unweighted_blocks(self, x: torch.Tensor, t: torch.Tensor | float,
-                          project_psd: bool = True) -> HessianBlocks:
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | float, project_psd: bool = True
+    ) -> HessianBlocks:
         """The t-t entry ``lambda1`` (vertex N's block, entry (0, 0))."""
         n = torch.tensor([x.shape[0]], device=x.device)
         v = torch.zeros(1, 3, 3, dtype=x.dtype, device=x.device)
@@ -107,7 +109,8 @@ class NewtonSettings:
             (units of x), None: no cap.
         step_bound: collision-free step method (:class:`~torchgarment.sim.contact.StepBound` or its name).
         armijo_c: sufficient-decrease constant.
-        max_backtracks: line-search trials (halving the step) before giving up (27: down to 1e-8 of the bound).
+        max_backtracks: line-search trials (halving the step) before giving up (27: down to 1e-8 of the
+            bound).
         update_stiffness: IPC's barrier stiffness update after each iteration (ipctk.update_barrier_stiffness:
             doubles kappa, up to its maximum, while the minimum distance decreases below
             ``stiffness_distance * dhat``).
@@ -155,11 +158,19 @@ class NewtonSettings:
 
     def solve_settings(self) -> SolveSettings:
         """The shared solver's settings (the regularization: 1e-8 of the mean diagonal, 12 retries)."""
-        s = SolveSettings(rtol=self.rtol, atol=self.atol, max_iterations=self.max_iterations,
-                          armijo_c=self.armijo_c, backtrack=0.5, max_backtracks=self.max_backtracks,
-                          regularization=1e-8, max_regularizations=12,
-                          reuse_factorization=self.reuse_factorization, pcg_rtol=self.pcg_rtol,
-                          pcg_max_iterations=self.pcg_max_iterations)
+        s = SolveSettings(
+            rtol=self.rtol,
+            atol=self.atol,
+            max_iterations=self.max_iterations,
+            armijo_c=self.armijo_c,
+            backtrack=0.5,
+            max_backtracks=self.max_backtracks,
+            regularization=1e-8,
+            max_regularizations=12,
+            reuse_factorization=self.reuse_factorization,
+            pcg_rtol=self.pcg_rtol,
+            pcg_max_iterations=self.pcg_max_iterations,
+        )
         s.validate()
         return s
 
@@ -187,7 +198,8 @@ class NewtonResult:
 
 
 class CollisionFreeBound:
-    """The retargeting step bound (a :class:`~torchgarment.sim.solvers.newton.StepLimiter`) on states (N + 1, 3).
+    """The retargeting step bound (a :class:`~torchgarment.sim.solvers.newton.StepLimiter`) on states (N + 1,
+    3).
 
     ``max_step`` caps the largest vertex displacement (garment, or avatar: ``|dt| * delta_max``) at
     ``max_displacement``, keeps ``t`` in [0, t_max] and multiplies by the contact's collision-free step size.
@@ -197,8 +209,9 @@ class CollisionFreeBound:
         method: :class:`StepBound`. t_max: upper bound of t.
     """
 
-    def __init__(self, contact: Contact | None, max_displacement: float | None, method: StepBound,
-                 t_max: float = 1.0) -> None:
+    def __init__(
+        self, contact: Contact | None, max_displacement: float | None, method: StepBound, t_max: float = 1.0
+    ) -> None:
         self.ipc = None if contact is None else contact.ipc
         self.max_displacement = max_displacement
         self.method = StepBound.resolve(method)
@@ -242,8 +255,13 @@ class CollisionFreeBound:
 class _Monitor:
     """Per-iteration statistics, IPC's stiffness update and the user callback of :func:`projected_newton`."""
 
-    def __init__(self, terms: list[RetargetEnergy], contact: Contact | None, settings: NewtonSettings,
-                 callback: Callable[[dict], bool | None] | None) -> None:
+    def __init__(
+        self,
+        terms: list[RetargetEnergy],
+        contact: Contact | None,
+        settings: NewtonSettings,
+        callback: Callable[[dict], bool | None] | None,
+    ) -> None:
         self.terms = terms
         self.contact = contact
         self.settings = settings
@@ -255,9 +273,16 @@ class _Monitor:
     def after_step(self, y: torch.Tensor, step: NewtonStep) -> bool:
         """Record the step's stats, update the barrier stiffness; True when the stiffness changed."""
         vals = {term.name: term.value(y) for term in self.terms}
-        stats = {"iteration": step.iteration, "energy": step.energy, "grad_norm": step.grad_norm,
-                 "alpha": step.alpha, "alpha_max": step.alpha_max, "max_displacement": step.displacement,
-                 "t": float(y[-1, 0]), **{f"term/{k}": v for k, v in vals.items()}}
+        stats = {
+            "iteration": step.iteration,
+            "energy": step.energy,
+            "grad_norm": step.grad_norm,
+            "alpha": step.alpha,
+            "alpha_max": step.alpha_max,
+            "max_displacement": step.displacement,
+            "t": float(y[-1, 0]),
+            **{f"term/{k}": v for k, v in vals.items()},
+        }
         changed = False
         if self.contact is not None:
             ipc = self.contact.ipc
@@ -276,8 +301,13 @@ class _Monitor:
         return self.stop
 
 
-_REASONS = {"converged": "gradient", "energy stalled": "energy", "small step": "step",
-            "stopped by callback": "callback", "max iterations reached": "max_iterations"}
+_REASONS = {
+    "converged": "gradient",
+    "energy stalled": "energy",
+    "small step": "step",
+    "stopped by callback": "callback",
+    "max iterations reached": "max_iterations",
+}
 
 
 def projected_newton(
@@ -316,10 +346,20 @@ def projected_newton(
     free[-1, 0] = bool(free_t)
     bound = CollisionFreeBound(contact, s.max_displacement, s.step_bound, t_max)
     monitor = _Monitor(terms, contact, s, callback)
-    options = NewtonOptions(free=free, step_bound=bound, regularize_first=True, regularization_growth=100.0,
-                            gradient_fallback=True, levenberg=False, value_only_line_search=True, armijo_slack=0.0,
-                            step_tol=s.step_tol, energy_tol=s.energy_tol, energy_window=s.energy_window,
-                            after_step=monitor.after_step)
+    options = NewtonOptions(
+        free=free,
+        step_bound=bound,
+        regularize_first=True,
+        regularization_growth=100.0,
+        gradient_fallback=True,
+        levenberg=False,
+        value_only_line_search=True,
+        armijo_slack=0.0,
+        step_tol=s.step_tol,
+        energy_tol=s.energy_tol,
+        energy_window=s.energy_window,
+        after_step=monitor.after_step,
+    )
     try:
         y, info = solve_newton(model, y0, s.solve_settings(), s.max_iterations, monitor, options)
     except NonFiniteError as err:
@@ -327,15 +367,29 @@ def projected_newton(
             raise
         vals = {t.name: t.value(y0) for t in terms}
         bad = ", ".join(k for k, v in vals.items() if not math.isfinite(v))
-        raise InputError(f"the initial state has a non-finite energy in: {bad} (touching contact or a "
-                         "degenerate element)") from None
-    reason = "line_search" if info.message.startswith("line search") else _REASONS.get(info.message, info.message)
+        raise InputError(
+            f"the initial state has a non-finite energy in: {bad} (touching contact or a degenerate element)"
+        ) from None
+    reason = (
+        "line_search" if info.message.startswith("line search") else _REASONS.get(info.message, info.message)
+    )
     x, t = split_state(y)
-    return NewtonResult(x.detach().clone(), float(t), info.iterations, info.residual, info.energy_history[-1],
-                        info.converged, reason, bound.seconds, monitor.history)
+    return NewtonResult(
+        x.detach().clone(),
+        float(t),
+        info.iterations,
+        info.residual,
+        info.energy_history[-1],
+        info.converged,
+        reason,
+        bound.seconds,
+        monitor.history,
+    )
 
 
-def initial_stiffness(model: SimModel, x: torch.Tensor, t: torch.Tensor | float, average_mass: float) -> float:
+def initial_stiffness(
+    model: SimModel, x: torch.Tensor, t: torch.Tensor | float, average_mass: float
+) -> float:
     """IPC's adaptive initial barrier stiffness (ipctk.initial_barrier_stiffness) of the model's contact term.
 
     Balances the barrier gradient against the gradient of all other terms of ``model``; sets the contact's

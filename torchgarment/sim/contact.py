@@ -12,15 +12,16 @@ The energy is ipctk's area-weighted "physical" log barrier (the convergent IPC f
 over the point-triangle and edge-edge pairs closer than ``dhat`` (metres); ``w_k`` are barycentric areas
 (m^2) and ``b`` is normalised to a length, so the stiffness ``kappa`` is a pressure (Pa) and E is in joules.
 ``E`` is 0 beyond ``dhat`` and tends to +inf as two primitives touch. Crossing (intersecting) primitives can
-have a finite barrier, so the terms additionally report +inf when the mesh intersects (``check_intersections``).
+have a finite barrier, so the terms additionally report +inf when the mesh intersects
+(``check_intersections``).
 
-Collision candidates are rebuilt from ``x`` by ipctk's broad phase on every call (the last set is reused when a
-call sees exactly the same positions, e.g. ``value_and_grad`` then ``hessian_blocks``). Everything at the
-boundary is device/dtype agnostic: positions go to numpy float64 for ipctk, results come back in ``x``'s dtype on
-``x``'s device. Not differentiable twice (``forward`` has a first-order custom backward).
+Collision candidates are rebuilt from ``x`` by ipctk's broad phase on every call (the last set is reused when
+a call sees exactly the same positions, e.g. ``value_and_grad`` then ``hessian_blocks``). Everything at the
+boundary is device/dtype agnostic: positions go to numpy float64 for ipctk, results come back in ``x``'s dtype
+on ``x``'s device. Not differentiable twice (``forward`` has a first-order custom backward).
 
-Seams: a pattern mesh keeps one vertex per panel on a seam, and sewing drives the pairs to distance 0, which an
-unfiltered barrier would forbid. Pass ``seam_pairs`` and every vertex pair around a seam in the
+Seams: a pattern mesh keeps one vertex per panel on a seam, and sewing drives the pairs to distance 0, which
+an unfiltered barrier would forbid. Pass ``seam_pairs`` and every vertex pair around a seam in the
 *welded* mesh is excluded from contact (ipctk collision filter, see :func:`seam_exclusion_pairs`), so the
 seams can close.
 """
@@ -42,15 +43,17 @@ from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 
 
 class StepBound(OptionEnum):
-    """How a step ``x + alpha dx`` is bounded so that it stays intersection free (:func:`collision_free_step`).
+    """How a step ``x + alpha dx`` is bounded so that it stays intersection free
+    (:func:`collision_free_step`).
 
-    ADDITIVE: ipctk candidates of the swept boxes, then Additive CCD (conservative advancement, Li et al. 2021)
-        rescaled by 0.9: a safe lower bound of the time of impact at a fraction of Tight Inclusion's cost on
-        dense contact (retargeting's default).
-    TIGHT_INCLUSION: ipctk's Tight-Inclusion CCD (tolerance ``ccd_tolerance``) rescaled by 0.8: the largest safe
-        step, but expensive on dense steps.
-    CONSERVATIVE: ``alpha = safety * min(d_min, r) / reach`` from the minimum distance ``d_min`` of pairs closer
-        than ``r``, ``reach`` bounding how much any pair's distance can shrink over the step: one distance query,
+    ADDITIVE: ipctk candidates of the swept boxes, then Additive CCD (conservative advancement, Li et al.
+        2021) rescaled by 0.9: a safe lower bound of the time of impact at a fraction of Tight Inclusion's
+        cost on dense contact (retargeting's default).
+    TIGHT_INCLUSION: ipctk's Tight-Inclusion CCD (tolerance ``ccd_tolerance``) rescaled by 0.8: the largest
+        safe step, but expensive on dense steps.
+    CONSERVATIVE: ``alpha = safety * min(d_min, r) / reach`` from the minimum distance ``d_min`` of pairs
+        closer than ``r``, ``reach`` bounding how much any pair's distance can shrink over the step: one
+        distance query,
         never larger than the true time of impact, usually smaller (the default of the simulation contacts).
     """
 
@@ -101,7 +104,11 @@ def _np_faces(faces: torch.Tensor | np.ndarray, what: str) -> np.ndarray:
 
 
 def _np_points(p: torch.Tensor | np.ndarray, what: str) -> np.ndarray:
-    a = p.detach().to("cpu", torch.float64).numpy() if isinstance(p, torch.Tensor) else np.asarray(p, np.float64)
+    a = (
+        p.detach().to("cpu", torch.float64).numpy()
+        if isinstance(p, torch.Tensor)
+        else np.asarray(p, np.float64)
+    )
     if a.ndim != 2 or a.shape[1] not in (2, 3):
         raise InputError(f"{what} must be a (V, 3) (or (V, 2) flat) array, got shape {a.shape}")
     if a.shape[1] == 2:
@@ -113,9 +120,15 @@ def _np_points(p: torch.Tensor | np.ndarray, what: str) -> np.ndarray:
 
 def _np_seams(seam_pairs: torch.Tensor | np.ndarray, num_vertices: int) -> np.ndarray:
     a = np.asarray(seam_pairs.cpu() if isinstance(seam_pairs, torch.Tensor) else seam_pairs)
-    if a.ndim != 2 or a.shape[1] != 2 or not np.issubdtype(a.dtype, np.integer) \
-            or (a.size and (a.min() < 0 or a.max() >= num_vertices)):
-        raise InputError(f"seam_pairs must be an integer (S, 2) array of vertex indices in [0, {num_vertices})")
+    if (
+        a.ndim != 2
+        or a.shape[1] != 2
+        or not np.issubdtype(a.dtype, np.integer)
+        or (a.size and (a.min() < 0 or a.max() >= num_vertices))
+    ):
+        raise InputError(
+            f"seam_pairs must be an integer (S, 2) array of vertex indices in [0, {num_vertices})"
+        )
     return a.astype(np.int64)
 
 
@@ -171,8 +184,13 @@ def _energy_or_inf(e: float) -> float:
     return math.inf if math.isnan(e) else e
 
 
-def minimum_distance(mesh: "ipctk.CollisionMesh", xn: np.ndarray, max_distance: float,
-                     broad_phase: BroadPhase, collisions: "ipctk.NormalCollisions | None" = None) -> float:
+def minimum_distance(
+    mesh: "ipctk.CollisionMesh",
+    xn: np.ndarray,
+    max_distance: float,
+    broad_phase: BroadPhase,
+    collisions: "ipctk.NormalCollisions | None" = None,
+) -> float:
     """Smallest distance between (non-filtered) primitives of ``mesh`` at positions ``xn`` (Fortran (V, 3)),
     searched within ``max_distance`` (units of ``xn``); +inf when no pair is that close. ``collisions``: a
     collision set already built within ``max_distance`` at ``xn`` (saves the query)."""
@@ -199,15 +217,16 @@ def collision_free_step(
     ccd_tolerance: float = 1e-6,
     dhat_collisions: "ipctk.NormalCollisions | None" = None,
 ) -> float:
-    """Largest alpha in [0, 1] (conservative) such that the linear motion from ``x0`` to ``x0 + alpha (x1 - x0)``
-    of the collision mesh stays intersection free (see :class:`StepBound`).
+    """Largest alpha in [0, 1] (conservative) such that the linear motion from ``x0`` to ``x0 + alpha (x1 -
+    x0)`` of the collision mesh stays intersection free (see :class:`StepBound`).
 
     Args:
         mesh: the ipctk collision mesh. x0, x1: (V, 3) Fortran-ordered positions at alpha = 0 and 1.
         method: :class:`StepBound`. broad_phase: :class:`BroadPhase`.
         reach: upper bound of how much the distance of any pair can shrink over the whole step (units of x):
-            every point of a primitive moves by at most its vertices' largest displacement along a linear step,
-            so ``2 max|dx|`` for self-contact (``M_g + max(M_g, M_a)`` with a moving obstacle); 0: no motion.
+            every point of a primitive moves by at most its vertices' largest displacement along a linear
+            step, so ``2 max|dx|`` for self-contact (``M_g + max(M_g, M_a)`` with a moving obstacle); 0: no
+            motion.
         dhat: the barrier's activation distance. safety: CONSERVATIVE's fraction of the distance bound.
         radius: CONSERVATIVE queries pairs within ``max(min(radius, reach), dhat)``; pairs farther apart are
             covered by the ``min(d_min, r)``.
@@ -230,8 +249,11 @@ def collision_free_step(
     cand.build(mesh, x0, x1, 0.0, broad_phase.make())
     if cand.empty():
         return 1.0
-    narrow = ipctk.AdditiveCCD(conservative_rescaling=0.9) if method is StepBound.ADDITIVE else \
-        ipctk.TightInclusionCCD(tolerance=ccd_tolerance, conservative_rescaling=0.8)
+    narrow = (
+        ipctk.AdditiveCCD(conservative_rescaling=0.9)
+        if method is StepBound.ADDITIVE
+        else ipctk.TightInclusionCCD(tolerance=ccd_tolerance, conservative_rescaling=0.8)
+    )
     return float(cand.compute_collision_free_stepsize(mesh, x0, x1, 0.0, narrow))
 
 
@@ -239,7 +261,9 @@ class _IPCEnergy(torch.autograd.Function):
     """E(x) with the ipctk analytic gradient as backward."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, term: "_IPCContact") -> torch.Tensor:  # noqa: D102
+    def forward(  # noqa: D102
+        ctx: torch.autograd.function.FunctionCtx, x: torch.Tensor, term: "_IPCContact"
+    ) -> torch.Tensor:
         if ctx.needs_input_grad[0]:
             e, g = term._value_grad_np(x)
             ctx.save_for_backward(torch.as_tensor(g.reshape(-1, 3), dtype=x.dtype, device=x.device))
@@ -249,7 +273,9 @@ class _IPCEnergy(torch.autograd.Function):
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_out: torch.Tensor):  # noqa: D102
+    def backward(  # noqa: D102
+        ctx: torch.autograd.function.FunctionCtx, grad_out: torch.Tensor
+    ) -> tuple[torch.Tensor, None]:
         (g,) = ctx.saved_tensors
         return grad_out * g, None
 
@@ -299,7 +325,9 @@ class _IPCContact(EnergyTerm):
         self.step_bound = StepBound.resolve(step_bound)
         self.ccd_tolerance = float(ccd_tolerance)
         self.step_safety = float(step_safety)
-        self.conservative_radius = float(conservative_radius) if conservative_radius is not None else float(dhat)
+        self.conservative_radius = (
+            float(conservative_radius) if conservative_radius is not None else float(dhat)
+        )
         self.check_intersections = bool(check_intersections)
         self.broad_phase = BroadPhase.resolve(broad_phase)
         self._static = static_positions
@@ -337,7 +365,9 @@ class _IPCContact(EnergyTerm):
 
     def _positions(self, x: torch.Tensor) -> np.ndarray:
         if not isinstance(x, torch.Tensor) or x.shape != (self.num_vertices, 3):
-            raise InputError(f"x must be a ({self.num_vertices}, 3) tensor, got {getattr(x, 'shape', type(x))}")
+            raise InputError(
+                f"x must be a ({self.num_vertices}, 3) tensor, got {getattr(x, 'shape', type(x))}"
+            )
         xn = x.detach().to("cpu", torch.float64).numpy()
         if not np.isfinite(xn).all():
             raise InputError("x contains non-finite positions")
@@ -399,8 +429,10 @@ class _IPCContact(EnergyTerm):
         the barrier gradient of the pairs within ``dhat``, which does not undo the crossing.
         """
         e, g = self._value_grad_np(x)
-        return (torch.as_tensor(e, dtype=x.dtype, device=x.device),
-                torch.as_tensor(g.reshape(-1, 3), dtype=x.dtype, device=x.device))
+        return (
+            torch.as_tensor(e, dtype=x.dtype, device=x.device),
+            torch.as_tensor(g.reshape(-1, 3), dtype=x.dtype, device=x.device),
+        )
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
         """Block-COO Hessian (N/m) over garment vertices; per-collision PSD projection (clamp) when asked."""
@@ -434,9 +466,9 @@ class _IPCContact(EnergyTerm):
         shrinks by at most ``2 alpha M`` (``alpha M`` against the static body) and stays
         >= (1 - safety) * d_min > 0. Pairs farther apart than ``r = conservative_radius`` are not queried and
         are covered by the ``min(d_min, r)``; with the default ``r = dhat`` the query reuses the barrier's
-        collision set at ``x`` (nearly free after ``value_and_grad(x)``) but caps one step's largest vertex move
-        at ``safety * dhat / 2``; a larger ``r`` allows longer steps at the cost of a wider query. Since the
-        true time of impact is >= d_min / (2M), this bound is below the CCD
+        collision set at ``x`` (nearly free after ``value_and_grad(x)``) but caps one step's largest vertex
+        move at ``safety * dhat / 2``; a larger ``r`` allows longer steps at the cost of a wider query. Since
+        the true time of impact is >= d_min / (2M), this bound is below the CCD
         step whenever ``safety <= 0.8`` (CCD's rescaling). Assumes ``x`` is intersection free.
 
         Args:
@@ -452,11 +484,24 @@ class _IPCContact(EnergyTerm):
         reach = 2.0 * float(np.sqrt((dxn * dxn).sum(1)).max(initial=0.0))
         x1 = x0.copy()
         x1[: self.num_vertices] += dxn
-        col = self._collisions(x0) if method is StepBound.CONSERVATIVE and \
-            min(self.conservative_radius, reach) <= self.dhat else None
-        return collision_free_step(self._mesh, x0, np.asfortranarray(x1), method, self.broad_phase, reach=reach,
-                                   dhat=self.dhat, safety=self.step_safety, radius=self.conservative_radius,
-                                   ccd_tolerance=self.ccd_tolerance, dhat_collisions=col)
+        col = (
+            self._collisions(x0)
+            if method is StepBound.CONSERVATIVE and min(self.conservative_radius, reach) <= self.dhat
+            else None
+        )
+        return collision_free_step(
+            self._mesh,
+            x0,
+            np.asfortranarray(x1),
+            method,
+            self.broad_phase,
+            reach=reach,
+            dhat=self.dhat,
+            safety=self.step_safety,
+            radius=self.conservative_radius,
+            ccd_tolerance=self.ccd_tolerance,
+            dhat_collisions=col,
+        )
 
     def min_distance(self, x: torch.Tensor, max_distance: float | None = None) -> float:
         """Smallest distance (m) between non-adjacent (and non-filtered) primitives, searched within
@@ -487,7 +532,8 @@ class _IPCContact(EnergyTerm):
         ge = np.zeros_like(gb)
         ge[: 3 * self.num_vertices] = elastic_grad.detach().to("cpu", torch.float64).numpy().reshape(-1)
         kappa, kmax = ipctk.initial_barrier_stiffness(
-            self._bbox_diagonal, unit.barrier, self.dhat, self._average_mass / self._mean_weight, ge, gb)
+            self._bbox_diagonal, unit.barrier, self.dhat, self._average_mass / self._mean_weight, ge, gb
+        )
         self.max_stiffness = float(kmax)
         self.stiffness = float(kappa)
         return self.stiffness
@@ -498,8 +544,8 @@ class SelfContact(_IPCContact):
 
     Args:
         faces: (F, 3) int triangle vertex indices.
-        rest_positions: (V, 3) reference positions (m) for adjacency and the area weights (a (V, 2) flat pattern
-            is padded with z = 0).
+        rest_positions: (V, 3) reference positions (m) for adjacency and the area weights (a (V, 2) flat
+            pattern is padded with z = 0).
         dhat: barrier activation distance (m).
         stiffness: kappa (Pa); None = IPC's minimum adaptive stiffness for the mean vertex mass
             (``areal_density`` x mean barycentric vertex area), refine it with :meth:`calibrate_stiffness`.
@@ -539,12 +585,26 @@ class SelfContact(_IPCContact):
             raise InputError(f"num_vertices={num_vertices} but rest_positions has {rest.shape[0]} rows")
         filt = None
         if seam_pairs is not None:
-            pairs = seam_exclusion_pairs(np.asarray(ipctk.edges(f)), _np_seams(seam_pairs, rest.shape[0]),
-                                         rest.shape[0])
+            pairs = seam_exclusion_pairs(
+                np.asarray(ipctk.edges(f)), _np_seams(seam_pairs, rest.shape[0]), rest.shape[0]
+            )
             filt = _sparse_false_filter(pairs) if pairs.shape[0] else None
-        super().__init__(f, rest, rest.shape[0], None, dhat, stiffness, areal_density, filt, step_bound,
-                         step_safety, conservative_radius, check_intersections, broad_phase,
-                         ccd_tolerance)
+        super().__init__(
+            f,
+            rest,
+            rest.shape[0],
+            None,
+            dhat,
+            stiffness,
+            areal_density,
+            filt,
+            step_bound,
+            step_safety,
+            conservative_radius,
+            check_intersections,
+            broad_phase,
+            ccd_tolerance,
+        )
 
 
 class BodyMeshContact(_IPCContact):
@@ -605,9 +665,22 @@ class BodyMeshContact(_IPCContact):
                     filt = filt & _sparse_false_filter(pairs)
         else:
             filt = ipctk.make_vertex_patches_filter(np.r_[np.zeros(nv, np.int32), np.ones(nb, np.int32)])
-        super().__init__(faces, rest, nv, np.ascontiguousarray(bv), dhat, stiffness, areal_density, filt,
-                         step_bound, step_safety, conservative_radius, check_intersections, broad_phase,
-                         ccd_tolerance)
+        super().__init__(
+            faces,
+            rest,
+            nv,
+            np.ascontiguousarray(bv),
+            dhat,
+            stiffness,
+            areal_density,
+            filt,
+            step_bound,
+            step_safety,
+            conservative_radius,
+            check_intersections,
+            broad_phase,
+            ccd_tolerance,
+        )
 
 
 @dataclass
@@ -619,7 +692,8 @@ class ContactStats:
 
 
 class MovingObstacleContact:
-    """IPC barrier (ipctk) over garment-self and garment-obstacle pairs, the obstacle moving with a parameter t.
+    """IPC barrier (ipctk) over garment-self and garment-obstacle pairs, the obstacle moving with a parameter
+    t.
 
     The obstacle (an avatar) is ``shrunk + t (full - shrunk)`` (retargeting's inflation), or fixed at ``full``
     when ``obstacle_shrunk`` is None. One ipctk CollisionMesh holds the garment (first N vertices) and the
@@ -637,17 +711,27 @@ class MovingObstacleContact:
         obstacle_shrunk: (A, 3) obstacle at t = 0, or None (fixed obstacle).
         dhat: activation distance. stiffness: initial kappa.
         broad_phase: :class:`BroadPhase` (or an ipctk class name such as "LBVH").
-        cull_radius: when given (>= 4 dhat), the collision mesh keeps only the obstacle faces that may lie within
+        cull_radius: when given (>= 4 dhat), the collision mesh keeps only the obstacle faces that may lie
+            within
             this distance of the garment (see :meth:`_recull`), re-culled whenever the garment or the obstacle
             has moved by half of it; every query stays exact because dropped faces are farther than
             cull_radius / 2 > dhat. :meth:`prepare_step` makes a step's CCD valid.
         ccd_tolerance: tolerance of the TIGHT_INCLUSION step bound.
     """
 
-    def __init__(self, garment_rest: torch.Tensor, garment_faces: torch.Tensor, obstacle_full: torch.Tensor,
-                 obstacle_faces: torch.Tensor, obstacle_shrunk: torch.Tensor | None, dhat: float,
-                 stiffness: float = 1.0, broad_phase: BroadPhase | str = BroadPhase.LBVH,
-                 cull_radius: float | None = None, ccd_tolerance: float = 1e-3) -> None:
+    def __init__(
+        self,
+        garment_rest: torch.Tensor,
+        garment_faces: torch.Tensor,
+        obstacle_full: torch.Tensor,
+        obstacle_faces: torch.Tensor,
+        obstacle_shrunk: torch.Tensor | None,
+        dhat: float,
+        stiffness: float = 1.0,
+        broad_phase: BroadPhase | str = BroadPhase.LBVH,
+        cull_radius: float | None = None,
+        ccd_tolerance: float = 1e-3,
+    ) -> None:
         if not (math.isfinite(dhat) and dhat > 0):
             raise InputError(f"dhat must be positive, got {dhat}")
         if cull_radius is not None and not cull_radius >= 4 * dhat:
@@ -663,15 +747,20 @@ class MovingObstacleContact:
         self.ccd_tolerance = float(ccd_tolerance)
         self._garment_rest = garment_rest.detach().to("cpu", torch.float64).numpy()
         self._full_all = full
-        self._delta_all = (full - obstacle_shrunk.detach().to("cpu", torch.float64).numpy()) if self.uses_t else \
-            np.zeros_like(full)
+        self._delta_all = (
+            (full - obstacle_shrunk.detach().to("cpu", torch.float64).numpy())
+            if self.uses_t
+            else np.zeros_like(full)
+        )
         self._shrunk_all = full - self._delta_all
         #: largest obstacle vertex displacement per unit of t
-        self.delta_max = float(np.sqrt((self._delta_all ** 2).sum(1)).max(initial=0.0))
+        self.delta_max = float(np.sqrt((self._delta_all**2).sum(1)).max(initial=0.0))
         self.broad_phase = BroadPhase.resolve(broad_phase)
         self.stiffness = float(stiffness)
         self.max_stiffness = float(stiffness)
-        self.bbox_diagonal = float(ipctk.world_bbox_diagonal_length(np.concatenate([self._garment_rest, full])))
+        self.bbox_diagonal = float(
+            ipctk.world_bbox_diagonal_length(np.concatenate([self._garment_rest, full]))
+        )
         self.last_stats = ContactStats(0, math.inf)
         self.num_culls = 0
         self._ref_x: np.ndarray | None = None
@@ -699,14 +788,18 @@ class MovingObstacleContact:
         """Largest garment + obstacle displacement since the last cull (units of x)."""
         if self._ref_x is None:
             return math.inf
-        return float(np.sqrt(((xn - self._ref_x) ** 2).sum(1)).max(initial=0.0)) + abs(t - self._ref_t) * self.delta_max
+        return (
+            float(np.sqrt(((xn - self._ref_x) ** 2).sum(1)).max(initial=0.0))
+            + abs(t - self._ref_t) * self.delta_max
+        )
 
     def _recull(self, xn: np.ndarray, t: float) -> None:
         """Keep the obstacle faces that may come within ``cull_radius`` of the garment at (xn, t).
 
         A point p of an obstacle face F and a point q of a garment triangle T satisfy
-        ``|p - q| >= |v - w| - |p - v| - |q - w| >= dnear(v) - L_F - L_T`` for every vertex v of F and any vertex
-        w of T (dnear the distance from v to the nearest garment vertex; the longest edge L of a triangle bounds
+        ``|p - q| >= |v - w| - |p - v| - |q - w| >= dnear(v) - L_F - L_T`` for every vertex v of F and any
+        vertex w of T (dnear the distance from v to the nearest garment vertex; the longest edge L of a
+        triangle bounds
         the distance from a vertex to any point of it). F is dropped only when
         ``max_v dnear(v) - L_F - L_g > cull_radius`` (L_g the longest garment edge), so every dropped face is
         farther than cull_radius from the garment.
@@ -797,25 +890,30 @@ class MovingObstacleContact:
         g = np.asarray(self._potential.gradient(col, self.mesh, xa)).reshape(-1, 3)
         n = self.num_garment
         gt = float((g[n:] * self.delta).sum()) if self.uses_t else 0.0
-        self.last_stats = ContactStats(len(col), minimum_distance(self.mesh, xa, self.dhat, self.broad_phase, col))
+        self.last_stats = ContactStats(
+            len(col), minimum_distance(self.mesh, xa, self.dhat, self.broad_phase, col)
+        )
         return e, g[:n], gt
 
     def unit_barrier_gradient(self, x: torch.Tensor | np.ndarray, t: float) -> np.ndarray:
         """(3N + 1,) gradient of the barrier sum with kappa = 1 over ``[x.flatten(), t]``."""
         xa = self.positions(x, t)
-        g = np.asarray(ipctk.BarrierPotential(self.dhat, 1.0, False).gradient(
-            self.collisions(xa), self.mesh, xa)).reshape(-1, 3)
+        g = np.asarray(
+            ipctk.BarrierPotential(self.dhat, 1.0, False).gradient(self.collisions(xa), self.mesh, xa)
+        ).reshape(-1, 3)
         n = self.num_garment
         gt = float((g[n:] * self.delta).sum()) if self.uses_t else 0.0
         return np.r_[g[:n].reshape(-1), gt]
 
-    def hessian(self, x: torch.Tensor | np.ndarray, t: float,
-                project_psd: bool = True) -> tuple[sp.csr_matrix, np.ndarray, float]:
-        """Hessian over ``[x.flatten(), t]`` from ipctk's per-pair Hessians (PSD-clamped when ``project_psd``).
+    def hessian(
+        self, x: torch.Tensor | np.ndarray, t: float, project_psd: bool = True
+    ) -> tuple[sp.csr_matrix, np.ndarray, float]:
+        """Hessian over ``[x.flatten(), t]`` from ipctk's per-pair Hessians (PSD-clamped when
+        ``project_psd``).
 
         Returns:
-            ``(h_xx, h_xt, h_tt)``: the (3N, 3N) CSR block, the (3N,) coupling column (zero when the obstacle is
-            fixed) and the t-t entry.
+            ``(h_xx, h_xt, h_tt)``: the (3N, 3N) CSR block, the (3N,) coupling column (zero when the obstacle
+            is fixed) and the t-t entry.
         """
         xa = self.positions(x, t)
         method = ipctk.PSDProjectionMethod.CLAMP if project_psd else ipctk.PSDProjectionMethod.NONE
@@ -830,36 +928,50 @@ class MovingObstacleContact:
         return hxx, hxt, htt
 
     # ------------------------------------------------------------------ stiffness
-    def initial_stiffness(self, x: torch.Tensor | np.ndarray, t: float, other_grad: np.ndarray,
-                          average_mass: float) -> float:
+    def initial_stiffness(
+        self, x: torch.Tensor | np.ndarray, t: float, other_grad: np.ndarray, average_mass: float
+    ) -> float:
         """IPC's adaptive initial barrier stiffness (ipctk.initial_barrier_stiffness): balances the barrier
         gradient against ``other_grad`` (3N + 1,), the gradient of all other terms over ``[x, t]``; sets
         :attr:`stiffness` and :attr:`max_stiffness` and returns the stiffness."""
         gb = self.unit_barrier_gradient(x, t)
         bar = ipctk.BarrierPotential(self.dhat, 1.0, False)
-        kappa, kmax = ipctk.initial_barrier_stiffness(self.bbox_diagonal, bar.barrier, self.dhat,
-                                                      float(average_mass), np.asarray(other_grad, np.float64),
-                                                      np.asarray(gb, np.float64))
+        kappa, kmax = ipctk.initial_barrier_stiffness(
+            self.bbox_diagonal,
+            bar.barrier,
+            self.dhat,
+            float(average_mass),
+            np.asarray(other_grad, np.float64),
+            np.asarray(gb, np.float64),
+        )
         self.max_stiffness = float(kmax)
         self.stiffness = float(kappa)
         return self.stiffness
 
-    def update_stiffness(self, prev_min_distance: float, min_distance: float, stiffness_distance: float) -> bool:
-        """IPC's stiffness update (ipctk.update_barrier_stiffness): doubles kappa, up to its maximum, while the
-        minimum distance decreases below ``stiffness_distance * dhat``; returns whether kappa changed."""
+    def update_stiffness(
+        self, prev_min_distance: float, min_distance: float, stiffness_distance: float
+    ) -> bool:
+        """IPC's stiffness update (ipctk.update_barrier_stiffness): doubles kappa, up to its maximum, while
+        the minimum distance decreases below ``stiffness_distance * dhat``; returns whether kappa changed."""
         if not (math.isfinite(min_distance) and math.isfinite(prev_min_distance)):
             return False
-        kappa = ipctk.update_barrier_stiffness(prev_min_distance, min_distance,
-                                               max(self.max_stiffness, self.stiffness), self.stiffness,
-                                               self.bbox_diagonal, stiffness_distance * self.dhat / self.bbox_diagonal)
+        kappa = ipctk.update_barrier_stiffness(
+            prev_min_distance,
+            min_distance,
+            max(self.max_stiffness, self.stiffness),
+            self.stiffness,
+            self.bbox_diagonal,
+            stiffness_distance * self.dhat / self.bbox_diagonal,
+        )
         if kappa == self.stiffness:
             return False
         self.stiffness = kappa
         return True
 
     # ------------------------------------------------------------------ queries
-    def max_step(self, x: torch.Tensor | np.ndarray, t: float, dx: np.ndarray, dt: float,
-                 method: StepBound | str) -> float:
+    def max_step(
+        self, x: torch.Tensor | np.ndarray, t: float, dx: np.ndarray, dt: float, method: StepBound | str
+    ) -> float:
         """Largest alpha in [0, 1] (conservative) such that ``(x + a dx, t + a dt)`` stays intersection free.
 
         Args:
@@ -876,23 +988,41 @@ class MovingObstacleContact:
         ma = float(np.sqrt((da * da).sum(1)).max(initial=0.0))
         X0 = np.asfortranarray(np.concatenate([x0, a0]))
         X1 = np.asfortranarray(np.concatenate([x0 + dx, a0 + da]))
-        return collision_free_step(self.mesh, X0, X1, method, self.broad_phase, reach=mg + max(mg, ma),
-                                   dhat=self.dhat, safety=0.8, ccd_tolerance=self.ccd_tolerance)
+        return collision_free_step(
+            self.mesh,
+            X0,
+            X1,
+            method,
+            self.broad_phase,
+            reach=mg + max(mg, ma),
+            dhat=self.dhat,
+            safety=0.8,
+            ccd_tolerance=self.ccd_tolerance,
+        )
 
     def is_step_free(self, x: torch.Tensor | np.ndarray, t0: float, t1: float, min_distance: float) -> bool:
-        """Tight-Inclusion CCD (tolerance 1e-6): does moving the obstacle from ``t0`` to ``t1`` with the garment
-        fixed keep every pair at least ``min_distance`` apart?"""
+        """Tight-Inclusion CCD (tolerance 1e-6): does moving the obstacle from ``t0`` to ``t1`` with the
+        garment fixed keep every pair at least ``min_distance`` apart?"""
         x0 = self.positions(x, t0)
         x1 = self.positions(x, t1)
-        return bool(ipctk.is_step_collision_free(self.mesh, x0, x1, float(min_distance), self.broad_phase.make(),
-                                                 ipctk.TightInclusionCCD(tolerance=1e-6, conservative_rescaling=0.8)))
+        return bool(
+            ipctk.is_step_collision_free(
+                self.mesh,
+                x0,
+                x1,
+                float(min_distance),
+                self.broad_phase.make(),
+                ipctk.TightInclusionCCD(tolerance=1e-6, conservative_rescaling=0.8),
+            )
+        )
 
     def min_distance(self, x: torch.Tensor | np.ndarray, t: float, max_distance: float) -> float:
         """Smallest garment-self / garment-obstacle distance within ``max_distance`` (+inf if none)."""
         return minimum_distance(self.mesh, self.positions(x, t), float(max_distance), self.broad_phase)
 
     def has_intersections(self, x: torch.Tensor | np.ndarray, t: float) -> bool:
-        """Whether garment triangles cross each other or the obstacle (obstacle-obstacle crossings ignored)."""
+        """Whether garment triangles cross each other or the obstacle (obstacle-obstacle crossings
+        ignored)."""
         xa = self.positions(x, t)  # may re-cull: take self.mesh afterwards
         return bool(ipctk.has_intersections(self.mesh, xa, self.broad_phase.make()))
 

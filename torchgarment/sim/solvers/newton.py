@@ -2,22 +2,23 @@
 
 The one Newton loop of the package: the quasistatic drape (:func:`~torchgarment.sim.solvers.solve`) and the
 garment retargeting (:func:`~torchgarment.retarget.solver.projected_newton`) both run :func:`solve_newton`;
-what differs between them is passed in :class:`NewtonOptions` (which unknowns are free, how the step is bounded,
-the regularization policy, extra stopping rules, a hook after every accepted step).
+what differs between them is passed in :class:`NewtonOptions` (which unknowns are free, how the step is
+bounded, the regularization policy, extra stopping rules, a hook after every accepted step).
 
 Each iteration assembles the Hessian from ``model.hessian_blocks(x, project_psd=True)`` (per-element blocks
 projected to positive semi-definite) into a scipy CSR matrix on the CPU, solves ``H dx = -g`` with SuperLU,
-caps the step at ``step_fraction * model.max_step(x, dx)`` when the full step would make a barrier infinite (or at
-``NewtonOptions.step_bound.max_step(x, dx)``, e.g. retargeting's CCD bound), and
-backtracks (:func:`armijo_backtracking`) until the Armijo condition ``E(x + a dx) <= E(x) + c a g.dx`` holds. When the factorization fails or
-the solution is not a descent direction, ``lambda * I`` is added (``lambda`` growing tenfold per retry).
+caps the step at ``step_fraction * model.max_step(x, dx)`` when the full step would make a barrier infinite
+(or at ``NewtonOptions.step_bound.max_step(x, dx)``, e.g. retargeting's CCD bound), and
+backtracks (:func:`armijo_backtracking`) until the Armijo condition ``E(x + a dx) <= E(x) + c a g.dx`` holds.
+When the factorization fails or the solution is not a descent direction, ``lambda * I`` is added (``lambda``
+growing tenfold per retry).
 
 When the line search fails (the projected Hessian is a poor model: dropped negative-curvature parts of
-compressed springs or of the barrier, a non-smooth SDF), the step is not abandoned: the direction is recomputed
-with a Levenberg damping ``(H + lambda diag(H)) dx = -g`` (``lambda`` from ``levenberg_start``, tenfold per retry,
-up to :data:`LEVENBERG_RETRIES` retries), which bends the step towards scaled gradient descent and shortens it. A
-damping that worked is kept (divided by ten per successful iteration) so that the next iterations start from it.
-The solve stops as stalled only when every damped direction also fails.
+compressed springs or of the barrier, a non-smooth SDF), the step is not abandoned: the direction is
+recomputed with a Levenberg damping ``(H + lambda diag(H)) dx = -g`` (``lambda`` from ``levenberg_start``,
+tenfold per retry, up to :data:`LEVENBERG_RETRIES` retries), which bends the step towards scaled gradient
+descent and shortens it. A damping that worked is kept (divided by ten per successful iteration) so that the
+next iterations start from it. The solve stops as stalled only when every damped direction also fails.
 """
 
 from __future__ import annotations
@@ -134,21 +135,23 @@ class NewtonOptions:
         free: (V, 3) bool mask of the unknowns that move (others keep their value in ``x0``); None: all.
         step_bound: a :class:`StepLimiter`; None: ``step_fraction * model.max_step(x, dx)`` when below 1
             (the barrier's bound, draping).
-        regularize_first: factorize ``H + lambda I`` from the start (``lambda = settings.regularization`` times
-            the mean Hessian diagonal) instead of trying ``H`` alone first.
+        regularize_first: factorize ``H + lambda I`` from the start (``lambda = settings.regularization``
+            times the mean Hessian diagonal) instead of trying ``H`` alone first.
         regularization_growth: factor applied to ``lambda`` per retry (> 1).
-        gradient_fallback: when no regularized factorization gives a descent direction, take the scaled gradient
-            ``-g / mean(diag H)`` instead of raising :class:`NonFiniteError`.
-        levenberg: after a failed line search retry with Levenberg-damped directions (module docstring); False:
-            stop at once.
-        value_only_line_search: the line search evaluates energies only (``model.energy``) and the gradient once
-            after the step is accepted; False: ``model.value_and_grad`` per trial (a non-finite energy raises).
+        gradient_fallback: when no regularized factorization gives a descent direction, take the scaled
+            gradient ``-g / mean(diag H)`` instead of raising :class:`NonFiniteError`.
+        levenberg: after a failed line search retry with Levenberg-damped directions (module docstring);
+            False: stop at once.
+        value_only_line_search: the line search evaluates energies only (``model.energy``) and the gradient
+            once after the step is accepted; False: ``model.value_and_grad`` per trial (a non-finite energy
+            raises).
         armijo_slack: the Armijo test tolerates ``armijo_slack * eps * |E|`` (rounding of large energies).
         step_tol: stop (not converged) when the accepted step's displacement is <= this (> 0); 0 disables.
         energy_tol: stop (converged) when the energy fell by less than ``energy_tol * |E|`` over the last
             ``energy_window`` steps; 0 disables.
-        after_step: ``after_step(x, step) -> changed``, called after every accepted step (before the convergence
-            test); returning True says the model changed (e.g. a barrier stiffness update), and the energy and
+        after_step: ``after_step(x, step) -> changed``, called after every accepted step (before the
+            convergence test); returning True says the model changed (e.g. a barrier stiffness update), and
+            the energy and
             gradient are evaluated again.
     """
 
@@ -167,7 +170,9 @@ class NewtonOptions:
 
     def __post_init__(self) -> None:
         if not self.regularization_growth > 1.0:
-            raise InputError(f"NewtonOptions.regularization_growth must be > 1, got {self.regularization_growth}")
+            raise InputError(
+                f"NewtonOptions.regularization_growth must be > 1, got {self.regularization_growth}"
+            )
         if not (self.armijo_slack >= 0 and self.step_tol >= 0 and self.energy_tol >= 0):
             raise InputError("NewtonOptions: armijo_slack, step_tol and energy_tol must be >= 0")
         if self.energy_window < 1:
@@ -256,7 +261,8 @@ def solve_newton(
     def free_norm(g: torch.Tensor, gn: float) -> float:
         if free is None:
             return gn
-        return float(np.linalg.norm(g.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)[free]))
+        g64 = g.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
+        return float(np.linalg.norm(g64[free]))
 
     with torch.no_grad():
         x = x0.detach().clone()
@@ -321,7 +327,9 @@ def solve_newton(
                         damping = LEVENBERG_START if damping == 0.0 else 10.0 * damping
                         info.restarts += 1
             if not accepted:
-                info.message = f"line search failed at iteration {k} (no sufficient decrease, damping {damping:.3g})"
+                info.message = (
+                    f"line search failed at iteration {k} (no sufficient decrease, damping {damping:.3g})"
+                )
                 k -= 1
                 break
             damping = 0.0 if damping <= LEVENBERG_START else 0.1 * damping
