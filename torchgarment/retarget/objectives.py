@@ -219,8 +219,9 @@ class RetargetEnergy(EnergyTerm):
         raise NotImplementedError
 
     def unweighted_blocks(self, x: torch.Tensor, t: torch.Tensor, project_psd: bool) -> HessianBlocks:
-        """PSD Hessian blocks of :meth:`energy` over N + 1 vertices (pragma: abstract)."""
-        raise NotImplementedError  # pragma: no cover
+        """PSD Hessian blocks of :meth:`energy` over N + 1 vertices (the t entries in vertex N's row and
+        column 0)."""
+        raise NotImplementedError  # pragma: no cover - abstract
 
     def forward(self, y: torch.Tensor) -> torch.Tensor:
         """Weighted value () of the state ``y`` (N + 1, 3)."""

@@ -268,7 +268,13 @@ class _Monitor:
         self.callback = callback
         self.history: list[dict] = []
         self.stop = False
-        self.prev_dmin = contact.ipc.last_stats.min_distance if contact is not None else math.inf
+        self.prev_dmin = math.inf
+
+    def start(self, x0: torch.Tensor, t0: float) -> None:
+        """The initial state's minimum distance (within dhat): the stiffness update's first reference."""
+        if self.contact is not None:
+            ipc = self.contact.ipc
+            self.prev_dmin = ipc.min_distance(x0, float(t0), ipc.dhat)
 
     def after_step(self, y: torch.Tensor, step: NewtonStep) -> bool:
         """Record the step's stats, update the barrier stiffness; True when the stiffness changed."""
@@ -346,6 +352,7 @@ def projected_newton(
     free[-1, 0] = bool(free_t)
     bound = CollisionFreeBound(contact, s.max_displacement, s.step_bound, t_max)
     monitor = _Monitor(terms, contact, s, callback)
+    monitor.start(x0, float(t0))
     options = NewtonOptions(
         free=free,
         step_bound=bound,
