@@ -34,6 +34,7 @@ from torchgarment.errors import InputError
 from torchgarment.retarget.objectives import (
     Contact,
     RetargetEnergy,
+    _empty_blocks,
     _t_tensor,
     make_state,
     split_state,
@@ -80,14 +81,29 @@ class InflationPenalty(RetargetEnergy):
         self.lambda2 += self.lambda1 * (1.0 - float(t))
 
 
-def retarget_model(terms: list[RetargetEnergy], x: torch.Tensor) -> SimModel:
-    """The objective: a :class:`SimModel` over the state (N + 1, 3) summing the terms of non-zero weight.
+class RetargetModel(SimModel):
+    """A :class:`SimModel` over the retargeting state (N + 1, 3) (:func:`retarget_model`) that also hands the
+    solver its Hessian blocks in two groups, the terms with a fixed sparsity and the contact, whose pairs
+    change every iteration (:func:`~torchgarment.sim.solvers.newton.solve_newton` assembles each group with
+    its own cached pattern)."""
+
+    def hessian_block_parts(self, y: torch.Tensor, project_psd: bool = True) -> list[HessianBlocks]:
+        """``[blocks of the non-volatile terms, blocks of the volatile ones]``; their sum is
+        :meth:`hessian_blocks`."""
+        y = y.detach()
+        return [HessianBlocks.cat([_empty_blocks(y)] + [t.hessian_blocks(y, project_psd) for t in self.terms
+                                                        if t.volatile_hessian == volatile])
+                for volatile in (False, True)]
+
+
+def retarget_model(terms: list[RetargetEnergy], x: torch.Tensor) -> RetargetModel:
+    """The objective: a :class:`RetargetModel` over the state (N + 1, 3) summing the terms of non-zero weight.
 
     Args:
         terms: the retargeting terms (distinct names). x: (N, 3) garment (its size, dtype and device).
     """
     kept = [t for t in terms if t.weight != 0.0]
-    return SimModel(kept, x.shape[0] + 1, device=x.device, dtype=x.dtype)
+    return RetargetModel(kept, x.shape[0] + 1, device=x.device, dtype=x.dtype)
 
 
 def term_values(terms: list[RetargetEnergy], x: torch.Tensor, t: torch.Tensor | float) -> dict[str, float]:

@@ -239,7 +239,9 @@ def solve_newton(
 
     Args:
         model: the simulation model (see :class:`~torchgarment.sim.solvers.common.SolverModel`; with
-            ``options.value_only_line_search`` it also needs ``energy(x)``).
+            ``options.value_only_line_search`` it also needs ``energy(x)``). A model may also provide
+            ``hessian_block_parts(x, project_psd) -> list[HessianBlocks]`` (the Hessian's blocks in groups
+            whose sum is ``hessian_blocks``), assembled group by group.
         x0: (V, 3) initial positions (metres); must be feasible (all barriers finite).
         settings: solver settings (validated by the caller).
         max_iterations: iteration budget (Newton steps).
@@ -256,6 +258,24 @@ def solve_newton(
     info = SolveInfo(solver=SolverKind.NEWTON.value)
     eps = torch.finfo(x0.dtype).eps
     assembler = CSRAssembler(model.num_vertices)
+    part_assemblers: list[CSRAssembler] = []
+    block_parts = getattr(model, "hessian_block_parts", None)
+
+    def assemble_hessian(x: torch.Tensor) -> scipy.sparse.csr_matrix:
+        """The Hessian as CSR; a model with ``hessian_block_parts`` (blocks grouped by how often their
+        sparsity changes) gets one cached assembler per group, so a changing contact pattern does not
+        re-sort the rest."""
+        if block_parts is None:
+            return assembler.assemble(model.hessian_blocks(x, project_psd=settings.project_psd))
+        parts = block_parts(x, project_psd=settings.project_psd)
+        while len(part_assemblers) < len(parts):
+            part_assemblers.append(CSRAssembler(model.num_vertices))
+        mats = [asm.assemble(b) for asm, b in zip(part_assemblers, parts)]
+        h = mats[0]
+        for m in mats[1:]:
+            h = h + m
+        return h.tocsr()
+
     free = None if o.free is None else o.free.detach().to("cpu", torch.bool).numpy().reshape(-1)
 
     def free_norm(g: torch.Tensor, gn: float) -> float:
@@ -281,7 +301,7 @@ def solve_newton(
         cache = FactorCache() if settings.reuse_factorization else None
         while not info.converged and k < max_iterations:
             k += 1
-            h = assembler.assemble(model.hessian_blocks(x, project_psd=settings.project_psd))
+            h = assemble_hessian(x)
             if not np.all(np.isfinite(h.data)):
                 raise NonFiniteError(f"model returned a non-finite Hessian at solver iteration {k}")
             g64 = g.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
