@@ -21,9 +21,13 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from torchgarment.retarget.avatars import TestAvatar
 
 
 def _decimate(vertices: np.ndarray, faces: np.ndarray, target_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -32,8 +36,11 @@ def _decimate(vertices: np.ndarray, faces: np.ndarray, target_vertices: int) -> 
 
     if vertices.shape[0] <= target_vertices:
         return vertices, faces
-    v, f, *_ = igl.decimate(np.asfortranarray(vertices, dtype=np.float64),
-                            np.asfortranarray(faces, dtype=np.int32), int(2 * target_vertices))
+    v, f, *_ = igl.decimate(
+        np.asfortranarray(vertices, dtype=np.float64),
+        np.asfortranarray(faces, dtype=np.int32),
+        int(2 * target_vertices),
+    )
     return np.asarray(v), np.asarray(f)
 
 
@@ -58,7 +65,7 @@ def _tube(n: int) -> tuple[np.ndarray, np.ndarray]:
     return v.numpy(), f.numpy()
 
 
-def _avatar(name: str, n: int):
+def _avatar(name: str, n: int) -> tuple[TestAvatar, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     from scipy.spatial import cKDTree
 
     from torchgarment.retarget.avatars import make_avatar
@@ -96,38 +103,68 @@ def main(argv: list[str] | None = None) -> int:
         gv0, gf0 = load_mesh(args.garment, weld=True, dtype=torch.float64)
         gv0, gf0 = gv0.numpy(), gf0.numpy()
     records = []
-    print(f"{'garment':>8}{'avatar':>16}{'a.verts':>9}{'iters':>7}{'seconds':>9}{'bound s':>9}{'inter':>7}{'dmin mm':>9}")
+    print(
+        f"{'garment':>8}{'avatar':>16}{'a.verts':>9}{'iters':>7}{'seconds':>9}{'bound s':>9}{'inter':>7}"
+        f"{'dmin mm':>9}"
+    )
     for gn in args.garment_vertices:
         gv, gf = _resize_garment(gv0, gf0, gn) if args.garment is not None else _tube(gn)
         for name in args.avatar:
             for an in args.avatar_vertices:
                 a, av, af, w = _avatar(name, an)
                 t0 = time.perf_counter()
-                rec = {"garment_vertices": int(gv.shape[0]), "avatar": name, "avatar_vertices": int(av.shape[0])}
+                rec = {
+                    "garment_vertices": int(gv.shape[0]),
+                    "avatar": name,
+                    "avatar_vertices": int(av.shape[0]),
+                }
                 try:
-                    p = problem_from_arrays(torch.as_tensor(gv), torch.as_tensor(gf).long(), source.skeleton, av, af,
-                                            a.skeleton, skin_weights=w, source_avatar=(source.vertices, source.faces))
+                    p = problem_from_arrays(
+                        torch.as_tensor(gv),
+                        torch.as_tensor(gf).long(),
+                        source.skeleton,
+                        av,
+                        af,
+                        a.skeleton,
+                        skin_weights=w,
+                        source_avatar=(source.vertices, source.faces),
+                    )
                     r = retarget(p, settings, progress=False)
                     m = r.metrics
-                    rec.update(seconds=time.perf_counter() - t0, newton_iterations=m["newton_iterations"],
-                               intersections=m["intersections"], min_distance_mm=m["min_distance_mm"],
-                               step_bound_seconds=sum(s.get("step_bound_seconds", 0.0) for s in r.steps),
-                               steps={s["step"]: s["seconds"] for s in r.steps}, ok=True)
+                    rec.update(
+                        seconds=time.perf_counter() - t0,
+                        newton_iterations=m["newton_iterations"],
+                        intersections=m["intersections"],
+                        min_distance_mm=m["min_distance_mm"],
+                        step_bound_seconds=sum(s.get("step_bound_seconds", 0.0) for s in r.steps),
+                        steps={s["step"]: s["seconds"] for s in r.steps},
+                        ok=True,
+                    )
                 except Exception as e:  # noqa: BLE001 - reported per pair
                     rec.update(seconds=time.perf_counter() - t0, ok=False, error=f"{type(e).__name__}: {e}")
                 records.append(rec)
                 if rec["ok"]:
-                    print(f"{rec['garment_vertices']:>8}{name:>16}{rec['avatar_vertices']:>9}"
-                          f"{rec['newton_iterations']:>7}{rec['seconds']:>9.1f}{rec['step_bound_seconds']:>9.1f}"
-                          f"{rec['intersections']:>7}{rec['min_distance_mm']:>9.3f}", flush=True)
+                    print(
+                        f"{rec['garment_vertices']:>8}{name:>16}{rec['avatar_vertices']:>9}"
+                        f"{rec['newton_iterations']:>7}{rec['seconds']:>9.1f}{rec['step_bound_seconds']:>9.1f}"
+                        f"{rec['intersections']:>7}{rec['min_distance_mm']:>9.3f}",
+                        flush=True,
+                    )
                 else:
-                    print(f"{rec['garment_vertices']:>8}{name:>16}{rec['avatar_vertices']:>9} FAILED {rec['error']}")
+                    print(
+                        f"{rec['garment_vertices']:>8}{name:>16}{rec['avatar_vertices']:>9} "
+                        f"FAILED {rec['error']}"
+                    )
     secs = [r["seconds"] for r in records if r["ok"]]
-    summary = {"pairs": len(records), "failed": sum(not r["ok"] for r in records),
-               "intersecting": sum(r.get("intersections", 0) > 0 for r in records),
-               "mean_seconds": float(np.mean(secs)) if secs else None,
-               "max_seconds": float(np.max(secs)) if secs else None, "step_bound": args.step_bound,
-               "torch_threads": settings.threads}
+    summary = {
+        "pairs": len(records),
+        "failed": sum(not r["ok"] for r in records),
+        "intersecting": sum(r.get("intersections", 0) > 0 for r in records),
+        "mean_seconds": float(np.mean(secs)) if secs else None,
+        "max_seconds": float(np.max(secs)) if secs else None,
+        "step_bound": args.step_bound,
+        "torch_threads": settings.threads,
+    }
     print(json.dumps(summary))
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -24,6 +24,11 @@ import sys
 import time
 import traceback
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from torchgarment.body import Body
+    from torchgarment.retarget.pipeline import RetargetSettings
 
 
 def _drape_garment(name: str, size: str, cache: Path) -> Path:
@@ -44,7 +49,9 @@ def _drape_garment(name: str, size: str, cache: Path) -> Path:
     return path
 
 
-def run_pair(garment: Path, avatar_name: str, source, settings, out: Path | None = None) -> tuple[dict, object]:
+def run_pair(
+    garment: Path, avatar_name: str, source: Body, settings: RetargetSettings, out: Path | None = None
+) -> tuple[dict, object]:
     """Retarget one garment OBJ (dressed on ``source``) onto a test avatar; returns (record, result)."""
     import torch
 
@@ -56,17 +63,34 @@ def run_pair(garment: Path, avatar_name: str, source, settings, out: Path | None
     gv, gf = load_mesh(garment, weld=True, dtype=torch.float64)
     avatar = make_avatar(avatar_name)
     t0 = time.perf_counter()
-    problem = problem_from_arrays(gv, gf, source.skeleton, avatar.vertices, avatar.faces, avatar.skeleton,
-                                  skin_weights=avatar.skin_weights, source_avatar=(source.vertices, source.faces))
+    problem = problem_from_arrays(
+        gv,
+        gf,
+        source.skeleton,
+        avatar.vertices,
+        avatar.faces,
+        avatar.skeleton,
+        skin_weights=avatar.skin_weights,
+        source_avatar=(source.vertices, source.faces),
+    )
     result = retarget(problem, settings, progress=False)
     seconds = time.perf_counter() - t0
     m = result.metrics
-    rec = {"garment": garment.stem, "avatar": avatar_name, "seconds": seconds,
-           "retarget_seconds": m["seconds"], "garment_vertices": m["garment_vertices"],
-           "avatar_vertices": m["avatar_vertices"], "newton_iterations": m["newton_iterations"],
-           "intersections": m["intersections"], "min_distance_mm": m["min_distance_mm"],
-           "distortion_mean": m["distortion_mean"], "distortion_max": m["distortion_max"],
-           "converged": m["converged"], "ok": True}
+    rec = {
+        "garment": garment.stem,
+        "avatar": avatar_name,
+        "seconds": seconds,
+        "retarget_seconds": m["seconds"],
+        "garment_vertices": m["garment_vertices"],
+        "avatar_vertices": m["avatar_vertices"],
+        "newton_iterations": m["newton_iterations"],
+        "intersections": m["intersections"],
+        "min_distance_mm": m["min_distance_mm"],
+        "distortion_mean": m["distortion_mean"],
+        "distortion_max": m["distortion_max"],
+        "converged": m["converged"],
+        "ok": True,
+    }
     if out is not None:
         save_obj(out / f"{garment.stem}-{avatar_name}.obj", result.garment_vertices, result.garment_faces)
     return rec, (avatar, result)
@@ -96,11 +120,25 @@ def contact_sheet(path: Path, tiles: list[tuple[str, object, object]], columns: 
             title, avatar, result = tiles[k]
             png = Path(tmp) / f"{k}.png"
             dist = result.distortion.detach().cpu().numpy()
-            render_views([MeshLayer(vertices=avatar.vertices, faces=avatar.faces, color=(0.78, 0.78, 0.8)),
-                          MeshLayer(vertices=result.garment_vertices, faces=result.garment_faces,
-                                    scalars=dist.clip(1e-5, None), scalar_on="face", cmap="magma", log=True,
-                                    vmin=1e-4, vmax=1.0, label="L_surf")],
-                         png, views=(View.FRONT,), size=(300, 450))
+            render_views(
+                [
+                    MeshLayer(vertices=avatar.vertices, faces=avatar.faces, color=(0.78, 0.78, 0.8)),
+                    MeshLayer(
+                        vertices=result.garment_vertices,
+                        faces=result.garment_faces,
+                        scalars=dist.clip(1e-5, None),
+                        scalar_on="face",
+                        cmap="magma",
+                        log=True,
+                        vmin=1e-4,
+                        vmax=1.0,
+                        label="L_surf",
+                    ),
+                ],
+                png,
+                views=(View.FRONT,),
+                size=(300, 450),
+            )
             ax.imshow(mpimg.imread(png))
             ax.set_title(title, fontsize=8)
     fig.tight_layout()
@@ -115,9 +153,15 @@ def main(argv: list[str] | None = None) -> int:
     from torchgarment.retarget.pipeline import RetargetSettings
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--garment", action="append", type=Path, help="garment OBJ dressed on the source body (repeat)")
-    ap.add_argument("--drape", action="append", default=None,
-                    help="library garments to drape when no --garment is given (default straight_skirt, tshirt)")
+    ap.add_argument(
+        "--garment", action="append", type=Path, help="garment OBJ dressed on the source body (repeat)"
+    )
+    ap.add_argument(
+        "--drape",
+        action="append",
+        default=None,
+        help="library garments to drape when no --garment is given (default straight_skirt, tshirt)",
+    )
     ap.add_argument("--source-size", default="12", help="anny chart size of the source body (default 12)")
     ap.add_argument("--avatar", action="append", help="avatar names (default: all of list_avatars())")
     ap.add_argument("--fit-weight", type=float, default=RetargetSettings().w_fit)
@@ -130,14 +174,18 @@ def main(argv: list[str] | None = None) -> int:
         garments = args.garment
     else:
         (args.out / "garments").mkdir(parents=True, exist_ok=True)
-        garments = [_drape_garment(g, args.source_size, args.out / "garments")
-                    for g in (args.drape or ["straight_skirt", "tshirt"])]
+        garments = [
+            _drape_garment(g, args.source_size, args.out / "garments")
+            for g in (args.drape or ["straight_skirt", "tshirt"])
+        ]
     avatars = args.avatar or list_avatars()
     source = Body.from_size(args.source_size)
     settings = RetargetSettings(w_fit=args.fit_weight)
     records, tiles, bad = [], [], 0
-    print(f"{'garment':<22}{'avatar':<16}{'verts':>7}{'avatar':>8}{'iters':>7}{'seconds':>9}{'inter':>7}"
-          f"{'dmin mm':>10}{'dist mean':>11}")
+    print(
+        f"{'garment':<22}{'avatar':<16}{'verts':>7}{'avatar':>8}{'iters':>7}{'seconds':>9}{'inter':>7}"
+        f"{'dmin mm':>10}{'dist mean':>11}"
+    )
     for g in garments:
         for a in avatars:
             try:
@@ -151,13 +199,19 @@ def main(argv: list[str] | None = None) -> int:
                 bad += 1
                 print(f"{rec['garment']:<22}{a:<16} FAILED: {rec.get('error', 'intersections')}")
                 continue
-            print(f"{rec['garment']:<22}{a:<16}{rec['garment_vertices']:>7}{rec['avatar_vertices']:>8}"
-                  f"{rec['newton_iterations']:>7}{rec['seconds']:>9.1f}{rec['intersections']:>7}"
-                  f"{rec['min_distance_mm']:>10.3f}{rec['distortion_mean']:>11.3g}", flush=True)
+            print(
+                f"{rec['garment']:<22}{a:<16}{rec['garment_vertices']:>7}{rec['avatar_vertices']:>8}"
+                f"{rec['newton_iterations']:>7}{rec['seconds']:>9.1f}{rec['intersections']:>7}"
+                f"{rec['min_distance_mm']:>10.3f}{rec['distortion_mean']:>11.3g}",
+                flush=True,
+            )
     ok = [r for r in records if r["ok"]]
-    summary = {"pairs": len(records), "failed_or_intersecting": bad,
-               "mean_seconds": sum(r["seconds"] for r in ok) / max(len(ok), 1),
-               "max_seconds": max((r["seconds"] for r in ok), default=0.0)}
+    summary = {
+        "pairs": len(records),
+        "failed_or_intersecting": bad,
+        "mean_seconds": sum(r["seconds"] for r in ok) / max(len(ok), 1),
+        "max_seconds": max((r["seconds"] for r in ok), default=0.0),
+    }
     from torchgarment.io.atomic import atomic_open
 
     with atomic_open(args.out / "pairs.json") as f:
@@ -165,8 +219,10 @@ def main(argv: list[str] | None = None) -> int:
         f.write("\n")
     if tiles:
         contact_sheet(args.out / "contact_sheet.png", tiles, args.columns)
-    print(f"{summary['pairs']} pairs, {bad} failed or intersecting, mean {summary['mean_seconds']:.1f} s, "
-          f"max {summary['max_seconds']:.1f} s -> {args.out}")
+    print(
+        f"{summary['pairs']} pairs, {bad} failed or intersecting, mean {summary['mean_seconds']:.1f} s, "
+        f"max {summary['max_seconds']:.1f} s -> {args.out}"
+    )
     return 1 if bad else 0
 
 

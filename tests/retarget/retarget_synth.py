@@ -1,21 +1,31 @@
-"""Synthetic retargeting scenes for the retarget tests: a capsule avatar on a 3-joint skeleton inside a tube."""
+"""Synthetic retargeting scenes for the retarget tests: a capsule avatar on a 3-joint skeleton inside a
+tube."""
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 import trimesh
+
+if TYPE_CHECKING:
+    from torchgarment.retarget.inputs import RetargetProblem
 
 
 def tube(radius: float, y0: float, y1: float, rings: int, segments: int) -> tuple[np.ndarray, np.ndarray]:
     """Open cylinder around the Y axis: (rings * segments, 3) vertices and (F, 3) outward faces."""
     ang = np.linspace(0.0, 2 * math.pi, segments, endpoint=False)
     ys = np.linspace(y0, y1, rings)
-    v = np.stack([np.broadcast_to(radius * np.cos(ang), (rings, segments)),
-                  np.broadcast_to(ys[:, None], (rings, segments)),
-                  np.broadcast_to(radius * np.sin(ang), (rings, segments))], -1).reshape(-1, 3)
+    v = np.stack(
+        [
+            np.broadcast_to(radius * np.cos(ang), (rings, segments)),
+            np.broadcast_to(ys[:, None], (rings, segments)),
+            np.broadcast_to(radius * np.sin(ang), (rings, segments)),
+        ],
+        -1,
+    ).reshape(-1, 3)
     i, j = np.meshgrid(np.arange(rings - 1), np.arange(segments), indexing="ij")
     a = i * segments + j
     b = i * segments + (j + 1) % segments
@@ -25,7 +35,9 @@ def tube(radius: float, y0: float, y1: float, rings: int, segments: int) -> tupl
     return v, f
 
 
-def capsule(radius: float, y0: float, y1: float, count: tuple[int, int] = (12, 16)) -> tuple[np.ndarray, np.ndarray]:
+def capsule(
+    radius: float, y0: float, y1: float, count: tuple[int, int] = (12, 16)
+) -> tuple[np.ndarray, np.ndarray]:
     """Closed capsule along Y from y0 to y1 (cap centres)."""
     m = trimesh.creation.capsule(height=y1 - y0, radius=radius, count=list(count))
     v = np.asarray(m.vertices)[:, [0, 2, 1]] + np.array([0.0, 0.5 * (y0 + y1), 0.0])
@@ -44,7 +56,13 @@ def project_on_chain(points: np.ndarray, joints: np.ndarray, bones: np.ndarray) 
     return q[np.arange(points.shape[0]), k]
 
 
-def scene(garment_radius=0.15, avatar_radius=0.17, rings=12, segments=24, dtype=torch.float64):
+def scene(
+    garment_radius: float = 0.15,
+    avatar_radius: float = 0.17,
+    rings: int = 12,
+    segments: int = 24,
+    dtype: torch.dtype = torch.float64,
+) -> dict[str, torch.Tensor]:
     """A dict of tensors: garment (tube), skeleton (3 joints, 2 bones), avatar capsule full and shrunk."""
     gv, gf = tube(garment_radius, 0.75, 1.25, rings, segments)
     joints = np.array([[0.0, 0.6, 0.0], [0.0, 1.0, 0.0], [0.0, 1.4, 0.0]])
@@ -53,13 +71,25 @@ def scene(garment_radius=0.15, avatar_radius=0.17, rings=12, segments=24, dtype=
     shr = project_on_chain(av, joints, bones)
     # keep the shrunk avatar strictly inside: a tiny radial offset avoids coincident degenerate geometry
     t = lambda a, dt=dtype: torch.as_tensor(a, dtype=dt)  # noqa: E731
-    return dict(garment_vertices=t(gv), garment_faces=t(gf, torch.long), joints=t(joints),
-                bones=t(bones, torch.long), avatar_full=t(av), avatar_faces=t(af, torch.long),
-                avatar_shrunk=t(shr))
+    return dict(
+        garment_vertices=t(gv),
+        garment_faces=t(gf, torch.long),
+        joints=t(joints),
+        bones=t(bones, torch.long),
+        avatar_full=t(av),
+        avatar_faces=t(af, torch.long),
+        avatar_shrunk=t(shr),
+    )
 
 
-def synthetic_problem(garment_radius=0.15, avatar_radius=0.17, rings=12, segments=24, target_stretch=1.0,
-                      dtype=torch.float64):
+def synthetic_problem(
+    garment_radius: float = 0.15,
+    avatar_radius: float = 0.17,
+    rings: int = 12,
+    segments: int = 24,
+    target_stretch: float = 1.0,
+    dtype: torch.dtype = torch.float64,
+) -> RetargetProblem:
     """A RetargetProblem (identity frames) of the tube garment on the capsule avatar."""
     from torchgarment.body.skeleton import Skeleton
     from torchgarment.retarget.inputs import RetargetProblem, Similarity
@@ -71,8 +101,15 @@ def synthetic_problem(garment_radius=0.15, avatar_radius=0.17, rings=12, segment
     av[:, 1] = 1.0 + (av[:, 1] - 1.0) * target_stretch
     n = s["garment_vertices"].shape[0]
     return RetargetProblem(
-        garment_vertices=s["garment_vertices"], garment_faces=s["garment_faces"],
-        source_skeleton=Skeleton(s["joints"], s["bones"]), target_skeleton=Skeleton(tj, s["bones"]),
-        avatar_vertices=av, avatar_faces=s["avatar_faces"], skin_weights=None,
-        fit_mask=torch.ones(n, dtype=torch.bool), curves=[], to_work=Similarity.identity(dtype),
-        length_scale=1.7)
+        garment_vertices=s["garment_vertices"],
+        garment_faces=s["garment_faces"],
+        source_skeleton=Skeleton(s["joints"], s["bones"]),
+        target_skeleton=Skeleton(tj, s["bones"]),
+        avatar_vertices=av,
+        avatar_faces=s["avatar_faces"],
+        skin_weights=None,
+        fit_mask=torch.ones(n, dtype=torch.bool),
+        curves=[],
+        to_work=Similarity.identity(dtype),
+        length_scale=1.7,
+    )

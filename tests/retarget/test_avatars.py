@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pytest
 import torch
@@ -10,19 +12,23 @@ from torchgarment.errors import InputError
 from torchgarment.retarget.avatars import list_avatars, make_avatar
 from torchgarment.structures.mesh_checks import find_misoriented_edges, find_nonmanifold_edges
 
+if TYPE_CHECKING:
+    from torchgarment.body.skeleton import Skeleton
+    from torchgarment.retarget.avatars import TestAvatar
+
 
 @pytest.fixture(scope="module")
-def avatars():
+def avatars() -> dict[str, TestAvatar]:
     return {name: make_avatar(name) for name in list_avatars()}
 
 
-def _bone_lengths(sk, prefixes):
+def _bone_lengths(sk: Skeleton, prefixes: tuple[str, ...]) -> torch.Tensor:
     idx = [k for k, (i, _) in enumerate(sk.bones.tolist()) if sk.names[i].startswith(prefixes)]
     b = sk.bones[idx]
     return (sk.joints[b[:, 1]] - sk.joints[b[:, 0]]).norm(dim=1)
 
 
-def test_shapes_and_consistent_skeletons(avatars):
+def test_shapes_and_consistent_skeletons(avatars: dict) -> None:
     ref = avatars["anny-12"].skeleton
     for name, a in avatars.items():
         v, f, sk, w = a.vertices, a.faces, a.skeleton, a.skin_weights
@@ -35,13 +41,15 @@ def test_shapes_and_consistent_skeletons(avatars):
         assert find_nonmanifold_edges(f).numel() == 0 and find_misoriented_edges(f).numel() == 0, name
 
 
-def test_edited_proportions(avatars):
+def test_edited_proportions(avatars: dict) -> None:
     base, long_arms, short_legs = avatars["anny-12"], avatars["long-arms"], avatars["short-legs"]
     ratio = _bone_lengths(long_arms.skeleton, ("upperarm", "lowerarm")) / _bone_lengths(
-        base.skeleton, ("upperarm", "lowerarm"))
+        base.skeleton, ("upperarm", "lowerarm")
+    )
     assert torch.allclose(ratio, torch.full_like(ratio, 1.6))
     ratio = _bone_lengths(short_legs.skeleton, ("upperleg", "lowerleg")) / _bone_lengths(
-        base.skeleton, ("upperleg", "lowerleg"))
+        base.skeleton, ("upperleg", "lowerleg")
+    )
     assert torch.allclose(ratio, torch.full_like(ratio, 0.6))
     # Hands keep their size; the arm span grows; the body gets shorter with short legs.
     hand = ("finger", "metacarpal")
@@ -49,12 +57,14 @@ def test_edited_proportions(avatars):
     span = lambda a: float(a.vertices[:, 0].max() - a.vertices[:, 0].min())  # noqa: E731
     assert span(long_arms) > 1.25 * span(base)
     height = lambda a: float(a.vertices[:, 1].max() - a.vertices[:, 1].min())  # noqa: E731
-    leg = float(base.skeleton.joints[base.skeleton.names.index("upperleg01.L"), 1]
-                - base.skeleton.joints[base.skeleton.names.index("foot.L"), 1])
+    leg = float(
+        base.skeleton.joints[base.skeleton.names.index("upperleg01.L"), 1]
+        - base.skeleton.joints[base.skeleton.names.index("foot.L"), 1]
+    )
     assert height(short_legs) == pytest.approx(height(base) - 0.4 * leg, abs=0.03)
 
 
-def test_big_head(avatars):
+def test_big_head(avatars: dict) -> None:
     base, big = avatars["anny-12"], avatars["big-head"]
     j = base.skeleton.names.index("head")
     y0 = float(base.skeleton.joints[j, 1])
@@ -63,16 +73,16 @@ def test_big_head(avatars):
     assert above(big) == pytest.approx(1.8 * above(base), rel=0.02)
 
 
-def test_floating_parts_and_hole_topology(avatars):
+def test_floating_parts_and_hole_topology(avatars: dict) -> None:
     import trimesh
 
     base = avatars["anny-12"]
     fp = avatars["floating-parts"]
     m = trimesh.Trimesh(fp.vertices.numpy(), fp.faces.numpy(), process=False)
     assert m.body_count == 3 and m.is_watertight
-    extra = fp.vertices[base.vertices.shape[0]:]
+    extra = fp.vertices[base.vertices.shape[0] :]
     shoulder = [fp.skeleton.names.index(n) for n in ("shoulder01.L", "shoulder01.R")]
-    assert set(fp.skin_weights[:, base.vertices.shape[0]:].argmax(dim=0).tolist()) == set(shoulder)
+    assert set(fp.skin_weights[:, base.vertices.shape[0] :].argmax(dim=0).tolist()) == set(shoulder)
     # Detached: clear of the body.
     import igl
 
@@ -85,14 +95,16 @@ def test_floating_parts_and_hole_topology(avatars):
     from torchgarment.retarget.avatars import HOLE_OFFSET, HOLE_RADIUS, _anny
 
     y = float(_anny("12").landmarks["waist"][1])
-    axis = torch.stack([torch.full((21,), HOLE_OFFSET), torch.full((21,), y), torch.linspace(-0.3, 0.3, 21)], 1)
+    axis = torch.stack(
+        [torch.full((21,), HOLE_OFFSET), torch.full((21,), y), torch.linspace(-0.3, 0.3, 21)], 1
+    )
     d, _, _ = igl.point_mesh_squared_distance(axis.numpy(), hole.vertices.numpy(), hole.faces.numpy())
     assert float(np.sqrt(d).min()) > 0.8 * HOLE_RADIUS
     d, _, _ = igl.point_mesh_squared_distance(axis.numpy(), base.vertices.numpy(), base.faces.numpy())
     assert float(np.sqrt(d).min()) < 0.02  # the intact body has its belly there (axis sampled every 3 cm)
 
 
-def test_scaled_copies(avatars):
+def test_scaled_copies(avatars: dict) -> None:
     mini, giant = avatars["miniature"], avatars["giant"]
     h = lambda a: float(a.vertices[:, 1].max() - a.vertices[:, 1].min())  # noqa: E731
     assert h(mini) == pytest.approx(0.06) and h(giant) == pytest.approx(4.0)
@@ -100,6 +112,6 @@ def test_scaled_copies(avatars):
     assert float(mini.vertices[:, 1].min()) == pytest.approx(-50.0)
 
 
-def test_unknown_avatar():
+def test_unknown_avatar() -> None:
     with pytest.raises(InputError, match="unknown test avatar"):
         make_avatar("dragon")

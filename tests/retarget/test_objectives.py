@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -22,23 +23,39 @@ from torchgarment.retarget.objectives import (  # noqa: E402
     adjacent_triangle_pairs,
     boundary_loops,
     element_hessians,
+    make_state,
     project_psd,
 )
 from torchgarment.sdf.build import SDFSettings  # noqa: E402
 from torchgarment.sdf.grid import BodySDF  # noqa: E402
 from torchgarment.testing import check_gradient  # noqa: E402
 
+if TYPE_CHECKING:
+    from torchgarment.sim.energies.base import EnergyTerm
+
 torch.manual_seed(0)
 
 
 @pytest.fixture(scope="module")
-def sc():
+def sc() -> dict[str, torch.Tensor]:
     return scene(rings=6, segments=12)
+
+
+def _hess(term: EnergyTerm, x: torch.Tensor, t: float | torch.Tensor = 1.0) -> np.ndarray:
+    """The term's (unweighted) Hessian over [x.flatten(), t] as a dense (3N + 1, 3N + 1) array."""
+    n = x.shape[0]
+    b = term.unweighted_blocks(x, torch.as_tensor(t, dtype=x.dtype), True)
+    from torchgarment.sim.energies.base import HessianBlocks
+
+    h = HessianBlocks(b.rows, b.cols, b.values).to_sparse(n + 1).to_dense().numpy()
+    return h[: 3 * n + 1, : 3 * n + 1]
 
 
 def _wavy(x: torch.Tensor, amp: float = 0.01) -> torch.Tensor:
     """A smooth non-affine deformation."""
-    return x + amp * torch.stack([torch.sin(7 * x[:, 1]), torch.cos(5 * x[:, 0]), torch.sin(6 * x[:, 1] + x[:, 0])], 1)
+    return x + amp * torch.stack(
+        [torch.sin(7 * x[:, 1]), torch.cos(5 * x[:, 0]), torch.sin(6 * x[:, 1] + x[:, 0])], 1
+    )
 
 
 def _random_affine(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -53,10 +70,10 @@ def _rotation(seed: int = 1) -> torch.Tensor:
     return q * torch.sign(torch.linalg.det(q))
 
 
-def test_mesh_helpers(sc):
+def test_mesh_helpers(sc: dict) -> None:
     f = sc["garment_faces"].numpy()
     loops = boundary_loops(f)
-    assert sorted(len(l) for l in loops) == [12, 12]
+    assert sorted(len(lp) for lp in loops) == [12, 12]
     pairs = adjacent_triangle_pairs(f)
     # interior edges of a 6 x 12 tube: 12 * 5 vertical-ish + 12 * 4 ring edges + 12 * 5 diagonals
     assert pairs.shape == (12 * 5 + 12 * 4 + 12 * 5, 6)
@@ -65,40 +82,45 @@ def test_mesh_helpers(sc):
         assert {v1, v2, v3} == set(f[f1]) and {v1, v2, v4} == set(f[f2])
 
 
-def test_surface_gradient_and_hessian(sc):
+def test_surface_gradient_and_hessian(sc: dict) -> None:
     x0, f = sc["garment_vertices"], sc["garment_faces"]
     term = SurfaceShape(x0, f)
     x = _wavy(x0, 0.02)
-    check_gradient(lambda y: term(y), x, rtol=1e-5, atol=1e-9, num_samples=40)
+    check_gradient(lambda y: term.energy(y), x, rtol=1e-5, atol=1e-9, num_samples=40)
     # closed-form Jacobian gives the exact gradient 2 w J^T r
     r, J = term.residual_jacobian(x)
     g = torch.zeros(x.numel() + 1, dtype=x.dtype)
     gl = 2 * term.weights[:, None] * (J.transpose(1, 2) @ r[..., None])[..., 0]
     from torchgarment.retarget.objectives import vertex_dofs
+
     g.index_add_(0, vertex_dofs(term.quads).reshape(-1), gl.reshape(-1))
     xr = x.clone().requires_grad_(True)
-    (ga,) = torch.autograd.grad(term(xr), xr)
+    (ga,) = torch.autograd.grad(term.energy(xr), xr)
     assert torch.allclose(g[:-1].reshape(-1, 3), ga, rtol=1e-9, atol=1e-12)
-    h = term.hessian(x).toarray()
+    h = _hess(term, x)
     assert np.allclose(h, h.T) and np.linalg.eigvalsh(h).min() > -1e-10
 
 
-def test_surface_invariances(sc):
+def test_surface_invariances(sc: dict) -> None:
     x0, f = sc["garment_vertices"], sc["garment_faces"]
     term = SurfaceShape(x0, f)
-    assert float(term(x0)) < 1e-25
+    assert float(term.energy(x0)) < 1e-25
     r = _rotation()
-    assert float(term(2.7 * x0 @ r.T + torch.tensor([1.0, -2.0, 0.5], dtype=x0.dtype))) < 1e-20  # similarity
+    assert (
+        float(term.energy(2.7 * x0 @ r.T + torch.tensor([1.0, -2.0, 0.5], dtype=x0.dtype))) < 1e-20
+    )  # similarity
     # any affine map: zero on a flat sheet (all pairs coplanar)
-    plane = torch.stack([torch.arange(12.0).repeat(6), torch.arange(6.0).repeat_interleave(12), torch.zeros(72)], 1)
+    plane = torch.stack(
+        [torch.arange(12.0).repeat(6), torch.arange(6.0).repeat_interleave(12), torch.zeros(72)], 1
+    )
     plane = plane.to(torch.float64) * 0.05
     sheet_f = torch.as_tensor(_grid_faces(6, 12))
     sheet = SurfaceShape(plane, sheet_f)
     a, b = _random_affine()
-    assert float(sheet(plane @ a.T + b)) < 1e-20
-    # curved surface under an anisotropic affine map: ~1000x smaller than under a non-affine deformation of the
-    # same largest displacement, and vanishing as the mesh is refined (O(h^2): the out-of-plane part of the map
-    # has no triangle-local representative)
+    assert float(sheet.energy(plane @ a.T + b)) < 1e-20
+    # curved surface under an anisotropic affine map: ~1000x smaller than under a non-affine deformation of
+    # the same largest displacement, and vanishing as the mesh is refined (O(h^2): the out-of-plane part of
+    # the map has no triangle-local representative)
     values = []
     for rings, segments in ((6, 12), (12, 24)):
         s = scene(rings=rings, segments=segments)
@@ -106,61 +128,69 @@ def test_surface_invariances(sc):
         ts = SurfaceShape(xs, fs)
         stretched = xs * torch.tensor([1.3, 0.8, 1.1], dtype=xs.dtype)
         amp = float((stretched - xs).norm(dim=1).max()) / 1.7
-        wavy = xs + amp * torch.stack([torch.sin(20 * xs[:, 1]), torch.cos(15 * xs[:, 0]), torch.sin(12 * xs[:, 2])], 1)
-        assert float(ts(stretched)) < 0.01 * float(ts(wavy))
-        values.append(float(ts(stretched)))
+        wavy = xs + amp * torch.stack(
+            [torch.sin(20 * xs[:, 1]), torch.cos(15 * xs[:, 0]), torch.sin(12 * xs[:, 2])], 1
+        )
+        assert float(ts.energy(stretched)) < 0.01 * float(ts.energy(wavy))
+        values.append(float(ts.energy(stretched)))
     assert values[1] < 0.5 * values[0]
 
 
 def _grid_faces(rows: int, cols: int) -> np.ndarray:
     i, j = np.meshgrid(np.arange(rows - 1), np.arange(cols - 1), indexing="ij")
     a = i * cols + j
-    return np.concatenate([np.stack([a, a + 1, a + cols], -1).reshape(-1, 3),
-                           np.stack([a + 1, a + cols + 1, a + cols], -1).reshape(-1, 3)])
+    return np.concatenate(
+        [
+            np.stack([a, a + 1, a + cols], -1).reshape(-1, 3),
+            np.stack([a + 1, a + cols + 1, a + cols], -1).reshape(-1, 3),
+        ]
+    )
 
 
-def test_positional(sc):
+def test_positional(sc: dict) -> None:
     x0, f = sc["garment_vertices"], sc["garment_faces"]
     js = sc["joints"]
     jt = js * torch.tensor([1.0, 1.2, 1.0], dtype=js.dtype)
     term = Positional(x0, f, js, jt, sc["bones"])
     assert len(term.vertices) == 24  # both boundary rings
     t0 = torch.tensor(0.0, dtype=torch.float64)
-    assert float(term(x0, t0)) < 1e-28
+    assert float(term.energy(x0, t0)) < 1e-28
     x = _wavy(x0, 0.02)
     t = torch.tensor(0.4, dtype=torch.float64)
-    check_gradient(lambda y: term(y, t), x, rtol=1e-5, atol=1e-10)
-    check_gradient(lambda tt: term(x, tt), t, rtol=1e-5, atol=1e-10)
+    check_gradient(lambda y: term.energy(y, t), x, rtol=1e-5, atol=1e-10)
+    check_gradient(lambda tt: term.energy(x, tt), t, rtol=1e-5, atol=1e-10)
     # moving the boundary with the stretched skeleton keeps the barycentric coordinates: zero at t = 1
     moved = x0.clone()
     moved[:, 1] = x0[:, 1] * 1.2
-    assert float(term(moved, torch.tensor(1.0, dtype=torch.float64))) < 1e-25
-    h = term.hessian(x, t).toarray()
+    assert float(term.energy(moved, torch.tensor(1.0, dtype=torch.float64))) < 1e-25
+    h = _hess(term, x, t)
     assert np.linalg.eigvalsh(h).min() > -1e-10
     # the t column couples with the vertices (skeleton moves with t)
     assert np.abs(h[-1, :-1]).max() > 0
 
 
-def test_curve_gradient_and_invariances(sc):
+def test_curve_gradient_and_invariances(sc: dict) -> None:
     x0, f = sc["garment_vertices"], sc["garment_faces"]
     # make the loops non-planar so that the torsion is exercised
-    x0 = x0 + 0.02 * torch.stack([torch.zeros(72), torch.sin(3 * torch.atan2(x0[:, 2], x0[:, 0])), torch.zeros(72)], 1).to(x0)
-    loops = [torch.as_tensor(l) for l in boundary_loops(f.numpy())]
+    x0 = x0 + 0.02 * torch.stack(
+        [torch.zeros(72), torch.sin(3 * torch.atan2(x0[:, 2], x0[:, 0])), torch.zeros(72)], 1
+    ).to(x0)
+    loops = [torch.as_tensor(lp) for lp in boundary_loops(f.numpy())]
     term = CurveShape(x0, loops)
     assert len(term.triples) == 24 and len(term.quads) == 24
-    assert float(term(x0)) < 1e-25
+    assert float(term.energy(x0)) < 1e-25
     r = _rotation(3)
     sim = 0.4 * x0 @ r.T + torch.tensor([0.3, 0.1, -2.0], dtype=x0.dtype)
-    assert float(term(sim)) < 1e-20
+    assert float(term.energy(sim)) < 1e-20
     aniso = x0 * torch.tensor([1.5, 1.0, 0.7], dtype=x0.dtype)
-    assert float(term(aniso)) > 1e-4
+    assert float(term.energy(aniso)) > 1e-4
     x = _wavy(x0, 0.01)
-    check_gradient(lambda y: term(y), x, rtol=1e-5, atol=1e-10)
-    h = term.hessian(x).toarray()
+    check_gradient(lambda y: term.energy(y), x, rtol=1e-5, atol=1e-10)
+    h = _hess(term, x)
     assert np.linalg.eigvalsh(h).min() > -1e-10
 
 
-def test_fit_gradient(sc):
+def test_fit_gradient(sc: dict) -> None:
     av, af = sc["avatar_full"], sc["avatar_faces"]
     sdf = BodySDF.from_mesh(av, af, SDFSettings(voxel_size=0.01))
     x0, f = sc["garment_vertices"], sc["garment_faces"]
@@ -171,40 +201,43 @@ def test_fit_gradient(sc):
     # distances match the capsule: ~0.1875 - 0.17 (up to the SDF's interpolation and the polygonal capsule)
     d = sdf(x[mask])
     assert float((d - (0.1875 - 0.17)).abs().max()) < 4e-3
-    check_gradient(lambda y: term(y), x, rtol=1e-4, atol=1e-8, num_samples=40, eps=1e-7)
-    h = term.hessian(x).toarray()
+    check_gradient(lambda y: term.energy(y), x, rtol=1e-4, atol=1e-8, num_samples=40, eps=1e-7)
+    h = _hess(term, x)
     assert np.linalg.eigvalsh(h).min() > -1e-10
 
 
-def test_contact_gradient_t_and_hessian(sc):
+def test_contact_gradient_t_and_hessian(sc: dict) -> None:
     x0, f = sc["garment_vertices"], sc["garment_faces"]
     c = Contact(x0, f, sc["avatar_full"], sc["avatar_faces"], sc["avatar_shrunk"], dhat=0.03, stiffness=10.0)
     t = torch.tensor(0.82, dtype=torch.float64)  # avatar radius ~0.139 vs garment 0.15: within dhat
-    assert math.isfinite(float(c(x0, t))) and float(c(x0, t)) > 0
-    assert not c.has_intersections(x0, float(t))
+    assert math.isfinite(float(c.energy(x0, t))) and float(c.energy(x0, t)) > 0
+    assert not c.ipc.has_intersections(x0, float(t))
     xr, tr = x0.clone().requires_grad_(True), t.clone().requires_grad_(True)
-    gx, gt = torch.autograd.grad(c(xr, tr), (xr, tr))
-    check_gradient(lambda y: c(y, t), x0, grad=gx, rtol=1e-5, atol=1e-8, num_samples=30)
-    check_gradient(lambda tt: c(x0, tt), t, grad=gt, rtol=1e-5, atol=1e-8)
+    gx, gt = torch.autograd.grad(c.energy(xr, tr), (xr, tr))
+    check_gradient(lambda y: c.energy(y, t), x0, grad=gx, rtol=1e-5, atol=1e-8, num_samples=30)
+    check_gradient(lambda tt: c.energy(x0, tt), t, grad=gt, rtol=1e-5, atol=1e-8)
     assert float(gt) > 0  # inflating pushes the avatar into the garment
-    h = c.hessian(x0, t)
+    h = _hess(c, x0, t)
     assert h.shape == (3 * x0.shape[0] + 1,) * 2
-    hd = h.toarray()
-    assert np.allclose(hd, hd.T, atol=1e-8 * np.abs(hd).max()) and np.linalg.eigvalsh(hd).min() > -1e-6 * np.abs(hd).max()
+    hd = h
+    assert (
+        np.allclose(hd, hd.T, atol=1e-8 * np.abs(hd).max())
+        and np.linalg.eigvalsh(hd).min() > -1e-6 * np.abs(hd).max()
+    )
     # the t-t entry matches a finite difference of dE/dt
     eps = 1e-6
 
-    def dedt(tv):
+    def dedt(tv: float) -> float:
         trr = torch.tensor(tv, dtype=torch.float64, requires_grad=True)
-        return float(torch.autograd.grad(c(x0, trr), trr)[0])
+        return float(torch.autograd.grad(c.energy(x0, trr), trr)[0])
 
     fd = (dedt(0.82 + eps) - dedt(0.82 - eps)) / (2 * eps)
     assert hd[-1, -1] >= 0 and abs(hd[-1, -1] - fd) <= 0.05 * abs(fd) + 1e-9
 
 
-def test_element_hessians_and_projection():
+def test_element_hessians_and_projection() -> None:
     z = torch.randn(5, 4, dtype=torch.float64)
-    fn = lambda z: (z[:, 0] * z[:, 1] ** 2 + torch.sin(z[:, 2]) * z[:, 3])  # noqa: E731
+    fn = lambda z: z[:, 0] * z[:, 1] ** 2 + torch.sin(z[:, 2]) * z[:, 3]  # noqa: E731
     h = element_hessians(fn, z)
     ref = torch.stack([torch.autograd.functional.hessian(lambda v: fn(v[None])[0], zi) for zi in z])
     assert torch.allclose(h, ref, atol=1e-12)
@@ -212,7 +245,7 @@ def test_element_hessians_and_projection():
     assert float(torch.linalg.eigvalsh(p).min()) > -1e-12
 
 
-def test_positional_skips_zero_length_bones(sc):
+def test_positional_skips_zero_length_bones(sc: dict) -> None:
     # a zero-length root bone at the hem's height (like anny's root) must not be chosen: finite values
     x0, f = sc["garment_vertices"], sc["garment_faces"]
     js = torch.cat([sc["joints"], torch.tensor([[0.0, 0.75, 0.0]], dtype=torch.float64)])
@@ -220,4 +253,29 @@ def test_positional_skips_zero_length_bones(sc):
     term = Positional(x0, f, js, js.clone(), bones)
     assert int((term.bone == 2).sum()) == 0
     t = torch.tensor(0.5, dtype=torch.float64)
-    assert math.isfinite(float(term(_wavy(x0), t)))
+    assert math.isfinite(float(term.energy(_wavy(x0), t)))
+
+
+def test_terms_follow_the_energy_term_contract_on_the_state(sc: dict) -> None:
+    """forward(y) = weight * energy(x, t) on the state (N + 1, 3); the gradient's t entry is y[N, 0]'s, the
+    two padding entries get none; hessian_blocks are the weighted unweighted_blocks."""
+    x0, f = sc["garment_vertices"], sc["garment_faces"]
+    jt = sc["joints"] * torch.tensor([1.0, 1.2, 1.0], dtype=torch.float64)
+    term = Positional(x0, f, sc["joints"], jt, sc["bones"], weight=2.5)
+    x = _wavy(x0, 0.02)
+    t = torch.tensor(0.4, dtype=torch.float64)
+    y = make_state(x, t)
+    e, g = term.value_and_grad(y)
+    assert float(e) == pytest.approx(2.5 * float(term.energy(x, t)), rel=1e-14)
+    tr = t.clone().requires_grad_(True)
+    (gt,) = torch.autograd.grad(term.energy(x, tr), tr)
+    assert float(g[-1, 0]) == pytest.approx(2.5 * float(gt), rel=1e-12)
+    assert float(g[-1, 1:].abs().max()) == 0.0
+    assert term.value(y) == pytest.approx(float(term.energy(x, t)), rel=1e-14)
+    hb = (
+        term.hessian_blocks(y)
+        .to_sparse(y.shape[0])
+        .to_dense()
+        .numpy()[: 3 * x.shape[0] + 1, : 3 * x.shape[0] + 1]
+    )
+    np.testing.assert_allclose(hb, 2.5 * _hess(term, x, t), rtol=1e-14, atol=0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import ipctk
 import numpy as np
@@ -19,15 +20,31 @@ from torchgarment.retarget.pipeline import (
     retarget,
 )
 
+if TYPE_CHECKING:
+    from pathlib import Path
 
-def _problem(**kw):
+    from torchgarment.retarget.inputs import RetargetProblem
+    from torchgarment.retarget.pipeline import RetargetResult
+
+
+def _problem(**kw: object) -> RetargetProblem:
     c = toy_case(**kw)
-    return problem_from_arrays(c.garment_vertices, c.garment_faces, c.source_skeleton, c.target_vertices,
-                               c.target_faces, c.target_skeleton, source_avatar=(c.source_vertices, c.source_faces))
+    return problem_from_arrays(
+        c.garment_vertices,
+        c.garment_faces,
+        c.source_skeleton,
+        c.target_vertices,
+        c.target_faces,
+        c.target_skeleton,
+        source_avatar=(c.source_vertices, c.source_faces),
+    )
 
 
-def _ipctk_checks(garment, faces, avatar, avatar_faces):
-    """Independent ipctk checks in the target frame: garment+avatar (avatar-avatar ignored) and garment alone."""
+def _ipctk_checks(
+    garment: torch.Tensor, faces: torch.Tensor, avatar: torch.Tensor, avatar_faces: torch.Tensor
+) -> tuple[bool, bool, float]:
+    """Independent ipctk checks in the target frame: garment+avatar (avatar-avatar ignored) and garment
+    alone."""
     n = garment.shape[0]
     gf = faces.numpy().astype(np.int32)
     v = np.asfortranarray(np.concatenate([garment.numpy(), avatar.numpy()]))
@@ -43,13 +60,13 @@ def _ipctk_checks(garment, faces, avatar, avatar_faces):
 
 
 @pytest.fixture(scope="module")
-def toy_result(tmp_path_factory):
+def toy_result(tmp_path_factory: pytest.TempPathFactory) -> tuple[RetargetProblem, RetargetResult, Path]:
     p = _problem(target_scale=1.3, target_offset=(2.0, -1.0, 0.5))  # a bigger avatar elsewhere
     log = tmp_path_factory.mktemp("tb")
     return p, retarget(p, progress=False, log_dir=log), log
 
 
-def test_toy_retarget_is_intersection_free(toy_result):
+def test_toy_retarget_is_intersection_free(toy_result: tuple) -> None:
     p, r, _ = toy_result
     av = p.to_work.inverse(p.avatar_vertices)
     inter_av, inter_self, dmin = _ipctk_checks(r.garment_vertices, r.garment_faces, av, p.avatar_faces)
@@ -67,7 +84,7 @@ def test_toy_retarget_is_intersection_free(toy_result):
     assert m["distortion_max"] >= m["distortion_mean"] > 0
 
 
-def test_tensorboard_scalars_written(toy_result):
+def test_tensorboard_scalars_written(toy_result: tuple) -> None:
     _, r, log = toy_result
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -82,7 +99,7 @@ def test_tensorboard_scalars_written(toy_result):
 
 
 @pytest.mark.slow
-def test_fit_weight_controls_tightness():
+def test_fit_weight_controls_tightness() -> None:
     p = _problem()
     loose = retarget(p, RetargetSettings(w_fit=0.0), progress=False)
     tight = retarget(p, RetargetSettings(w_fit=20.0), progress=False)
@@ -96,14 +113,21 @@ def test_fit_weight_controls_tightness():
     assert loose.metrics["intersections"] == tight.metrics["intersections"] == 0
 
 
-def test_multilayer_second_garment_over_first(toy_result):
+def test_multilayer_second_garment_over_first(toy_result: tuple) -> None:
     p, inner, _ = toy_result
     c = toy_case(target_scale=1.3, target_offset=(2.0, -1.0, 0.5))
     from torchgarment.retarget.avatars import tube_mesh
 
     ov, of = tube_mesh(0.34, 0.34, -0.1, 1.15, 24, 9)
-    p2 = problem_from_arrays(ov, of, c.source_skeleton, c.target_vertices, c.target_faces, c.target_skeleton,
-                             source_avatar=(c.source_vertices, c.source_faces))
+    p2 = problem_from_arrays(
+        ov,
+        of,
+        c.source_skeleton,
+        c.target_vertices,
+        c.target_faces,
+        c.target_skeleton,
+        source_avatar=(c.source_vertices, c.source_faces),
+    )
     lp = layer_problem(p2, inner.garment_vertices, inner.garment_faces)
     assert lp.avatar_vertices.shape[0] == p2.avatar_vertices.shape[0] + inner.garment_vertices.shape[0]
     outer = retarget(lp, progress=False)
@@ -115,7 +139,7 @@ def test_multilayer_second_garment_over_first(toy_result):
     assert not inter_av and not inter_self and dmin > 0
 
 
-def test_check_result_detects_intersection():
+def test_check_result_detects_intersection() -> None:
     c = toy_case()
     # a garment pushed through the avatar's side
     x = c.garment_vertices.clone()
@@ -124,7 +148,7 @@ def test_check_result_detects_intersection():
     assert chk["intersects_avatar"] and chk["intersections"] >= 1
 
 
-def test_settings_validation():
+def test_settings_validation() -> None:
     with pytest.raises(InputError):
         RetargetSettings(w_fit=-1.0)
     with pytest.raises(InputError):
@@ -133,18 +157,25 @@ def test_settings_validation():
         RetargetSettings(broad_phase="Nope")
 
 
-def test_moving_a_skeleton_joint_moves_the_hem():
+def test_moving_a_skeleton_joint_moves_the_hem() -> None:
     """Paper Fig. 9: the positional term keeps boundary loops at their coordinate along the nearest bone, so
     lowering the target's hip joint lowers the hem (the loop nearest to it) while the collar stays."""
     from torchgarment.body.skeleton import Skeleton
 
-    def run(hip_drop: float):
+    def run(hip_drop: float) -> RetargetResult:
         c = toy_case()
         tj = c.target_skeleton.joints.clone()
         tj[0, 1] -= hip_drop
         target = Skeleton(tj, c.target_skeleton.bones.clone(), list(c.target_skeleton.names))
-        p = problem_from_arrays(c.garment_vertices, c.garment_faces, c.source_skeleton, c.target_vertices,
-                                c.target_faces, target, source_avatar=(c.source_vertices, c.source_faces))
+        p = problem_from_arrays(
+            c.garment_vertices,
+            c.garment_faces,
+            c.source_skeleton,
+            c.target_vertices,
+            c.target_faces,
+            target,
+            source_avatar=(c.source_vertices, c.source_faces),
+        )
         r = retarget(p, progress=False)
         assert r.metrics["intersections"] == 0
         y = r.garment_vertices[:, 1]

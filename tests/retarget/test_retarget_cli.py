@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
-import torch
 
 from torchgarment.errors import TorchGarmentError
 from torchgarment.io.mesh import read_obj, save_obj
@@ -16,9 +16,15 @@ from torchgarment.io.skeleton import write_skeleton_obj
 from torchgarment.retarget.avatars import toy_case
 from torchgarment.retarget.cli import add_retarget_parser
 
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from torchgarment.retarget.avatars import ToyCase
+
 
 def _run(argv: list[str]) -> int:
-    """Run through ``torchgarment.cli.main`` once the lead has wired the command, else an equivalent harness."""
+    """Run through ``torchgarment.cli.main`` once the lead has wired the command, else an equivalent
+    harness."""
     from torchgarment import cli
 
     parser = cli.build_parser()
@@ -36,7 +42,7 @@ def _run(argv: list[str]) -> int:
 
 
 @pytest.fixture(scope="module")
-def files(tmp_path_factory):
+def files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, ToyCase]:
     d = tmp_path_factory.mktemp("in")
     c = toy_case(target_scale=100.0, target_offset=(50.0, 0.0, -20.0))  # the avatar in centimetres, elsewhere
     save_obj(d / "garment.obj", c.garment_vertices, c.garment_faces)
@@ -48,18 +54,44 @@ def files(tmp_path_factory):
     return d, c
 
 
-def test_cli_end_to_end(files, tmp_path, capsys):
+def test_cli_end_to_end(files: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     d, c = files
     out = tmp_path / "out"
-    code = _run(["retarget", "--garment", str(d / "garment.obj"), "--source-skeleton", str(d / "source_skeleton.obj"),
-                 "--target-avatar", str(d / "avatar.obj"), "--target-skeleton", str(d / "target_skeleton.obj"),
-                 "--source-avatar", str(d / "source_avatar.obj"), "--curves", str(d / "curves.txt"),
-                 "--out", str(out), "--log-dir", str(tmp_path / "tb"), "--no-progress"])
+    code = _run(
+        [
+            "retarget",
+            "--garment",
+            str(d / "garment.obj"),
+            "--source-skeleton",
+            str(d / "source_skeleton.obj"),
+            "--target-avatar",
+            str(d / "avatar.obj"),
+            "--target-skeleton",
+            str(d / "target_skeleton.obj"),
+            "--source-avatar",
+            str(d / "source_avatar.obj"),
+            "--curves",
+            str(d / "curves.txt"),
+            "--out",
+            str(out),
+            "--log-dir",
+            str(tmp_path / "tb"),
+            "--no-progress",
+        ]
+    )
     assert code == 0
     assert {p.name for p in out.iterdir()} == {"garment.obj", "retarget.png", "metrics.json"}
     m = json.loads((out / "metrics.json").read_text())
-    for key in ("seconds", "newton_iterations", "grad_norm", "min_distance_mm", "intersections", "distortion_mean",
-                "distortion_max", "terms"):
+    for key in (
+        "seconds",
+        "newton_iterations",
+        "grad_norm",
+        "min_distance_mm",
+        "intersections",
+        "distortion_mean",
+        "distortion_max",
+        "terms",
+    ):
         assert key in m
     assert m["intersections"] == 0 and m["min_distance_mm"] > 0
     v, f = read_obj(out / "garment.obj")
@@ -72,10 +104,16 @@ def test_cli_end_to_end(files, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_skeleton"])
-def test_cli_bad_input_one_line(files, tmp_path, capsys, case):
+def test_cli_bad_input_one_line(
+    files: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
+) -> None:
     d, _ = files
-    args = {"--garment": str(d / "garment.obj"), "--source-skeleton": str(d / "source_skeleton.obj"),
-            "--target-avatar": str(d / "avatar.obj"), "--target-skeleton": str(d / "target_skeleton.obj")}
+    args = {
+        "--garment": str(d / "garment.obj"),
+        "--source-skeleton": str(d / "source_skeleton.obj"),
+        "--target-avatar": str(d / "avatar.obj"),
+        "--target-skeleton": str(d / "target_skeleton.obj"),
+    }
     extra = []
     if case == "missing":
         args["--target-avatar"] = str(tmp_path / "nope.obj")
@@ -85,8 +123,15 @@ def test_cli_bad_input_one_line(files, tmp_path, capsys, case):
         bad = tmp_path / "bad_skeleton.obj"
         bad.write_text("v 0 0 0\nv 0 1 0\nl 1 2\n")  # one bone instead of four
         args["--target-skeleton"] = str(bad)
-    argv = ["retarget", *sum(([k, v] for k, v in args.items()), []), "--out", str(tmp_path / "o"), "--no-log",
-            "--no-progress", *extra]
+    argv = [
+        "retarget",
+        *sum(([k, v] for k, v in args.items()), []),
+        "--out",
+        str(tmp_path / "o"),
+        "--no-log",
+        "--no-progress",
+        *extra,
+    ]
     code = _run(argv)
     err = capsys.readouterr().err.strip()
     assert code == 2

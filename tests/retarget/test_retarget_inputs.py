@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pytest
 import torch
@@ -19,8 +21,13 @@ from torchgarment.retarget.inputs import (
     weld_garment,
 )
 
+if TYPE_CHECKING:
+    from pathlib import Path
 
-def _write_split_tube(path, segments=12, rings=4):
+    from torchgarment.retarget.avatars import ToyCase
+
+
+def _write_split_tube(path: Path, segments: int = 12, rings: int = 4) -> tuple[int, int]:
     """An OBJ tube whose seam column (angle 0) is duplicated, as UV-seam exporters write it."""
     v, f = tube_mesh(0.3, 0.3, -0.2, 1.25, segments, rings)
     # Faces of the last column use copies of the first column's vertices (the seam).
@@ -38,7 +45,7 @@ def _write_split_tube(path, segments=12, rings=4):
     return v.shape[0], segments * rings
 
 
-def test_weld_uv_split_cube(tmp_path):
+def test_weld_uv_split_cube(tmp_path: Path) -> None:
     # A cube written with 4 separate vertices per face (24), as exporters do along UV seams.
     corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
     quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
@@ -55,7 +62,7 @@ def test_weld_uv_split_cube(tmp_path):
     assert torch.allclose(wv[old_to_new], torch.as_tensor(v))
 
 
-def test_load_problem_welds_and_maps_indices(tmp_path):
+def test_load_problem_welds_and_maps_indices(tmp_path: Path) -> None:
     n_file, n_welded = _write_split_tube(tmp_path / "garment.obj")
     case = toy_case(target_scale=100.0, target_offset=(300.0, 20.0, -50.0))  # centimetres, elsewhere
     write_skeleton_obj(tmp_path / "src.obj", case.source_skeleton)
@@ -68,9 +75,14 @@ def test_load_problem_welds_and_maps_indices(tmp_path):
     (tmp_path / "nofit.txt").write_text(f"0 1\n{seam_copy}\n")
     (tmp_path / "curves.txt").write_text(" ".join(str(k * 4) for k in range(12)) + "\n")
     p = load_problem(
-        tmp_path / "garment.obj", tmp_path / "src.obj", tmp_path / "avatar.obj", tmp_path / "tgt.obj",
-        source_avatar=tmp_path / "source_avatar.obj", skin_weights=tmp_path / "w.txt",
-        no_fit=tmp_path / "nofit.txt", curves=tmp_path / "curves.txt",
+        tmp_path / "garment.obj",
+        tmp_path / "src.obj",
+        tmp_path / "avatar.obj",
+        tmp_path / "tgt.obj",
+        source_avatar=tmp_path / "source_avatar.obj",
+        skin_weights=tmp_path / "w.txt",
+        no_fit=tmp_path / "nofit.txt",
+        curves=tmp_path / "curves.txt",
     )
     assert p.garment_vertices.shape == (n_welded, 3)
     assert p.garment_index_map is not None and int(p.garment_index_map[seam_copy]) == 3
@@ -78,17 +90,25 @@ def test_load_problem_welds_and_maps_indices(tmp_path):
     assert p.fit_mask.any()
     assert len(p.curves) == 1 and p.curves[0].tolist() == [k * 4 for k in range(12)]
     assert p.skin_weights.shape == (5, case.target_vertices.shape[0])
-    assert torch.allclose(p.skin_weights.sum(dim=0), torch.ones(case.target_vertices.shape[0], dtype=torch.float64))
+    assert torch.allclose(
+        p.skin_weights.sum(dim=0), torch.ones(case.target_vertices.shape[0], dtype=torch.float64)
+    )
     # The target (centimetres, far away) lands on the source skeleton: scale 1/100, roots coincide.
     assert p.to_work.scale == pytest.approx(0.01, rel=1e-9)
     assert torch.allclose(p.target_skeleton.joints[0], p.source_skeleton.joints[0], atol=1e-9)
     assert p.length_scale == pytest.approx(1.65, rel=1e-6)
 
 
-def test_to_work_round_trip_miniature():
+def test_to_work_round_trip_miniature() -> None:
     case = toy_case(target_scale=0.04, target_offset=(100.0, -50.0, 30.0))
-    p = problem_from_arrays(case.garment_vertices, case.garment_faces, case.source_skeleton,
-                            case.target_vertices, case.target_faces, case.target_skeleton)
+    p = problem_from_arrays(
+        case.garment_vertices,
+        case.garment_faces,
+        case.source_skeleton,
+        case.target_vertices,
+        case.target_faces,
+        case.target_skeleton,
+    )
     assert p.to_work.scale == pytest.approx(25.0, rel=1e-9)
     back = p.to_work.inverse(p.avatar_vertices)
     assert torch.allclose(back, case.target_vertices, atol=1e-12 * 100)
@@ -100,15 +120,21 @@ def test_to_work_round_trip_miniature():
     assert torch.allclose(s.inverse(s.apply(x)), x)
 
 
-def test_degenerate_avatar_faces_dropped():
+def test_degenerate_avatar_faces_dropped() -> None:
     case = toy_case()
     faces = torch.cat([case.target_faces, torch.tensor([[0, 0, 1], [2, 3, 3]])])
-    p = problem_from_arrays(case.garment_vertices, case.garment_faces, case.source_skeleton,
-                            case.target_vertices, faces, case.target_skeleton)
+    p = problem_from_arrays(
+        case.garment_vertices,
+        case.garment_faces,
+        case.source_skeleton,
+        case.target_vertices,
+        faces,
+        case.target_skeleton,
+    )
     assert p.avatar_faces.shape[0] == case.target_faces.shape[0]
 
 
-def test_automatic_fit_mask_picks_near_vertices():
+def test_automatic_fit_mask_picks_near_vertices() -> None:
     import trimesh
 
     s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
@@ -122,41 +148,55 @@ def test_automatic_fit_mask_picks_near_vertices():
         automatic_fit_mask(dirs, av, af, -1.0)
 
 
-def test_toy_fit_region_from_source_avatar():
+def test_toy_fit_region_from_source_avatar() -> None:
     case = toy_case()
-    p = problem_from_arrays(case.garment_vertices, case.garment_faces, case.source_skeleton,
-                            case.target_vertices, case.target_faces, case.target_skeleton,
-                            source_avatar=(case.source_vertices, case.source_faces), fit_distance=0.05)
+    p = problem_from_arrays(
+        case.garment_vertices,
+        case.garment_faces,
+        case.source_skeleton,
+        case.target_vertices,
+        case.target_faces,
+        case.target_skeleton,
+        source_avatar=(case.source_vertices, case.source_faces),
+        fit_distance=0.05,
+    )
     import igl
 
-    d, _, _ = igl.point_mesh_squared_distance(p.garment_vertices.numpy(), case.source_vertices.numpy(),
-                                              case.source_faces.numpy())
+    d, _, _ = igl.point_mesh_squared_distance(
+        p.garment_vertices.numpy(), case.source_vertices.numpy(), case.source_faces.numpy()
+    )
     assert p.fit_mask.tolist() == (np.sqrt(d) <= 0.05).tolist()
     assert 0 < int(p.fit_mask.sum()) < p.fit_mask.numel()
 
 
-def test_nonmanifold_garment_raises():
+def test_nonmanifold_garment_raises() -> None:
     v = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], dtype=torch.float64)
     f = torch.tensor([[0, 1, 2], [1, 0, 3], [0, 1, 4]])  # edge 0-1 used by three faces
     with pytest.raises(MeshError, match="non-manifold"):
         weld_garment(v, f, 0.0)
 
 
-def test_self_intersecting_garment_raises():
+def test_self_intersecting_garment_raises() -> None:
     case = toy_case()
     gv, gf = tube_mesh(0.3, 0.3, -0.2, 1.25, 24, 10)
     g2v, g2f = tube_mesh(0.45, 0.15, -0.1, 1.0, 24, 10)  # crosses the first tube
     v = torch.cat([gv, g2v])
     f = torch.cat([gf, g2f + gv.shape[0]])
     with pytest.raises(MeshError, match="intersects itself"):
-        problem_from_arrays(v, f, case.source_skeleton, case.target_vertices, case.target_faces,
-                            case.target_skeleton)
+        problem_from_arrays(
+            v, f, case.source_skeleton, case.target_vertices, case.target_faces, case.target_skeleton
+        )
 
 
-def test_mismatched_skeletons_raise():
+def test_mismatched_skeletons_raise() -> None:
     case = toy_case()
-    args = (case.garment_vertices, case.garment_faces, case.source_skeleton, case.target_vertices,
-            case.target_faces)
+    args = (
+        case.garment_vertices,
+        case.garment_faces,
+        case.source_skeleton,
+        case.target_vertices,
+        case.target_faces,
+    )
     fewer = Skeleton(case.target_skeleton.joints[:4], case.target_skeleton.bones[:3])
     with pytest.raises(InputError, match="same joints"):
         problem_from_arrays(*args, fewer)
@@ -165,7 +205,7 @@ def test_mismatched_skeletons_raise():
         problem_from_arrays(*args, rewired)
 
 
-def _files(tmp_path):
+def _files(tmp_path: Path) -> tuple[list[Path], ToyCase]:
     case = toy_case()
     save_obj(tmp_path / "g.obj", case.garment_vertices, case.garment_faces)
     write_skeleton_obj(tmp_path / "s.obj", case.source_skeleton)
@@ -174,7 +214,7 @@ def _files(tmp_path):
     return [tmp_path / n for n in ("g.obj", "s.obj", "a.obj", "t.obj")], case
 
 
-def test_bad_index_files_raise(tmp_path):
+def test_bad_index_files_raise(tmp_path: Path) -> None:
     paths, case = _files(tmp_path)
     n = case.garment_vertices.shape[0]
     (tmp_path / "bad.txt").write_text(f"0 5 {n}\n")
@@ -195,16 +235,17 @@ def test_bad_index_files_raise(tmp_path):
         load_problem(*paths, no_fit=tmp_path / "missing.txt")
 
 
-def test_empty_garment_file_raises(tmp_path):
+def test_empty_garment_file_raises(tmp_path: Path) -> None:
     paths, _ = _files(tmp_path)
     (tmp_path / "empty.obj").write_text("# empty\n")
     with pytest.raises(InputError, match="empty"):
         load_problem(tmp_path / "empty.obj", *paths[1:])
 
 
-def test_mismatched_skeleton_files_raise(tmp_path):
+def test_mismatched_skeleton_files_raise(tmp_path: Path) -> None:
     paths, case = _files(tmp_path)
-    write_skeleton_obj(tmp_path / "t3.obj", Skeleton(case.target_skeleton.joints[:3],
-                                                     case.target_skeleton.bones[:2]))
+    write_skeleton_obj(
+        tmp_path / "t3.obj", Skeleton(case.target_skeleton.joints[:3], case.target_skeleton.bones[:2])
+    )
     with pytest.raises(InputError, match="same joints"):
         load_problem(paths[0], paths[1], paths[2], tmp_path / "t3.obj")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -13,21 +14,31 @@ from torchgarment.retarget.avatars import make_avatar, toy_case, tube_mesh
 from torchgarment.retarget.inputs import problem_from_arrays
 from torchgarment.retarget.shrink import project_to_bones, shrink_avatar
 
+if TYPE_CHECKING:
+    from torchgarment.retarget.inputs import RetargetProblem
+    from torchgarment.retarget.shrink import ShrunkAvatar
 
-def _toy_problem(**kw):
+
+def _toy_problem(**kw: object) -> RetargetProblem:
     case = toy_case(**kw)
-    return problem_from_arrays(case.garment_vertices, case.garment_faces, case.source_skeleton,
-                               case.target_vertices, case.target_faces, case.target_skeleton), case
+    return problem_from_arrays(
+        case.garment_vertices,
+        case.garment_faces,
+        case.source_skeleton,
+        case.target_vertices,
+        case.target_faces,
+        case.target_skeleton,
+    ), case
 
 
-def _segment_distance(points, a, b):
+def _segment_distance(points: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     d = b - a
     dd = (d * d).sum(-1)
     s = torch.where(dd > 0, ((points - a) * d).sum(-1) / torch.where(dd > 0, dd, torch.ones_like(dd)), 0 * dd)
     return (points - a - s.clamp(0, 1)[..., None] * d).norm(dim=-1)
 
 
-def _assert_on_skeleton(problem, shrunk, scale):
+def _assert_on_skeleton(problem: RetargetProblem, shrunk: ShrunkAvatar, scale: float) -> None:
     sk = problem.source_skeleton
     a = sk.joints[sk.bones[:, 0]]
     b = sk.joints[sk.bones[:, 1]]
@@ -60,12 +71,12 @@ def _assert_on_skeleton(problem, shrunk, scale):
     assert float(union.max()) <= shrunk.offset * (1 + 1e-9)
 
 
-def _areas(v, f):
+def _areas(v: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
     t = v[f]
     return 0.5 * torch.linalg.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], dim=-1).norm(dim=-1)
 
 
-def test_toy_shrink_on_skeleton_and_tiles_avatar():
+def test_toy_shrink_on_skeleton_and_tiles_avatar() -> None:
     problem, case = _toy_problem()
     shrunk = shrink_avatar(problem)
     a = problem.avatar_vertices.shape[0]
@@ -79,12 +90,15 @@ def test_toy_shrink_on_skeleton_and_tiles_avatar():
     c0 = (problem.avatar_vertices[problem.avatar_faces].mean(1) * a0[:, None]).sum(0)
     c1 = (shrunk.vertices_full[shrunk.faces].mean(1) * a1[:, None]).sum(0)
     assert torch.allclose(c0, c1, atol=1e-12)
+
     # Orientation kept: the signed volume of the closed ellipsoid is unchanged.
-    def volume(v, f):
+    def volume(v: torch.Tensor, f: torch.Tensor) -> float:
         t = v[f]
         return float((t[:, 0] * torch.linalg.cross(t[:, 1], t[:, 2], dim=-1)).sum() / 6)
-    assert volume(shrunk.vertices_full, shrunk.faces) == pytest.approx(volume(problem.avatar_vertices,
-                                                                              problem.avatar_faces), rel=1e-12)
+
+    assert volume(shrunk.vertices_full, shrunk.faces) == pytest.approx(
+        volume(problem.avatar_vertices, problem.avatar_faces), rel=1e-12
+    )
     assert 0 < shrunk.min_distance <= 0.3
     # Interpolation.
     assert torch.equal(shrunk.at(1.0), shrunk.vertices_full)
@@ -94,17 +108,19 @@ def test_toy_shrink_on_skeleton_and_tiles_avatar():
     assert float(t.grad) == pytest.approx(float((shrunk.vertices_full - shrunk.vertices_shrunk).sum()))
 
 
-def test_toy_shrink_far_away_small_target_same_shrunk_avatar():
+def test_toy_shrink_far_away_small_target_same_shrunk_avatar() -> None:
     p1, _ = _toy_problem()
     p2, _ = _toy_problem(target_scale=0.05, target_offset=(40.0, -3.0, 9.0))
     s1, s2 = shrink_avatar(p1), shrink_avatar(p2)
     assert torch.equal(s1.faces, s2.faces)
     assert torch.allclose(s1.vertices_shrunk, s2.vertices_shrunk, atol=1e-9)
-    assert torch.allclose(p2.to_work.inverse(s2.vertices_full[: p2.avatar_vertices.shape[0]]),
-                          toy_case(target_scale=0.05, target_offset=(40.0, -3.0, 9.0)).target_vertices)
+    assert torch.allclose(
+        p2.to_work.inverse(s2.vertices_full[: p2.avatar_vertices.shape[0]]),
+        toy_case(target_scale=0.05, target_offset=(40.0, -3.0, 9.0)).target_vertices,
+    )
 
 
-def test_shrunk_avatar_has_no_intersection_with_garment_ipctk():
+def test_shrunk_avatar_has_no_intersection_with_garment_ipctk() -> None:
     import ipctk
 
     problem, _ = _toy_problem()
@@ -115,14 +131,17 @@ def test_shrunk_avatar_has_no_intersection_with_garment_ipctk():
     f = np.asfortranarray(np.concatenate([gf, shrunk.faces.numpy() + gv.shape[0]]), dtype=np.int32)
     mesh = ipctk.CollisionMesh(v, ipctk.edges(f), f)
     mesh.can_collide = ipctk.make_vertex_patches_filter(
-        np.r_[np.zeros(gv.shape[0], np.int32), np.ones(shrunk.vertices_shrunk.shape[0], np.int32)])
+        np.r_[np.zeros(gv.shape[0], np.int32), np.ones(shrunk.vertices_shrunk.shape[0], np.int32)]
+    )
     assert not ipctk.has_intersections(mesh, v)
     col = ipctk.NormalCollisions()
     col.build(mesh, v, 0.5)
     d = np.sqrt(col.compute_minimum_distance(mesh, v))
     # The check's bound: distance to the covered bone segments minus the offset.
     assert shrunk.min_distance <= d <= shrunk.min_distance + 2 * shrunk.offset + 1e-12
-    true = float(torch.cdist(problem.garment_vertices, shrunk.vertices_shrunk).min())  # vertex-vertex upper bound
+    true = float(
+        torch.cdist(problem.garment_vertices, shrunk.vertices_shrunk).min()
+    )  # vertex-vertex upper bound
     assert d <= true + 1e-12
     # ipctk handles the degenerate (segment) triangles: finite barrier, gradient and projected Hessian.
     barrier = ipctk.BarrierPotential(0.5, 1.0, True)
@@ -134,17 +153,18 @@ def test_shrunk_avatar_has_no_intersection_with_garment_ipctk():
     assert ipctk.has_intersections(mesh, v1)
 
 
-def test_skeleton_outside_garment_raises():
+def test_skeleton_outside_garment_raises() -> None:
     case = toy_case()
     gv, gf = tube_mesh(0.2, 0.2, -0.2, 1.6, 24, 10)  # tall narrow tube: the arm bones cross its wall
-    problem = problem_from_arrays(gv, gf, case.source_skeleton, case.target_vertices, case.target_faces,
-                                  case.target_skeleton)
+    problem = problem_from_arrays(
+        gv, gf, case.source_skeleton, case.target_vertices, case.target_faces, case.target_skeleton
+    )
     with pytest.raises(InputError, match=r"source skeleton is not inside the garment.*arm\.L"):
         shrink_avatar(problem)
     assert shrink_avatar(problem, check=False).vertices_shrunk.shape[0] > 0
 
 
-def test_skin_weights_choose_the_bones():
+def test_skin_weights_choose_the_bones() -> None:
     problem, case = _toy_problem()
     a = problem.avatar_vertices.shape[0]
     # Everything weighted to the hip joint: every vertex on bone 0 (hip -> spine), no subdivision.
@@ -161,7 +181,7 @@ def test_skin_weights_choose_the_bones():
     assert set(shrink_avatar(problem, check=False).bone_of_vertex.tolist()) == {2}
 
 
-def test_project_to_bones_matches_bruteforce():
+def test_project_to_bones_matches_bruteforce() -> None:
     torch.manual_seed(0)
     joints = torch.randn(6, 3, dtype=torch.float64)
     bones = torch.tensor([[0, 1], [1, 2], [1, 3], [3, 4], [4, 5]])
@@ -173,7 +193,7 @@ def test_project_to_bones_matches_bruteforce():
     assert torch.allclose((pts - proj).norm(dim=1), dist, atol=1e-12)
 
 
-def _torso_tube(body_vertices):
+def _torso_tube(body_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """An elliptic tube around the torso of an anny body, clear of the body at every height."""
     y0, y1 = 0.72, 1.22
     band = (body_vertices[:, 1] > y0) & (body_vertices[:, 1] < y1) & (body_vertices[:, 0].abs() < 0.2)
@@ -182,7 +202,7 @@ def _torso_tube(body_vertices):
     return tube_mesh(rx, rz, y0, y1, 48, 16)
 
 
-def test_anny_size6_to_size20():
+def test_anny_size6_to_size20() -> None:
     from torchgarment.retarget.inputs import problem_from_bodies
 
     src = make_avatar("anny-6").as_body()
@@ -192,9 +212,11 @@ def test_anny_size6_to_size20():
     start = time.perf_counter()
     shrunk = shrink_avatar(problem)
     seconds = time.perf_counter() - start
-    print(f"shrink_avatar on {problem.avatar_vertices.shape[0]} vertices: {seconds:.2f} s, "
-          f"{shrunk.vertices_full.shape[0]} vertices, {shrunk.iterations} rounds, "
-          f"min distance {shrunk.min_distance * 1e3:.1f} mm")
+    print(
+        f"shrink_avatar on {problem.avatar_vertices.shape[0]} vertices: {seconds:.2f} s, "
+        f"{shrunk.vertices_full.shape[0]} vertices, {shrunk.iterations} rounds, "
+        f"min distance {shrunk.min_distance * 1e3:.1f} mm"
+    )
     assert shrunk.min_distance > 0.01
     _assert_on_skeleton(problem, shrunk, problem.length_scale)
     a0 = _areas(problem.avatar_vertices, problem.avatar_faces).sum()
@@ -202,16 +224,18 @@ def test_anny_size6_to_size20():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["long-arms", "big-head", "short-legs", "floating-parts", "torso-hole",
-                                  "miniature", "giant"])
-def test_anny_to_generated_avatars(name):
+@pytest.mark.parametrize(
+    "name", ["long-arms", "big-head", "short-legs", "floating-parts", "torso-hole", "miniature", "giant"]
+)
+def test_anny_to_generated_avatars(name: str) -> None:
     from torchgarment.retarget.inputs import problem_from_bodies
 
     src = make_avatar("anny-6").as_body()
     gv, gf = _torso_tube(src.vertices)
     for weights in (True, False):
-        problem = problem_from_bodies(gv, gf, src, make_avatar(name).as_body(), use_source_avatar=False,
-                                      use_skin_weights=weights)
+        problem = problem_from_bodies(
+            gv, gf, src, make_avatar(name).as_body(), use_source_avatar=False, use_skin_weights=weights
+        )
         shrunk = shrink_avatar(problem)
         assert shrunk.min_distance > 0.01
         _assert_on_skeleton(problem, shrunk, problem.length_scale)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -11,6 +12,9 @@ import trimesh
 
 from torchgarment.errors import InputError
 from torchgarment.sim.contact import BodyMeshContact, SelfContact, StepBound, seam_exclusion_pairs
+
+if TYPE_CHECKING:
+    from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 
 DHAT = 2e-3
 FACES2 = torch.tensor([[0, 1, 2], [3, 4, 5]])
@@ -25,7 +29,8 @@ def two_triangles(gap: float) -> torch.Tensor:
 
 
 def tilted_pair() -> torch.Tensor:
-    """Two non-parallel triangles 0.4-1.5 mm apart: face-vertex, edge-edge and edge-vertex pairs are active."""
+    """Two non-parallel triangles 0.4-1.5 mm apart: face-vertex, edge-edge and edge-vertex pairs are
+    active."""
     x = two_triangles(1e-3)
     x[4, 2] = 1.4e-3
     x[5, 2] = 0.7e-3
@@ -41,20 +46,27 @@ def grid(nu: int, nv: int) -> torch.Tensor:
     return torch.as_tensor(np.concatenate([np.stack([a, b, c], 1), np.stack([c, b, d], 1)]))
 
 
-def folded_sheet(length=0.05, width=0.03, gap=5e-3, h=2.5e-3) -> tuple[torch.Tensor, torch.Tensor]:
+def folded_sheet(
+    length: float = 0.05, width: float = 0.03, gap: float = 5e-3, h: float = 2.5e-3
+) -> tuple[torch.Tensor, torch.Tensor]:
     """A rectangle folded over itself: two layers ``gap`` apart joined by a half-cylinder fold."""
     r = gap / 2
     total = 2 * length + math.pi * r
     u = np.linspace(0, total, int(round(total / h)) + 1)
-    xs = np.where(u < length, u, np.where(u > length + math.pi * r, 2 * length + math.pi * r - u,
-                                          length + r * np.sin((u - length) / r)))
+    xs = np.where(
+        u < length,
+        u,
+        np.where(
+            u > length + math.pi * r, 2 * length + math.pi * r - u, length + r * np.sin((u - length) / r)
+        ),
+    )
     zs = np.where(u < length, 0.0, np.where(u > length + math.pi * r, gap, r - r * np.cos((u - length) / r)))
     ys = np.linspace(0, width, int(round(width / h)) + 1)
     X = np.stack(np.broadcast_arrays(xs[:, None], ys[None, :], zs[:, None]), -1).reshape(-1, 3)
     return torch.as_tensor(X), grid(len(xs), len(ys))
 
 
-def fd_grad(term, x: torch.Tensor, h: float) -> torch.Tensor:
+def fd_grad(term: EnergyTerm, x: torch.Tensor, h: float) -> torch.Tensor:
     g = torch.zeros_like(x)
     for k in range(x.numel()):
         xp, xm = x.clone(), x.clone()
@@ -64,14 +76,14 @@ def fd_grad(term, x: torch.Tensor, h: float) -> torch.Tensor:
     return g
 
 
-def dense(blocks, n: int) -> torch.Tensor:
+def dense(blocks: HessianBlocks, n: int) -> torch.Tensor:
     return blocks.to_sparse(n).to_dense()
 
 
 # ---------------------------------------------------------------------------------------------- self contact
 
 
-def test_energy_vs_gap():
+def test_energy_vs_gap() -> None:
     t = SelfContact(FACES2, two_triangles(0.01), dhat=DHAT, stiffness=1e3)
     assert t(two_triangles(2.5e-3)).item() == 0.0
     assert t(two_triangles(DHAT * 1.001)).item() == 0.0
@@ -88,7 +100,7 @@ def test_energy_vs_gap():
     assert math.isfinite(t(crossing).item())  # the barrier alone cannot see a crossing
 
 
-def test_stiffness_scales_energy_and_default():
+def test_stiffness_scales_energy_and_default() -> None:
     x = two_triangles(1e-3)
     t1 = SelfContact(FACES2, x, dhat=DHAT, stiffness=1.0)
     t2 = SelfContact(FACES2, x, dhat=DHAT, stiffness=250.0)
@@ -103,7 +115,7 @@ def test_stiffness_scales_energy_and_default():
     assert t0.stiffness == k
 
 
-def test_gradient_matches_finite_differences_and_autograd():
+def test_gradient_matches_finite_differences_and_autograd() -> None:
     x = tilted_pair()
     t = SelfContact(FACES2, two_triangles(0.01), dhat=DHAT, stiffness=1e3)
     e, g = t.value_and_grad(x)
@@ -117,7 +129,7 @@ def test_gradient_matches_finite_differences_and_autograd():
     assert g.sum(0).abs().max() < 1e-9 * g.abs().max()
 
 
-def test_hessian_blocks_fd_and_psd():
+def test_hessian_blocks_fd_and_psd() -> None:
     x = tilted_pair()
     t = SelfContact(FACES2, two_triangles(0.01), dhat=DHAT, stiffness=1e3)
     h = dense(t.hessian_blocks(x, project_psd=False), 6)
@@ -137,11 +149,11 @@ def test_hessian_blocks_fd_and_psd():
     assert torch.linalg.eigvalsh(h).min() < -1e-6 * ev.abs().max()  # projection did something here
     diag = t.hessian_diagonal(x)
     for i in range(6):
-        assert torch.allclose(diag[i], hp[3 * i:3 * i + 3, 3 * i:3 * i + 3])
+        assert torch.allclose(diag[i], hp[3 * i : 3 * i + 3, 3 * i : 3 * i + 3])
 
 
-@pytest.mark.parametrize("method", [StepBound.CCD, StepBound.CONSERVATIVE])
-def test_max_step_stops_before_intersection(method):
+@pytest.mark.parametrize("method", [StepBound.TIGHT_INCLUSION, StepBound.CONSERVATIVE])
+def test_max_step_stops_before_intersection(method: StepBound) -> None:
     x = two_triangles(1e-3)
     t = SelfContact(FACES2, x, dhat=DHAT, stiffness=1e3)
     dx = torch.zeros_like(x)
@@ -153,23 +165,23 @@ def test_max_step_stops_before_intersection(method):
     assert math.isfinite(t(x1).item()) and t.min_distance(x1) > 0
     assert t.max_step(x, torch.zeros_like(x), method) == 1.0
     away = -dx
-    assert t.max_step(x, away, StepBound.CCD) == 1.0
+    assert t.max_step(x, away, StepBound.TIGHT_INCLUSION) == 1.0
 
 
 @pytest.mark.parametrize("radius", [None, 10 * DHAT])
-def test_conservative_step_below_ccd(radius):
+def test_conservative_step_below_ccd(radius: float | None) -> None:
     x = tilted_pair()
     t = SelfContact(FACES2, two_triangles(0.01), dhat=DHAT, stiffness=1e3, conservative_radius=radius)
     gen = torch.Generator().manual_seed(0)
     for _ in range(5):
         dx = 4e-3 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
         cons = t.max_step(x, dx, StepBound.CONSERVATIVE)
-        ccd = t.max_step(x, dx, StepBound.CCD)
+        ccd = t.max_step(x, dx, StepBound.TIGHT_INCLUSION)
         assert 0 < cons <= ccd + 1e-12
         assert not t.has_intersections(x + cons * dx)
 
 
-def test_folded_sheet_self_contact():
+def test_folded_sheet_self_contact() -> None:
     x, f = folded_sheet()
     t = SelfContact(f, x, dhat=8e-3, stiffness=1e3)
     assert not t.has_intersections(x)
@@ -184,12 +196,23 @@ def test_folded_sheet_self_contact():
     assert h.rows.max() < x.shape[0] and h.values.shape[1:] == (3, 3)
 
 
-def test_seam_pairs_allow_closed_seams():
+def test_seam_pairs_allow_closed_seams() -> None:
     # two panels sharing a seam edge: vertices 0,1 of panel A coincide with 3,4 of panel B (a sewn seam);
     # triangle 6-8 is a third, unsewn piece that lies 1 mm above panel A
-    x = torch.tensor([[0, 0, 0], [0.1, 0, 0], [0.05, 0.05, 0.0],
-                      [0, 0, 0], [0.1, 0, 0], [0.05, -0.05, 0.01],
-                      [0.01, 0.01, 1e-3], [0.09, 0.005, 1e-3], [0.05, 0.04, 1e-3]], dtype=torch.float64)
+    x = torch.tensor(
+        [
+            [0, 0, 0],
+            [0.1, 0, 0],
+            [0.05, 0.05, 0.0],
+            [0, 0, 0],
+            [0.1, 0, 0],
+            [0.05, -0.05, 0.01],
+            [0.01, 0.01, 1e-3],
+            [0.09, 0.005, 1e-3],
+            [0.05, 0.04, 1e-3],
+        ],
+        dtype=torch.float64,
+    )
     f = torch.tensor([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
     seams = torch.tensor([[0, 3], [1, 4]])
     plain = SelfContact(f, x, dhat=DHAT, stiffness=1.0, check_intersections=False)
@@ -203,7 +226,7 @@ def test_seam_pairs_allow_closed_seams():
     assert pairs == {(i, j) for i in range(6) for j in range(i + 1, 6)}
 
 
-def test_dtype_device_boundary_and_errors():
+def test_dtype_device_boundary_and_errors() -> None:
     x = tilted_pair()
     t = SelfContact(FACES2, two_triangles(0.01), dhat=DHAT, stiffness=1e3)
     e32, g32 = t.value_and_grad(x.float())
@@ -223,7 +246,7 @@ def test_dtype_device_boundary_and_errors():
 
 
 @pytest.fixture(scope="module")
-def sphere():
+def sphere() -> tuple[torch.Tensor, torch.Tensor]:
     s = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     return torch.as_tensor(s.vertices), torch.as_tensor(s.faces)
 
@@ -231,11 +254,13 @@ def sphere():
 def patch_above(height: float) -> tuple[torch.Tensor, torch.Tensor]:
     """A 4 cm square patch, centred over the sphere top, at y = 0.1 + height (sphere radius 0.1 m)."""
     u = np.linspace(-0.02, 0.02, 9)
-    X = np.stack(np.broadcast_arrays(u[:, None], np.full((9, 9), 0.1 + height), u[None, :]), -1).reshape(-1, 3)
+    X = np.stack(np.broadcast_arrays(u[:, None], np.full((9, 9), 0.1 + height), u[None, :]), -1).reshape(
+        -1, 3
+    )
     return torch.as_tensor(X), grid(9, 9)
 
 
-def test_body_contact_sphere(sphere):
+def test_body_contact_sphere(sphere: tuple[torch.Tensor, torch.Tensor]) -> None:
     bv, bf = sphere
     x, f = patch_above(5e-3)
     t = BodyMeshContact(f, bv, bf, dhat=DHAT, stiffness=1e3, garment_rest_positions=x)
@@ -262,19 +287,21 @@ def test_body_contact_sphere(sphere):
     through[:, 1] -= 0.004  # patch centre inside the sphere, its corners outside
     assert t.has_intersections(through) and t(through).item() == math.inf
     dx = through - near
-    ccd = t.max_step(near, dx, StepBound.CCD)
+    ccd = t.max_step(near, dx, StepBound.TIGHT_INCLUSION)
     cons = t.max_step(near, dx, StepBound.CONSERVATIVE)
     assert 0 < cons <= ccd < 0.25  # the patch centre (1 mm above the top) hits at alpha = 0.25
     for a in (cons, ccd):
         assert not t.has_intersections(near + a * dx)
 
 
-def test_body_contact_self_pairs_filter(sphere):
+def test_body_contact_self_pairs_filter(sphere: tuple[torch.Tensor, torch.Tensor]) -> None:
     bv, bf = sphere
     x, f = folded_sheet()
     x = x + torch.tensor([0.2, 0.0, 0.0], dtype=torch.float64)  # far from the sphere
     body_only = BodyMeshContact(f, bv, bf, dhat=8e-3, stiffness=1e3, garment_rest_positions=x)
-    with_self = BodyMeshContact(f, bv, bf, dhat=8e-3, stiffness=1e3, garment_rest_positions=x, self_contact=True)
+    with_self = BodyMeshContact(
+        f, bv, bf, dhat=8e-3, stiffness=1e3, garment_rest_positions=x, self_contact=True
+    )
     ref = SelfContact(f, x, dhat=8e-3, stiffness=1e3)
     assert body_only(x).item() == 0.0
     assert with_self(x).item() == pytest.approx(ref(x).item(), rel=1e-12)

@@ -1,4 +1,5 @@
-"""Tests of the quasistatic solvers (torchgarment.sim.solvers) on a test-only mass-spring model and a real scene."""
+"""Tests of the quasistatic solvers (torchgarment.sim.solvers) on a test-only mass-spring model and a real
+scene."""
 
 from __future__ import annotations
 
@@ -11,13 +12,21 @@ import torch
 
 from torchgarment.errors import InputError
 from torchgarment.sim.energies.base import HessianBlocks
-from torchgarment.sim.solvers import NonFiniteError, Preconditioner, Safeguard, SolverKind, SolveSettings, solve
+from torchgarment.sim.solvers import (
+    NonFiniteError,
+    Preconditioner,
+    Safeguard,
+    SolverKind,
+    SolveSettings,
+    solve,
+)
 from torchgarment.sim.solvers.chebyshev import jacobi_inverse
 from torchgarment.sim.solvers.common import CSRAssembler
 
 
 class SpringNetModel:
-    """Test-only SimModel: a mass-spring grid, quadratic pins, gravity and an IPC-style plane barrier ``y > 0``.
+    """Test-only SimModel: a mass-spring grid, quadratic pins, gravity and an IPC-style plane barrier ``y >
+    0``.
 
     Energies (J): springs ``k/2 (|xi - xj| - L)^2``; pins ``kp/2 |x_p - x_p^0|^2``; gravity ``m g y``;
     barrier ``-kb (y - dhat)^2 log(y / dhat)`` for ``0 < y < dhat`` (zero above, infinite at ``y = 0``).
@@ -54,13 +63,19 @@ class SpringNetModel:
         self.num_vertices = n * n
         self.x_rest = torch.tensor(p, dtype=dtype, device=self.device)
         self.edges = torch.tensor(edges, dtype=torch.long, device=self.device)
-        self.rest = rest_scale * torch.linalg.vector_norm(self.x_rest[self.edges[:, 0]] - self.x_rest[self.edges[:, 1]], dim=1)
+        self.rest = rest_scale * torch.linalg.vector_norm(
+            self.x_rest[self.edges[:, 0]] - self.x_rest[self.edges[:, 1]], dim=1
+        )
         # a trampoline: the four corners pinned, pulled outwards by `stretch` and lifted by `lift`; the
         # middle sags under its weight onto the barrier band
-        self.pins = torch.tensor([idx[0, 0], idx[0, -1], idx[-1, 0], idx[-1, -1]], dtype=torch.long, device=self.device)
+        self.pins = torch.tensor(
+            [idx[0, 0], idx[0, -1], idx[-1, 0], idx[-1, -1]], dtype=torch.long, device=self.device
+        )
         c = self.x_rest.mean(0)
         xp = self.x_rest[self.pins]
-        self.pin_targets = c + (xp - c) * torch.tensor([1 + stretch, 1.0, 1 + stretch], dtype=dtype, device=self.device)
+        self.pin_targets = c + (xp - c) * torch.tensor(
+            [1 + stretch, 1.0, 1 + stretch], dtype=dtype, device=self.device
+        )
         self.pin_targets[:, 1] += lift
         self.k, self.kp, self.mass, self.kb, self.dhat = k, pin_stiffness, mass, barrier, dhat
         self.gravity = 9.81
@@ -68,8 +83,8 @@ class SpringNetModel:
     # --- energy (autograd reference) -------------------------------------------------------------------
     def energy(self, x: torch.Tensor) -> torch.Tensor:
         d = x[self.edges[:, 0]] - x[self.edges[:, 1]]
-        l = torch.sqrt((d * d).sum(1))
-        es = 0.5 * self.k * ((l - self.rest) ** 2).sum()
+        ln = torch.sqrt((d * d).sum(1))
+        es = 0.5 * self.k * ((ln - self.rest) ** 2).sum()
         ep = 0.5 * self.kp * ((x[self.pins] - self.pin_targets) ** 2).sum()
         eg = self.mass * self.gravity * x[:, 1].sum()
         eb = torch.zeros((), dtype=x.dtype, device=x.device)
@@ -81,12 +96,12 @@ class SpringNetModel:
         return es + ep + eg + eb
 
     # --- analytic derivatives -----------------------------------------------------------------------------
-    def _springs(self, x: torch.Tensor):
+    def _springs(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         d = x[self.edges[:, 0]] - x[self.edges[:, 1]]
-        l = torch.linalg.vector_norm(d, dim=1).clamp_min(1e-300)
-        return d, l
+        ln = torch.linalg.vector_norm(d, dim=1).clamp_min(1e-300)
+        return d, ln
 
-    def _barrier(self, y: torch.Tensor):
+    def _barrier(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Barrier value, first and second derivative per vertex (zero where inactive)."""
         z = torch.zeros_like(y)
         if self.kb <= 0:
@@ -100,10 +115,10 @@ class SpringNetModel:
         d2b = -self.kb * (2 * lg + 4 * t / ys - t * t / (ys * ys))
         return torch.where(act, b, z), torch.where(act, db, z), torch.where(act, d2b, z)
 
-    def value_and_grad(self, x: torch.Tensor):
-        d, l = self._springs(x)
-        s = l - self.rest
-        f = (self.k * s / l)[:, None] * d
+    def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d, ln = self._springs(x)
+        s = ln - self.rest
+        f = (self.k * s / ln)[:, None] * d
         g = torch.zeros_like(x)
         g.index_add_(0, self.edges[:, 0], f)
         g.index_add_(0, self.edges[:, 1], -f)
@@ -112,13 +127,18 @@ class SpringNetModel:
         g[:, 1] += self.mass * self.gravity
         b, db, _ = self._barrier(x[:, 1])
         g[:, 1] += db
-        e = 0.5 * self.k * (s * s).sum() + 0.5 * self.kp * (dp * dp).sum() + self.mass * self.gravity * x[:, 1].sum() + b.sum()
+        e = (
+            0.5 * self.k * (s * s).sum()
+            + 0.5 * self.kp * (dp * dp).sum()
+            + self.mass * self.gravity * x[:, 1].sum()
+            + b.sum()
+        )
         return e, g
 
     def _spring_blocks(self, x: torch.Tensor, project_psd: bool) -> torch.Tensor:
-        d, l = self._springs(x)
-        n = d / l[:, None]
-        c = 1.0 - self.rest / l
+        d, ln = self._springs(x)
+        n = d / ln[:, None]
+        c = 1.0 - self.rest / ln
         if project_psd:
             c = c.clamp_min(0.0)
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
@@ -170,11 +190,11 @@ class SpringNetModel:
 class NaNAfter(SpringNetModel):
     """Returns a NaN gradient from the ``bad_call``-th value_and_grad call on."""
 
-    def __init__(self, bad_call: int, **kw) -> None:
+    def __init__(self, bad_call: int, **kw: object) -> None:
         super().__init__(**kw)
         self.calls, self.bad_call = 0, bad_call
 
-    def value_and_grad(self, x):
+    def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         self.calls += 1
         e, g = super().value_and_grad(x)
         if self.calls >= self.bad_call:
@@ -192,16 +212,23 @@ def reference(model: SpringNetModel) -> torch.Tensor:
 # --- the test model itself is right -----------------------------------------------------------------------
 
 
-def test_model_derivatives_match_autograd():
+def test_model_derivatives_match_autograd() -> None:
     m = SpringNetModel(n=5)
-    x = m.x0() + 0.01 * torch.randn(m.num_vertices, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    x = m.x0() + 0.01 * torch.randn(
+        m.num_vertices, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)
+    )
     x[:, 1] = x[:, 1].abs() * 0.3 + 1e-3  # some vertices inside the barrier band
     e, g = m.value_and_grad(x)
     xr = x.clone().requires_grad_(True)
     e_ad = m.energy(xr)
     (g_ad,) = torch.autograd.grad(e_ad, xr, create_graph=True)
     assert torch.allclose(e, e_ad) and torch.allclose(g, g_ad, rtol=1e-10, atol=1e-12)
-    h_ad = torch.stack([torch.autograd.grad(g_ad.reshape(-1)[r], xr, retain_graph=True)[0].reshape(-1) for r in range(g_ad.numel())])
+    h_ad = torch.stack(
+        [
+            torch.autograd.grad(g_ad.reshape(-1)[r], xr, retain_graph=True)[0].reshape(-1)
+            for r in range(g_ad.numel())
+        ]
+    )
     h = CSRAssembler(m.num_vertices).assemble(m.hessian_blocks(x, project_psd=False)).toarray()
     assert np.allclose(h, h_ad.numpy(), rtol=1e-8, atol=1e-8)
     hd = m.hessian_diagonal(x)
@@ -211,7 +238,7 @@ def test_model_derivatives_match_autograd():
     assert torch.autograd.gradcheck(m.energy, (x.clone().requires_grad_(True),))
 
 
-def test_csr_assembler_sums_duplicates_and_reuses_pattern():
+def test_csr_assembler_sums_duplicates_and_reuses_pattern() -> None:
     m = SpringNetModel(n=4)
     x = m.x0()
     asm = CSRAssembler(m.num_vertices)
@@ -223,8 +250,14 @@ def test_csr_assembler_sums_duplicates_and_reuses_pattern():
     assert np.allclose(asm.assemble(hb2).toarray(), 2.0 * dense, rtol=0, atol=1e-12)
 
 
-def test_jacobi_inverse_block_and_fallback():
-    h = torch.tensor([[[2.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 1.0]], [[1.0, 0.0, 0.0], [0.0, -2.0, 0.0], [0.0, 0.0, 4.0]]], dtype=torch.float64)
+def test_jacobi_inverse_block_and_fallback() -> None:
+    h = torch.tensor(
+        [
+            [[2.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 1.0]],
+            [[1.0, 0.0, 0.0], [0.0, -2.0, 0.0], [0.0, 0.0, 4.0]],
+        ],
+        dtype=torch.float64,
+    )
     inv = jacobi_inverse(h, Preconditioner.BLOCK, 1e-12)
     assert torch.allclose(inv[0] @ h[0], torch.eye(3, dtype=torch.float64), atol=1e-9)
     # indefinite block -> inverse of |diag|
@@ -236,7 +269,7 @@ def test_jacobi_inverse_block_and_fallback():
 # --- solvers ----------------------------------------------------------------------------------------------
 
 
-def test_newton_one_iteration_on_quadratic():
+def test_newton_one_iteration_on_quadratic() -> None:
     m = SpringNetModel(n=6, rest_scale=0.0, barrier=0.0)
     x, info = solve(m, m.x0(), SolveSettings(rtol=1e-9), solver="newton")
     assert info.converged and info.iterations == 1, info
@@ -245,7 +278,7 @@ def test_newton_one_iteration_on_quadratic():
 
 
 @pytest.mark.parametrize("solver", ["gd-chebyshev", "newton"])
-def test_solvers_reach_reference_equilibrium(solver):
+def test_solvers_reach_reference_equilibrium(solver: str) -> None:
     m = SpringNetModel()
     ref = reference(m)
     _, gref = m.value_and_grad(ref)
@@ -270,12 +303,12 @@ def test_solvers_reach_reference_equilibrium(solver):
 
 @pytest.mark.parametrize("safeguard", [Safeguard.MAX_STEP, Safeguard.PROJECT])
 @pytest.mark.parametrize("precond", [Preconditioner.BLOCK, Preconditioner.SCALAR])
-def test_gd_variants_stay_feasible(safeguard, precond):
+def test_gd_variants_stay_feasible(safeguard: str, precond: str) -> None:
     m = SpringNetModel()
     ref = reference(m)
     seen = []
 
-    def cb(k, x, r, e):
+    def cb(k: int, x: torch.Tensor, r: float, e: float) -> None:
         seen.append(float(x[:, 1].min()))
 
     s = SolveSettings(rtol=1e-6, max_iterations=20000, safeguard=safeguard, preconditioner=precond)
@@ -285,7 +318,7 @@ def test_gd_variants_stay_feasible(safeguard, precond):
     assert float((x - ref).abs().max()) < 1e-4
 
 
-def test_chebyshev_accelerates():
+def test_chebyshev_accelerates() -> None:
     m = SpringNetModel(n=16, barrier=0.0, mass=0.01)  # a free trampoline: plain Jacobi needs ~1300 iterations
     s = SolveSettings(rtol=1e-6, max_iterations=50000)
     _, fast = solve(m, m.x0(), s)
@@ -296,7 +329,7 @@ def test_chebyshev_accelerates():
 
 
 @pytest.mark.parametrize("solver", ["gd-chebyshev", "newton"])
-def test_float32(solver):
+def test_float32(solver: str) -> None:
     m64 = SpringNetModel()
     ref = reference(m64)
     m = SpringNetModel(dtype=torch.float32)
@@ -308,7 +341,7 @@ def test_float32(solver):
 
 
 @pytest.mark.parametrize("solver", ["gd-chebyshev", "newton"])
-def test_non_finite_model_output_raises(solver):
+def test_non_finite_model_output_raises(solver: str) -> None:
     m = NaNAfter(bad_call=4)
     with pytest.raises(NonFiniteError, match="iteration"):
         solve(m, m.x0(), SolveSettings(rtol=1e-10, max_iterations=100), solver=solver)
@@ -317,7 +350,7 @@ def test_non_finite_model_output_raises(solver):
         solve(m, m.x0(), solver=solver)
 
 
-def test_bad_input():
+def test_bad_input() -> None:
     m = SpringNetModel(n=3)
     with pytest.raises(InputError, match="unknown solver"):
         solve(m, m.x0(), solver="lbfgs")
@@ -334,7 +367,7 @@ def test_bad_input():
         solve(m, x0)
 
 
-def test_max_iterations_and_callback_stop():
+def test_max_iterations_and_callback_stop() -> None:
     m = SpringNetModel()
     x, info = solve(m, m.x0(), SolveSettings(rtol=1e-12), max_iterations=5)
     assert info.iterations == 5 and not info.converged and len(info.residual_history) == 6
@@ -348,11 +381,12 @@ def test_max_iterations_and_callback_stop():
 
 
 @pytest.mark.slow
-def test_real_skirt_scene_both_solvers():
+def test_real_skirt_scene_both_solvers() -> None:
     """Both solvers bring a 4 cm skirt on Body.from_size("6") (10 mm SDF) to rest: same energy, feasible.
 
-    The trilinear SDF makes the barrier forces only piecewise smooth, so the force norm plateaus near 1e-4 of its
-    start (rtol 1e-4 of a start dominated by the open seams is a loose stop) and the skirt's rotation about the body axis is nearly free: compare energies, not positions.
+    The trilinear SDF makes the barrier forces only piecewise smooth, so the force norm plateaus near 1e-4 of
+    its start (rtol 1e-4 of a start dominated by the open seams is a loose stop) and the skirt's rotation
+    about the body axis is nearly free: compare energies, not positions.
     """
     from torchgarment.body.body import Body
     from torchgarment.pattern.library import draft
@@ -360,7 +394,9 @@ def test_real_skirt_scene_both_solvers():
     from torchgarment.sdf import BodySDF, SDFSettings
     from torchgarment.sim.scene import Scene
 
-    pattern = draft("straight_skirt", {"height": 1.66, "bust": 0.86, "underbust": 0.72, "waist": 0.67, "hips": 0.91})
+    pattern = draft(
+        "straight_skirt", {"height": 1.66, "bust": 0.86, "underbust": 0.72, "waist": 0.67, "hips": 0.91}
+    )
     mesh = mesh_pattern(pattern, 0.04)
     sdf = BodySDF.from_body(Body.from_size("6"), SDFSettings(voxel_size=0.01))
     model = Scene(garment=mesh, body_sdf=sdf).build()
@@ -371,7 +407,10 @@ def test_real_skirt_scene_both_solvers():
         t = time.perf_counter()
         x, info = solve(model, x0, settings, solver=solver)
         ms = 1000 * (time.perf_counter() - t) / max(info.iterations, 1)
-        print(f"{solver}: {info.iterations} iterations, {ms:.2f} ms/iteration, E={info.energy_history[-1]:.5f} J")
+        print(
+            f"{solver}: {info.iterations} iterations, {ms:.2f} ms/iteration, "
+            f"E={info.energy_history[-1]:.5f} J"
+        )
         assert info.converged, info.message
         assert float(sdf(x).min()) > 0
         assert info.energy_history[-1] < 0.05 * info.energy_history[0]
@@ -381,11 +420,14 @@ def test_real_skirt_scene_both_solvers():
     x_gd, info_gd = finals["gd-chebyshev"]
     x_pol, info_pol = solve(model, x_gd, SolveSettings(rtol=0.0, max_iterations=10), solver="newton")
     # measured: Newton lowers it by 1.3% (the soft hem modes are far from converged at rtol 1e-4)
-    assert abs(info_pol.energy_history[-1] - info_gd.energy_history[-1]) < 0.03 * abs(info_gd.energy_history[-1])
+    assert abs(info_pol.energy_history[-1] - info_gd.energy_history[-1]) < 0.03 * abs(
+        info_gd.energy_history[-1]
+    )
 
 
-def test_seam_block_inverse_is_the_exact_6x6_block_inverse():
-    """Each disjoint seam pair is preconditioned by the exact inverse of [[A, -kI], [-kI, B]]; other vertices by
+def test_seam_block_inverse_is_the_exact_6x6_block_inverse() -> None:
+    """Each disjoint seam pair is preconditioned by the exact inverse of [[A, -kI], [-kI, B]]; other vertices
+    by
     their 3x3 block inverse."""
     from torchgarment.sim.solvers.chebyshev import jacobi_inverse, seam_block_inverse
 
@@ -401,17 +443,19 @@ def test_seam_block_inverse_is_the_exact_6x6_block_inverse():
     out = inv.apply(g)
     dense = torch.zeros(3 * V, 3 * V, dtype=torch.float64)
     for v in range(V):
-        dense[3 * v:3 * v + 3, 3 * v:3 * v + 3] = h[v]
+        dense[3 * v : 3 * v + 3, 3 * v : 3 * v + 3] = h[v]
     for i, j in pairs.tolist():
-        dense[3 * i:3 * i + 3, 3 * j:3 * j + 3] = -k * torch.eye(3, dtype=torch.float64)
-        dense[3 * j:3 * j + 3, 3 * i:3 * i + 3] = -k * torch.eye(3, dtype=torch.float64)
+        dense[3 * i : 3 * i + 3, 3 * j : 3 * j + 3] = -k * torch.eye(3, dtype=torch.float64)
+        dense[3 * j : 3 * j + 3, 3 * i : 3 * i + 3] = -k * torch.eye(3, dtype=torch.float64)
     expected = torch.linalg.solve(dense, g.reshape(-1)).view(V, 3)
     torch.testing.assert_close(out, expected, rtol=1e-7, atol=1e-12)
 
 
-def test_newton_reusing_its_factorization_reaches_the_same_equilibrium(monkeypatch):
-    """SolveSettings.reuse_factorization: CG preconditioned by the last LU (inexact Newton) converges to the same
-    equilibrium as plain Newton, with fewer factorizations."""
+def test_newton_reusing_its_factorization_reaches_the_same_equilibrium(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """SolveSettings.reuse_factorization: CG preconditioned by the last LU (inexact Newton) converges to the
+    same equilibrium as plain Newton, with fewer factorizations."""
     import scipy.sparse.linalg
 
     m = SpringNetModel(n=8)

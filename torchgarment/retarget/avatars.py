@@ -14,8 +14,8 @@ Avatars (:func:`list_avatars`):
 * ``long-arms``: upper and lower arm bones x1.6 (stretched along the bone; hands keep their size).
 * ``big-head``: head region x1.8 about the head joint (the top of the neck).
 * ``short-legs``: thigh and shin bones x0.6 (along the bone; feet keep their size).
-* ``floating-parts``: two detached closed spheres (radius 5 cm) centred 15 cm above and 10 cm outside the shoulder joints, skinned
-  to the shoulder joints; the avatar is disconnected.
+* ``floating-parts``: two detached closed spheres (radius 5 cm) centred 15 cm above and 10 cm outside the
+  shoulder joints, skinned to the shoulder joints; the avatar is disconnected.
 * ``torso-hole``: a hole of radius 3.5 cm through the belly at the waist, along Z, 5.5 cm beside the spine
   (genus 1): the torso faces
   inside the cylinder are removed, the openings' rims snapped onto the cylinder and bridged by a tube.
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,7 +37,16 @@ from torchgarment.body.body import Body
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError
 
-__all__ = ["AVATARS", "TestAvatar", "ToyCase", "edit_by_bones", "list_avatars", "make_avatar", "toy_case", "tube_mesh"]
+__all__ = [
+    "AVATARS",
+    "TestAvatar",
+    "ToyCase",
+    "edit_by_bones",
+    "list_avatars",
+    "make_avatar",
+    "toy_case",
+    "tube_mesh",
+]
 
 
 #: Radius (m) of the torso hole and the distance (m) of its axis from the body's midline (off the spine).
@@ -78,8 +88,12 @@ def _anny(size: str) -> Body:
 
 def _base(size: str) -> Body:
     b = _anny(size)
-    return Body(b.vertices.clone(), b.faces.clone(), Skeleton(b.skeleton.joints.clone(), b.skeleton.bones.clone(),
-                list(b.skeleton.names)), b.skin_weights.clone())
+    return Body(
+        b.vertices.clone(),
+        b.faces.clone(),
+        Skeleton(b.skeleton.joints.clone(), b.skeleton.bones.clone(), list(b.skeleton.names)),
+        b.skin_weights.clone(),
+    )
 
 
 def _joints_named(skeleton: Skeleton, prefixes: tuple[str, ...]) -> list[int]:
@@ -145,7 +159,9 @@ def _stretch_bones(body: Body, prefixes: tuple[str, ...], factor: float) -> Body
     return edit_by_bones(body, linear)
 
 
-def _icosphere(center: torch.Tensor, radius: float, subdivisions: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+def _icosphere(
+    center: torch.Tensor, radius: float, subdivisions: int = 2
+) -> tuple[torch.Tensor, torch.Tensor]:
     import trimesh
 
     s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
@@ -224,12 +240,13 @@ def _bridge(v: torch.Tensor, front: np.ndarray, back: np.ndarray, axis: torch.Te
     The rims are directed boundary loops (each boundary edge a -> b is used by a face as a -> b), so a tube
     triangle containing that edge must use it as b -> a; the tube is oriented to match.
     """
-    def angles(loop):
+
+    def angles(loop: np.ndarray) -> torch.Tensor:
         rel = v[torch.as_tensor(loop), :2] - axis
         return torch.atan2(rel[:, 1], rel[:, 0]).numpy()
 
     # Walk both loops in increasing angle, starting from their smallest angle.
-    def ordered(loop):
+    def ordered(loop: np.ndarray) -> np.ndarray:
         a = angles(loop)
         if np.sum(np.diff(np.unwrap(np.r_[a, a[0]]))) < 0:
             loop, a = loop[::-1], a[::-1]
@@ -270,10 +287,12 @@ def _rescale(body: Body, height: float, offset: tuple[float, float, float]) -> B
     s = height / float(v[:, 1].max() - v[:, 1].min())
     t = torch.tensor(offset, dtype=v.dtype)
     sk = body.skeleton
-    return Body(v * s + t, body.faces, Skeleton(sk.joints * s + t, sk.bones, list(sk.names)), body.skin_weights)
+    return Body(
+        v * s + t, body.faces, Skeleton(sk.joints * s + t, sk.bones, list(sk.names)), body.skin_weights
+    )
 
 
-def _anny_size(size: str):
+def _anny_size(size: str) -> Callable[[], TestAvatar]:
     return lambda: _base(size)
 
 
@@ -281,20 +300,40 @@ AVATARS: dict[str, tuple[str, callable]] = {
     "anny-6": ("anny body, US size 6", _anny_size("6")),
     "anny-12": ("anny body, US size 12", _anny_size("12")),
     "anny-20": ("anny body, US size 20", _anny_size("20")),
-    "long-arms": ("size 12 with upper and lower arm bones x1.6",
-                  lambda: _stretch_bones(_base("12"), ("upperarm", "lowerarm"), 1.6)),
-    "big-head": ("size 12 with the head x1.8 about the head joint",
-                 lambda: edit_by_bones(_base("12"), {
-                     j: 1.8 * torch.eye(3, dtype=torch.float64)
-                     for j in _joints_named(_base("12").skeleton, ("head", "eye"))})),
-    "short-legs": ("size 12 with thigh and shin bones x0.6",
-                   lambda: _stretch_bones(_base("12"), ("upperleg", "lowerleg"), 0.6)),
-    "floating-parts": ("size 12 with two detached spheres above the shoulders", lambda: _floating_parts(_base("12"))),
-    "torso-hole": ("size 12 with a 3.5 cm hole through the belly (genus 1)",
-                   lambda: _torso_hole(_with_landmarks("12"))),
-    "miniature": ("size 6 scaled to 6 cm, far from the origin",
-                  lambda: _rescale(_base("6"), 0.06, (100.0, -50.0, 30.0))),
-    "giant": ("size 20 scaled to 4 m, away from the origin", lambda: _rescale(_base("20"), 4.0, (-20.0, 3.0, 7.0))),
+    "long-arms": (
+        "size 12 with upper and lower arm bones x1.6",
+        lambda: _stretch_bones(_base("12"), ("upperarm", "lowerarm"), 1.6),
+    ),
+    "big-head": (
+        "size 12 with the head x1.8 about the head joint",
+        lambda: edit_by_bones(
+            _base("12"),
+            {
+                j: 1.8 * torch.eye(3, dtype=torch.float64)
+                for j in _joints_named(_base("12").skeleton, ("head", "eye"))
+            },
+        ),
+    ),
+    "short-legs": (
+        "size 12 with thigh and shin bones x0.6",
+        lambda: _stretch_bones(_base("12"), ("upperleg", "lowerleg"), 0.6),
+    ),
+    "floating-parts": (
+        "size 12 with two detached spheres above the shoulders",
+        lambda: _floating_parts(_base("12")),
+    ),
+    "torso-hole": (
+        "size 12 with a 3.5 cm hole through the belly (genus 1)",
+        lambda: _torso_hole(_with_landmarks("12")),
+    ),
+    "miniature": (
+        "size 6 scaled to 6 cm, far from the origin",
+        lambda: _rescale(_base("6"), 0.06, (100.0, -50.0, 30.0)),
+    ),
+    "giant": (
+        "size 20 scaled to 4 m, away from the origin",
+        lambda: _rescale(_base("20"), 4.0, (-20.0, 3.0, 7.0)),
+    ),
 }
 """Name -> (description, builder)."""
 
@@ -310,7 +349,9 @@ def list_avatars() -> list[str]:
     return list(AVATARS)
 
 
-def make_avatar(name: str, *, dtype: torch.dtype = torch.float64, device=None) -> TestAvatar:
+def make_avatar(
+    name: str, *, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+) -> TestAvatar:
     """Build a test avatar by name (see the module docstring).
 
     Args:
@@ -372,8 +413,15 @@ class ToyCase:
     target_skeleton: Skeleton
 
 
-def tube_mesh(radius_x: float, radius_z: float, y0: float, y1: float, segments: int, rings: int,
-              dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+def tube_mesh(
+    radius_x: float,
+    radius_z: float,
+    y0: float,
+    y1: float,
+    segments: int,
+    rings: int,
+    dtype: torch.dtype = torch.float64,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """An open elliptic tube along Y: (segments * rings, 3) vertices, outward-facing (F, 3) faces."""
     th = torch.arange(segments, dtype=dtype) * (2 * math.pi / segments)
     ys = torch.linspace(y0, y1, rings, dtype=dtype)
@@ -383,20 +431,32 @@ def tube_mesh(radius_x: float, radius_z: float, y0: float, y1: float, segments: 
     j = torch.arange(rings - 1)[None, :]
     a = i * rings + j
     b = ((i + 1) % segments) * rings + j
-    f = torch.cat([torch.stack([a, a + 1, b + 1], -1).reshape(-1, 3), torch.stack([a, b + 1, b], -1).reshape(-1, 3)])
+    f = torch.cat(
+        [torch.stack([a, a + 1, b + 1], -1).reshape(-1, 3), torch.stack([a, b + 1, b], -1).reshape(-1, 3)]
+    )
     return v, f
 
 
-def _ellipsoid(center, radii, subdivisions: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+def _ellipsoid(
+    center: torch.Tensor, radii: torch.Tensor, subdivisions: int, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
     v, f = _icosphere(torch.zeros(3, dtype=dtype), 1.0, subdivisions)
     return v * torch.tensor(radii, dtype=dtype) + torch.tensor(center, dtype=dtype), f
 
 
-def toy_case(*, target_scale: float = 1.0, target_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
-             avatar_subdivisions: int = 1, segments: int = 24, rings: int = 10,
-             dtype: torch.dtype = torch.float64) -> ToyCase:
+def toy_case(
+    *,
+    target_scale: float = 1.0,
+    target_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    avatar_subdivisions: int = 1,
+    segments: int = 24,
+    rings: int = 10,
+    dtype: torch.dtype = torch.float64,
+) -> ToyCase:
     """Build the :class:`ToyCase` (coarse avatar triangles span several bones: subdivision is exercised)."""
-    joints = torch.tensor([[0, 0, 0], [0, 0.6, 0], [0, 1.2, 0], [0.35, 1.45, 0], [-0.35, 1.45, 0]], dtype=dtype)
+    joints = torch.tensor(
+        [[0, 0, 0], [0, 0.6, 0], [0, 1.2, 0], [0.35, 1.45, 0], [-0.35, 1.45, 0]], dtype=dtype
+    )
     bones = torch.tensor([[0, 1], [1, 2], [2, 3], [2, 4]])
     source = Skeleton(joints, bones, ["hip", "spine", "chest", "arm.L", "arm.R"])
     tj = joints.clone()

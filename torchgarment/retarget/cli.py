@@ -17,40 +17,82 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    import torch
+
+    from torchgarment.retarget.pipeline import RetargetResult
 
 
 def add_retarget_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``retarget`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
     from torchgarment.retarget.pipeline import RetargetSettings
-    from torchgarment.retarget.solver import StepBound
+    from torchgarment.sim.contact import StepBound
 
     d = RetargetSettings()
     p = subparsers.add_parser(
-        "retarget", help="move a garment onto another avatar without intersections",
-        description="Retarget a garment designed on a source avatar onto a target avatar (Huang et al. 2025): "
-                    "shrink the avatar onto its skeleton, inflate it inside the garment under IPC contact, "
-                    "then fit. The output never intersects the avatar or itself. Writes garment.obj, "
-                    "retarget.png (surface distortion, log scale) and metrics.json.")
-    p.add_argument("--garment", required=True, metavar="G.obj", help="source garment (manifold triangle mesh)")
-    p.add_argument("--source-skeleton", required=True, metavar="S.obj",
-                   help="source skeleton as an OBJ edge graph (v joints, l bones)")
-    p.add_argument("--target-avatar", required=True, metavar="A.obj",
-                   help="target avatar (triangle mesh; may be non-manifold, disconnected, self-intersecting)")
-    p.add_argument("--target-skeleton", required=True, metavar="T.obj",
-                   help="target skeleton (same bones and joint order as the source skeleton)")
-    p.add_argument("--source-avatar", metavar="SA.obj",
-                   help="source avatar: the fit region is chosen by garment-to-avatar distance")
+        "retarget",
+        help="move a garment onto another avatar without intersections",
+        description="Retarget a garment designed on a source avatar onto a target avatar "
+        "(Huang et al. 2025): "
+        "shrink the avatar onto its skeleton, inflate it inside the garment under IPC contact, "
+        "then fit. The output never intersects the avatar or itself. Writes garment.obj, "
+        "retarget.png (surface distortion, log scale) and metrics.json.",
+    )
+    p.add_argument(
+        "--garment", required=True, metavar="G.obj", help="source garment (manifold triangle mesh)"
+    )
+    p.add_argument(
+        "--source-skeleton",
+        required=True,
+        metavar="S.obj",
+        help="source skeleton as an OBJ edge graph (v joints, l bones)",
+    )
+    p.add_argument(
+        "--target-avatar",
+        required=True,
+        metavar="A.obj",
+        help="target avatar (triangle mesh; may be non-manifold, disconnected, self-intersecting)",
+    )
+    p.add_argument(
+        "--target-skeleton",
+        required=True,
+        metavar="T.obj",
+        help="target skeleton (same bones and joint order as the source skeleton)",
+    )
+    p.add_argument(
+        "--source-avatar",
+        metavar="SA.obj",
+        help="source avatar: the fit region is chosen by garment-to-avatar distance",
+    )
     p.add_argument("--skin-weights", metavar="W.txt", help="target skin weights (joints x avatar vertices)")
     p.add_argument("--no-fit", metavar="F.txt", help="garment vertex indices (0-based) the fit term ignores")
-    p.add_argument("--curves", metavar="C.txt", help="curve loops to preserve, one line of vertex indices each")
-    p.add_argument("--fit-weight", type=float, default=d.w_fit, metavar="W",
-                   help=f"fit weight: tightness (default {d.w_fit}; 0 keeps the garment's shape)")
-    p.add_argument("--pos-weight", type=float, default=d.w_pos, metavar="W",
-                   help=f"positional (boundary along bones) weight (default {d.w_pos})")
-    p.add_argument("--step-bound", default=StepBound.resolve(d.step_bound).value,
-                   choices=[k.value for k in StepBound], help="collision-free step size method")
+    p.add_argument(
+        "--curves", metavar="C.txt", help="curve loops to preserve, one line of vertex indices each"
+    )
+    p.add_argument(
+        "--fit-weight",
+        type=float,
+        default=d.w_fit,
+        metavar="W",
+        help=f"fit weight: tightness (default {d.w_fit}; 0 keeps the garment's shape)",
+    )
+    p.add_argument(
+        "--pos-weight",
+        type=float,
+        default=d.w_pos,
+        metavar="W",
+        help=f"positional (boundary along bones) weight (default {d.w_pos})",
+    )
+    p.add_argument(
+        "--step-bound",
+        default=StepBound.resolve(d.step_bound).value,
+        choices=[k.value for k in StepBound],
+        help="collision-free step size method",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--log-dir", metavar="DIR", help="TensorBoard folder (default logs/retarget/<run>)")
     p.add_argument("--no-log", action="store_true", help="no TensorBoard scalars")
@@ -60,7 +102,9 @@ def add_retarget_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
     return p
 
 
-def render_result(path: Path, avatar_vertices, avatar_faces, result, title: str) -> None:
+def render_result(
+    path: Path, avatar_vertices: torch.Tensor, avatar_faces: torch.Tensor, result: RetargetResult, title: str
+) -> None:
     """Render the avatar and the garment coloured by per-triangle distortion (log scale) to ``path``."""
     import numpy as np
 
@@ -72,15 +116,24 @@ def render_result(path: Path, avatar_vertices, avatar_faces, result, title: str)
     vmax = float(max(dist.max(), vmin * 10))
     layers = [
         MeshLayer(vertices=avatar_vertices, faces=avatar_faces, color=(0.78, 0.78, 0.80), label="avatar"),
-        MeshLayer(vertices=result.garment_vertices, faces=result.garment_faces,
-                  scalars=np.maximum(dist, vmin), scalar_on="face", cmap="magma", vmin=vmin, vmax=vmax, log=True,
-                  label="L_surf distortion"),
+        MeshLayer(
+            vertices=result.garment_vertices,
+            faces=result.garment_faces,
+            scalars=np.maximum(dist, vmin),
+            scalar_on="face",
+            cmap="magma",
+            vmin=vmin,
+            vmax=vmax,
+            log=True,
+            label="L_surf distortion",
+        ),
     ]
     render_views(layers, path, title=title)
 
 
 def cmd_retarget(args: argparse.Namespace) -> int:
-    """Run ``torchgarment retarget``; returns the exit code (bad input raises InputError: exit 2 in the CLI)."""
+    """Run ``torchgarment retarget``; returns the exit code (bad input raises InputError: exit 2 in the
+    CLI)."""
     from torchgarment.io.atomic import atomic_open
     from torchgarment.io.mesh import save_obj
     from torchgarment.io.staging import staged_output
@@ -91,15 +144,30 @@ def cmd_retarget(args: argparse.Namespace) -> int:
         v = getattr(args, name)
         if not (math.isfinite(v) and v >= 0):
             raise InputError(f"--{name.replace('_', '-')} must be a non-negative number, got {v}")
-    for name in ("garment", "source_skeleton", "target_avatar", "target_skeleton", "source_avatar",
-                 "skin_weights", "no_fit", "curves"):
+    for name in (
+        "garment",
+        "source_skeleton",
+        "target_avatar",
+        "target_skeleton",
+        "source_avatar",
+        "skin_weights",
+        "no_fit",
+        "curves",
+    ):
         v = getattr(args, name)
         if v is not None and not Path(v).is_file():
             raise InputError(f"--{name.replace('_', '-')} {v}: no such file")
     t0 = time.perf_counter()
-    problem = load_problem(args.garment, args.source_skeleton, args.target_avatar, args.target_skeleton,
-                           source_avatar=args.source_avatar, skin_weights=args.skin_weights, no_fit=args.no_fit,
-                           curves=args.curves)
+    problem = load_problem(
+        args.garment,
+        args.source_skeleton,
+        args.target_avatar,
+        args.target_skeleton,
+        source_avatar=args.source_avatar,
+        skin_weights=args.skin_weights,
+        no_fit=args.no_fit,
+        curves=args.curves,
+    )
     settings = RetargetSettings(w_fit=args.fit_weight, w_pos=args.pos_weight, step_bound=args.step_bound)
     log_dir = None
     if not args.no_log:
@@ -113,14 +181,21 @@ def cmd_retarget(args: argparse.Namespace) -> int:
         save_obj(stage / "garment.obj", result.garment_vertices, result.garment_faces)
         if not args.no_render:
             av = problem.to_work.inverse(problem.avatar_vertices)
-            render_result(stage / "retarget.png", av, problem.avatar_faces, result,
-                          f"{Path(args.garment).stem} on {Path(args.target_avatar).stem}")
+            render_result(
+                stage / "retarget.png",
+                av,
+                problem.avatar_faces,
+                result,
+                f"{Path(args.garment).stem} on {Path(args.target_avatar).stem}",
+            )
         with atomic_open(stage / "metrics.json") as f:
             json.dump(metrics, f, indent=2, default=float)
             f.write("\n")
     m = result.metrics
-    print(f"retarget {Path(args.garment).name} -> {Path(args.target_avatar).name}: {m['garment_vertices']} "
-          f"vertices, {m['newton_iterations']} Newton iterations, {metrics['seconds_total']:.1f} s, "
-          f"intersections {m['intersections']}, min distance {m['min_distance_mm']:.3f} mm, distortion mean "
-          f"{m['distortion_mean']:.3g} max {m['distortion_max']:.3g} -> {args.out}")
+    print(
+        f"retarget {Path(args.garment).name} -> {Path(args.target_avatar).name}: {m['garment_vertices']} "
+        f"vertices, {m['newton_iterations']} Newton iterations, {metrics['seconds_total']:.1f} s, "
+        f"intersections {m['intersections']}, min distance {m['min_distance_mm']:.3f} mm, distortion mean "
+        f"{m['distortion_mean']:.3g} max {m['distortion_max']:.3g} -> {args.out}"
+    )
     return 0

@@ -48,7 +48,12 @@ from torchgarment.body.kinematics import check_bone_forest
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError, MeshError
 from torchgarment.io.mesh import load_mesh
-from torchgarment.io.skeleton import read_skeleton_obj, read_skin_weights, read_text_file, validate_skin_weights
+from torchgarment.io.skeleton import (
+    read_skeleton_obj,
+    read_skin_weights,
+    read_text_file,
+    validate_skin_weights,
+)
 from torchgarment.structures.mesh_checks import check_mesh, find_unreferenced_vertices, weld_vertices
 
 __all__ = [
@@ -99,7 +104,9 @@ class Similarity:
         return (x - self.translation.to(dtype=x.dtype, device=x.device)) / self.scale
 
     @classmethod
-    def identity(cls, dtype: torch.dtype = torch.float64, device=None) -> "Similarity":
+    def identity(
+        cls, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+    ) -> "Similarity":
         """The identity map."""
         return cls(1.0, torch.zeros(3, dtype=dtype, device=device))
 
@@ -172,9 +179,13 @@ def weld_garment(
             oriented neighbours after welding.
     """
     if not isinstance(vertices, torch.Tensor) or vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise MeshError(f"garment vertices must be a (N, 3) tensor, got {getattr(vertices, 'shape', vertices)}")
+        raise MeshError(
+            f"garment vertices must be a (N, 3) tensor, got {getattr(vertices, 'shape', vertices)}"
+        )
     if not isinstance(faces, torch.Tensor) or faces.ndim != 2 or faces.shape[1] != 3 or faces.numel() == 0:
-        raise MeshError(f"garment faces must be a non-empty (F, 3) tensor, got {getattr(faces, 'shape', faces)}")
+        raise MeshError(
+            f"garment faces must be a non-empty (F, 3) tensor, got {getattr(faces, 'shape', faces)}"
+        )
     faces = faces.long()
     if faces.min() < 0 or faces.max() >= vertices.shape[0]:
         raise MeshError(f"garment faces index vertices outside [0, {vertices.shape[0]})")
@@ -202,7 +213,10 @@ def weld_garment(
 
 
 def automatic_fit_mask(
-    garment_vertices: torch.Tensor, avatar_vertices: torch.Tensor, avatar_faces: torch.Tensor, threshold: float
+    garment_vertices: torch.Tensor,
+    avatar_vertices: torch.Tensor,
+    avatar_faces: torch.Tensor,
+    threshold: float,
 ) -> torch.Tensor:
     """Garment vertices close to an avatar: the region whose tightness the fit term preserves.
 
@@ -342,7 +356,8 @@ def _check_compatible(source: Skeleton, target: Skeleton) -> torch.Tensor:
         check_bone_forest(s.num_joints, s.bones)
     if source.num_joints != target.num_joints:
         raise InputError(
-            f"source and target skeletons must have the same joints: {source.num_joints} vs {target.num_joints}"
+            "source and target skeletons must have the same joints: "
+            f"{source.num_joints} vs {target.num_joints}"
         )
     sb = torch.sort(source.bones.detach().cpu().long(), dim=1).values
     tb = torch.sort(target.bones.detach().cpu().long(), dim=1).values
@@ -396,7 +411,9 @@ def work_similarity(source: Skeleton, target: Skeleton) -> Similarity:
 # ----------------------------------------------------------------------------------------------------------
 
 
-def _as_float(x, dtype, device, name: str) -> torch.Tensor:
+def _as_float(
+    x: torch.Tensor | np.ndarray, dtype: torch.dtype, device: torch.device | str | None, name: str
+) -> torch.Tensor:
     t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x)
     if t.ndim != 2 or t.shape[1] != 3 or t.shape[0] == 0:
         raise InputError(f"{name} must be a non-empty (n, 3) array, got shape {tuple(t.shape)}")
@@ -406,10 +423,14 @@ def _as_float(x, dtype, device, name: str) -> torch.Tensor:
     return t
 
 
-def _as_faces(f, num_vertices: int, device, name: str) -> torch.Tensor:
+def _as_faces(
+    f: torch.Tensor | np.ndarray, num_vertices: int, device: torch.device | str | None, name: str
+) -> torch.Tensor:
     t = torch.as_tensor(np.asarray(f) if not isinstance(f, torch.Tensor) else f)
     if t.ndim != 2 or t.shape[1] != 3 or t.shape[0] == 0:
-        raise InputError(f"{name} must be a non-empty (m, 3) array of vertex indices, got shape {tuple(t.shape)}")
+        raise InputError(
+            f"{name} must be a non-empty (m, 3) array of vertex indices, got shape {tuple(t.shape)}"
+        )
     if t.is_floating_point():
         raise InputError(f"{name} must be integer vertex indices, got {t.dtype}")
     t = t.detach().long().to(device=device)
@@ -451,11 +472,11 @@ def _remap(indices: torch.Tensor, index_map: torch.Tensor | None, what: str) -> 
 
 
 def problem_from_arrays(
-    garment_vertices,
-    garment_faces,
+    garment_vertices: torch.Tensor | np.ndarray,
+    garment_faces: torch.Tensor | np.ndarray,
     source_skeleton: Skeleton,
-    target_vertices,
-    target_faces,
+    target_vertices: torch.Tensor | np.ndarray,
+    target_faces: torch.Tensor | np.ndarray,
     target_skeleton: Skeleton,
     *,
     skin_weights: torch.Tensor | None = None,
@@ -528,10 +549,13 @@ def problem_from_arrays(
         if len(source_avatar) != 2:
             raise InputError("source_avatar must be a (vertices, faces) pair")
         sav = _as_float(source_avatar[0], dtype, device, "source avatar vertices")
-        saf = _drop_degenerate(sav, _as_faces(source_avatar[1], sav.shape[0], device, "source avatar faces"),
-                               "source avatar")
+        saf = _drop_degenerate(
+            sav, _as_faces(source_avatar[1], sav.shape[0], device, "source avatar faces"), "source avatar"
+        )
         distance = (
-            DEFAULT_FIT_DISTANCE * length_scale / REFERENCE_HEIGHT if fit_distance is None else float(fit_distance)
+            DEFAULT_FIT_DISTANCE * length_scale / REFERENCE_HEIGHT
+            if fit_distance is None
+            else float(fit_distance)
         )
         fit_mask = automatic_fit_mask(welded, sav, saf, distance)
     elif fit_distance is not None:
@@ -578,8 +602,8 @@ def problem_from_arrays(
 
 
 def problem_from_bodies(
-    garment_vertices,
-    garment_faces,
+    garment_vertices: torch.Tensor | np.ndarray,
+    garment_faces: torch.Tensor | np.ndarray,
     source: Body,
     target: Body,
     *,
@@ -680,9 +704,20 @@ def load_problem(
     loops = read_curves(curves, gv.shape[0]) if curves is not None else None
     try:
         return problem_from_arrays(
-            gv, gf, ssk, av, af, tsk,
-            skin_weights=weights, source_avatar=sa, no_fit=nf, curves=loops, fit_distance=fit_distance,
-            check_garment=check_garment, dtype=dtype, device=device,
+            gv,
+            gf,
+            ssk,
+            av,
+            af,
+            tsk,
+            skin_weights=weights,
+            source_avatar=sa,
+            no_fit=nf,
+            curves=loops,
+            fit_distance=fit_distance,
+            check_garment=check_garment,
+            dtype=dtype,
+            device=device,
         )
     except MeshError as e:
         raise MeshError(f"{garment}: {e}") from None

@@ -1,13 +1,17 @@
 """Objectives of intersection-free garment retargeting (Huang et al. 2025, section 3.4).
 
-Every term is an ``nn.Module`` whose ``forward(x, t)`` returns a scalar tensor differentiable by autograd in the
-garment positions ``x`` (N, 3) and the inflation parameter ``t`` (a 0-d tensor; Step 2 interpolates the avatar
-and the skeleton with it, Step 3 holds it at 1). The projected-Newton solver additionally asks each term for a
-sparse Hessian over the ``3 N + 1`` unknowns ``q = [x.flatten(), t]`` with every per-element Hessian positive
-semi-definite (:meth:`RetargetTerm.hessian`). The shape terms are sums of squared residuals, so their
-per-element Hessians are Gauss-Newton ``2 w J^T J`` (PSD by construction, exact where the residuals vanish,
-i.e. at the source shape; cheaper than an eigen-projection of the full Hessian); the barrier's come from ipctk
-with per-pair PSD clamping:
+Every term is a simulation :class:`~torchgarment.sim.energies.base.EnergyTerm` (:class:`RetargetEnergy`) over
+the retargeting state ``y`` (N + 1, 3): the garment positions ``x = y[:N]`` and, in the last row, the
+inflation parameter ``t = y[N, 0]`` (Step 2 interpolates the avatar and the skeleton with it, Step 3 holds it
+at 1; the row's other two entries are unused and stay 0), see :func:`make_state` / :func:`split_state`.
+``forward(y)`` is the weighted value (differentiable by autograd in ``x`` and ``t``),
+:meth:`RetargetEnergy.energy` the unweighted one of ``(x, t)``, and ``hessian_blocks(y)`` the 3x3 vertex
+blocks of the Hessian with every per-element Hessian positive semi-definite, the t-couplings in the blocks of
+vertex N (column 0). They are composed by a :class:`~torchgarment.sim.scene.SimModel` and minimised by the
+shared projected Newton (:func:`~torchgarment.retarget.solver.projected_newton`). The shape terms are sums of
+squared residuals, so their per-element Hessians are Gauss-Newton ``2 w J^T J`` (PSD by construction, exact
+where the residuals vanish, i.e. at the source shape; cheaper than an eigen-projection of the full Hessian);
+the barrier's come from ipctk with per-pair PSD clamping:
 
 * :class:`SurfaceShape` L_surf: deformation difference of adjacent triangles on the vector joining their
   opposite vertices, area weighted (eq. 2). Per-pair 12 x 12 Gauss-Newton Hessians from closed-form
@@ -16,14 +20,15 @@ with per-pair PSD clamping:
   skeleton joints are ``(1 - t) J_source + t J_target`` (eq. 3). Per-vertex 4 x 4 blocks over (x_i, t).
 * :class:`Fit` L_fit: squared avatar SDF at the fit vertices (eq. 4, lumped areas), Gauss-Newton Hessian.
 * :class:`CurveShape` L_curve: discrete curvature and torsion of polylines (eq. 5 and the torsion term).
-* :class:`Contact` L_contact: IPC barrier (ipctk) of garment-avatar and garment-self pairs, the avatar being
-  ``(1 - t) V_shrunk + t V_full``; ipctk's per-pair PSD-clamped Hessians, chained to (x, t).
+* :class:`Contact` L_contact: IPC barrier of garment-avatar and garment-self pairs, the avatar being
+  ``(1 - t) V_shrunk + t V_full`` (:class:`~torchgarment.sim.contact.MovingObstacleContact`); ipctk's per-pair
+  PSD-clamped Hessians, chained to (x, t).
 
 Lengths are in the units of ``x``; the pipeline runs in a canonical frame where the avatar is 1.7 units tall
 (human scale in metres), so the paper's constants (dhat = 2 mm) apply unchanged.
 
-Surface-shape invariance: with the triangle basis ``[e1, e2, n / sqrt|n|]`` (``n = e1 x e2``) the deformation of
-a triangle maps source to current exactly for any similarity (rotation, translation, uniform scale), so
+Surface-shape invariance: with the triangle basis ``[e1, e2, n / sqrt|n|]`` (``n = e1 x e2``) the deformation
+of a triangle maps source to current exactly for any similarity (rotation, translation, uniform scale), so
 L_surf vanishes under every similarity, and under every affine map for pairs whose four vertices are coplanar
 (e.g. a flat panel). A general 3D affine map of a curved surface has no triangle-local representative out of
 the plane, so there L_surf is only small, not zero (the component of the opposite-vertex vector along the
@@ -33,16 +38,16 @@ normal is mapped by the normal's scaling, not by the unknown affine map).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Callable
 
 import ipctk
 import numpy as np
-import scipy.sparse as sp
 import torch
 from torch import nn
 
 from torchgarment.errors import InputError, MeshError
+from torchgarment.sim.contact import BroadPhase, MovingObstacleContact
+from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 from torchgarment.structures.garment_mesh import GarmentMesh
 
 # ---------------------------------------------------------------------------------------------- mesh helpers
@@ -57,21 +62,23 @@ def adjacent_triangle_pairs(faces: np.ndarray) -> np.ndarray:
 
     Returns:
         (P, 6) int64 rows ``(v1, v2, v3, v4, f1, f2)``: ``f1 = (v1, v2, v3)`` up to rotation and
-        ``f2`` holds ``v2, v1, v4``; the shared edge is ``v1 v2``. Edges of one face or of 3+ faces are left out.
+        ``f2`` holds ``v2, v1, v4``; the shared edge is ``v1 v2``. Edges of one face or of 3+ faces are left
+        out.
     """
     mesh = _topology(faces)
     return torch.cat([mesh.hinges, mesh.hinge_faces], dim=1).numpy()
 
 
 def _topology(faces: np.ndarray) -> GarmentMesh:
-    """A GarmentMesh holding only the connectivity ``faces`` (F, 3) (positions zero), for its lazy topology."""
+    """A GarmentMesh holding only the connectivity ``faces`` (F, 3) (positions zero), for its lazy
+    topology."""
     f = torch.as_tensor(np.asarray(faces, dtype=np.int64))
     return GarmentMesh(torch.zeros(int(f.max()) + 1 if f.numel() else 0, 3, dtype=torch.float64), f)
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
-    """Closed boundary loops of a triangle mesh, each an ordered vertex array (first vertex not repeated), in face
-    orientation, longest first (:attr:`GarmentMesh.boundary_loops <torchgarment.structures.garment_mesh.
+    """Closed boundary loops of a triangle mesh, each an ordered vertex array (first vertex not repeated), in
+    face orientation, longest first (:attr:`GarmentMesh.boundary_loops <torchgarment.structures.garment_mesh.
     GarmentMesh.boundary_loops>`).
 
     Args:
@@ -95,8 +102,11 @@ def vertex_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 def mean_incident_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """(N,) average length of the edges at each vertex."""
-    e = torch.as_tensor(np.unique(np.sort(np.asarray(ipctk.edges(faces.cpu().numpy().astype(np.int32))), 1), axis=0),
-                        device=vertices.device, dtype=torch.long)
+    e = torch.as_tensor(
+        np.unique(np.sort(np.asarray(ipctk.edges(faces.cpu().numpy().astype(np.int32))), 1), axis=0),
+        device=vertices.device,
+        dtype=torch.long,
+    )
     ln = (vertices[e[:, 0]] - vertices[e[:, 1]]).norm(dim=-1)
     s = torch.zeros(vertices.shape[0], dtype=vertices.dtype, device=vertices.device)
     c = torch.zeros_like(s)
@@ -106,7 +116,8 @@ def mean_incident_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> to
     return s / c.clamp_min(1)
 
 
-# ---------------------------------------------------------------------------------------------- Hessian helpers
+# ---------------------------------------------------------------------------------------------- Hessian
+# helpers
 
 
 def element_hessians(fn: Callable[..., torch.Tensor], z: torch.Tensor, *consts: torch.Tensor) -> torch.Tensor:
@@ -119,21 +130,28 @@ def element_hessians(fn: Callable[..., torch.Tensor], z: torch.Tensor, *consts: 
     with torch.enable_grad():
         v = fn(z, *consts)
         (g,) = torch.autograd.grad(v.sum(), z, create_graph=True)
-        cols = [torch.autograd.grad(g[:, j].sum(), z, retain_graph=j + 1 < z.shape[1], allow_unused=True)[0]
-                for j in range(z.shape[1])]
+        cols = [
+            torch.autograd.grad(g[:, j].sum(), z, retain_graph=j + 1 < z.shape[1], allow_unused=True)[0]
+            for j in range(z.shape[1])
+        ]
     cols = [torch.zeros_like(z) if c is None else c for c in cols]
     return torch.stack(cols, dim=2).detach()
 
 
-def element_gauss_newton(res_fn: Callable[..., torch.Tensor], z: torch.Tensor, weights: torch.Tensor,
-                         *consts: torch.Tensor) -> torch.Tensor:
-    """Gauss-Newton Hessians ``2 w J^T J`` (E, d, d) of ``sum_e w_e |r_e|^2`` for residuals ``res_fn(z, *consts)``
-    of shape (E,) or (E, R); PSD by construction. One backward pass per residual component."""
+def element_gauss_newton(
+    res_fn: Callable[..., torch.Tensor], z: torch.Tensor, weights: torch.Tensor, *consts: torch.Tensor
+) -> torch.Tensor:
+    """Gauss-Newton Hessians ``2 w J^T J`` (E, d, d) of ``sum_e w_e |r_e|^2`` for residuals
+    ``res_fn(z, *consts)`` of shape (E,) or (E, R); PSD by construction. One backward pass per residual
+    component."""
     z = z.detach().clone().requires_grad_(True)
     with torch.enable_grad():
         r = res_fn(z, *consts)
         r = r[:, None] if r.ndim == 1 else r
-        rows = [torch.autograd.grad(r[:, i].sum(), z, retain_graph=i + 1 < r.shape[1])[0] for i in range(r.shape[1])]
+        rows = [
+            torch.autograd.grad(r[:, i].sum(), z, retain_graph=i + 1 < r.shape[1])[0]
+            for i in range(r.shape[1])
+        ]
     j = torch.stack(rows, dim=1).detach()  # (E, R, d)
     return 2.0 * weights[:, None, None] * (j.transpose(1, 2) @ j)
 
@@ -145,13 +163,13 @@ def project_psd(h: torch.Tensor) -> torch.Tensor:
     return (q * lam.clamp_min(0.0).unsqueeze(-2)) @ q.transpose(-1, -2)
 
 
-def scatter_hessian(blocks: torch.Tensor, dofs: torch.Tensor, n: int) -> sp.csr_matrix:
-    """Assemble element Hessians (E, d, d) on global unknowns ``dofs`` (E, d) into an (n, n) CSR matrix."""
-    d = dofs.shape[1]
-    rows = dofs[:, :, None].expand(-1, d, d).reshape(-1).cpu().numpy()
-    cols = dofs[:, None, :].expand(-1, d, d).reshape(-1).cpu().numpy()
-    vals = blocks.detach().reshape(-1).to("cpu", torch.float64).numpy()
-    return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+def element_blocks(h: torch.Tensor, idx: torch.Tensor) -> HessianBlocks:
+    """Element Hessians (E, 3k, 3k) over the vertices ``idx`` (E, k) as 3x3 vertex blocks (E k^2 of them)."""
+    e, k = idx.shape
+    vals = h.reshape(e, k, 3, k, 3).permute(0, 1, 3, 2, 4).reshape(e * k * k, 3, 3)
+    rows = idx[:, :, None].expand(e, k, k).reshape(-1)
+    cols = idx[:, None, :].expand(e, k, k).reshape(-1)
+    return HessianBlocks(rows, cols, vals)
 
 
 def vertex_dofs(idx: torch.Tensor) -> torch.Tensor:
@@ -160,27 +178,83 @@ def vertex_dofs(idx: torch.Tensor) -> torch.Tensor:
     return (3 * idx[:, :, None] + ar).reshape(idx.shape[0], -1)
 
 
-class RetargetTerm(nn.Module):
-    """Base of the retargeting objectives.
+def _t_tensor(t: torch.Tensor | float, ref: torch.Tensor) -> torch.Tensor:
+    return t if isinstance(t, torch.Tensor) else torch.tensor(float(t), dtype=ref.dtype, device=ref.device)
 
-    Subclasses implement ``forward(x, t)`` and ``hessian(x, t)``. ``uses_t`` says whether the value depends on
-    the inflation parameter.
+
+def make_state(x: torch.Tensor, t: torch.Tensor | float) -> torch.Tensor:
+    """The retargeting state (N + 1, 3): garment positions ``x`` (N, 3) and the row ``(t, 0, 0)``."""
+    tt = _t_tensor(t, x).to(x.dtype).reshape(1)
+    return torch.cat([x, torch.cat([tt, tt.new_zeros(2)])[None]], dim=0)
+
+
+def split_state(y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Garment positions (N, 3) and the inflation parameter (0-d) of a state ``y`` (N + 1, 3) (views)."""
+    return y[:-1], y[-1, 0]
+
+
+class RetargetEnergy(EnergyTerm):
+    """Base of the retargeting terms: an :class:`EnergyTerm` over the state ``y`` (N + 1, 3) (module
+    docstring).
+
+    Subclasses implement :meth:`energy` (unweighted value of ``x`` (N, 3) and ``t``, differentiable by
+    autograd) and :meth:`unweighted_blocks` (its PSD Hessian as vertex blocks over N + 1 vertices, the t
+    entries in vertex N's column/row 0). ``uses_t`` says whether the value depends on ``t``.
+
+    Args:
+        weight: the term's weight (>= 0) in the objective: ``forward(y) = weight * energy(x, t)``.
     """
 
     name = "term"
     uses_t = False
 
-    def hessian(self, x: torch.Tensor, t: torch.Tensor) -> sp.csr_matrix:  # pragma: no cover - abstract
-        """(3N + 1, 3N + 1) PSD-projected Hessian over ``[x.flatten(), t]``."""
+    def __init__(self, weight: float = 1.0) -> None:
+        super().__init__()
+        if not (math.isfinite(weight) and weight >= 0):
+            raise InputError(f"the weight of a retargeting term must be a non-negative number, got {weight}")
+        self.weight = float(weight)
+
+    def energy(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        """Unweighted value () of garment positions ``x`` (N, 3) and inflation ``t`` (0-d)."""
         raise NotImplementedError
+
+    def unweighted_blocks(self, x: torch.Tensor, t: torch.Tensor, project_psd: bool) -> HessianBlocks:
+        """PSD Hessian blocks of :meth:`energy` over N + 1 vertices (the t entries in vertex N's row and
+        column 0)."""
+        raise NotImplementedError  # pragma: no cover - abstract
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        """Weighted value () of the state ``y`` (N + 1, 3)."""
+        x, t = split_state(y)
+        return self.weight * self.energy(x, t)
+
+    def value(self, y: torch.Tensor) -> float:
+        """Unweighted value of the state ``y`` (diagnostics; +inf where a barrier is)."""
+        with torch.no_grad():
+            return float(self.energy(*split_state(y.detach())))
+
+    def hessian_blocks(self, y: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
+        """Weighted Hessian blocks over N + 1 vertices. The shape terms' blocks are Gauss-Newton (PSD whatever
+        ``project_psd`` says); the barrier's are PSD-clamped per pair when ``project_psd``."""
+        x, t = split_state(y.detach())
+        b = self.unweighted_blocks(x, t, project_psd)
+        return HessianBlocks(b.rows, b.cols, self.weight * b.values)
+
+    def hessian_diagonal(self, y: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
+        """(N + 1, 3, 3) diagonal blocks of :meth:`hessian_blocks`."""
+        b = self.hessian_blocks(y, project_psd)
+        out = torch.zeros(y.shape[0], 3, 3, dtype=y.dtype, device=y.device)
+        d = b.rows == b.cols
+        return out.index_add_(0, b.rows[d], b.values[d])
 
     def per_element(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:  # pragma: no cover - optional
         """Per-element values (for diagnostics)."""
         raise NotImplementedError
 
 
-def _t_tensor(t, ref: torch.Tensor) -> torch.Tensor:
-    return t if isinstance(t, torch.Tensor) else torch.tensor(float(t), dtype=ref.dtype, device=ref.device)
+def _empty_blocks(x: torch.Tensor) -> HessianBlocks:
+    z = torch.zeros(0, dtype=torch.long, device=x.device)
+    return HessianBlocks(z, z.clone(), torch.zeros(0, 3, 3, dtype=x.dtype, device=x.device))
 
 
 # ---------------------------------------------------------------------------------------------- L_surf
@@ -203,7 +277,7 @@ def _surf_pair(z: torch.Tensor, k1: torch.Tensor, k2: torch.Tensor) -> torch.Ten
     return (r * r).sum(-1)
 
 
-class SurfaceShape(RetargetTerm):
+class SurfaceShape(RetargetEnergy):
     """L_surf = sum over adjacent triangle pairs of (source area of both) * |tau_1 xhat - tau_2 xhat|^2.
 
     ``xhat`` is the unit source vector between the two opposite vertices and ``tau_i`` the deformation of
@@ -212,12 +286,13 @@ class SurfaceShape(RetargetTerm):
     Args:
         source_vertices: (N, 3) source garment positions.
         faces: (F, 3) long garment triangles.
+        weight: the term's weight.
     """
 
     name = "surf"
 
-    def __init__(self, source_vertices: torch.Tensor, faces: torch.Tensor):
-        super().__init__()
+    def __init__(self, source_vertices: torch.Tensor, faces: torch.Tensor, weight: float = 1.0) -> None:
+        super().__init__(weight)
         pairs = adjacent_triangle_pairs(faces.cpu().numpy())
         if pairs.shape[0] == 0:
             raise MeshError("the garment has no pair of adjacent triangles")
@@ -229,14 +304,18 @@ class SurfaceShape(RetargetTerm):
         b2 = _tri_basis(v2, v1, v4)
         x = v4 - v3
         xl = x.norm(dim=-1, keepdim=True)
-        if bool((xl <= 0).any()) or bool((torch.linalg.det(b1).abs() <= 0).any()) \
-                or bool((torch.linalg.det(b2).abs() <= 0).any()):
+        if (
+            bool((xl <= 0).any())
+            or bool((torch.linalg.det(b1).abs() <= 0).any())
+            or bool((torch.linalg.det(b2).abs() <= 0).any())
+        ):
             raise MeshError("the source garment has degenerate triangles (zero area) next to a shared edge")
         xhat = x / xl
         k1 = torch.linalg.solve(b1, xhat)
         k2 = torch.linalg.solve(b2, xhat)
-        fa = 0.5 * torch.linalg.cross(vs[faces[:, 1]] - vs[faces[:, 0]], vs[faces[:, 2]] - vs[faces[:, 0]],
-                                      dim=-1).norm(dim=-1)
+        fa = 0.5 * torch.linalg.cross(
+            vs[faces[:, 1]] - vs[faces[:, 0]], vs[faces[:, 2]] - vs[faces[:, 0]], dim=-1
+        ).norm(dim=-1)
         w = fa[p[:, 4]] + fa[p[:, 5]]
         self.register_buffer("quads", p[:, :4].contiguous())
         self.register_buffer("pair_faces", p[:, 4:].contiguous())
@@ -245,22 +324,22 @@ class SurfaceShape(RetargetTerm):
         self.register_buffer("weights", w.to(dt))
         self.num_faces = int(faces.shape[0])
 
-    def per_element(self, x: torch.Tensor, t=None) -> torch.Tensor:
+    def per_element(self, x: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:
         """(P,) unweighted l_surf of every adjacent pair."""
         z = x[self.quads].reshape(-1, 12)
         return _surf_pair(z, self.k1, self.k2)
 
-    def forward(self, x: torch.Tensor, t=None) -> torch.Tensor:  # noqa: D102
+    def energy(self, x: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:  # noqa: D102
         return (self.weights * self.per_element(x)).sum()
 
     def triangle_distortion(self, x: torch.Tensor) -> torch.Tensor:
         """(F,) per-triangle distortion: mean unweighted l_surf of the pairs a triangle belongs to."""
-        l = self.per_element(x).detach()
+        le = self.per_element(x).detach()
         s = torch.zeros(self.num_faces, dtype=x.dtype, device=x.device)
         c = torch.zeros_like(s)
         for k in range(2):
-            s.index_add_(0, self.pair_faces[:, k], l)
-            c.index_add_(0, self.pair_faces[:, k], torch.ones_like(l))
+            s.index_add_(0, self.pair_faces[:, k], le)
+            c.index_add_(0, self.pair_faces[:, k], torch.ones_like(le))
         return s / c.clamp_min(1)
 
     def residual_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -269,7 +348,9 @@ class SurfaceShape(RetargetTerm):
         k1, k2 = self.k1, self.k2
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
 
-        def normal_part(a, b, c):
+        def normal_part(
+            a: torch.Tensor, b: torch.Tensor, c: torch.Tensor
+        ) -> tuple[torch.Tensor, torch.Tensor]:
             # ntilde = n / sqrt|n|, n = (b - a) x (c - a); d ntilde / d(a, b, c) as (P, 3, 9)
             e1, e2 = b - a, c - a
             n = torch.linalg.cross(e1, e2, dim=-1)
@@ -285,8 +366,14 @@ class SurfaceShape(RetargetTerm):
         v1, v2, v3, v4 = v[:, 0], v[:, 1], v[:, 2], v[:, 3]
         nt1, jn1 = normal_part(v1, v2, v3)  # wrt (v1, v2, v3)
         nt2, jn2 = normal_part(v2, v1, v4)  # wrt (v2, v1, v4)
-        r = (k1[:, 0:1] * (v2 - v1) + k1[:, 1:2] * (v3 - v1) + k1[:, 2:3] * nt1
-             - k2[:, 0:1] * (v1 - v2) - k2[:, 1:2] * (v4 - v2) - k2[:, 2:3] * nt2)
+        r = (
+            k1[:, 0:1] * (v2 - v1)
+            + k1[:, 1:2] * (v3 - v1)
+            + k1[:, 2:3] * nt1
+            - k2[:, 0:1] * (v1 - v2)
+            - k2[:, 1:2] * (v4 - v2)
+            - k2[:, 2:3] * nt2
+        )
         P = v.shape[0]
         J = torch.zeros(P, 3, 12, dtype=x.dtype, device=x.device)
         a0, a1, b0, b1 = k1[:, 0], k1[:, 1], k2[:, 0], k2[:, 1]
@@ -300,20 +387,27 @@ class SurfaceShape(RetargetTerm):
         J[:, :, 9:12] -= jn2s[:, :, 6:9]
         return r, J
 
-    def hessian(self, x: torch.Tensor, t=None) -> sp.csr_matrix:  # noqa: D102
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | None = None, project_psd: bool = True
+    ) -> HessianBlocks:
         """Gauss-Newton Hessian ``2 w J^T J`` per pair (PSD by construction; exact at the source shape, where
         the residuals vanish)."""
         _, J = self.residual_jacobian(x)
         h = 2.0 * self.weights[:, None, None] * (J.transpose(1, 2) @ J)
-        return scatter_hessian(h, vertex_dofs(self.quads), 3 * x.shape[0] + 1)
+        return element_blocks(h, self.quads)
 
 
 def _skew(a: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) matrices with ``_skew(a) @ b = a x b``."""
     z = torch.zeros_like(a[..., 0])
-    return torch.stack([torch.stack([z, -a[..., 2], a[..., 1]], -1),
-                        torch.stack([a[..., 2], z, -a[..., 0]], -1),
-                        torch.stack([-a[..., 1], a[..., 0], z], -1)], -2)
+    return torch.stack(
+        [
+            torch.stack([z, -a[..., 2], a[..., 1]], -1),
+            torch.stack([a[..., 2], z, -a[..., 0]], -1),
+            torch.stack([-a[..., 1], a[..., 0], z], -1),
+        ],
+        -2,
+    )
 
 
 # ---------------------------------------------------------------------------------------------- L_pos
@@ -348,7 +442,7 @@ def _pos_vertex(z: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     return (w - c[:, 12]) ** 2
 
 
-class Positional(RetargetTerm):
+class Positional(RetargetEnergy):
     """L_pos = sum over boundary vertices of (mean source edge length) * (w_source - w)^2.
 
     ``w`` is the (unclamped) barycentric coordinate of the vertex projected on the line of its nearest source
@@ -361,18 +455,29 @@ class Positional(RetargetTerm):
         source_joints / target_joints: (J, 3) skeleton joints (same bones).
         bones: (B, 2) long joint pairs.
         vertices: (K,) long constrained vertices; default: the garment boundary.
+        weight: the term's weight.
     """
 
     name = "pos"
     uses_t = True
 
-    def __init__(self, source_vertices: torch.Tensor, faces: torch.Tensor, source_joints: torch.Tensor,
-                 target_joints: torch.Tensor, bones: torch.Tensor, vertices: torch.Tensor | None = None):
-        super().__init__()
+    def __init__(
+        self,
+        source_vertices: torch.Tensor,
+        faces: torch.Tensor,
+        source_joints: torch.Tensor,
+        target_joints: torch.Tensor,
+        bones: torch.Tensor,
+        vertices: torch.Tensor | None = None,
+        weight: float = 1.0,
+    ) -> None:
+        super().__init__(weight)
         if vertices is None:
             loops = boundary_loops(faces.cpu().numpy())
-            vertices = torch.as_tensor(np.unique(np.concatenate(loops)) if loops else np.zeros(0, np.int64),
-                                       device=source_vertices.device)
+            vertices = torch.as_tensor(
+                np.unique(np.concatenate(loops)) if loops else np.zeros(0, np.int64),
+                device=source_vertices.device,
+            )
         vs = source_vertices.detach()
         self.register_buffer("vertices", vertices.long())
         if bones.shape[0] == 0:
@@ -383,8 +488,11 @@ class Positional(RetargetTerm):
         usable = torch.nonzero((ls > 1e-4 * ls.max()) & (lt > 1e-4 * lt.max())).reshape(-1)
         if usable.numel() == 0:
             raise InputError("the skeletons have no bone of positive length")
-        bone = usable[nearest_bone(vs[self.vertices], source_joints, bones[usable])] if len(self.vertices) else \
-            torch.zeros(0, dtype=torch.long, device=vs.device)
+        bone = (
+            usable[nearest_bone(vs[self.vertices], source_joints, bones[usable])]
+            if len(self.vertices)
+            else torch.zeros(0, dtype=torch.long, device=vs.device)
+        )
         ja, jb = bones[bone, 0], bones[bone, 1]
         a_s, b_s, a_t, b_t = source_joints[ja], source_joints[jb], target_joints[ja], target_joints[jb]
         ab = b_s - a_s
@@ -393,30 +501,36 @@ class Positional(RetargetTerm):
         self.register_buffer("weights", mean_incident_edge_length(vs, faces)[self.vertices])
         self.register_buffer("bone", bone)
 
-    def _z(self, x, t):
+    def _z(self, x: torch.Tensor, t: torch.Tensor | float) -> torch.Tensor:
         t = _t_tensor(t, x)
         return torch.cat([x[self.vertices], t.expand(len(self.vertices), 1)], dim=1)
 
-    def forward(self, x: torch.Tensor, t) -> torch.Tensor:  # noqa: D102
+    def energy(self, x: torch.Tensor, t: torch.Tensor | float) -> torch.Tensor:  # noqa: D102
         if len(self.vertices) == 0:
             return x.sum() * 0.0
         return (self.weights * _pos_vertex(self._z(x, t), self.consts)).sum()
 
-    def hessian(self, x: torch.Tensor, t) -> sp.csr_matrix:  # noqa: D102
-        n = 3 * x.shape[0] + 1
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | float, project_psd: bool = True
+    ) -> HessianBlocks:
+        """Gauss-Newton 4 x 4 blocks over (x_i, t), placed on the vertex pair (i, N) (t in N's first
+        entry)."""
         if len(self.vertices) == 0:
-            return sp.csr_matrix((n, n))
-        h = element_gauss_newton(_pos_residual, self._z(x.detach(), _t_tensor(t, x).detach()), self.weights,
-                                 self.consts)
-        dofs = torch.cat([vertex_dofs(self.vertices[:, None]),
-                          torch.full((len(self.vertices), 1), n - 1, device=x.device)], dim=1)
-        return scatter_hessian(h, dofs, n)
+            return _empty_blocks(x)
+        h4 = element_gauss_newton(
+            _pos_residual, self._z(x.detach(), _t_tensor(t, x).detach()), self.weights, self.consts
+        )
+        k = len(self.vertices)
+        h = h4.new_zeros(k, 6, 6)
+        h[:, :4, :4] = h4
+        idx = torch.stack([self.vertices, torch.full_like(self.vertices, x.shape[0])], dim=1)
+        return element_blocks(h, idx)
 
 
 # ---------------------------------------------------------------------------------------------- L_fit
 
 
-class Fit(RetargetTerm):
+class Fit(RetargetEnergy):
     """L_fit = sum over fit vertices of A_i ((D(x_i) - offset) / ell)^2, D the avatar's signed distance.
 
     The integral of eq. 4 with lumped source vertex areas ``A_i``; divided by ``ell^2`` (``fit_length``, 1 cm
@@ -430,14 +544,22 @@ class Fit(RetargetTerm):
         sdf: a callable with ``value_and_gradient(x) -> (D (K,), grad (K, 3))`` and differentiable ``sdf(x)``
             (a :class:`~torchgarment.sdf.grid.BodySDF`).
         source_vertices: (N, 3); faces: (F, 3) long; mask: (N,) bool fit vertices; fit_length: ell > 0.
-        offset: target signed distance (>= 0).
+        offset: target signed distance (>= 0). weight: the term's weight.
     """
 
     name = "fit"
 
-    def __init__(self, sdf: nn.Module, source_vertices: torch.Tensor, faces: torch.Tensor, mask: torch.Tensor,
-                 fit_length: float, offset: float = 0.0):
-        super().__init__()
+    def __init__(
+        self,
+        sdf: nn.Module,
+        source_vertices: torch.Tensor,
+        faces: torch.Tensor,
+        mask: torch.Tensor,
+        fit_length: float,
+        offset: float = 0.0,
+        weight: float = 1.0,
+    ) -> None:
+        super().__init__(weight)
         if not fit_length > 0:
             raise InputError(f"fit_length must be positive, got {fit_length}")
         if not (math.isfinite(offset) and offset >= 0):
@@ -446,22 +568,24 @@ class Fit(RetargetTerm):
         self.sdf = sdf
         idx = torch.nonzero(mask.to(torch.bool), as_tuple=False).reshape(-1)
         self.register_buffer("vertices", idx)
-        self.register_buffer("weights", vertex_areas(source_vertices.detach(), faces)[idx] / fit_length ** 2)
+        self.register_buffer("weights", vertex_areas(source_vertices.detach(), faces)[idx] / fit_length**2)
 
-    def forward(self, x: torch.Tensor, t=None) -> torch.Tensor:  # noqa: D102
+    def energy(self, x: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:  # noqa: D102
         if len(self.vertices) == 0:
             return x.sum() * 0.0
         d = self.sdf(x[self.vertices].to(self.sdf.dtype)).to(x.dtype) - self.offset
         return (self.weights * d * d).sum()
 
-    def hessian(self, x: torch.Tensor, t=None) -> sp.csr_matrix:  # noqa: D102
-        n = 3 * x.shape[0] + 1
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | None = None, project_psd: bool = True
+    ) -> HessianBlocks:
+        """Gauss-Newton 3 x 3 vertex blocks ``2 A_i / ell^2 grad D grad D^T``."""
         if len(self.vertices) == 0:
-            return sp.csr_matrix((n, n))
+            return _empty_blocks(x)
         _, g = self.sdf.value_and_gradient(x.detach()[self.vertices].to(self.sdf.dtype))
         g = g.to(x.dtype)
         h = 2.0 * self.weights[:, None, None] * g[:, :, None] * g[:, None, :]
-        return scatter_hessian(h, vertex_dofs(self.vertices[:, None]), n)
+        return element_blocks(h, self.vertices[:, None])
 
 
 # ---------------------------------------------------------------------------------------------- L_curve
@@ -527,7 +651,7 @@ def polyline_elements(curves: list[np.ndarray], closed: bool = True) -> tuple[np
     return t, q
 
 
-class CurveShape(RetargetTerm):
+class CurveShape(RetargetEnergy):
     """L_curve = L_curvature + L_torsion over closed loops (boundaries) and extra curves.
 
     Curvature ``alpha_i = -e^_{i-1} . e^_i`` per vertex, torsion ``(beta_i, gamma_i)`` per edge (the paper's
@@ -538,12 +662,15 @@ class CurveShape(RetargetTerm):
     Args:
         source_vertices: (N, 3); curves: vertex index arrays (loops; a repeated first index is dropped).
         closed: treat the curves as closed loops (the paper's boundaries and seam loops) or open polylines.
+        weight: the term's weight.
     """
 
     name = "curve"
 
-    def __init__(self, source_vertices: torch.Tensor, curves: list, closed: bool = True):
-        super().__init__()
+    def __init__(
+        self, source_vertices: torch.Tensor, curves: list, closed: bool = True, weight: float = 1.0
+    ) -> None:
+        super().__init__(weight)
         vs = source_vertices.detach()
         n = vs.shape[0]
         cs = []
@@ -559,16 +686,30 @@ class CurveShape(RetargetTerm):
         for name, e in (("triples", tri_t), ("quads", quad_t)):
             self.register_buffer(name, e)
         seg = lambda i, j: (vs[j] - vs[i]).norm(dim=-1)  # noqa: E731
-        if len(tri_t) and bool((seg(tri_t[:, 0], tri_t[:, 1]) <= 0).any() | (seg(tri_t[:, 1], tri_t[:, 2]) <= 0).any()):
+        if len(tri_t) and bool(
+            (seg(tri_t[:, 0], tri_t[:, 1]) <= 0).any() | (seg(tri_t[:, 1], tri_t[:, 2]) <= 0).any()
+        ):
             raise InputError("a curve has two consecutive coincident vertices")
-        wt = 0.5 * (seg(tri_t[:, 0], tri_t[:, 1]) + seg(tri_t[:, 1], tri_t[:, 2])) if len(tri_t) else vs.new_zeros(0)
-        wq = 0.5 * (seg(quad_t[:, 0], quad_t[:, 1]) + seg(quad_t[:, 1], quad_t[:, 2])) if len(quad_t) else vs.new_zeros(0)
+        wt = (
+            0.5 * (seg(tri_t[:, 0], tri_t[:, 1]) + seg(tri_t[:, 1], tri_t[:, 2]))
+            if len(tri_t)
+            else vs.new_zeros(0)
+        )
+        wq = (
+            0.5 * (seg(quad_t[:, 0], quad_t[:, 1]) + seg(quad_t[:, 1], quad_t[:, 2]))
+            if len(quad_t)
+            else vs.new_zeros(0)
+        )
         self.register_buffer("w_curv", wt)
         self.register_buffer("w_tors", wq)
-        self.register_buffer("alpha_s", _curvature(vs[tri_t].reshape(-1, 9)) if len(tri_t) else vs.new_zeros(0))
-        self.register_buffer("bg_s", _torsion(vs[quad_t].reshape(-1, 12)) if len(quad_t) else vs.new_zeros(0, 2))
+        self.register_buffer(
+            "alpha_s", _curvature(vs[tri_t].reshape(-1, 9)) if len(tri_t) else vs.new_zeros(0)
+        )
+        self.register_buffer(
+            "bg_s", _torsion(vs[quad_t].reshape(-1, 12)) if len(quad_t) else vs.new_zeros(0, 2)
+        )
 
-    def forward(self, x: torch.Tensor, t=None) -> torch.Tensor:  # noqa: D102
+    def energy(self, x: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:  # noqa: D102
         e = x.sum() * 0.0
         if len(self.triples):
             a = _curvature(x[self.triples].reshape(-1, 9))
@@ -578,17 +719,19 @@ class CurveShape(RetargetTerm):
             e = e + (self.w_tors[:, None] * (bg - self.bg_s) ** 2).sum()
         return e
 
-    def hessian(self, x: torch.Tensor, t=None) -> sp.csr_matrix:  # noqa: D102
-        n = 3 * x.shape[0] + 1
-        h = sp.csr_matrix((n, n))
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | None = None, project_psd: bool = True
+    ) -> HessianBlocks:
+        """Gauss-Newton blocks of the curvature triples and the torsion quadruples."""
         xd = x.detach()
+        parts = [_empty_blocks(x)]
         if len(self.triples):
             hb = element_gauss_newton(_curv_res, xd[self.triples].reshape(-1, 9), self.w_curv, self.alpha_s)
-            h = h + scatter_hessian(hb, vertex_dofs(self.triples), n)
+            parts.append(element_blocks(hb, self.triples))
         if len(self.quads):
             hb = element_gauss_newton(_tors_res, xd[self.quads].reshape(-1, 12), self.w_tors, self.bg_s)
-            h = h + scatter_hessian(hb, vertex_dofs(self.quads), n)
-        return h
+            parts.append(element_blocks(hb, self.quads))
+        return HessianBlocks.cat(parts)
 
 
 # ---------------------------------------------------------------------------------------------- L_contact
@@ -596,255 +739,121 @@ class CurveShape(RetargetTerm):
 
 class _ContactFn(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x: torch.Tensor, t: torch.Tensor, term: "Contact") -> torch.Tensor:  # noqa: D102
-        e, gx, gt = term.value_grad_np(x, t)
-        ctx.save_for_backward(torch.as_tensor(gx, dtype=x.dtype, device=x.device),
-                              torch.as_tensor(gt, dtype=x.dtype, device=x.device))
+    def forward(
+        ctx: torch.autograd.function.FunctionCtx,
+        x: torch.Tensor,
+        t: torch.Tensor,  # noqa: D102
+        ipc: MovingObstacleContact,
+    ) -> torch.Tensor:
+        e, gx, gt = ipc.value_grad(x, float(t.detach()))
+        ctx.save_for_backward(
+            torch.as_tensor(gx, dtype=x.dtype, device=x.device),
+            torch.as_tensor(gt, dtype=x.dtype, device=x.device),
+        )
         return torch.as_tensor(e, dtype=x.dtype, device=x.device)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g):  # noqa: D102
+    def backward(
+        ctx: torch.autograd.function.FunctionCtx,  # noqa: D102
+        g: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, None]:
         gx, gt = ctx.saved_tensors
         return g * gx, g * gt, None
 
 
-@dataclass
-class ContactStats:
-    """Diagnostics of one contact evaluation: pairs within dhat and the minimum distance (units of x)."""
+class Contact(RetargetEnergy):
+    """L_contact: IPC barrier over garment-self and garment-avatar pairs, the avatar ``shrunk + t (full -
+    shrunk)``.
 
-    num_pairs: int
-    min_distance: float
-
-
-class Contact(RetargetTerm):
-    """IPC barrier (ipctk) over garment-self and garment-avatar pairs.
-
-    ipctk evaluates the barrier on squared distances, ``b = -(d^2 - dhat^2)^2 ln(d^2 / dhat^2)`` (the IPC
-    convention), a monotone reparametrisation of the paper's ``-(d - dhat)^2 ln(d / dhat)`` with the same
-    support (0, dhat) and the same blow-up at 0; the adaptive stiffness absorbs the different scale.
-
-    One ipctk CollisionMesh holds the garment (first N vertices) and the avatar; avatar-avatar pairs are
-    filtered out (the avatar may be messy: self-intersecting, degenerate). The avatar is
-    ``shrunk + t (full - shrunk)``, so the term depends on ``t`` (Step 2); with ``shrunk`` None the avatar is
-    fixed at ``full`` (Step 3, multi-layer). The energy is ``kappa * sum_k b(d_k)`` with ``kappa``
-    (:attr:`stiffness`) chosen adaptively with ipctk's initial_barrier_stiffness / update_barrier_stiffness.
+    The term wraps a :class:`~torchgarment.sim.contact.MovingObstacleContact` (:attr:`ipc`: the collision
+    mesh, culling, CCD step bound, stiffness, intersection and distance queries). ipctk evaluates the barrier
+    on squared distances, ``b = -(d^2 - dhat^2)^2 ln(d^2 / dhat^2)`` (the IPC convention), a monotone
+    reparametrisation of the paper's ``-(d - dhat)^2 ln(d / dhat)`` with the same support (0, dhat) and the
+    same blow-up at 0; the adaptive stiffness absorbs the different scale. With ``avatar_shrunk`` None the
+    avatar is fixed at ``full`` (Step 3, multi-layer).
 
     Args:
         garment_rest: (N, 3) garment rest positions (adjacency). garment_faces: (F, 3) long.
-        avatar_full: (A, 3) avatar at t = 1. avatar_faces: (G, 3) long. avatar_shrunk: (A, 3) at t = 0 or None.
+        avatar_full: (A, 3) avatar at t = 1. avatar_faces: (G, 3) long. avatar_shrunk: (A, 3) at t = 0 or
+            None.
         dhat: activation distance. stiffness: initial kappa.
-        broad_phase: an ipctk broad-phase class name ("HashGrid", "LBVH", "SweepAndPrune", "BruteForce").
-        cull_radius: when given (>= 4 dhat), the collision mesh keeps only the avatar faces that may lie within
-            this distance of the garment (see :meth:`_recull`), re-culled whenever the garment or the avatar
-            has moved by half of it; every query stays exact because dropped faces are farther than
-            cull_radius / 2 > dhat. The broad phase cost then follows the garment's neighbourhood instead of
-            the whole (subdivided) avatar. :meth:`prepare_step` makes a step's CCD valid.
+        broad_phase: :class:`~torchgarment.sim.contact.BroadPhase` or an ipctk class name ("LBVH", ...).
+        cull_radius: see :class:`~torchgarment.sim.contact.MovingObstacleContact`.
     """
 
     name = "contact"
+    volatile_hessian = True
 
-    def __init__(self, garment_rest: torch.Tensor, garment_faces: torch.Tensor, avatar_full: torch.Tensor,
-                 avatar_faces: torch.Tensor, avatar_shrunk: torch.Tensor | None, dhat: float,
-                 stiffness: float = 1.0, broad_phase: str = "LBVH", cull_radius: float | None = None):
-        super().__init__()
-        if not (math.isfinite(dhat) and dhat > 0):
-            raise InputError(f"dhat must be positive, got {dhat}")
-        if cull_radius is not None and not cull_radius >= 4 * dhat:
-            raise InputError(f"cull_radius must be at least 4 dhat = {4 * dhat:.3g}, got {cull_radius}")
-        self.uses_t = avatar_shrunk is not None
-        n = garment_rest.shape[0]
-        self._gf = garment_faces.cpu().numpy().astype(np.int32)
-        self._af_all = avatar_faces.cpu().numpy().astype(np.int32)
-        full = avatar_full.detach().to("cpu", torch.float64).numpy()
-        self.num_garment = int(n)
-        self.dhat = float(dhat)
-        self.cull_radius = None if cull_radius is None else float(cull_radius)
-        self._garment_rest = garment_rest.detach().to("cpu", torch.float64).numpy()
-        self._full_all = full
-        self._delta_all = (full - avatar_shrunk.detach().to("cpu", torch.float64).numpy()) if self.uses_t else \
-            np.zeros_like(full)
-        self._shrunk_all = full - self._delta_all
-        self._delta_max = float(np.sqrt((self._delta_all ** 2).sum(1)).max(initial=0.0))
-        self._bp_name = broad_phase
-        self.stiffness = float(stiffness)
-        self.max_stiffness = float(stiffness)
-        self.bbox_diagonal = float(ipctk.world_bbox_diagonal_length(np.concatenate([self._garment_rest, full])))
-        self.last_stats = ContactStats(0, math.inf)
-        self.num_culls = 0
-        self._ref_x: np.ndarray | None = None
-        self._ref_t = 0.0
-        self._set_subset(np.arange(full.shape[0]), self._af_all)
-
-    # ------------------------------------------------------------------ avatar culling
-    def _set_subset(self, verts: np.ndarray, faces: np.ndarray) -> None:
-        """Use avatar vertices ``verts`` and faces ``faces`` (indices into all avatar vertices)."""
-        n = self.num_garment
-        remap = np.full(self._full_all.shape[0], -1, dtype=np.int64)
-        remap[verts] = np.arange(verts.shape[0])
-        af = remap[faces].astype(np.int32).reshape(-1, 3)
-        self._full = self._full_all[verts]
-        self._delta = self._delta_all[verts]
-        self._shrunk = self._shrunk_all[verts]
-        allf = np.asfortranarray(np.concatenate([self._gf, af + n]), dtype=np.int32)
-        rest = np.asfortranarray(np.concatenate([self._garment_rest, self._full]))
-        self.mesh = ipctk.CollisionMesh(rest, ipctk.edges(allf), allf)
-        self.mesh.can_collide = ipctk.make_static_obstacle_filter(n)
-        self._cache_key: bytes | None = None
-        self._cache_col = None
-
-    def _motion(self, xn: np.ndarray, t: float) -> float:
-        """Largest garment + avatar displacement since the last cull (units of x)."""
-        if self._ref_x is None:
-            return math.inf
-        return float(np.sqrt(((xn - self._ref_x) ** 2).sum(1)).max(initial=0.0)) + abs(t - self._ref_t) * self._delta_max
-
-    def _recull(self, xn: np.ndarray, t: float) -> None:
-        """Keep the avatar faces that may come within ``cull_radius`` of the garment at (xn, t).
-
-        A point p of an avatar face F and a point q of a garment triangle T satisfy
-        ``|p - q| >= |v - w| - |p - v| - |q - w| >= dnear(v) - L_F - L_T`` for every vertex v of F (w the vertex
-        of T nearest... any vertex of T; dnear the distance from v to the nearest garment vertex; L the longest
-        edge of a triangle bounds the distance from a vertex to any point of it). F is dropped only when
-        ``max_v dnear(v) - L_F - L_g > cull_radius`` (L_g the longest garment edge), so every dropped face is
-        farther than cull_radius from the garment.
-        """
-        from scipy.spatial import cKDTree
-
-        r = self.cull_radius
-        a = self._shrunk_all + t * self._delta_all if self.uses_t else self._full_all
-        dnear, _ = cKDTree(xn).query(a, k=1)
-        fa = a[self._af_all]  # (G, 3, 3)
-        le_f = np.sqrt(((fa - fa[:, [1, 2, 0]]) ** 2).sum(-1)).max(1)
-        ga = xn[self._gf]
-        le_g = float(np.sqrt(((ga - ga[:, [1, 2, 0]]) ** 2).sum(-1)).max(initial=0.0))
-        keep = dnear[self._af_all].max(1) - le_f - le_g <= r
-        faces = self._af_all[keep]
-        self._set_subset(np.unique(faces.reshape(-1)), faces)
-        self._ref_x, self._ref_t = xn.copy(), float(t)
-        self.num_culls += 1
-
-    def _ensure(self, xn: np.ndarray, t: float) -> None:
-        """Re-cull when the motion since the last cull could bring a dropped face within cull_radius / 2."""
-        if self.cull_radius is not None and self._motion(xn, t) > 0.5 * self.cull_radius:
-            self._recull(xn, t)
-
-    def prepare_step(self, x: torch.Tensor | np.ndarray, t: float, dx: np.ndarray, dt: float) -> float:
-        """Make the culled mesh valid along ``(x + a dx, t + a dt)`` and return the largest valid ``a <= 1``.
-
-        Along the returned range every dropped face stays farther than cull_radius / 2 from the garment, so a
-        CCD or distance query on the culled mesh is exact for the segment. Without culling returns 1.
-        """
-        if self.cull_radius is None:
-            return 1.0
-        xn = x.detach().to("cpu", torch.float64).numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-        step = float(np.sqrt((dx * dx).sum(1)).max(initial=0.0)) + abs(dt) * self._delta_max
-        budget = 0.5 * self.cull_radius
-        if self._motion(xn, t) + step > budget:
-            self._recull(xn, t)
-        return 1.0 if step <= budget else budget / step
+    def __init__(
+        self,
+        garment_rest: torch.Tensor,
+        garment_faces: torch.Tensor,
+        avatar_full: torch.Tensor,
+        avatar_faces: torch.Tensor,
+        avatar_shrunk: torch.Tensor | None,
+        dhat: float,
+        stiffness: float = 1.0,
+        broad_phase: BroadPhase | str = BroadPhase.LBVH,
+        cull_radius: float | None = None,
+    ) -> None:
+        super().__init__(1.0)
+        self.ipc = MovingObstacleContact(
+            garment_rest,
+            garment_faces,
+            avatar_full,
+            avatar_faces,
+            avatar_shrunk,
+            dhat,
+            stiffness=stiffness,
+            broad_phase=broad_phase,
+            cull_radius=cull_radius,
+        )
+        self.uses_t = self.ipc.uses_t
 
     @property
     def stiffness(self) -> float:
-        """kappa (energy units of the other terms per barrier unit)."""
-        return self._kappa
+        """The barrier stiffness kappa of :attr:`ipc`."""
+        return self.ipc.stiffness
 
-    @stiffness.setter
-    def stiffness(self, value: float) -> None:
-        if not (math.isfinite(value) and value > 0):
-            raise InputError(f"barrier stiffness must be positive, got {value}")
-        self._kappa = float(value)
-        self._potential = ipctk.BarrierPotential(self.dhat, self._kappa, False)
-
-    def broad_phase(self):
-        """A fresh ipctk broad phase object."""
-        return getattr(ipctk, self._bp_name)()
-
-    def positions(self, x: torch.Tensor | np.ndarray, t: float, ensure: bool = True) -> np.ndarray:
-        """(N + A', 3) collision-mesh positions (Fortran order) for garment ``x`` and inflation ``t``.
-
-        With culling the avatar part holds the kept vertices; ``ensure`` re-culls first when needed.
-        """
-        xn = x.detach().to("cpu", torch.float64).numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-        if ensure:
-            self._ensure(xn, float(t))
-        return np.asfortranarray(np.concatenate([xn, self.avatar_at(t)]))
-
-    def avatar_at(self, t: float) -> np.ndarray:
-        """(A', 3) positions of the avatar vertices in the collision mesh at ``t``."""
-        return self._full if not self.uses_t or float(t) == 1.0 else self._shrunk + float(t) * self._delta
-
-    def collisions(self, xa: np.ndarray) -> "ipctk.NormalCollisions":
-        """Pairs closer than dhat at collision-mesh positions ``xa`` (cached on the last positions)."""
-        key = xa.tobytes()
-        if self._cache_key == key:
-            return self._cache_col
-        col = ipctk.NormalCollisions()
-        col.build(self.mesh, xa, self.dhat, 0.0, self.broad_phase())
-        self._cache_key, self._cache_col = key, col
-        return col
-
-    def _tval(self, t) -> float:
-        return float(t.detach()) if isinstance(t, torch.Tensor) else float(t)
-
-    def value_grad_np(self, x: torch.Tensor, t) -> tuple[float, np.ndarray, float]:
-        """Energy, gradient (N, 3) in x and derivative in t."""
-        xa = self.positions(x, self._tval(t))
-        col = self.collisions(xa)
-        e = float(self._potential(col, self.mesh, xa))
-        if math.isnan(e):
-            e = math.inf
-        g = np.asarray(self._potential.gradient(col, self.mesh, xa)).reshape(-1, 3)
-        n = self.num_garment
-        gt = float((g[n:] * self._delta).sum()) if self.uses_t else 0.0
-        self.last_stats = ContactStats(len(col), self._min_distance(col, xa))
-        return e, g[:n], gt
-
-    def _min_distance(self, col, xa) -> float:
-        return math.sqrt(max(float(col.compute_minimum_distance(self.mesh, xa)), 0.0)) if len(col) else math.inf
-
-    def forward(self, x: torch.Tensor, t) -> torch.Tensor:  # noqa: D102
+    def energy(self, x: torch.Tensor, t: torch.Tensor | float) -> torch.Tensor:  # noqa: D102
         t = _t_tensor(t, x)
         if torch.is_grad_enabled() and (x.requires_grad or t.requires_grad):
-            return _ContactFn.apply(x, t, self)
-        return torch.as_tensor(self.value_np(x, t), dtype=x.dtype, device=x.device)
+            return _ContactFn.apply(x, t, self.ipc)
+        return torch.as_tensor(self.ipc.value(x, float(t)), dtype=x.dtype, device=x.device)
 
-    def value_np(self, x: torch.Tensor, t) -> float:
-        """Energy only (+inf when two primitives touch)."""
-        xa = self.positions(x, self._tval(t))
-        e = float(self._potential(self.collisions(xa), self.mesh, xa))
-        return math.inf if math.isnan(e) else e
-
-    def unit_barrier_gradient(self, x: torch.Tensor, t) -> np.ndarray:
-        """(3N + 1,) gradient of the barrier sum with kappa = 1 over [x, t]."""
-        xa = self.positions(x, self._tval(t))
-        g = np.asarray(ipctk.BarrierPotential(self.dhat, 1.0, False).gradient(
-            self.collisions(xa), self.mesh, xa)).reshape(-1, 3)
-        n = self.num_garment
-        gt = float((g[n:] * self._delta).sum()) if self.uses_t else 0.0
-        return np.r_[g[:n].reshape(-1), gt]
-
-    def hessian(self, x: torch.Tensor, t) -> sp.csr_matrix:  # noqa: D102
-        xa = self.positions(x, self._tval(t))
-        h = sp.csr_matrix(self._potential.hessian(self.collisions(xa), self.mesh, xa,
-                                                  ipctk.PSDProjectionMethod.CLAMP))
-        n3 = 3 * self.num_garment
-        hxx = h[:n3, :n3]
-        if not self.uses_t:
-            return sp.block_diag([hxx, sp.csr_matrix((1, 1))], format="csr")
-        d = self._delta.reshape(-1)
-        hxt = np.asarray(h[:n3, n3:] @ d).reshape(-1, 1)
-        htt = float(d @ (h[n3:, n3:] @ d))
-        return sp.bmat([[hxx, sp.csr_matrix(hxt)], [sp.csr_matrix(hxt.T), sp.csr_matrix([[htt]])]], format="csr")
-
-    def min_distance(self, x: torch.Tensor, t, max_distance: float) -> float:
-        """Smallest garment-self / garment-avatar distance within ``max_distance`` (+inf if none)."""
-        xa = self.positions(x, self._tval(t))
-        col = ipctk.NormalCollisions()
-        col.build(self.mesh, xa, float(max_distance), 0.0, self.broad_phase())
-        return self._min_distance(col, xa)
-
-    def has_intersections(self, x: torch.Tensor, t) -> bool:
-        """Whether garment triangles cross each other or the avatar (avatar-avatar crossings ignored)."""
-        xa = self.positions(x, self._tval(t))  # may re-cull: take self.mesh afterwards
-        return bool(ipctk.has_intersections(self.mesh, xa, self.broad_phase()))
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | float, project_psd: bool = True
+    ) -> HessianBlocks:
+        """ipctk's per-pair (PSD-clamped when ``project_psd``) Hessian chained to (x, t) as vertex blocks."""
+        hxx, hxt, htt = self.ipc.hessian(x, float(t), project_psd)
+        n = self.ipc.num_garment
+        dev, dt = x.device, x.dtype
+        h = hxx.tobsr(blocksize=(3, 3))
+        rows = np.repeat(np.arange(n), np.diff(h.indptr))
+        parts = [
+            HessianBlocks(
+                torch.as_tensor(rows, dtype=torch.long, device=dev),
+                torch.as_tensor(h.indices.astype(np.int64), device=dev),
+                torch.as_tensor(h.data, dtype=dt, device=dev).reshape(-1, 3, 3),
+            )
+        ]
+        if self.uses_t:
+            col = hxt.reshape(-1, 3)
+            vi = np.nonzero(np.any(col != 0.0, axis=1))[0]
+            bxt = np.zeros((vi.shape[0], 3, 3))
+            bxt[:, :, 0] = col[vi]
+            vt = torch.as_tensor(vi, dtype=torch.long, device=dev)
+            last = torch.full_like(vt, n)
+            btt = np.zeros((1, 3, 3))
+            btt[0, 0, 0] = htt
+            parts += [
+                HessianBlocks(vt, last, torch.as_tensor(bxt, dtype=dt, device=dev)),
+                HessianBlocks(last, vt, torch.as_tensor(bxt.transpose(0, 2, 1).copy(), dtype=dt, device=dev)),
+                HessianBlocks(
+                    torch.tensor([n], device=dev),
+                    torch.tensor([n], device=dev),
+                    torch.as_tensor(btt, dtype=dt, device=dev),
+                ),
+            ]
+        return HessianBlocks.cat(parts)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, field
+from enum import Enum
 from pathlib import Path
 
 import ipctk
@@ -32,6 +33,7 @@ import numpy as np
 import torch
 
 from torchgarment.errors import InputError, TorchGarmentError
+from torchgarment.logging import RunLogger
 from torchgarment.retarget.inputs import REFERENCE_HEIGHT, RetargetProblem
 from torchgarment.retarget.objectives import (
     Contact,
@@ -45,15 +47,17 @@ from torchgarment.retarget.objectives import (
 from torchgarment.retarget.solver import (
     InflationPenalty,
     NewtonSettings,
-    Objective,
-    StepBound,
     initial_stiffness,
     projected_newton,
+    retarget_model,
+    term_values,
 )
+from torchgarment.sim.contact import BroadPhase, MovingObstacleContact, StepBound
 
 
 class RetargetError(TorchGarmentError):
-    """Retargeting could not produce a guaranteed intersection-free garment (e.g. inflation never finished)."""
+    """Retargeting could not produce a guaranteed intersection-free garment (e.g. inflation never
+    finished)."""
 
 
 @dataclass
@@ -67,29 +71,30 @@ class RetargetSettings:
         fit_length: length ``ell`` that normalises the fit term (one ``ell`` of gap costs like a unit
             distortion of the same area). The fit targets a gap of dhat (see :class:`~.objectives.Fit`).
         sdf_voxel: voxel size of the target avatar SDF used by the fit term.
-        step_bound: collision-free step method (:class:`~torchgarment.retarget.solver.StepBound`).
-        max_move: largest vertex displacement (garment or avatar) of one Newton step.
+        step_bound: collision-free step method (:class:`~torchgarment.sim.contact.StepBound`).
+        max_displacement: largest vertex displacement (garment or avatar) of one Newton step.
         inflation_rounds: augmented-Lagrangian outer rounds of Step 2 at most.
         inflation_iterations: Newton iterations per outer round.
         fit_iterations: Newton iterations of Step 3 at most.
-        grad_tol: Step 3 stops when |g| <= grad_tol * |g_0|.
+        rtol: Step 3 stops when |g| <= rtol * |g_0|.
         energy_tol: ... or when its energy fell by less than this fraction over the last 3 iterations (the
             barrier's tail converges slowly and changes the shape by well under a millimetre).
         snap_min_distance: the snap CCD keeps every pair at least this far apart (fraction of dhat).
         al_lambda: initial augmented-Lagrangian stiffness per unit garment area.
         check_shrink: check that the shrunk avatar does not touch the garment (Step 1).
         curves_from_boundaries: preserve the garment boundary loops' curvature and torsion.
-        broad_phase: ipctk broad phase class name.
+        broad_phase: ipctk broad phase (:class:`~torchgarment.sim.contact.BroadPhase` or an ipctk class name).
         stiffness_scale: IPC's adaptive barrier stiffness (ipctk.initial_barrier_stiffness) gets the mean
             garment vertex area times this as its "average mass": the lower bound of kappa grows with it.
             The energies here are areas (m^2, dimensionless densities), so kappa ~ area / dhat^2 balances
             them; 100 keeps pairs well apart (about 0.1 dhat at least under the fit's pull).
         cull_radius: the contact's collision mesh keeps the avatar faces within this distance of the garment
-            (exact: re-culled after half of it of motion, see :class:`~.objectives.Contact`); None keeps the
+            (exact: re-culled after half of it of motion, see :class:`~torchgarment.sim.contact.
+            MovingObstacleContact`); None keeps the
             whole avatar (slower broad phase on large or subdivided avatars).
         threads: torch intra-op threads during the run (restored afterwards); None keeps the current number.
-            The per-element work is many small tensor ops, for which one thread is fastest (measured: 2 threads
-            were 2-3x slower on a loaded 2-core machine).
+            The per-element work is many small tensor ops, for which one thread is fastest (measured: 2
+            threads were 2-3x slower on a loaded 2-core machine).
     """
 
     w_fit: float = 2.0
@@ -100,42 +105,52 @@ class RetargetSettings:
     fit_length: float = 0.01
     sdf_voxel: float = 0.008
     step_bound: StepBound | str = StepBound.ADDITIVE
-    max_move: float = 0.03
+    max_displacement: float = 0.03
     inflation_rounds: int = 40
     inflation_iterations: int = 8
     fit_iterations: int = 60
-    grad_tol: float = 1e-3
+    rtol: float = 1e-3
     energy_tol: float = 2e-3
     snap_min_distance: float = 0.05
     al_lambda: float = 10.0
     check_shrink: bool = True
     curves_from_boundaries: bool = True
-    broad_phase: str = "LBVH"
+    broad_phase: BroadPhase | str = BroadPhase.LBVH
     stiffness_scale: float = 100.0
     cull_radius: float | None = 0.06
     threads: int | None = 1
 
     def __post_init__(self) -> None:
         self.step_bound = StepBound.resolve(self.step_bound)
+        self.broad_phase = BroadPhase.resolve(self.broad_phase)
         for name in ("w_fit", "w_pos", "w_surf", "w_curve"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"RetargetSettings.{name} must be a non-negative number, got {v}")
         if self.cull_radius is not None and not self.cull_radius >= 4 * self.dhat:
-            raise InputError(f"RetargetSettings.cull_radius must be None or >= 4 dhat, got {self.cull_radius}")
-        for name in ("dhat", "fit_length", "sdf_voxel", "max_move", "al_lambda", "stiffness_scale"):
+            raise InputError(
+                f"RetargetSettings.cull_radius must be None or >= 4 dhat, got {self.cull_radius}"
+            )
+        for name in ("dhat", "fit_length", "sdf_voxel", "max_displacement", "al_lambda", "stiffness_scale"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"RetargetSettings.{name} must be positive, got {v}")
         if not 0 < self.snap_min_distance < 1:
-            raise InputError(f"RetargetSettings.snap_min_distance must be in (0, 1), got {self.snap_min_distance}")
+            raise InputError(
+                f"RetargetSettings.snap_min_distance must be in (0, 1), got {self.snap_min_distance}"
+            )
         for name in ("inflation_rounds", "inflation_iterations", "fit_iterations"):
             if int(getattr(self, name)) < 0:
                 raise InputError(f"RetargetSettings.{name} must be >= 0")
+        if not (
+            math.isfinite(self.rtol)
+            and self.rtol >= 0
+            and math.isfinite(self.energy_tol)
+            and self.energy_tol >= 0
+        ):
+            raise InputError("RetargetSettings.rtol and energy_tol must be non-negative numbers")
         if self.threads is not None and int(self.threads) < 1:
             raise InputError(f"RetargetSettings.threads must be >= 1 or None, got {self.threads}")
-        if not hasattr(ipctk, self.broad_phase):
-            raise InputError(f"unknown ipctk broad phase {self.broad_phase!r}")
 
 
 @dataclass
@@ -161,44 +176,35 @@ class RetargetResult:
     metrics: dict = field(default_factory=dict)
 
 
-class _Logger:
-    """TensorBoard scalars and a tqdm bar over Newton iterations."""
+class _Progress:
+    """The retargeting's per-iteration log: history records, TensorBoard scalars and the progress bar."""
 
-    def __init__(self, log_dir, progress: bool, desc: str):
-        self.writer = None
-        if log_dir is not None:
-            from torch.utils.tensorboard import SummaryWriter
-
-            self.writer = SummaryWriter(log_dir=str(log_dir))
-        self.bar = None
-        if progress:
-            from tqdm import tqdm
-
-            self.bar = tqdm(desc=desc, unit="it", leave=False)
+    def __init__(self, log_dir: str | Path | None, progress: bool) -> None:
+        self.logger = RunLogger(log_dir, progress, "retarget")
         self.step = 0
         self.history: list[dict] = []
 
     def __call__(self, stage: str, stats: dict) -> None:
         self.step += 1
-        rec = {"stage": stage, **stats}
-        self.history.append(rec)
-        if self.writer is not None:
-            for k, v in stats.items():
-                if isinstance(v, (int, float)) and math.isfinite(v) and k != "iteration":
-                    self.writer.add_scalar(f"{stage}/{k}", v, self.step)
-        if self.bar is not None:
-            self.bar.update(1)
-            self.bar.set_postfix(stage=stage, t=f"{stats.get('t', 1.0):.3f}", g=f"{stats.get('grad_norm', 0):.2e}",
-                                 refresh=False)
+        self.history.append({"stage": stage, **stats})
+        self.logger.scalars(
+            {
+                k: v
+                for k, v in stats.items()
+                if isinstance(v, (int, float)) and math.isfinite(v) and k != "iteration"
+            },
+            self.step,
+            prefix=f"{stage}/",
+        )
+        self.logger.advance(
+            {"stage": stage, "t": f"{stats.get('t', 1.0):.3f}", "g": f"{stats.get('grad_norm', 0):.2e}"}
+        )
 
     def close(self) -> None:
-        if self.writer is not None:
-            self.writer.close()
-        if self.bar is not None:
-            self.bar.close()
+        self.logger.close()
 
 
-def _min_distance(contact: Contact, x: torch.Tensor, t: float, start: float) -> float:
+def _min_distance(contact: MovingObstacleContact, x: torch.Tensor, t: float, start: float) -> float:
     """Minimum garment-self / garment-avatar distance, searching radii start, 4 start, ... (+inf if none)."""
     r = start
     for _ in range(6):
@@ -209,8 +215,13 @@ def _min_distance(contact: Contact, x: torch.Tensor, t: float, start: float) -> 
     return math.inf
 
 
-def check_result(x: torch.Tensor, faces: torch.Tensor, avatar_vertices: torch.Tensor, avatar_faces: torch.Tensor,
-                 search: float) -> dict:
+def check_result(
+    x: torch.Tensor,
+    faces: torch.Tensor,
+    avatar_vertices: torch.Tensor,
+    avatar_faces: torch.Tensor,
+    search: float,
+) -> dict:
     """Intersection checks of a garment on an avatar (any consistent length unit).
 
     Returns:
@@ -219,27 +230,28 @@ def check_result(x: torch.Tensor, faces: torch.Tensor, avatar_vertices: torch.Te
         0 when intersection-free) and ``min_distance`` (garment-self / garment-avatar, searched from
         ``search`` outwards).
     """
-    c = Contact(x, faces, avatar_vertices, avatar_faces, None, search)
+    c = MovingObstacleContact(x, faces, avatar_vertices, avatar_faces, None, search)
     inter_av = c.has_intersections(x, 1.0)
     gf = faces.cpu().numpy().astype(np.int32)
     xn = np.asfortranarray(x.detach().to("cpu", torch.float64).numpy())
     gm = ipctk.CollisionMesh(xn, ipctk.edges(gf), gf)
     inter_self = bool(ipctk.has_intersections(gm, xn, ipctk.LBVH()))
     dmin = _min_distance(c, x, 1.0, search)
-    return {"intersects_avatar": bool(inter_av), "intersects_self": inter_self,
-            "intersections": int(inter_av) + int(inter_self), "min_distance": dmin}
+    return {
+        "intersects_avatar": bool(inter_av),
+        "intersects_self": inter_self,
+        "intersections": int(inter_av) + int(inter_self),
+        "min_distance": dmin,
+    }
 
 
-def _snap_is_free(contact: Contact, x: torch.Tensor, t: float, min_distance: float) -> bool:
-    """CCD: does moving the avatar from ``t`` to 1 (garment fixed) keep every pair >= min_distance apart?"""
-    x0 = contact.positions(x, t)
-    x1 = contact.positions(x, 1.0)
-    return bool(ipctk.is_step_collision_free(contact.mesh, x0, x1, float(min_distance), contact.broad_phase(),
-                                             ipctk.TightInclusionCCD(tolerance=1e-6, conservative_rescaling=0.8)))
-
-
-def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None, *, progress: bool = True,
-             log_dir: str | Path | None = None) -> RetargetResult:
+def retarget(
+    problem: RetargetProblem,
+    settings: RetargetSettings | None = None,
+    *,
+    progress: bool = True,
+    log_dir: str | Path | None = None,
+) -> RetargetResult:
     """Retarget ``problem.garment`` onto ``problem``'s target avatar without intersections.
 
     Args:
@@ -270,7 +282,7 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
     k = REFERENCE_HEIGHT / problem.length_scale  # work -> canonical scale
     faces = problem.garment_faces.to(dev).long()
     x_src = problem.garment_vertices * k
-    log = _Logger(log_dir, progress, "retarget")
+    log = _Progress(log_dir, progress)
     steps: list[dict] = []
     saved_threads = torch.get_num_threads()
     if s.threads is not None:
@@ -281,8 +293,14 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
         shrunk = shrink_avatar(problem, check=s.check_shrink)
         full = shrunk.vertices_full.to(dt) * k
         shr = shrunk.vertices_shrunk.to(dt) * k
-        steps.append({"step": "shrink", "seconds": time.perf_counter() - t0, "avatar_vertices": int(full.shape[0]),
-                      "subdivision_iterations": int(shrunk.iterations)})
+        steps.append(
+            {
+                "step": "shrink",
+                "seconds": time.perf_counter() - t0,
+                "avatar_vertices": int(full.shape[0]),
+                "subdivision_iterations": int(shrunk.iterations),
+            }
+        )
 
         # ---------------------------------------------------------------- objectives
         js = problem.source_skeleton.joints.to(dt) * k
@@ -290,27 +308,44 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
         bones = problem.source_skeleton.bones.to(dev).long()
         loops = boundary_loops(faces.cpu().numpy()) if s.curves_from_boundaries else []
         curves = [torch.as_tensor(c) for c in loops] + [c.cpu() for c in problem.curves]
-        surf = SurfaceShape(x_src, faces)
-        pos = Positional(x_src, faces, js, jt, bones)
-        curve = CurveShape(x_src, curves)
+        surf = SurfaceShape(x_src, faces, weight=s.w_surf)
+        pos = Positional(x_src, faces, js, jt, bones, weight=s.w_pos)
+        curve = CurveShape(x_src, curves, weight=s.w_curve)
         area = float(vertex_areas(x_src, faces).sum())
         mean_area = area / x_src.shape[0]
-        weights = {"surf": s.w_surf, "pos": s.w_pos, "curve": s.w_curve, "contact": 1.0, "al": 1.0, "fit": s.w_fit}
+        weights = {
+            "surf": s.w_surf,
+            "pos": s.w_pos,
+            "curve": s.w_curve,
+            "contact": 1.0,
+            "al": 1.0,
+            "fit": s.w_fit,
+        }
 
         # ---------------------------------------------------------------- Step 2: inflation
         t0 = time.perf_counter()
-        contact = Contact(x_src, faces, full, shrunk.faces, shr, s.dhat, broad_phase=s.broad_phase,
-                          cull_radius=s.cull_radius)
+        contact = Contact(
+            x_src,
+            faces,
+            full,
+            shrunk.faces,
+            shr,
+            s.dhat,
+            broad_phase=s.broad_phase,
+            cull_radius=s.cull_radius,
+        )
         snap_contact = Contact(x_src, faces, full, shrunk.faces, shr, s.dhat, broad_phase=s.broad_phase)
         al = InflationPenalty(s.al_lambda * area)
-        obj = Objective({"surf": surf, "pos": pos, "curve": curve, "contact": contact, "al": al}, weights,
-                        contact=contact)
+        obj = retarget_model([surf, pos, curve, contact, al], x_src)
         x = x_src.clone()
         t = 0.0
-        tt = torch.tensor(t, dtype=dt, device=dev)
-        initial_stiffness(obj, x, tt, mean_area * s.stiffness_scale)
-        ns = NewtonSettings(max_iterations=s.inflation_iterations, max_move=s.max_move, step_bound=s.step_bound,
-                            grad_tol=0.0)
+        initial_stiffness(obj, x, t, mean_area * s.stiffness_scale)
+        ns = NewtonSettings(
+            max_iterations=s.inflation_iterations,
+            max_displacement=s.max_displacement,
+            step_bound=s.step_bound,
+            rtol=0.0,
+        )
         iters2, snapped, bound_s, rounds = 0, False, 0.0, 0
         snap_min = s.snap_min_distance * s.dhat
         for rounds in range(1, s.inflation_rounds + 1):
@@ -319,57 +354,105 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
             x, t = r.x, r.t
             iters2 += r.iterations
             bound_s += r.step_bound_seconds
-            if t >= 1.0 or _snap_is_free(snap_contact, x, t, snap_min):
+            if t >= 1.0 or snap_contact.ipc.is_step_free(x, t, 1.0, snap_min):
                 snapped = True
                 break
             al.update(t)
             if t - t_prev < 0.05:
                 al.lambda1 *= 2.0
         if not snapped:
-            raise RetargetError(f"the avatar inflation stopped at t = {t:.3f} after {rounds} rounds "
-                                f"({iters2} Newton iterations); raise inflation_rounds")
+            raise RetargetError(
+                f"the avatar inflation stopped at t = {t:.3f} after {rounds} rounds "
+                f"({iters2} Newton iterations); raise inflation_rounds"
+            )
         t_snap = t
-        steps.append({"step": "inflate", "seconds": time.perf_counter() - t0, "newton_iterations": iters2,
-                      "rounds": rounds, "t_snap": t_snap, "step_bound_seconds": bound_s, "culls": contact.num_culls})
+        steps.append(
+            {
+                "step": "inflate",
+                "seconds": time.perf_counter() - t0,
+                "newton_iterations": iters2,
+                "rounds": rounds,
+                "t_snap": t_snap,
+                "step_bound_seconds": bound_s,
+                "culls": contact.ipc.num_culls,
+            }
+        )
 
         # ---------------------------------------------------------------- Step 3: fit
         t0 = time.perf_counter()
-        contact3 = Contact(x_src, faces, full, shrunk.faces, None, s.dhat, broad_phase=s.broad_phase,
-                           cull_radius=s.cull_radius)
-        if contact3.has_intersections(x, 1.0):  # cannot happen after a CCD-checked snap; never hide it
-            raise RetargetError(f"the garment intersects the avatar after snapping t = {t_snap} to 1 (unculled: "
-                                f"{snap_contact.has_intersections(x, t_snap)} at t_snap, "
-                                f"{snap_contact.has_intersections(x, 1.0)} at 1)")
-        terms3 = {"surf": surf, "pos": pos, "curve": curve, "contact": contact3}
+        contact3 = Contact(
+            x_src,
+            faces,
+            full,
+            shrunk.faces,
+            None,
+            s.dhat,
+            broad_phase=s.broad_phase,
+            cull_radius=s.cull_radius,
+        )
+        if contact3.ipc.has_intersections(x, 1.0):  # cannot happen after a CCD-checked snap; never hide it
+            raise RetargetError(
+                f"the garment intersects the avatar after snapping t = {t_snap} to 1 (unculled: "
+                f"{snap_contact.ipc.has_intersections(x, t_snap)} at t_snap, "
+                f"{snap_contact.ipc.has_intersections(x, 1.0)} at 1)"
+            )
+        terms3 = [surf, pos, curve, contact3]
         sdf_s = 0.0
         if s.w_fit > 0 and bool(problem.fit_mask.any()):
             ts = time.perf_counter()
-            sdf = BodySDF.cached(problem.avatar_vertices.to(dt) * k, problem.avatar_faces,
-                                 SDFSettings(voxel_size=s.sdf_voxel), dtype=dt, device=dev)
+            sdf = BodySDF.cached(
+                problem.avatar_vertices.to(dt) * k,
+                problem.avatar_faces,
+                SDFSettings(voxel_size=s.sdf_voxel),
+                dtype=dt,
+                device=dev,
+            )
             sdf_s = time.perf_counter() - ts
-            terms3["fit"] = Fit(sdf, x_src, faces, problem.fit_mask.to(dev), s.fit_length, s.dhat)
-        obj3 = Objective(terms3, weights, contact=contact3)
-        tt1 = torch.tensor(1.0, dtype=dt, device=dev)
-        initial_stiffness(obj3, x, tt1, mean_area * s.stiffness_scale)
-        contact3.stiffness = max(contact3.stiffness, contact.stiffness)
-        r3 = projected_newton(obj3, x, 1.0, free_t=False,
-                              settings=NewtonSettings(max_iterations=s.fit_iterations, max_move=s.max_move,
-                                                      step_bound=s.step_bound, grad_tol=s.grad_tol,
-                                                      energy_tol=s.energy_tol),
-                              callback=lambda st: log("fit", st))
+            terms3.append(
+                Fit(sdf, x_src, faces, problem.fit_mask.to(dev), s.fit_length, s.dhat, weight=s.w_fit)
+            )
+        obj3 = retarget_model(terms3, x)
+        initial_stiffness(obj3, x, 1.0, mean_area * s.stiffness_scale)
+        contact3.ipc.stiffness = max(contact3.stiffness, contact.stiffness)
+        r3 = projected_newton(
+            obj3,
+            x,
+            1.0,
+            free_t=False,
+            settings=NewtonSettings(
+                max_iterations=s.fit_iterations,
+                max_displacement=s.max_displacement,
+                step_bound=s.step_bound,
+                rtol=s.rtol,
+                energy_tol=s.energy_tol,
+            ),
+            callback=lambda st: log("fit", st),
+        )
         x = r3.x
-        steps.append({"step": "fit", "seconds": time.perf_counter() - t0, "newton_iterations": r3.iterations,
-                      "grad_norm": r3.grad_norm, "converged": r3.converged, "reason": r3.reason,
-                      "sdf_seconds": sdf_s, "step_bound_seconds": r3.step_bound_seconds, "culls": contact3.num_culls})
+        steps.append(
+            {
+                "step": "fit",
+                "seconds": time.perf_counter() - t0,
+                "newton_iterations": r3.iterations,
+                "grad_norm": r3.grad_norm,
+                "converged": r3.converged,
+                "reason": r3.reason,
+                "sdf_seconds": sdf_s,
+                "step_bound_seconds": r3.step_bound_seconds,
+                "culls": contact3.ipc.num_culls,
+            }
+        )
 
         # ---------------------------------------------------------------- checks and metrics
         chk = check_result(x, faces, full, shrunk.faces, s.dhat)
         if chk["intersections"]:
-            raise RetargetError(f"final check failed: garment-avatar intersection {chk['intersects_avatar']}, "
-                                f"self-intersection {chk['intersects_self']}")
+            raise RetargetError(
+                f"final check failed: garment-avatar intersection {chk['intersects_avatar']}, "
+                f"self-intersection {chk['intersects_self']}"
+            )
         if not chk["min_distance"] > 0:
             raise RetargetError("final check failed: the garment touches the avatar or itself (distance 0)")
-        vals = obj3.values(x, tt1)
+        vals = term_values(terms3, x, 1.0)
         distortion = surf.triangle_distortion(x)
         metrics = {
             "seconds": time.perf_counter() - t_start,
@@ -391,7 +474,7 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
             "garment_faces": int(faces.shape[0]),
             "avatar_vertices": int(problem.avatar_vertices.shape[0]),
             "steps": steps,
-            "settings": {kk: (v.value if isinstance(v, StepBound) else v) for kk, v in asdict(s).items()},
+            "settings": {kk: (v.value if isinstance(v, Enum) else v) for kk, v in asdict(s).items()},
         }
     finally:
         log.close()
@@ -408,7 +491,9 @@ def retarget(problem: RetargetProblem, settings: RetargetSettings | None = None,
     )
 
 
-def layer_problem(problem: RetargetProblem, inner_vertices: torch.Tensor, inner_faces: torch.Tensor) -> RetargetProblem:
+def layer_problem(
+    problem: RetargetProblem, inner_vertices: torch.Tensor, inner_faces: torch.Tensor
+) -> RetargetProblem:
     """``problem`` with an already retargeted garment added to its target avatar (multi-layer retargeting).
 
     Args:
@@ -424,19 +509,36 @@ def layer_problem(problem: RetargetProblem, inner_vertices: torch.Tensor, inner_
         raise InputError(f"inner_vertices must be (M, 3), got {tuple(inner_vertices.shape)}")
     iv = problem.to_work.apply(inner_vertices.to(problem.avatar_vertices.dtype))
     av = torch.cat([problem.avatar_vertices, iv])
-    af = torch.cat([problem.avatar_faces, inner_faces.to(problem.avatar_faces) + problem.avatar_vertices.shape[0]])
+    af = torch.cat(
+        [problem.avatar_faces, inner_faces.to(problem.avatar_faces) + problem.avatar_vertices.shape[0]]
+    )
     return RetargetProblem(
-        garment_vertices=problem.garment_vertices, garment_faces=problem.garment_faces,
-        source_skeleton=problem.source_skeleton, target_skeleton=problem.target_skeleton,
-        avatar_vertices=av, avatar_faces=af, skin_weights=None, fit_mask=problem.fit_mask, curves=problem.curves,
-        to_work=problem.to_work, length_scale=problem.length_scale,
-        source_avatar_vertices=problem.source_avatar_vertices, source_avatar_faces=problem.source_avatar_faces,
-        garment_index_map=problem.garment_index_map)
+        garment_vertices=problem.garment_vertices,
+        garment_faces=problem.garment_faces,
+        source_skeleton=problem.source_skeleton,
+        target_skeleton=problem.target_skeleton,
+        avatar_vertices=av,
+        avatar_faces=af,
+        skin_weights=None,
+        fit_mask=problem.fit_mask,
+        curves=problem.curves,
+        to_work=problem.to_work,
+        length_scale=problem.length_scale,
+        source_avatar_vertices=problem.source_avatar_vertices,
+        source_avatar_faces=problem.source_avatar_faces,
+        garment_index_map=problem.garment_index_map,
+    )
 
 
-def retarget_layers(problems: list[RetargetProblem], settings: RetargetSettings | None = None, *,
-                    progress: bool = True, log_dir: str | Path | None = None) -> list[RetargetResult]:
-    """Retarget several garments onto one avatar from the inside out; each result joins the avatar of the next.
+def retarget_layers(
+    problems: list[RetargetProblem],
+    settings: RetargetSettings | None = None,
+    *,
+    progress: bool = True,
+    log_dir: str | Path | None = None,
+) -> list[RetargetResult]:
+    """Retarget several garments onto one avatar from the inside out; each result joins the avatar of the
+    next.
 
     Args:
         problems: one problem per garment, innermost first, all with the same target avatar and skeletons.
@@ -446,6 +548,12 @@ def retarget_layers(problems: list[RetargetProblem], settings: RetargetSettings 
     for i, p in enumerate(problems):
         for r in results:
             p = layer_problem(p, r.garment_vertices, r.garment_faces)
-        results.append(retarget(p, settings, progress=progress,
-                                log_dir=None if log_dir is None else Path(log_dir) / f"layer{i}"))
+        results.append(
+            retarget(
+                p,
+                settings,
+                progress=progress,
+                log_dir=None if log_dir is None else Path(log_dir) / f"layer{i}",
+            )
+        )
     return results

@@ -56,7 +56,8 @@ from torchgarment.retarget.inputs import RetargetProblem
 __all__ = ["CHECK_RADIUS", "ShrunkAvatar", "bone_hop_distances", "project_to_bones", "shrink_avatar"]
 
 #: Radius (relative to ``length_scale``) within which the check measures the garment-to-skeleton distance;
-#: a garment farther than that from every covered bone reports this radius as ``min_distance`` (a lower bound).
+#: a garment farther than that from every covered bone reports this radius as ``min_distance`` (a lower
+# bound).
 CHECK_RADIUS = 0.1
 #: Distance of the shrunk vertices from the skeleton, relative to ``length_scale`` (see the module docstring).
 SHRINK_OFFSET = 1e-4
@@ -171,7 +172,7 @@ class _Skeleton:
     coincident joint. ``node_of_joint`` maps joints to nodes, ``rep`` nodes back to one of their joints.
     """
 
-    def __init__(self, num_joints: int, bones: np.ndarray, zero: np.ndarray):
+    def __init__(self, num_joints: int, bones: np.ndarray, zero: np.ndarray) -> None:
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
 
@@ -210,11 +211,15 @@ class _Skeleton:
         ends[at] = joint[at, None]
         return ends
 
-    def counts(self, bone_p, joint_p, bone_q, joint_q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def counts(
+        self, bone_p: np.ndarray, joint_p: np.ndarray, bone_q: np.ndarray, joint_q: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Joints strictly between skeleton points p and q, and the anchors (x, y) of the shortest path."""
         ap = self.anchors(bone_p, joint_p)
         aq = self.anchors(bone_q, joint_q)
-        cand = self.hops[ap[:, :, None], aq[:, None, :]].reshape(-1, 4)  # (P, 4): (x0,y0),(x0,y1),(x1,y0),(x1,y1)
+        cand = self.hops[ap[:, :, None], aq[:, None, :]].reshape(
+            -1, 4
+        )  # (P, 4): (x0,y0),(x0,y1),(x1,y0),(x1,y1)
         best = cand.argmin(axis=1)
         m = cand[np.arange(len(best)), best]
         x = ap[np.arange(len(best)), best // 2]
@@ -256,8 +261,13 @@ def _assign_bones(problem: RetargetProblem) -> tuple[torch.Tensor, torch.Tensor]
 
 
 def _subdivide(
-    full: np.ndarray, faces: np.ndarray, bone: np.ndarray, param: np.ndarray, joint: np.ndarray, skel: _Skeleton
-):
+    full: np.ndarray,
+    faces: np.ndarray,
+    bone: np.ndarray,
+    param: np.ndarray,
+    joint: np.ndarray,
+    skel: _Skeleton,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Non-conforming subdivision until every triangle lies on one bone (see the module docstring)."""
     num_joints = skel.hops.shape[0]
     max_rounds = len(skel.bones) + 2
@@ -267,7 +277,9 @@ def _subdivide(
         pairs = [(0, 1), (1, 2), (2, 0)]
         counts, xs, ys = [], [], []
         for i, j in pairs:
-            c, x, y = skel.counts(bone[faces[:, i]], joint[faces[:, i]], bone[faces[:, j]], joint[faces[:, j]])
+            c, x, y = skel.counts(
+                bone[faces[:, i]], joint[faces[:, i]], bone[faces[:, j]], joint[faces[:, j]]
+            )
             counts.append(c)
             xs.append(x)
             ys.append(y)
@@ -275,7 +287,8 @@ def _subdivide(
         if not np.isfinite(counts).all():
             bad = int(np.nonzero(~np.isfinite(counts).all(axis=1))[0][0])
             raise InputError(
-                f"avatar triangle {faces[bad].tolist()} joins vertices on disconnected parts of the skeleton; "
+                f"avatar triangle {faces[bad].tolist()} joins vertices on disconnected parts of the "
+                "skeleton; "
                 "connect the skeleton or give skin weights that keep each avatar part on one skeleton part"
             )
         counts = counts.astype(np.int64)
@@ -286,7 +299,9 @@ def _subdivide(
             break
         rounds += 1
         if rounds > max_rounds:
-            raise InputError(f"skeleton subdivision did not finish in {max_rounds} rounds (malformed skeleton?)")
+            raise InputError(
+                f"skeleton subdivision did not finish in {max_rounds} rounds (malformed skeleton?)"
+            )
         sel = np.nonzero(~ok)[0]
         edge = counts[sel].argmax(axis=1)
         ar = np.arange(len(sel))
@@ -364,8 +379,14 @@ def _covered_segments(
     return lo, hi, points
 
 
-def _check(problem: RetargetProblem, shrunk_joints: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-           points: np.ndarray, bones: np.ndarray) -> float:
+def _check(
+    problem: RetargetProblem,
+    shrunk_joints: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    points: np.ndarray,
+    bones: np.ndarray,
+) -> float:
     """Intersection and distance check of the garment against the covered source-skeleton segments."""
     import ipctk
 
@@ -382,7 +403,7 @@ def _check(problem: RetargetProblem, shrunk_joints: np.ndarray, lo: np.ndarray, 
     gf = problem.garment_faces.detach().cpu().numpy().astype(np.int64)
     n = gv.shape[0]
 
-    def mesh_for(seg_ids: np.ndarray, extra: np.ndarray):
+    def mesh_for(seg_ids: np.ndarray, extra: np.ndarray) -> tuple[ipctk.CollisionMesh, np.ndarray]:
         ends = np.concatenate([seg0[seg_ids], seg1[seg_ids]])
         verts = np.asfortranarray(np.concatenate([gv, ends, extra]))
         m = len(seg_ids)
@@ -414,11 +435,15 @@ def _check(problem: RetargetProblem, shrunk_joints: np.ndarray, lo: np.ndarray, 
         return radius
     distance = math.sqrt(max(float(col.compute_minimum_distance(mesh, verts)), 0.0))
     if not distance > 0:
-        raise InputError("the shrunk target avatar touches the garment (zero distance to the source skeleton)")
+        raise InputError(
+            "the shrunk target avatar touches the garment (zero distance to the source skeleton)"
+        )
     return min(distance, radius)
 
 
-def shrink_avatar(problem: RetargetProblem, *, check: bool = True, offset: float = SHRINK_OFFSET) -> ShrunkAvatar:
+def shrink_avatar(
+    problem: RetargetProblem, *, check: bool = True, offset: float = SHRINK_OFFSET
+) -> ShrunkAvatar:
     """Shrink the target avatar onto the source skeleton (paper section 3.3).
 
     Args:

@@ -1,26 +1,23 @@
-"""Projected Newton with collision-free line search for the retargeting objectives (Huang et al. 2025, 3.7).
+"""Projected Newton with a collision-free step bound for the retargeting objectives (Huang et al. 2025, 3.7).
 
-Unknowns ``q = [x.flatten(), t]`` (3N + 1): garment positions and the inflation parameter. Step 2 frees
-``t`` (augmented Lagrangian :class:`InflationPenalty` pushes it to 1); Step 3 fixes it at 1.
+The unknowns are the retargeting state ``y`` (N + 1, 3) of
+:func:`~torchgarment.retarget.objectives.make_state`: garment positions and the inflation parameter ``t``.
+Step 2 frees ``t`` (augmented Lagrangian :class:`InflationPenalty` pushes it to 1); Step 3 fixes it at 1. The
+objective is a :class:`~torchgarment.sim.scene.SimModel` of
+:class:`~torchgarment.retarget.objectives.RetargetEnergy` terms and the solver the simulator's projected
+Newton (:func:`~torchgarment.sim.solvers.newton.solve_newton`) with:
 
-Each iteration: gradient by autograd of the weighted sum of terms; the sum of the terms' PSD-projected
-sparse Hessians (plus a small diagonal shift when the factorisation fails or the direction is not a
-descent direction) solved by SuperLU (scipy); the step capped by ``max_move`` (largest vertex displacement)
-and by a collision-free step size (:class:`StepBound`), then Armijo backtracking; IPC's barrier stiffness
-update. Stops when the gradient norm falls below ``grad_tol`` (relative to the initial one or absolute,
-whichever is larger) or when the step stalls.
-
-Collision-free step (measured on the synthetic and real cases, see scripts/bench_retarget.py):
-
-* ``ADDITIVE`` (default): ipctk candidates of the swept boxes, then Additive CCD (conservative advancement,
-  Li et al. 2021) rescaled by 0.9. A safe lower bound of the time of impact at a fraction of Tight
-  Inclusion's cost on dense contact.
-* ``TIGHT_INCLUSION``: ipctk's Tight-Inclusion CCD with a loose tolerance (1e-3) rescaled by 0.8.
-* ``DISTANCE``: ``alpha <= 0.8 * d_min / (M_g + max(M_g, M_a))`` with ``d_min`` the minimum distance of
-  garment-self and garment-avatar pairs within ``r`` and ``M_g``, ``M_a`` the largest garment / avatar
-  vertex displacement: every point of a primitive moves by at most its vertices' largest displacement along
-  a linear step, so no pair closes more than that; pairs beyond ``r`` are covered by ``r >= reach``.
-  Provably safe but small steps when the avatar inflates (the whole step is bounded by the closest pair).
+* the free unknowns: the garment, plus ``t`` in Step 2;
+* the step bound :class:`CollisionFreeBound`: the largest vertex displacement (garment or avatar) capped at
+  ``max_displacement``, ``t`` kept in [0, t_max], then a collision-free step size
+  (:class:`~torchgarment.sim.contact.StepBound`: Additive CCD by default, Tight-Inclusion CCD, or the
+  conservative distance bound; see :func:`~torchgarment.sim.contact.collision_free_step`);
+* the Hessian shifted from the start (``1e-8`` of its mean diagonal, times 100 per failed factorization, the
+  scaled gradient as the last resort), value-only backtracking from the bound (halving, Armijo constant
+  ``armijo_c``), no Levenberg retries;
+* IPC's barrier stiffness update after each step (:meth:`~torchgarment.sim.contact.MovingObstacleContact.
+  update_stiffness`), and stops on the gradient (``max(atol, rtol |g_0|)`` over the free unknowns), a stalled
+  energy or a vanishing step.
 """
 
 from __future__ import annotations
@@ -30,32 +27,26 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-import ipctk
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 import torch
-from torch import nn
 
 from torchgarment.errors import InputError
-from torchgarment.options import OptionEnum
-from torchgarment.retarget.objectives import Contact, RetargetTerm, _t_tensor
-from torchgarment.sim.solvers.common import FactorCache
+from torchgarment.retarget.objectives import (
+    Contact,
+    RetargetEnergy,
+    _empty_blocks,
+    _t_tensor,
+    make_state,
+    split_state,
+)
+from torchgarment.sim.contact import StepBound
+from torchgarment.sim.energies.base import HessianBlocks
+from torchgarment.sim.scene import SimModel
+from torchgarment.sim.solvers.common import NonFiniteError, SolveSettings
+from torchgarment.sim.solvers.newton import NewtonOptions, NewtonStep, solve_newton
 
 
-class StepBound(OptionEnum):
-    """How the line search's collision-free step size is computed (see the module docstring)."""
-
-    ADDITIVE = "additive"
-    TIGHT_INCLUSION = "tight_inclusion"
-    DISTANCE = "distance"
-
-    @classmethod
-    def aliases(cls) -> dict[str, str]:  # noqa: D102
-        return {"ccd": "additive", "acd": "additive", "tight": "tight_inclusion", "conservative": "distance"}
-
-
-class InflationPenalty(RetargetTerm):
+class InflationPenalty(RetargetEnergy):
     """Augmented Lagrangian of the equality t = 1: ``lambda1 / 2 (1 - t)^2 + lambda2 (1 - t)``.
 
     Attributes:
@@ -65,89 +56,60 @@ class InflationPenalty(RetargetTerm):
     name = "al"
     uses_t = True
 
-    def __init__(self, lambda1: float, lambda2: float = 0.0):
-        super().__init__()
+    def __init__(self, lambda1: float, lambda2: float = 0.0) -> None:
+        super().__init__(1.0)
         if not lambda1 > 0:
             raise InputError(f"lambda1 must be positive, got {lambda1}")
         self.lambda1 = float(lambda1)
         self.lambda2 = float(lambda2)
 
-    def forward(self, x: torch.Tensor, t) -> torch.Tensor:  # noqa: D102
+    def energy(self, x: torch.Tensor, t: torch.Tensor | float) -> torch.Tensor:  # noqa: D102
         c = 1.0 - _t_tensor(t, x)
         return 0.5 * self.lambda1 * c * c + self.lambda2 * c
 
-    def hessian(self, x: torch.Tensor, t) -> sp.csr_matrix:  # noqa: D102
-        n = 3 * x.shape[0] + 1
-        return sp.csr_matrix(([self.lambda1], ([n - 1], [n - 1])), shape=(n, n))
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | float, project_psd: bool = True
+    ) -> HessianBlocks:
+        """The t-t entry ``lambda1`` (vertex N's block, entry (0, 0))."""
+        n = torch.tensor([x.shape[0]], device=x.device)
+        v = torch.zeros(1, 3, 3, dtype=x.dtype, device=x.device)
+        v[0, 0, 0] = self.lambda1
+        return HessianBlocks(n, n.clone(), v)
 
     def update(self, t: float) -> None:
         """Multiplier update ``lambda2 += lambda1 (1 - t)``."""
         self.lambda2 += self.lambda1 * (1.0 - float(t))
 
 
-class Objective(nn.Module):
-    """Weighted sum of retargeting terms; ``contact`` (if any) also provides the collision queries.
+class RetargetModel(SimModel):
+    """A :class:`SimModel` over the retargeting state (N + 1, 3) (:func:`retarget_model`) that also hands the
+    solver its Hessian blocks in two groups, the terms with a fixed sparsity and the contact, whose pairs
+    change every iteration (:func:`~torchgarment.sim.solvers.newton.solve_newton` assembles each group with
+    its own cached pattern)."""
+
+    def hessian_block_parts(self, y: torch.Tensor, project_psd: bool = True) -> list[HessianBlocks]:
+        """``[blocks of the non-volatile terms, blocks of the volatile ones]``; their sum is
+        :meth:`hessian_blocks`."""
+        y = y.detach()
+        return [HessianBlocks.cat([_empty_blocks(y)] + [t.hessian_blocks(y, project_psd) for t in self.terms
+                                                        if t.volatile_hessian == volatile])
+                for volatile in (False, True)]
+
+
+def retarget_model(terms: list[RetargetEnergy], x: torch.Tensor) -> RetargetModel:
+    """The objective: a :class:`RetargetModel` over the state (N + 1, 3) summing the terms of non-zero weight.
 
     Args:
-        terms: name -> term. weights: name -> weight (missing: 1).
-        contact: the :class:`Contact` term among ``terms`` or None.
+        terms: the retargeting terms (distinct names). x: (N, 3) garment (its size, dtype and device).
     """
+    kept = [t for t in terms if t.weight != 0.0]
+    return RetargetModel(kept, x.shape[0] + 1, device=x.device, dtype=x.dtype)
 
-    def __init__(self, terms: dict[str, RetargetTerm], weights: dict[str, float] | None = None,
-                 contact: Contact | None = None):
-        super().__init__()
-        self.terms = nn.ModuleDict(terms)
-        self.weights = {k: float((weights or {}).get(k, 1.0)) for k in terms}
-        self.contact = contact
 
-    def values(self, x: torch.Tensor, t: torch.Tensor) -> dict[str, float]:
-        """Unweighted value of each term."""
-        with torch.no_grad():
-            return {k: float(term(x, t)) for k, term in self.terms.items()}
-
-    def value(self, x: torch.Tensor, t: torch.Tensor) -> float:
-        """Weighted total (+inf when the barrier is infinite)."""
-        with torch.no_grad():
-            total = 0.0
-            for k, term in self.terms.items():
-                if self.weights[k] != 0.0:
-                    total += self.weights[k] * float(term(x, t))
-            return total
-
-    def value_grad(self, x: torch.Tensor, t: torch.Tensor) -> tuple[float, np.ndarray, dict[str, float]]:
-        """Total, gradient (3N + 1,) over [x, t] and unweighted term values."""
-        xr = x.detach().clone().requires_grad_(True)
-        tr = t.detach().clone().requires_grad_(True)
-        total = xr.sum() * 0.0
-        vals = {}
-        for k, term in self.terms.items():
-            v = term(xr, tr)
-            vals[k] = float(v.detach())
-            if self.weights[k] != 0.0:
-                total = total + self.weights[k] * v
-        gx, gt = torch.autograd.grad(total, (xr, tr), allow_unused=True)
-        gx = torch.zeros_like(xr) if gx is None else gx
-        gt = torch.zeros_like(tr) if gt is None else gt
-        g = np.r_[gx.detach().to("cpu", torch.float64).numpy().reshape(-1), float(gt)]
-        return float(total.detach()), g, vals
-
-    def grad_without(self, x: torch.Tensor, t: torch.Tensor, skip: str) -> np.ndarray:
-        """Gradient (3N + 1,) of the weighted sum of all terms but ``skip``."""
-        saved = self.weights[skip]
-        self.weights[skip] = 0.0
-        try:
-            return self.value_grad(x, t)[1]
-        finally:
-            self.weights[skip] = saved
-
-    def hessian(self, x: torch.Tensor, t: torch.Tensor) -> sp.csr_matrix:
-        """Weighted sum of the terms' PSD-projected Hessians, (3N + 1, 3N + 1)."""
-        n = 3 * x.shape[0] + 1
-        h = sp.csr_matrix((n, n))
-        for k, term in self.terms.items():
-            if self.weights[k] != 0.0:
-                h = h + self.weights[k] * term.hessian(x, t)
-        return h
+def term_values(terms: list[RetargetEnergy], x: torch.Tensor, t: torch.Tensor | float) -> dict[str, float]:
+    """Unweighted value of each term at garment ``x`` (N, 3) and inflation ``t``."""
+    y = make_state(x, t)
+    return {term.name: term.value(y) for term in terms}
 
 
 @dataclass
@@ -156,19 +118,22 @@ class NewtonSettings:
 
     Attributes:
         max_iterations: Newton iterations at most.
-        grad_tol: stop when |g| <= max(grad_tol_abs, grad_tol * |g_0|) (2-norm over free unknowns).
-        grad_tol_abs: absolute gradient floor.
+        rtol: stop when |g| <= max(atol, rtol * |g_0|) (2-norm over free unknowns).
+        atol: absolute gradient floor.
         step_tol: stop when the accepted step moves no vertex by more than this (units of x).
-        max_move: cap of the largest vertex displacement of one Newton step (units of x), None: no cap.
-        step_bound: collision-free step method (:class:`StepBound` or its name).
-        armijo: sufficient-decrease constant.
-        min_alpha: smallest line-search step before giving up.
+        max_displacement: cap of the largest vertex displacement (garment or avatar) of one Newton step
+            (units of x), None: no cap.
+        step_bound: collision-free step method (:class:`~torchgarment.sim.contact.StepBound` or its name).
+        armijo_c: sufficient-decrease constant.
+        max_backtracks: line-search trials (halving the step) before giving up (27: down to 1e-8 of the
+            bound).
         update_stiffness: IPC's barrier stiffness update after each iteration (ipctk.update_barrier_stiffness:
             doubles kappa, up to its maximum, while the minimum distance decreases below
             ``stiffness_distance * dhat``).
         stiffness_distance: see ``update_stiffness`` (IPC's default is 1e-9 of the scene's diagonal).
         energy_tol: also stop (converged, reason "energy") when the energy fell by less than
             ``energy_tol * |E|`` over the last ``energy_window`` iterations; 0 disables it.
+        energy_window: see ``energy_tol``.
         reuse_factorization: solve each Newton system by conjugate gradients preconditioned with the last
             sparse LU factorization (an inexact Newton step, to relative residual ``pcg_rtol``), and factorize
             afresh only when that takes more than ``pcg_max_iterations`` iterations or does not give a descent
@@ -179,13 +144,13 @@ class NewtonSettings:
     """
 
     max_iterations: int = 100
-    grad_tol: float = 1e-3
-    grad_tol_abs: float = 1e-7
+    rtol: float = 1e-3
+    atol: float = 1e-7
     step_tol: float = 1e-7
-    max_move: float | None = None
+    max_displacement: float | None = None
     step_bound: StepBound | str = StepBound.ADDITIVE
-    armijo: float = 1e-4
-    min_alpha: float = 1e-8
+    armijo_c: float = 1e-4
+    max_backtracks: int = 27
     update_stiffness: bool = True
     stiffness_distance: float = 0.1
     energy_tol: float = 0.0
@@ -196,12 +161,34 @@ class NewtonSettings:
 
     def __post_init__(self) -> None:
         self.step_bound = StepBound.resolve(self.step_bound)
-        if self.max_iterations < 0 or not self.grad_tol >= 0 or not self.step_tol >= 0:
-            raise InputError("NewtonSettings: max_iterations, grad_tol and step_tol must be non-negative")
+        if self.max_iterations < 0 or not self.rtol >= 0 or not self.atol >= 0 or not self.step_tol >= 0:
+            raise InputError("NewtonSettings: max_iterations, rtol, atol and step_tol must be non-negative")
         if not (0 < self.pcg_rtol < 1) or self.pcg_max_iterations < 1:
             raise InputError("NewtonSettings: pcg_rtol must lie in (0, 1) and pcg_max_iterations be >= 1")
-        if self.max_move is not None and not self.max_move > 0:
-            raise InputError(f"NewtonSettings.max_move must be positive, got {self.max_move}")
+        if self.max_displacement is not None and not self.max_displacement > 0:
+            raise InputError(f"NewtonSettings.max_displacement must be positive, got {self.max_displacement}")
+        if not 0 < self.armijo_c < 1 or self.max_backtracks < 1:
+            raise InputError("NewtonSettings: armijo_c must lie in (0, 1) and max_backtracks be >= 1")
+        if not (self.energy_tol >= 0 and self.energy_window >= 1 and self.stiffness_distance > 0):
+            raise InputError("NewtonSettings: energy_tol >= 0, energy_window >= 1 and stiffness_distance > 0")
+
+    def solve_settings(self) -> SolveSettings:
+        """The shared solver's settings (the regularization: 1e-8 of the mean diagonal, 12 retries)."""
+        s = SolveSettings(
+            rtol=self.rtol,
+            atol=self.atol,
+            max_iterations=self.max_iterations,
+            armijo_c=self.armijo_c,
+            backtrack=0.5,
+            max_backtracks=self.max_backtracks,
+            regularization=1e-8,
+            max_regularizations=12,
+            reuse_factorization=self.reuse_factorization,
+            pcg_rtol=self.pcg_rtol,
+            pcg_max_iterations=self.pcg_max_iterations,
+        )
+        s.validate()
+        return s
 
 
 @dataclass
@@ -210,7 +197,8 @@ class NewtonResult:
 
     Attributes:
         x: (N, 3) final garment. t: final inflation. iterations: Newton iterations done. grad_norm: final |g|.
-        energy: final weighted total. converged: gradient criterion met. reason: why it stopped.
+        energy: final weighted total. converged: gradient criterion met. reason: why it stopped ("gradient",
+        "energy", "step", "line_search", "callback" or "max_iterations").
         step_bound_seconds: time spent in collision-free step queries. history: per-iteration stats.
     """
 
@@ -225,74 +213,127 @@ class NewtonResult:
     history: list[dict] = field(default_factory=list)
 
 
-def collision_free_step(contact: Contact, x0: np.ndarray, t0: float, dx: np.ndarray, dt: float,
-                        method: StepBound) -> float:
-    """Largest alpha in [0, 1] (conservative) such that ``(x0 + a dx, t0 + a dt)`` stays intersection free.
+class CollisionFreeBound:
+    """The retargeting step bound (a :class:`~torchgarment.sim.solvers.newton.StepLimiter`) on states (N + 1,
+    3).
+
+    ``max_step`` caps the largest vertex displacement (garment, or avatar: ``|dt| * delta_max``) at
+    ``max_displacement``, keeps ``t`` in [0, t_max] and multiplies by the contact's collision-free step size.
 
     Args:
-        contact: the contact term (mesh, avatar interpolation, dhat).
-        x0: (N, 3) garment; t0: inflation; dx: (N, 3) step; dt: step of t.
-        method: :class:`StepBound`.
+        contact: the contact machinery or None (no collision bound). max_displacement: cap or None.
+        method: :class:`StepBound`. t_max: upper bound of t.
     """
-    method = StepBound.resolve(method)
-    cap = contact.prepare_step(x0, t0, dx, dt)
-    if cap < 1.0:
-        return cap * collision_free_step(contact, x0, t0, cap * dx, cap * dt, method)
-    a0 = contact.avatar_at(t0)
-    da = contact._delta * dt if contact.uses_t else np.zeros_like(a0)
-    mg = float(np.sqrt((dx * dx).sum(1)).max(initial=0.0))
-    ma = float(np.sqrt((da * da).sum(1)).max(initial=0.0))
-    if mg == 0.0 and ma == 0.0:
-        return 1.0
-    X0 = np.asfortranarray(np.concatenate([x0, a0]))
-    X1 = np.asfortranarray(np.concatenate([x0 + dx, a0 + da]))
-    if method is StepBound.DISTANCE:
-        reach = mg + max(mg, ma)
-        r = max(contact.dhat, reach)
-        col = ipctk.NormalCollisions()
-        col.build(contact.mesh, X0, r, 0.0, contact.broad_phase())
-        d = math.sqrt(max(float(col.compute_minimum_distance(contact.mesh, X0)), 0.0)) if len(col) else math.inf
-        return min(1.0, 0.8 * min(d, r) / reach)
-    cand = ipctk.Candidates()
-    cand.build(contact.mesh, X0, X1, 0.0, contact.broad_phase())
-    if cand.empty():
-        return 1.0
-    narrow = ipctk.AdditiveCCD(conservative_rescaling=0.9) if method is StepBound.ADDITIVE else \
-        ipctk.TightInclusionCCD(tolerance=1e-3, conservative_rescaling=0.8)
-    return float(cand.compute_collision_free_stepsize(contact.mesh, X0, X1, 0.0, narrow))
+
+    def __init__(
+        self, contact: Contact | None, max_displacement: float | None, method: StepBound, t_max: float = 1.0
+    ) -> None:
+        self.ipc = None if contact is None else contact.ipc
+        self.max_displacement = max_displacement
+        self.method = StepBound.resolve(method)
+        self.t_max = float(t_max)
+        #: seconds spent in collision-free step queries
+        self.seconds = 0.0
+
+    def displacement(self, dy: torch.Tensor) -> float:
+        """Largest garment or avatar vertex displacement of the step ``dy`` (N + 1, 3)."""
+        dx, dt = split_state(dy)
+        move = float(torch.linalg.vector_norm(dx, dim=-1).max()) if dx.shape[0] else 0.0
+        dt = float(dt)
+        if self.ipc is not None and self.ipc.uses_t and dt != 0.0:
+            move = max(move, abs(dt) * self.ipc.delta_max)
+        return move
+
+    def max_step(self, y: torch.Tensor, dy: torch.Tensor) -> float:
+        """Largest admissible step of ``y + alpha dy`` (states (N + 1, 3))."""
+        xn = y[:-1].detach().to("cpu", torch.float64).numpy()
+        dx = dy[:-1].detach().to("cpu", torch.float64).numpy()
+        dt = float(dy[-1, 0])
+        amax = 1.0
+        move = float(np.sqrt((dx * dx).sum(1)).max(initial=0.0))
+        if self.ipc is not None and self.ipc.uses_t and dt != 0.0:
+            move = max(move, abs(dt) * self.ipc.delta_max)
+        if self.max_displacement is not None and move > self.max_displacement:
+            amax = self.max_displacement / move
+        tv = float(y[-1, 0])
+        if dt > 0:
+            amax = min(amax, (self.t_max - tv) / dt)
+        elif dt < 0:
+            amax = min(amax, tv / -dt)
+        amax = max(amax, 0.0)
+        if self.ipc is not None and amax > 0:
+            tb = time.perf_counter()
+            amax *= self.ipc.max_step(xn, tv, amax * dx, amax * dt, self.method)
+            self.seconds += time.perf_counter() - tb
+        return amax
 
 
-def _solve(h: sp.csr_matrix, g: np.ndarray, shift: float, cache: FactorCache | None = None,
-           rtol: float = 1e-2, maxiter: int = 25) -> tuple[np.ndarray, float]:
-    """Solve (H + mu I) p = -g, raising mu until the factorisation works and p is a descent direction. With a
-    ``cache``, first try CG preconditioned by the cached factorization, and store a fresh one in it."""
-    if cache is not None:
-        p = cache.solve(h, -g, rtol, maxiter)
-        if p is not None and float(p @ g) < 0:
-            return p, cache.shift
-    n = h.shape[0]
-    diag = np.abs(h.diagonal())
-    scale = float(diag.mean()) if diag.size and diag.mean() > 0 else 1.0
-    mu = shift * scale
-    eye = sp.identity(n, format="csc")
-    hc = h.tocsc()
-    for _ in range(12):
-        try:
-            lu = spla.splu((hc + mu * eye).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                           options={"SymmetricMode": True})
-            p = lu.solve(-g)
-            if np.all(np.isfinite(p)) and float(p @ g) < 0:
-                if cache is not None:
-                    cache.store(lu, mu)
-                return p, mu
-        except RuntimeError:
-            pass
-        mu = max(mu * 100.0, 1e-10 * scale)
-    return -g / scale, mu  # gradient descent direction as the last resort (still a descent direction)
+class _Monitor:
+    """Per-iteration statistics, IPC's stiffness update and the user callback of :func:`projected_newton`."""
+
+    def __init__(
+        self,
+        terms: list[RetargetEnergy],
+        contact: Contact | None,
+        settings: NewtonSettings,
+        callback: Callable[[dict], bool | None] | None,
+    ) -> None:
+        self.terms = terms
+        self.contact = contact
+        self.settings = settings
+        self.callback = callback
+        self.history: list[dict] = []
+        self.stop = False
+        self.prev_dmin = math.inf
+
+    def start(self, x0: torch.Tensor, t0: float) -> None:
+        """The initial state's minimum distance (within dhat): the stiffness update's first reference."""
+        if self.contact is not None:
+            ipc = self.contact.ipc
+            self.prev_dmin = ipc.min_distance(x0, float(t0), ipc.dhat)
+
+    def after_step(self, y: torch.Tensor, step: NewtonStep) -> bool:
+        """Record the step's stats, update the barrier stiffness; True when the stiffness changed."""
+        vals = {term.name: term.value(y) for term in self.terms}
+        stats = {
+            "iteration": step.iteration,
+            "energy": step.energy,
+            "grad_norm": step.grad_norm,
+            "alpha": step.alpha,
+            "alpha_max": step.alpha_max,
+            "max_displacement": step.displacement,
+            "t": float(y[-1, 0]),
+            **{f"term/{k}": v for k, v in vals.items()},
+        }
+        changed = False
+        if self.contact is not None:
+            ipc = self.contact.ipc
+            dmin = ipc.last_stats.min_distance
+            stats["min_distance"] = dmin
+            stats["stiffness"] = ipc.stiffness
+            if self.settings.update_stiffness:
+                changed = ipc.update_stiffness(self.prev_dmin, dmin, self.settings.stiffness_distance)
+            self.prev_dmin = dmin
+        self.history.append(stats)
+        if self.callback is not None and self.callback(stats):
+            self.stop = True
+        return changed
+
+    def __call__(self, k: int, y: torch.Tensor, gn: float, e: float) -> bool:
+        return self.stop
+
+
+_REASONS = {
+    "converged": "gradient",
+    "energy stalled": "energy",
+    "small step": "step",
+    "stopped by callback": "callback",
+    "max iterations reached": "max_iterations",
+}
 
 
 def projected_newton(
-    objective: Objective,
+    model: SimModel,
     x0: torch.Tensor,
     t0: float,
     *,
@@ -301,10 +342,11 @@ def projected_newton(
     callback: Callable[[dict], bool | None] | None = None,
     t_max: float = 1.0,
 ) -> NewtonResult:
-    """Minimise ``objective`` from ``(x0, t0)`` by projected Newton with a collision-free line search.
+    """Minimise ``model`` (:func:`retarget_model`) from ``(x0, t0)`` by the shared projected Newton
+    (:func:`~torchgarment.sim.solvers.newton.solve_newton`) with a collision-free step bound.
 
     Args:
-        objective: weighted terms; its ``contact`` gives the step bound (None: no bound).
+        model: the objective; its term named "contact" (if any) gives the step bound and the stiffness update.
         x0: (N, 3) intersection-free garment. t0: initial inflation.
         free_t: optimise t too (Step 2) or keep it fixed (Step 3).
         settings: :class:`NewtonSettings`.
@@ -313,122 +355,80 @@ def projected_newton(
 
     Returns:
         :class:`NewtonResult`.
+
+    Raises:
+        InputError: the initial state has a non-finite energy.
     """
     s = settings or NewtonSettings()
-    contact = objective.contact
-    x = x0.detach().clone()
-    t = torch.tensor(float(t0), dtype=x.dtype, device=x.device)
-    n3 = 3 * x.shape[0]
-    free = np.ones(n3 + 1, dtype=bool)
-    free[n3] = free_t
-    hist: list[dict] = []
-    g0 = None
-    e, g, vals = objective.value_grad(x, t)
-    if not math.isfinite(e):
+    terms = list(model.terms)
+    contact = next((t for t in terms if isinstance(t, Contact)), None)
+    y0 = make_state(x0.detach(), float(t0))
+    free = torch.ones_like(y0, dtype=torch.bool)
+    free[-1, 1:] = False
+    free[-1, 0] = bool(free_t)
+    bound = CollisionFreeBound(contact, s.max_displacement, s.step_bound, t_max)
+    monitor = _Monitor(terms, contact, s, callback)
+    monitor.start(x0, float(t0))
+    options = NewtonOptions(
+        free=free,
+        step_bound=bound,
+        regularize_first=True,
+        regularization_growth=100.0,
+        gradient_fallback=True,
+        levenberg=False,
+        value_only_line_search=True,
+        armijo_slack=0.0,
+        step_tol=s.step_tol,
+        energy_tol=s.energy_tol,
+        energy_window=s.energy_window,
+        after_step=monitor.after_step,
+    )
+    try:
+        y, info = solve_newton(model, y0, s.solve_settings(), s.max_iterations, monitor, options)
+    except NonFiniteError as err:
+        if "iteration 0" not in str(err):
+            raise
+        vals = {t.name: t.value(y0) for t in terms}
         bad = ", ".join(k for k, v in vals.items() if not math.isfinite(v))
-        raise InputError(f"the initial state has a non-finite energy in: {bad} (touching contact or a "
-                         "degenerate element)")
-    prev_dmin = contact.last_stats.min_distance if contact is not None else math.inf
-    bound_time = 0.0
-    reason, converged, it = "max_iterations", False, 0
-    shift = 1e-8
-    cache = FactorCache() if s.reuse_factorization else None
-    for it in range(1, s.max_iterations + 1):
-        gf = g[free]
-        gn = float(np.linalg.norm(gf))
-        g0 = gn if g0 is None else g0
-        if gn <= max(s.grad_tol_abs, s.grad_tol * g0):
-            reason, converged, it = "gradient", True, it - 1
-            break
-        h = objective.hessian(x, t).tocsr()[free][:, free]
-        pf, _ = _solve(h, gf, shift, cache, s.pcg_rtol, s.pcg_max_iterations)
-        p = np.zeros(n3 + 1)
-        p[free] = pf
-        dx = p[:n3].reshape(-1, 3)
-        dt = float(p[n3])
-        # caps: largest vertex move, t in [0, t_max], collision-free step
-        amax = 1.0
-        move = float(np.sqrt((dx * dx).sum(1)).max(initial=0.0))
-        if contact is not None and contact.uses_t and dt != 0.0:
-            move = max(move, abs(dt) * contact._delta_max)
-        if s.max_move is not None and move > s.max_move:
-            amax = s.max_move / move
-        tv = float(t)
-        if dt > 0:
-            amax = min(amax, (t_max - tv) / dt)
-        elif dt < 0:
-            amax = min(amax, tv / -dt)
-        amax = max(amax, 0.0)
-        if contact is not None and amax > 0:
-            tb = time.perf_counter()
-            xn = x.detach().to("cpu", torch.float64).numpy()
-            amax *= collision_free_step(contact, xn, tv, amax * dx, amax * dt, s.step_bound)
-            bound_time += time.perf_counter() - tb
-        alpha = amax
-        slope = float(g @ p)
-        accepted = False
-        dxt = torch.as_tensor(dx, dtype=x.dtype, device=x.device)
-        while alpha >= s.min_alpha * max(amax, 1e-300) and alpha > 0:
-            xt = x + alpha * dxt
-            tt = torch.tensor(min(max(tv + alpha * dt, 0.0), t_max), dtype=x.dtype, device=x.device)
-            et = objective.value(xt, tt)
-            if math.isfinite(et) and et <= e + s.armijo * alpha * slope:
-                accepted = True
-                break
-            alpha *= 0.5
-        if not accepted:
-            reason, it = "line_search", it - 1  # no step taken in this iteration
-            break
-        x, t = xt, tt
-        e, g, vals = objective.value_grad(x, t)
-        stats = {"iteration": it, "energy": e, "grad_norm": gn, "alpha": alpha, "alpha_max": amax,
-                 "max_move": alpha * move, "t": float(t), **{f"term/{k}": v for k, v in vals.items()}}
-        if contact is not None:
-            dmin = contact.last_stats.min_distance
-            stats["min_distance"] = dmin
-            stats["stiffness"] = contact.stiffness
-            if s.update_stiffness and math.isfinite(dmin) and math.isfinite(prev_dmin):
-                kappa = ipctk.update_barrier_stiffness(prev_dmin, dmin, max(contact.max_stiffness, contact.stiffness),
-                                                      contact.stiffness, contact.bbox_diagonal,
-                                                      s.stiffness_distance * contact.dhat / contact.bbox_diagonal)
-                if kappa != contact.stiffness:
-                    contact.stiffness = kappa
-                    e, g, vals = objective.value_grad(x, t)
-            prev_dmin = dmin
-        hist.append(stats)
-        if callback is not None and callback(stats):
-            reason = "callback"
-            break
-        w = s.energy_window
-        if s.energy_tol > 0 and len(hist) > w and \
-                hist[-1 - w]["energy"] - hist[-1]["energy"] <= s.energy_tol * abs(hist[-1]["energy"]):
-            reason, converged = "energy", True
-            break
-        if alpha * move <= s.step_tol:
-            reason = "step"
-            break
-    gn = float(np.linalg.norm(g[free]))
-    if not converged and gn <= max(s.grad_tol_abs, s.grad_tol * (g0 or gn)):
-        converged = True
-    return NewtonResult(x.detach(), float(t), it, gn, e, converged, reason, bound_time, hist)
+        raise InputError(
+            f"the initial state has a non-finite energy in: {bad} (touching contact or a degenerate element)"
+        ) from None
+    reason = (
+        "line_search" if info.message.startswith("line search") else _REASONS.get(info.message, info.message)
+    )
+    x, t = split_state(y)
+    return NewtonResult(
+        x.detach().clone(),
+        float(t),
+        info.iterations,
+        info.residual,
+        info.energy_history[-1],
+        info.converged,
+        reason,
+        bound.seconds,
+        monitor.history,
+    )
 
 
-def initial_stiffness(objective: Objective, x: torch.Tensor, t: torch.Tensor, average_mass: float) -> float:
-    """IPC's adaptive initial barrier stiffness (ipctk.initial_barrier_stiffness) for ``objective.contact``.
+def initial_stiffness(
+    model: SimModel, x: torch.Tensor, t: torch.Tensor | float, average_mass: float
+) -> float:
+    """IPC's adaptive initial barrier stiffness (ipctk.initial_barrier_stiffness) of the model's contact term.
 
-    Balances the barrier gradient against the gradient of all other terms; sets ``contact.stiffness`` and
-    ``contact.max_stiffness`` and returns the stiffness.
+    Balances the barrier gradient against the gradient of all other terms of ``model``; sets the contact's
+    ``stiffness`` and ``max_stiffness`` and returns the stiffness.
 
     Args:
-        objective: contains the contact term under the name ``contact.name``.
-        x: (N, 3); t: 0-d tensor. average_mass: IPC's mass scale (here the mean lumped vertex area).
+        model: a :func:`retarget_model` with a :class:`~torchgarment.retarget.objectives.Contact` term.
+        x: (N, 3); t: inflation. average_mass: IPC's mass scale (here the mean lumped vertex area).
     """
-    c = objective.contact
-    ge = objective.grad_without(x, t, c.name)
-    gb = c.unit_barrier_gradient(x, t)
-    bar = ipctk.BarrierPotential(c.dhat, 1.0, False)
-    kappa, kmax = ipctk.initial_barrier_stiffness(c.bbox_diagonal, bar.barrier, c.dhat, float(average_mass),
-                                                  np.asarray(ge, np.float64), np.asarray(gb, np.float64))
-    c.max_stiffness = float(kmax)
-    c.stiffness = float(kappa)
-    return c.stiffness
+    contact = next((term for term in model.terms if isinstance(term, Contact)), None)
+    if contact is None:
+        raise InputError("initial_stiffness: the model has no contact term")
+    y = make_state(x.detach(), t)
+    ge = torch.zeros_like(y)
+    for term in model.terms:
+        if term is not contact:
+            ge += term.value_and_grad(y)[1]
+    other = np.r_[ge[:-1].detach().to("cpu", torch.float64).numpy().reshape(-1), float(ge[-1, 0])]
+    return contact.ipc.initial_stiffness(x, float(t), other, average_mass)

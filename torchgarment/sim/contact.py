@@ -12,15 +12,16 @@ The energy is ipctk's area-weighted "physical" log barrier (the convergent IPC f
 over the point-triangle and edge-edge pairs closer than ``dhat`` (metres); ``w_k`` are barycentric areas
 (m^2) and ``b`` is normalised to a length, so the stiffness ``kappa`` is a pressure (Pa) and E is in joules.
 ``E`` is 0 beyond ``dhat`` and tends to +inf as two primitives touch. Crossing (intersecting) primitives can
-have a finite barrier, so the terms additionally report +inf when the mesh intersects (``check_intersections``).
+have a finite barrier, so the terms additionally report +inf when the mesh intersects
+(``check_intersections``).
 
-Collision candidates are rebuilt from ``x`` by ipctk's broad phase on every call (the last set is reused when a
-call sees exactly the same positions, e.g. ``value_and_grad`` then ``hessian_blocks``). Everything at the
-boundary is device/dtype agnostic: positions go to numpy float64 for ipctk, results come back in ``x``'s dtype on
-``x``'s device. Not differentiable twice (``forward`` has a first-order custom backward).
+Collision candidates are rebuilt from ``x`` by ipctk's broad phase on every call (the last set is reused when
+a call sees exactly the same positions, e.g. ``value_and_grad`` then ``hessian_blocks``). Everything at the
+boundary is device/dtype agnostic: positions go to numpy float64 for ipctk, results come back in ``x``'s dtype
+on ``x``'s device. Not differentiable twice (``forward`` has a first-order custom backward).
 
-Seams: a pattern mesh keeps one vertex per panel on a seam, and sewing drives the pairs to distance 0, which an
-unfiltered barrier would forbid. Pass ``seam_pairs`` and every vertex pair around a seam in the
+Seams: a pattern mesh keeps one vertex per panel on a seam, and sewing drives the pairs to distance 0, which
+an unfiltered barrier would forbid. Pass ``seam_pairs`` and every vertex pair around a seam in the
 *welded* mesh is excluded from contact (ipctk collision filter, see :func:`seam_exclusion_pairs`), so the
 seams can close.
 """
@@ -28,7 +29,7 @@ seams can close.
 from __future__ import annotations
 
 import math
-from enum import Enum
+from dataclasses import dataclass
 
 import ipctk
 import numpy as np
@@ -37,30 +38,49 @@ import torch
 from scipy.sparse.csgraph import connected_components
 
 from torchgarment.errors import InputError, MeshError
+from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 
 
-class StepBound(str, Enum):
-    """How :meth:`max_step` bounds the step.
+class StepBound(OptionEnum):
+    """How a step ``x + alpha dx`` is bounded so that it stays intersection free
+    (:func:`collision_free_step`).
 
-    CCD: ipctk continuous collision detection (Tight-Inclusion CCD, rescaled by 0.8): the largest safe step,
-        but expensive on dense steps.
-    CONSERVATIVE: ``alpha = safety * min(d_min, r) / (2 max_i |dx_i|)`` from the minimum distance ``d_min`` of
-        pairs closer than ``r`` (see :meth:`_IPCContact.max_step`): one distance query, never larger than the
-        true time of impact, usually smaller.
+    ADDITIVE: ipctk candidates of the swept boxes, then Additive CCD (conservative advancement, Li et al.
+        2021) rescaled by 0.9: a safe lower bound of the time of impact at a fraction of Tight Inclusion's
+        cost on dense contact (retargeting's default).
+    TIGHT_INCLUSION: ipctk's Tight-Inclusion CCD (tolerance ``ccd_tolerance``) rescaled by 0.8: the largest
+        safe step, but expensive on dense steps.
+    CONSERVATIVE: ``alpha = safety * min(d_min, r) / reach`` from the minimum distance ``d_min`` of pairs
+        closer than ``r``, ``reach`` bounding how much any pair's distance can shrink over the step: one
+        distance query,
+        never larger than the true time of impact, usually smaller (the default of the simulation contacts).
     """
 
-    CCD = "ccd"
+    ADDITIVE = "additive"
+    TIGHT_INCLUSION = "tight_inclusion"
     CONSERVATIVE = "conservative"
 
+    @classmethod
+    def aliases(cls) -> dict[str, str]:  # noqa: D102
+        return {"ccd": "additive", "acd": "additive", "tight": "tight_inclusion", "distance": "conservative"}
 
-class BroadPhase(str, Enum):
-    """ipctk broad-phase method used to find candidate pairs."""
+
+class BroadPhase(OptionEnum):
+    """ipctk broad-phase method used to find candidate pairs (ipctk's class names are accepted too)."""
 
     HASH_GRID = "hash_grid"
     LBVH = "lbvh"
     SWEEP_AND_PRUNE = "sweep_and_prune"
     BRUTE_FORCE = "brute_force"
+
+    @classmethod
+    def aliases(cls) -> dict[str, str]:  # noqa: D102
+        return {"hashgrid": "hash_grid", "sweepandprune": "sweep_and_prune", "bruteforce": "brute_force"}
+
+    def make(self) -> "ipctk.BroadPhase":
+        """A fresh ipctk broad-phase object."""
+        return _BROAD_PHASES[self]()
 
 
 _BROAD_PHASES = {
@@ -84,7 +104,11 @@ def _np_faces(faces: torch.Tensor | np.ndarray, what: str) -> np.ndarray:
 
 
 def _np_points(p: torch.Tensor | np.ndarray, what: str) -> np.ndarray:
-    a = p.detach().to("cpu", torch.float64).numpy() if isinstance(p, torch.Tensor) else np.asarray(p, np.float64)
+    a = (
+        p.detach().to("cpu", torch.float64).numpy()
+        if isinstance(p, torch.Tensor)
+        else np.asarray(p, np.float64)
+    )
     if a.ndim != 2 or a.shape[1] not in (2, 3):
         raise InputError(f"{what} must be a (V, 3) (or (V, 2) flat) array, got shape {a.shape}")
     if a.shape[1] == 2:
@@ -96,9 +120,15 @@ def _np_points(p: torch.Tensor | np.ndarray, what: str) -> np.ndarray:
 
 def _np_seams(seam_pairs: torch.Tensor | np.ndarray, num_vertices: int) -> np.ndarray:
     a = np.asarray(seam_pairs.cpu() if isinstance(seam_pairs, torch.Tensor) else seam_pairs)
-    if a.ndim != 2 or a.shape[1] != 2 or not np.issubdtype(a.dtype, np.integer) \
-            or (a.size and (a.min() < 0 or a.max() >= num_vertices)):
-        raise InputError(f"seam_pairs must be an integer (S, 2) array of vertex indices in [0, {num_vertices})")
+    if (
+        a.ndim != 2
+        or a.shape[1] != 2
+        or not np.issubdtype(a.dtype, np.integer)
+        or (a.size and (a.min() < 0 or a.max() >= num_vertices))
+    ):
+        raise InputError(
+            f"seam_pairs must be an integer (S, 2) array of vertex indices in [0, {num_vertices})"
+        )
     return a.astype(np.int64)
 
 
@@ -154,11 +184,86 @@ def _energy_or_inf(e: float) -> float:
     return math.inf if math.isnan(e) else e
 
 
+def minimum_distance(
+    mesh: "ipctk.CollisionMesh",
+    xn: np.ndarray,
+    max_distance: float,
+    broad_phase: BroadPhase,
+    collisions: "ipctk.NormalCollisions | None" = None,
+) -> float:
+    """Smallest distance between (non-filtered) primitives of ``mesh`` at positions ``xn`` (Fortran (V, 3)),
+    searched within ``max_distance`` (units of ``xn``); +inf when no pair is that close. ``collisions``: a
+    collision set already built within ``max_distance`` at ``xn`` (saves the query)."""
+    col = collisions
+    if col is None:
+        col = ipctk.NormalCollisions()
+        col.build(mesh, xn, float(max_distance), 0.0, broad_phase.make())
+    if len(col) == 0:
+        return math.inf
+    return math.sqrt(max(float(col.compute_minimum_distance(mesh, xn)), 0.0))
+
+
+def collision_free_step(
+    mesh: "ipctk.CollisionMesh",
+    x0: np.ndarray,
+    x1: np.ndarray,
+    method: StepBound,
+    broad_phase: BroadPhase,
+    *,
+    reach: float,
+    dhat: float,
+    safety: float = 0.8,
+    radius: float = math.inf,
+    ccd_tolerance: float = 1e-6,
+    dhat_collisions: "ipctk.NormalCollisions | None" = None,
+) -> float:
+    """Largest alpha in [0, 1] (conservative) such that the linear motion from ``x0`` to ``x0 + alpha (x1 -
+    x0)`` of the collision mesh stays intersection free (see :class:`StepBound`).
+
+    Args:
+        mesh: the ipctk collision mesh. x0, x1: (V, 3) Fortran-ordered positions at alpha = 0 and 1.
+        method: :class:`StepBound`. broad_phase: :class:`BroadPhase`.
+        reach: upper bound of how much the distance of any pair can shrink over the whole step (units of x):
+            every point of a primitive moves by at most its vertices' largest displacement along a linear
+            step, so ``2 max|dx|`` for self-contact (``M_g + max(M_g, M_a)`` with a moving obstacle); 0: no
+            motion.
+        dhat: the barrier's activation distance. safety: CONSERVATIVE's fraction of the distance bound.
+        radius: CONSERVATIVE queries pairs within ``max(min(radius, reach), dhat)``; pairs farther apart are
+            covered by the ``min(d_min, r)``.
+        ccd_tolerance: TIGHT_INCLUSION's tolerance.
+        dhat_collisions: the barrier's collision set at ``x0`` (within ``dhat``), reused by CONSERVATIVE when
+            its query radius is ``dhat``.
+    """
+    if reach == 0.0:
+        return 1.0
+    method = StepBound.resolve(method)
+    if method is StepBound.CONSERVATIVE:
+        r = min(radius, reach)
+        if r <= dhat:
+            r = dhat  # the barrier's collision set at x0 already holds every pair closer than dhat
+            d = minimum_distance(mesh, x0, r, broad_phase, dhat_collisions)
+        else:
+            d = minimum_distance(mesh, x0, r, broad_phase)
+        return min(1.0, safety * min(d, r) / reach)
+    cand = ipctk.Candidates()
+    cand.build(mesh, x0, x1, 0.0, broad_phase.make())
+    if cand.empty():
+        return 1.0
+    narrow = (
+        ipctk.AdditiveCCD(conservative_rescaling=0.9)
+        if method is StepBound.ADDITIVE
+        else ipctk.TightInclusionCCD(tolerance=ccd_tolerance, conservative_rescaling=0.8)
+    )
+    return float(cand.compute_collision_free_stepsize(mesh, x0, x1, 0.0, narrow))
+
+
 class _IPCEnergy(torch.autograd.Function):
     """E(x) with the ipctk analytic gradient as backward."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, term: "_IPCContact") -> torch.Tensor:  # noqa: D102
+    def forward(  # noqa: D102
+        ctx: torch.autograd.function.FunctionCtx, x: torch.Tensor, term: "_IPCContact"
+    ) -> torch.Tensor:
         if ctx.needs_input_grad[0]:
             e, g = term._value_grad_np(x)
             ctx.save_for_backward(torch.as_tensor(g.reshape(-1, 3), dtype=x.dtype, device=x.device))
@@ -168,7 +273,9 @@ class _IPCEnergy(torch.autograd.Function):
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_out: torch.Tensor):  # noqa: D102
+    def backward(  # noqa: D102
+        ctx: torch.autograd.function.FunctionCtx, grad_out: torch.Tensor
+    ) -> tuple[torch.Tensor, None]:
         (g,) = ctx.saved_tensors
         return grad_out * g, None
 
@@ -197,6 +304,7 @@ class _IPCContact(EnergyTerm):
         conservative_radius: float | None,
         check_intersections: bool,
         broad_phase: BroadPhase,
+        ccd_tolerance: float = 1e-6,
     ) -> None:
         super().__init__()
         if not (math.isfinite(dhat) and dhat > 0):
@@ -205,6 +313,8 @@ class _IPCContact(EnergyTerm):
             raise InputError(f"step_safety must be in (0, 1), got {step_safety}")
         if conservative_radius is not None and not conservative_radius > 0:
             raise InputError(f"conservative_radius must be positive, got {conservative_radius}")
+        if not ccd_tolerance > 0:
+            raise InputError(f"ccd_tolerance must be positive, got {ccd_tolerance}")
         if areal_density <= 0:
             raise InputError(f"areal_density must be positive, got {areal_density}")
         nv = rest_positions.shape[0]
@@ -212,11 +322,14 @@ class _IPCContact(EnergyTerm):
             raise MeshError(f"faces index vertices outside [0, {nv})")
         self.dhat = float(dhat)
         self.num_vertices = int(num_dynamic)
-        self.step_bound = StepBound(step_bound)
+        self.step_bound = StepBound.resolve(step_bound)
+        self.ccd_tolerance = float(ccd_tolerance)
         self.step_safety = float(step_safety)
-        self.conservative_radius = float(conservative_radius) if conservative_radius is not None else float(dhat)
+        self.conservative_radius = (
+            float(conservative_radius) if conservative_radius is not None else float(dhat)
+        )
         self.check_intersections = bool(check_intersections)
-        self.broad_phase = BroadPhase(broad_phase)
+        self.broad_phase = BroadPhase.resolve(broad_phase)
         self._static = static_positions
         self._mesh = ipctk.CollisionMesh(rest_positions, ipctk.edges(faces), faces)
         if collision_filter is not None:
@@ -252,7 +365,9 @@ class _IPCContact(EnergyTerm):
 
     def _positions(self, x: torch.Tensor) -> np.ndarray:
         if not isinstance(x, torch.Tensor) or x.shape != (self.num_vertices, 3):
-            raise InputError(f"x must be a ({self.num_vertices}, 3) tensor, got {getattr(x, 'shape', type(x))}")
+            raise InputError(
+                f"x must be a ({self.num_vertices}, 3) tensor, got {getattr(x, 'shape', type(x))}"
+            )
         xn = x.detach().to("cpu", torch.float64).numpy()
         if not np.isfinite(xn).all():
             raise InputError("x contains non-finite positions")
@@ -260,8 +375,8 @@ class _IPCContact(EnergyTerm):
             xn = np.concatenate([xn, self._static], axis=0)
         return np.asfortranarray(xn)
 
-    def _bp(self):
-        return _BROAD_PHASES[self.broad_phase]()
+    def _bp(self) -> "ipctk.BroadPhase":
+        return self.broad_phase.make()
 
     def _collisions(self, xn: np.ndarray) -> "ipctk.NormalCollisions":
         if self._cache_x is not None and np.array_equal(self._cache_x, xn):
@@ -314,8 +429,10 @@ class _IPCContact(EnergyTerm):
         the barrier gradient of the pairs within ``dhat``, which does not undo the crossing.
         """
         e, g = self._value_grad_np(x)
-        return (torch.as_tensor(e, dtype=x.dtype, device=x.device),
-                torch.as_tensor(g.reshape(-1, 3), dtype=x.dtype, device=x.device))
+        return (
+            torch.as_tensor(e, dtype=x.dtype, device=x.device),
+            torch.as_tensor(g.reshape(-1, 3), dtype=x.dtype, device=x.device),
+        )
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
         """Block-COO Hessian (N/m) over garment vertices; per-collision PSD projection (clamp) when asked."""
@@ -342,22 +459,22 @@ class _IPCContact(EnergyTerm):
     def max_step(self, x: torch.Tensor, dx: torch.Tensor, method: StepBound | None = None) -> float:
         """Largest alpha in [0, 1] such that ``x + alpha dx`` stays intersection free (barrier finite).
 
-        ``StepBound.CCD`` uses ipctk.compute_collision_free_stepsize (Tight-Inclusion CCD, 0.8 x time of impact).
+        ``StepBound.TIGHT_INCLUSION`` / ``ADDITIVE`` use ipctk's CCD (:func:`collision_free_step`).
         ``StepBound.CONSERVATIVE`` returns ``alpha = safety * min(d_min, r) / (2 M)``, ``M = max_i |dx_i|``:
         along a linear trajectory every point of a triangle or edge moves by a convex combination of its
         vertices' displacements, so by at most ``alpha M``; the distance between two primitives therefore
         shrinks by at most ``2 alpha M`` (``alpha M`` against the static body) and stays
         >= (1 - safety) * d_min > 0. Pairs farther apart than ``r = conservative_radius`` are not queried and
         are covered by the ``min(d_min, r)``; with the default ``r = dhat`` the query reuses the barrier's
-        collision set at ``x`` (nearly free after ``value_and_grad(x)``) but caps one step's largest vertex move
-        at ``safety * dhat / 2``; a larger ``r`` allows longer steps at the cost of a wider query. Since the
-        true time of impact is >= d_min / (2M), this bound is below the CCD
+        collision set at ``x`` (nearly free after ``value_and_grad(x)``) but caps one step's largest vertex
+        move at ``safety * dhat / 2``; a larger ``r`` allows longer steps at the cost of a wider query. Since
+        the true time of impact is >= d_min / (2M), this bound is below the CCD
         step whenever ``safety <= 0.8`` (CCD's rescaling). Assumes ``x`` is intersection free.
 
         Args:
             x: (V, 3) positions (m). dx: (V, 3) step (m). method: overrides ``self.step_bound``.
         """
-        method = self.step_bound if method is None else StepBound(method)
+        method = self.step_bound if method is None else StepBound.resolve(method)
         x0 = self._positions(x)
         if dx.shape != x.shape:
             raise InputError(f"dx must have the shape of x {tuple(x.shape)}, got {tuple(dx.shape)}")
@@ -365,28 +482,26 @@ class _IPCContact(EnergyTerm):
         if not np.isfinite(dxn).all():
             raise InputError("dx contains non-finite values")
         reach = 2.0 * float(np.sqrt((dxn * dxn).sum(1)).max(initial=0.0))
-        if reach == 0.0:
-            return 1.0
-        if method is StepBound.CCD:
-            x1 = x0.copy()
-            x1[: self.num_vertices] += dxn
-            return float(ipctk.compute_collision_free_stepsize(
-                self._mesh, x0, np.asfortranarray(x1), 0.0, self._bp(), ipctk.TightInclusionCCD()))
-        radius = min(self.conservative_radius, reach)
-        if radius <= self.dhat:
-            radius = self.dhat  # the barrier's collision set at x already holds every pair closer than dhat
-            col = self._collisions(x0)
-            d = math.sqrt(max(float(col.compute_minimum_distance(self._mesh, x0)), 0.0)) if len(col) else math.inf
-        else:
-            d = self._min_distance_np(x0, radius)
-        return min(1.0, self.step_safety * min(d, radius) / reach)
-
-    def _min_distance_np(self, xn: np.ndarray, max_distance: float) -> float:
-        col = ipctk.NormalCollisions()
-        col.build(self._mesh, xn, max_distance, 0.0, self._bp())
-        if len(col) == 0:
-            return math.inf
-        return math.sqrt(max(float(col.compute_minimum_distance(self._mesh, xn)), 0.0))
+        x1 = x0.copy()
+        x1[: self.num_vertices] += dxn
+        col = (
+            self._collisions(x0)
+            if method is StepBound.CONSERVATIVE and min(self.conservative_radius, reach) <= self.dhat
+            else None
+        )
+        return collision_free_step(
+            self._mesh,
+            x0,
+            np.asfortranarray(x1),
+            method,
+            self.broad_phase,
+            reach=reach,
+            dhat=self.dhat,
+            safety=self.step_safety,
+            radius=self.conservative_radius,
+            ccd_tolerance=self.ccd_tolerance,
+            dhat_collisions=col,
+        )
 
     def min_distance(self, x: torch.Tensor, max_distance: float | None = None) -> float:
         """Smallest distance (m) between non-adjacent (and non-filtered) primitives, searched within
@@ -394,7 +509,7 @@ class _IPCContact(EnergyTerm):
         r = self.dhat if max_distance is None else float(max_distance)
         if not r > 0:
             raise InputError(f"max_distance must be positive, got {max_distance}")
-        return self._min_distance_np(self._positions(x), r)
+        return minimum_distance(self._mesh, self._positions(x), r, self.broad_phase)
 
     def has_intersections(self, x: torch.Tensor) -> bool:
         """Whether any two (non-filtered) triangles/edges of the collision mesh intersect at ``x``."""
@@ -417,7 +532,8 @@ class _IPCContact(EnergyTerm):
         ge = np.zeros_like(gb)
         ge[: 3 * self.num_vertices] = elastic_grad.detach().to("cpu", torch.float64).numpy().reshape(-1)
         kappa, kmax = ipctk.initial_barrier_stiffness(
-            self._bbox_diagonal, unit.barrier, self.dhat, self._average_mass / self._mean_weight, ge, gb)
+            self._bbox_diagonal, unit.barrier, self.dhat, self._average_mass / self._mean_weight, ge, gb
+        )
         self.max_stiffness = float(kmax)
         self.stiffness = float(kappa)
         return self.stiffness
@@ -428,8 +544,8 @@ class SelfContact(_IPCContact):
 
     Args:
         faces: (F, 3) int triangle vertex indices.
-        rest_positions: (V, 3) reference positions (m) for adjacency and the area weights (a (V, 2) flat pattern
-            is padded with z = 0).
+        rest_positions: (V, 3) reference positions (m) for adjacency and the area weights (a (V, 2) flat
+            pattern is padded with z = 0).
         dhat: barrier activation distance (m).
         stiffness: kappa (Pa); None = IPC's minimum adaptive stiffness for the mean vertex mass
             (``areal_density`` x mean barycentric vertex area), refine it with :meth:`calibrate_stiffness`.
@@ -441,6 +557,7 @@ class SelfContact(_IPCContact):
         conservative_radius: distance (m) up to which the conservative step queries pairs; default dhat.
         check_intersections: report +inf energy when triangles cross (an extra ipctk query per evaluation).
         broad_phase: ipctk broad phase.
+        ccd_tolerance: tolerance of the TIGHT_INCLUSION step bound.
     """
 
     name = "self_contact"
@@ -460,6 +577,7 @@ class SelfContact(_IPCContact):
         conservative_radius: float | None = None,
         check_intersections: bool = True,
         broad_phase: BroadPhase = BroadPhase.LBVH,
+        ccd_tolerance: float = 1e-6,
     ) -> None:
         f = _np_faces(faces, "faces")
         rest = _np_points(rest_positions, "rest_positions")
@@ -467,11 +585,26 @@ class SelfContact(_IPCContact):
             raise InputError(f"num_vertices={num_vertices} but rest_positions has {rest.shape[0]} rows")
         filt = None
         if seam_pairs is not None:
-            pairs = seam_exclusion_pairs(np.asarray(ipctk.edges(f)), _np_seams(seam_pairs, rest.shape[0]),
-                                         rest.shape[0])
+            pairs = seam_exclusion_pairs(
+                np.asarray(ipctk.edges(f)), _np_seams(seam_pairs, rest.shape[0]), rest.shape[0]
+            )
             filt = _sparse_false_filter(pairs) if pairs.shape[0] else None
-        super().__init__(f, rest, rest.shape[0], None, dhat, stiffness, areal_density, filt, step_bound,
-                         step_safety, conservative_radius, check_intersections, broad_phase)
+        super().__init__(
+            f,
+            rest,
+            rest.shape[0],
+            None,
+            dhat,
+            stiffness,
+            areal_density,
+            filt,
+            step_bound,
+            step_safety,
+            conservative_radius,
+            check_intersections,
+            broad_phase,
+            ccd_tolerance,
+        )
 
 
 class BodyMeshContact(_IPCContact):
@@ -511,6 +644,7 @@ class BodyMeshContact(_IPCContact):
         conservative_radius: float | None = None,
         check_intersections: bool = True,
         broad_phase: BroadPhase = BroadPhase.LBVH,
+        ccd_tolerance: float = 1e-6,
     ) -> None:
         gf = _np_faces(garment_faces, "garment_faces")
         bf = _np_faces(body_faces, "body_faces")
@@ -531,5 +665,368 @@ class BodyMeshContact(_IPCContact):
                     filt = filt & _sparse_false_filter(pairs)
         else:
             filt = ipctk.make_vertex_patches_filter(np.r_[np.zeros(nv, np.int32), np.ones(nb, np.int32)])
-        super().__init__(faces, rest, nv, np.ascontiguousarray(bv), dhat, stiffness, areal_density, filt,
-                         step_bound, step_safety, conservative_radius, check_intersections, broad_phase)
+        super().__init__(
+            faces,
+            rest,
+            nv,
+            np.ascontiguousarray(bv),
+            dhat,
+            stiffness,
+            areal_density,
+            filt,
+            step_bound,
+            step_safety,
+            conservative_radius,
+            check_intersections,
+            broad_phase,
+            ccd_tolerance,
+        )
+
+
+@dataclass
+class ContactStats:
+    """Diagnostics of one contact evaluation: pairs within dhat and the minimum distance (units of x)."""
+
+    num_pairs: int
+    min_distance: float
+
+
+class MovingObstacleContact:
+    """IPC barrier (ipctk) over garment-self and garment-obstacle pairs, the obstacle moving with a parameter
+    t.
+
+    The obstacle (an avatar) is ``shrunk + t (full - shrunk)`` (retargeting's inflation), or fixed at ``full``
+    when ``obstacle_shrunk`` is None. One ipctk CollisionMesh holds the garment (first N vertices) and the
+    obstacle; obstacle-obstacle pairs are filtered out (it may be messy: self-intersecting, degenerate). The
+    energy is ``kappa * sum_k b(d_k)`` with ipctk's barrier on squared distances,
+    ``b = -(d^2 - dhat^2)^2 ln(d^2 / dhat^2)`` (no area weighting), and kappa (:attr:`stiffness`) chosen
+    adaptively (:meth:`initial_stiffness`, :meth:`update_stiffness`). Lengths are in the units of ``x``.
+
+    This is the numpy-level machinery (positions in, floats and arrays out); the retargeting's
+    :class:`~torchgarment.retarget.objectives.Contact` is the :class:`EnergyTerm` built on it.
+
+    Args:
+        garment_rest: (N, 3) garment rest positions (adjacency). garment_faces: (F, 3) int.
+        obstacle_full: (A, 3) obstacle at t = 1. obstacle_faces: (G, 3) int.
+        obstacle_shrunk: (A, 3) obstacle at t = 0, or None (fixed obstacle).
+        dhat: activation distance. stiffness: initial kappa.
+        broad_phase: :class:`BroadPhase` (or an ipctk class name such as "LBVH").
+        cull_radius: when given (>= 4 dhat), the collision mesh keeps only the obstacle faces that may lie
+            within
+            this distance of the garment (see :meth:`_recull`), re-culled whenever the garment or the obstacle
+            has moved by half of it; every query stays exact because dropped faces are farther than
+            cull_radius / 2 > dhat. :meth:`prepare_step` makes a step's CCD valid.
+        ccd_tolerance: tolerance of the TIGHT_INCLUSION step bound.
+    """
+
+    def __init__(
+        self,
+        garment_rest: torch.Tensor,
+        garment_faces: torch.Tensor,
+        obstacle_full: torch.Tensor,
+        obstacle_faces: torch.Tensor,
+        obstacle_shrunk: torch.Tensor | None,
+        dhat: float,
+        stiffness: float = 1.0,
+        broad_phase: BroadPhase | str = BroadPhase.LBVH,
+        cull_radius: float | None = None,
+        ccd_tolerance: float = 1e-3,
+    ) -> None:
+        if not (math.isfinite(dhat) and dhat > 0):
+            raise InputError(f"dhat must be positive, got {dhat}")
+        if cull_radius is not None and not cull_radius >= 4 * dhat:
+            raise InputError(f"cull_radius must be at least 4 dhat = {4 * dhat:.3g}, got {cull_radius}")
+        self.uses_t = obstacle_shrunk is not None
+        n = garment_rest.shape[0]
+        self._gf = garment_faces.cpu().numpy().astype(np.int32)
+        self._af_all = obstacle_faces.cpu().numpy().astype(np.int32)
+        full = obstacle_full.detach().to("cpu", torch.float64).numpy()
+        self.num_garment = int(n)
+        self.dhat = float(dhat)
+        self.cull_radius = None if cull_radius is None else float(cull_radius)
+        self.ccd_tolerance = float(ccd_tolerance)
+        self._garment_rest = garment_rest.detach().to("cpu", torch.float64).numpy()
+        self._full_all = full
+        self._delta_all = (
+            (full - obstacle_shrunk.detach().to("cpu", torch.float64).numpy())
+            if self.uses_t
+            else np.zeros_like(full)
+        )
+        self._shrunk_all = full - self._delta_all
+        #: largest obstacle vertex displacement per unit of t
+        self.delta_max = float(np.sqrt((self._delta_all**2).sum(1)).max(initial=0.0))
+        self.broad_phase = BroadPhase.resolve(broad_phase)
+        self.stiffness = float(stiffness)
+        self.max_stiffness = float(stiffness)
+        self.bbox_diagonal = float(
+            ipctk.world_bbox_diagonal_length(np.concatenate([self._garment_rest, full]))
+        )
+        self.last_stats = ContactStats(0, math.inf)
+        self.num_culls = 0
+        self._ref_x: np.ndarray | None = None
+        self._ref_t = 0.0
+        self._set_subset(np.arange(full.shape[0]), self._af_all)
+
+    # ------------------------------------------------------------------ obstacle culling
+    def _set_subset(self, verts: np.ndarray, faces: np.ndarray) -> None:
+        """Use obstacle vertices ``verts`` and faces ``faces`` (indices into all obstacle vertices)."""
+        n = self.num_garment
+        remap = np.full(self._full_all.shape[0], -1, dtype=np.int64)
+        remap[verts] = np.arange(verts.shape[0])
+        af = remap[faces].astype(np.int32).reshape(-1, 3)
+        self._full = self._full_all[verts]
+        self.delta = self._delta_all[verts]
+        self._shrunk = self._shrunk_all[verts]
+        allf = np.asfortranarray(np.concatenate([self._gf, af + n]), dtype=np.int32)
+        rest = np.asfortranarray(np.concatenate([self._garment_rest, self._full]))
+        self.mesh = ipctk.CollisionMesh(rest, ipctk.edges(allf), allf)
+        self.mesh.can_collide = ipctk.make_static_obstacle_filter(n)
+        self._cache_key: bytes | None = None
+        self._cache_col = None
+
+    def _motion(self, xn: np.ndarray, t: float) -> float:
+        """Largest garment + obstacle displacement since the last cull (units of x)."""
+        if self._ref_x is None:
+            return math.inf
+        return (
+            float(np.sqrt(((xn - self._ref_x) ** 2).sum(1)).max(initial=0.0))
+            + abs(t - self._ref_t) * self.delta_max
+        )
+
+    def _recull(self, xn: np.ndarray, t: float) -> None:
+        """Keep the obstacle faces that may come within ``cull_radius`` of the garment at (xn, t).
+
+        A point p of an obstacle face F and a point q of a garment triangle T satisfy
+        ``|p - q| >= |v - w| - |p - v| - |q - w| >= dnear(v) - L_F - L_T`` for every vertex v of F and any
+        vertex w of T (dnear the distance from v to the nearest garment vertex; the longest edge L of a
+        triangle bounds
+        the distance from a vertex to any point of it). F is dropped only when
+        ``max_v dnear(v) - L_F - L_g > cull_radius`` (L_g the longest garment edge), so every dropped face is
+        farther than cull_radius from the garment.
+        """
+        from scipy.spatial import cKDTree
+
+        r = self.cull_radius
+        a = self._shrunk_all + t * self._delta_all if self.uses_t else self._full_all
+        dnear, _ = cKDTree(xn).query(a, k=1)
+        fa = a[self._af_all]  # (G, 3, 3)
+        le_f = np.sqrt(((fa - fa[:, [1, 2, 0]]) ** 2).sum(-1)).max(1)
+        ga = xn[self._gf]
+        le_g = float(np.sqrt(((ga - ga[:, [1, 2, 0]]) ** 2).sum(-1)).max(initial=0.0))
+        keep = dnear[self._af_all].max(1) - le_f - le_g <= r
+        faces = self._af_all[keep]
+        self._set_subset(np.unique(faces.reshape(-1)), faces)
+        self._ref_x, self._ref_t = xn.copy(), float(t)
+        self.num_culls += 1
+
+    def _ensure(self, xn: np.ndarray, t: float) -> None:
+        """Re-cull when the motion since the last cull could bring a dropped face within cull_radius / 2."""
+        if self.cull_radius is not None and self._motion(xn, t) > 0.5 * self.cull_radius:
+            self._recull(xn, t)
+
+    def prepare_step(self, x: torch.Tensor | np.ndarray, t: float, dx: np.ndarray, dt: float) -> float:
+        """Make the culled mesh valid along ``(x + a dx, t + a dt)`` and return the largest valid ``a <= 1``.
+
+        Along the returned range every dropped face stays farther than cull_radius / 2 from the garment, so a
+        CCD or distance query on the culled mesh is exact for the segment. Without culling returns 1.
+        """
+        if self.cull_radius is None:
+            return 1.0
+        xn = _garment_np(x)
+        step = float(np.sqrt((dx * dx).sum(1)).max(initial=0.0)) + abs(dt) * self.delta_max
+        budget = 0.5 * self.cull_radius
+        if self._motion(xn, t) + step > budget:
+            self._recull(xn, t)
+        return 1.0 if step <= budget else budget / step
+
+    # ------------------------------------------------------------------ state
+    @property
+    def stiffness(self) -> float:
+        """kappa (energy units of the other terms per barrier unit)."""
+        return self._kappa
+
+    @stiffness.setter
+    def stiffness(self, value: float) -> None:
+        if not (math.isfinite(value) and value > 0):
+            raise InputError(f"barrier stiffness must be positive, got {value}")
+        self._kappa = float(value)
+        self._potential = ipctk.BarrierPotential(self.dhat, self._kappa, False)
+
+    def positions(self, x: torch.Tensor | np.ndarray, t: float, ensure: bool = True) -> np.ndarray:
+        """(N + A', 3) collision-mesh positions (Fortran order) for garment ``x`` (N, 3) and parameter ``t``.
+
+        With culling the obstacle part holds the kept vertices; ``ensure`` re-culls first when needed.
+        """
+        xn = _garment_np(x)
+        if ensure:
+            self._ensure(xn, float(t))
+        return np.asfortranarray(np.concatenate([xn, self.obstacle_at(t)]))
+
+    def obstacle_at(self, t: float) -> np.ndarray:
+        """(A', 3) positions of the obstacle vertices in the collision mesh at ``t``."""
+        return self._full if not self.uses_t or float(t) == 1.0 else self._shrunk + float(t) * self.delta
+
+    def collisions(self, xa: np.ndarray) -> "ipctk.NormalCollisions":
+        """Pairs closer than dhat at collision-mesh positions ``xa`` (cached on the last positions)."""
+        key = xa.tobytes()
+        if self._cache_key == key:
+            return self._cache_col
+        col = ipctk.NormalCollisions()
+        col.build(self.mesh, xa, self.dhat, 0.0, self.broad_phase.make())
+        self._cache_key, self._cache_col = key, col
+        return col
+
+    # ------------------------------------------------------------------ energy and derivatives
+    def value(self, x: torch.Tensor | np.ndarray, t: float) -> float:
+        """Energy only (+inf when two primitives touch)."""
+        xa = self.positions(x, t)
+        return _energy_or_inf(self._potential(self.collisions(xa), self.mesh, xa))
+
+    def value_grad(self, x: torch.Tensor | np.ndarray, t: float) -> tuple[float, np.ndarray, float]:
+        """Energy, gradient (N, 3) in x and derivative in t; records :attr:`last_stats`."""
+        xa = self.positions(x, t)
+        col = self.collisions(xa)
+        e = _energy_or_inf(self._potential(col, self.mesh, xa))
+        g = np.asarray(self._potential.gradient(col, self.mesh, xa)).reshape(-1, 3)
+        n = self.num_garment
+        gt = float((g[n:] * self.delta).sum()) if self.uses_t else 0.0
+        self.last_stats = ContactStats(
+            len(col), minimum_distance(self.mesh, xa, self.dhat, self.broad_phase, col)
+        )
+        return e, g[:n], gt
+
+    def unit_barrier_gradient(self, x: torch.Tensor | np.ndarray, t: float) -> np.ndarray:
+        """(3N + 1,) gradient of the barrier sum with kappa = 1 over ``[x.flatten(), t]``."""
+        xa = self.positions(x, t)
+        g = np.asarray(
+            ipctk.BarrierPotential(self.dhat, 1.0, False).gradient(self.collisions(xa), self.mesh, xa)
+        ).reshape(-1, 3)
+        n = self.num_garment
+        gt = float((g[n:] * self.delta).sum()) if self.uses_t else 0.0
+        return np.r_[g[:n].reshape(-1), gt]
+
+    def hessian(
+        self, x: torch.Tensor | np.ndarray, t: float, project_psd: bool = True
+    ) -> tuple[sp.csr_matrix, np.ndarray, float]:
+        """Hessian over ``[x.flatten(), t]`` from ipctk's per-pair Hessians (PSD-clamped when
+        ``project_psd``).
+
+        Returns:
+            ``(h_xx, h_xt, h_tt)``: the (3N, 3N) CSR block, the (3N,) coupling column (zero when the obstacle
+            is fixed) and the t-t entry.
+        """
+        xa = self.positions(x, t)
+        method = ipctk.PSDProjectionMethod.CLAMP if project_psd else ipctk.PSDProjectionMethod.NONE
+        h = sp.csr_matrix(self._potential.hessian(self.collisions(xa), self.mesh, xa, method))
+        n3 = 3 * self.num_garment
+        hxx = h[:n3, :n3]
+        if not self.uses_t:
+            return hxx, np.zeros(n3), 0.0
+        d = self.delta.reshape(-1)
+        hxt = np.asarray(h[:n3, n3:] @ d).reshape(-1)
+        htt = float(d @ (h[n3:, n3:] @ d))
+        return hxx, hxt, htt
+
+    # ------------------------------------------------------------------ stiffness
+    def initial_stiffness(
+        self, x: torch.Tensor | np.ndarray, t: float, other_grad: np.ndarray, average_mass: float
+    ) -> float:
+        """IPC's adaptive initial barrier stiffness (ipctk.initial_barrier_stiffness): balances the barrier
+        gradient against ``other_grad`` (3N + 1,), the gradient of all other terms over ``[x, t]``; sets
+        :attr:`stiffness` and :attr:`max_stiffness` and returns the stiffness."""
+        gb = self.unit_barrier_gradient(x, t)
+        bar = ipctk.BarrierPotential(self.dhat, 1.0, False)
+        kappa, kmax = ipctk.initial_barrier_stiffness(
+            self.bbox_diagonal,
+            bar.barrier,
+            self.dhat,
+            float(average_mass),
+            np.asarray(other_grad, np.float64),
+            np.asarray(gb, np.float64),
+        )
+        self.max_stiffness = float(kmax)
+        self.stiffness = float(kappa)
+        return self.stiffness
+
+    def update_stiffness(
+        self, prev_min_distance: float, min_distance: float, stiffness_distance: float
+    ) -> bool:
+        """IPC's stiffness update (ipctk.update_barrier_stiffness): doubles kappa, up to its maximum, while
+        the minimum distance decreases below ``stiffness_distance * dhat``; returns whether kappa changed."""
+        if not (math.isfinite(min_distance) and math.isfinite(prev_min_distance)):
+            return False
+        kappa = ipctk.update_barrier_stiffness(
+            prev_min_distance,
+            min_distance,
+            max(self.max_stiffness, self.stiffness),
+            self.stiffness,
+            self.bbox_diagonal,
+            stiffness_distance * self.dhat / self.bbox_diagonal,
+        )
+        if kappa == self.stiffness:
+            return False
+        self.stiffness = kappa
+        return True
+
+    # ------------------------------------------------------------------ queries
+    def max_step(
+        self, x: torch.Tensor | np.ndarray, t: float, dx: np.ndarray, dt: float, method: StepBound | str
+    ) -> float:
+        """Largest alpha in [0, 1] (conservative) such that ``(x + a dx, t + a dt)`` stays intersection free.
+
+        Args:
+            x: (N, 3) garment; t: parameter; dx: (N, 3) step; dt: step of t. method: :class:`StepBound`
+            (CONSERVATIVE queries pairs within ``max(dhat, reach)``, safety 0.8).
+        """
+        x0 = _garment_np(x)
+        cap = self.prepare_step(x0, t, dx, dt)
+        if cap < 1.0:
+            return cap * self.max_step(x0, t, cap * dx, cap * dt, method)
+        a0 = self.obstacle_at(t)
+        da = self.delta * dt if self.uses_t else np.zeros_like(a0)
+        mg = float(np.sqrt((dx * dx).sum(1)).max(initial=0.0))
+        ma = float(np.sqrt((da * da).sum(1)).max(initial=0.0))
+        X0 = np.asfortranarray(np.concatenate([x0, a0]))
+        X1 = np.asfortranarray(np.concatenate([x0 + dx, a0 + da]))
+        return collision_free_step(
+            self.mesh,
+            X0,
+            X1,
+            method,
+            self.broad_phase,
+            reach=mg + max(mg, ma),
+            dhat=self.dhat,
+            safety=0.8,
+            ccd_tolerance=self.ccd_tolerance,
+        )
+
+    def is_step_free(self, x: torch.Tensor | np.ndarray, t0: float, t1: float, min_distance: float) -> bool:
+        """Tight-Inclusion CCD (tolerance 1e-6): does moving the obstacle from ``t0`` to ``t1`` with the
+        garment fixed keep every pair at least ``min_distance`` apart?"""
+        x0 = self.positions(x, t0)
+        x1 = self.positions(x, t1)
+        return bool(
+            ipctk.is_step_collision_free(
+                self.mesh,
+                x0,
+                x1,
+                float(min_distance),
+                self.broad_phase.make(),
+                ipctk.TightInclusionCCD(tolerance=1e-6, conservative_rescaling=0.8),
+            )
+        )
+
+    def min_distance(self, x: torch.Tensor | np.ndarray, t: float, max_distance: float) -> float:
+        """Smallest garment-self / garment-obstacle distance within ``max_distance`` (+inf if none)."""
+        return minimum_distance(self.mesh, self.positions(x, t), float(max_distance), self.broad_phase)
+
+    def has_intersections(self, x: torch.Tensor | np.ndarray, t: float) -> bool:
+        """Whether garment triangles cross each other or the obstacle (obstacle-obstacle crossings
+        ignored)."""
+        xa = self.positions(x, t)  # may re-cull: take self.mesh afterwards
+        return bool(ipctk.has_intersections(self.mesh, xa, self.broad_phase.make()))
+
+
+def _garment_np(x: torch.Tensor | np.ndarray) -> np.ndarray:
+    """(N, 3) float64 numpy copy-free view of garment positions."""
+    return x.detach().to("cpu", torch.float64).numpy() if isinstance(x, torch.Tensor) else np.asarray(x)

@@ -1,28 +1,38 @@
-"""Projected Newton with a sparse direct solver and a barrier-aware backtracking line search.
+"""Projected Newton with a sparse direct solver, a pluggable step bound and a backtracking line search.
+
+The one Newton loop of the package: the quasistatic drape (:func:`~torchgarment.sim.solvers.solve`) and the
+garment retargeting (:func:`~torchgarment.retarget.solver.projected_newton`) both run :func:`solve_newton`;
+what differs between them is passed in :class:`NewtonOptions` (which unknowns are free, how the step is
+bounded, the regularization policy, extra stopping rules, a hook after every accepted step).
 
 Each iteration assembles the Hessian from ``model.hessian_blocks(x, project_psd=True)`` (per-element blocks
 projected to positive semi-definite) into a scipy CSR matrix on the CPU, solves ``H dx = -g`` with SuperLU,
-caps the step at ``step_fraction * model.max_step(x, dx)`` when the full step would make a barrier infinite, and
-backtracks until the Armijo condition ``E(x + a dx) <= E(x) + c a g.dx`` holds. When the factorization fails or
-the solution is not a descent direction, ``lambda * I`` is added (``lambda`` growing tenfold per retry).
+caps the step at ``step_fraction * model.max_step(x, dx)`` when the full step would make a barrier infinite
+(or at ``NewtonOptions.step_bound.max_step(x, dx)``, e.g. retargeting's CCD bound), and
+backtracks (:func:`armijo_backtracking`) until the Armijo condition ``E(x + a dx) <= E(x) + c a g.dx`` holds.
+When the factorization fails or the solution is not a descent direction, ``lambda * I`` is added (``lambda``
+growing tenfold per retry).
 
 When the line search fails (the projected Hessian is a poor model: dropped negative-curvature parts of
-compressed springs or of the barrier, a non-smooth SDF), the step is not abandoned: the direction is recomputed
-with a Levenberg damping ``(H + lambda diag(H)) dx = -g`` (``lambda`` from ``levenberg_start``, tenfold per retry,
-up to :data:`LEVENBERG_RETRIES` retries), which bends the step towards scaled gradient descent and shortens it. A
-damping that worked is kept (divided by ten per successful iteration) so that the next iterations start from it.
-The solve stops as stalled only when every damped direction also fails.
+compressed springs or of the barrier, a non-smooth SDF), the step is not abandoned: the direction is
+recomputed with a Levenberg damping ``(H + lambda diag(H)) dx = -g`` (``lambda`` from ``levenberg_start``,
+tenfold per retry, up to :data:`LEVENBERG_RETRIES` retries), which bends the step towards scaled gradient
+descent and shortens it. A damping that worked is kept (divided by ten per successful iteration) so that the
+next iterations start from it. The solve stops as stalled only when every damped direction also fails.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Protocol
 
 import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
-from torchgarment.errors import SingularMatrixError
-from torchgarment.linalg import SparseBackend, factorize
+from torchgarment.errors import InputError, SingularMatrixError
+from torchgarment.linalg import SparseBackend, armijo_backtracking, factorize
 from torchgarment.sim.solvers.common import (
     Callback,
     CSRAssembler,
@@ -37,7 +47,6 @@ from torchgarment.sim.solvers.common import (
     evaluate,
     tolerance,
 )
-
 
 LEVENBERG_START = 1e-4
 """First Levenberg damping ``lambda`` (relative to the Hessian diagonal) after a failed line search."""
@@ -61,33 +70,121 @@ def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, cache: FactorCache
     return y
 
 
+@dataclass
+class NewtonStep:
+    """One accepted Newton step, as passed to :attr:`NewtonOptions.after_step`.
+
+    Attributes:
+        iteration: 1-based iteration. energy: energy after the step. grad_norm: gradient norm over the free
+        unknowns before the step. alpha: accepted step. alpha_max: the step bound it started from.
+        displacement: the step bound's displacement measure of the accepted step (units of x).
+    """
+
+    iteration: int
+    energy: float
+    grad_norm: float
+    alpha: float
+    alpha_max: float
+    displacement: float
+
+
+class StepLimiter(Protocol):
+    """A pluggable step bound (see :attr:`NewtonOptions.step_bound`)."""
+
+    def max_step(self, x: torch.Tensor, dx: torch.Tensor) -> float:
+        """Largest admissible ``alpha >= 0`` of the step ``x + alpha dx`` (any safety fraction applied)."""
+        ...
+
+    def displacement(self, dx: torch.Tensor) -> float:
+        """The largest displacement of the step ``dx`` (for ``step_tol`` and the statistics)."""
+        ...
+
+
+@dataclass
+class NewtonOptions:
+    """What a caller of :func:`solve_newton` can change beyond :class:`SolveSettings` (defaults: the drape's
+    projected Newton).
+
+    Attributes:
+        free: (V, 3) bool mask of the unknowns that move (others keep their value in ``x0``); None: all.
+        step_bound: a :class:`StepLimiter`; None: ``step_fraction * model.max_step(x, dx)`` when below 1
+            (the barrier's bound, draping).
+        regularize_first: factorize ``H + lambda I`` from the start (``lambda = settings.regularization``
+            times the mean Hessian diagonal) instead of trying ``H`` alone first.
+        regularization_growth: factor applied to ``lambda`` per retry (> 1).
+        gradient_fallback: when no regularized factorization gives a descent direction, take the scaled
+            gradient ``-g / mean(diag H)`` instead of raising :class:`NonFiniteError`.
+        levenberg: after a failed line search retry with Levenberg-damped directions (module docstring);
+            False: stop at once.
+        value_only_line_search: the line search evaluates energies only (``model.energy``) and the gradient
+            once after the step is accepted; False: ``model.value_and_grad`` per trial (a non-finite energy
+            raises).
+        armijo_slack: the Armijo test tolerates ``armijo_slack * eps * |E|`` (rounding of large energies).
+        step_tol: stop (not converged) when the accepted step's displacement is <= this (> 0); 0 disables.
+        energy_tol: stop (converged) when the energy fell by less than ``energy_tol * |E|`` over the last
+            ``energy_window`` steps; 0 disables.
+        after_step: ``after_step(x, step) -> changed``, called after every accepted step (before the
+            convergence test); returning True says the model changed (e.g. a barrier stiffness update), and
+            the energy and
+            gradient are evaluated again.
+    """
+
+    free: torch.Tensor | None = None
+    step_bound: StepLimiter | None = None
+    regularize_first: bool = False
+    regularization_growth: float = 10.0
+    gradient_fallback: bool = False
+    levenberg: bool = True
+    value_only_line_search: bool = False
+    armijo_slack: float = 16.0
+    step_tol: float = 0.0
+    energy_tol: float = 0.0
+    energy_window: int = 3
+    after_step: Callable[[torch.Tensor, NewtonStep], bool] | None = None
+
+    def __post_init__(self) -> None:
+        if not self.regularization_growth > 1.0:
+            raise InputError(
+                f"NewtonOptions.regularization_growth must be > 1, got {self.regularization_growth}"
+            )
+        if not (self.armijo_slack >= 0 and self.step_tol >= 0 and self.energy_tol >= 0):
+            raise InputError("NewtonOptions: armijo_slack, step_tol and energy_tol must be >= 0")
+        if self.energy_window < 1:
+            raise InputError(f"NewtonOptions.energy_window must be >= 1, got {self.energy_window}")
+
+
 def newton_direction(
     h: scipy.sparse.csr_matrix, g: np.ndarray, settings: SolveSettings, iteration: int,
-    cache: FactorCache | None = None,
+    cache: FactorCache | None = None, options: NewtonOptions | None = None,
 ) -> tuple[np.ndarray, int]:
     """A descent direction ``dx`` solving ``(H + lambda I) dx = -g``, regularizing when needed.
 
     Args:
-        h: (3V, 3V) Hessian (CSR, float64).
-        g: (3V,) gradient (float64).
+        h: (n, n) Hessian (CSR, float64).
+        g: (n,) gradient (float64).
         settings: solve settings (regularization, max_regularizations).
         iteration: for error messages.
         cache: with one, first try CG preconditioned by the cached factorization
             (``settings.reuse_factorization``), and keep every fresh factorization in it.
+        options: the regularization policy (``regularize_first``, ``regularization_growth``,
+            ``gradient_fallback``); None: the defaults.
 
     Returns:
-        ``(dx, retries)``: the direction (3V,) and how many regularized factorizations were needed.
+        ``(dx, retries)``: the direction (n,) and how many regularized factorizations were needed.
 
     Raises:
-        NonFiniteError: no descent direction was found after ``max_regularizations`` retries.
+        NonFiniteError: no descent direction was found after ``max_regularizations`` retries (unless
+            ``gradient_fallback``).
     """
+    o = options or NewtonOptions()
     if cache is not None:
         dx = cache.solve(h, -g, settings.pcg_rtol, settings.pcg_max_iterations)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, 0
-    dx = sparse_solve(h, -g, cache)
-    if dx is not None and float(g @ dx) < 0.0:
-        return dx, 0
+    if not o.regularize_first:
+        dx = sparse_solve(h, -g, cache)
+        if dx is not None and float(g @ dx) < 0.0:
+            return dx, 0
     scale = float(np.abs(h.diagonal()).mean()) or 1.0
     eye = scipy.sparse.identity(h.shape[0], format="csr", dtype=np.float64)
     lam = settings.regularization * scale
@@ -95,9 +192,12 @@ def newton_direction(
         dx = sparse_solve((h + lam * eye).tocsr(), -g, cache, lam)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, retry
-        lam *= 10.0
+        lam *= o.regularization_growth
+    if o.gradient_fallback:
+        return -g / scale, settings.max_regularizations  # still a descent direction
     raise NonFiniteError(
-        f"Newton: no descent direction at solver iteration {iteration} even with lambda={lam / 10.0:.3g} * I"
+        f"Newton: no descent direction at solver iteration {iteration} even with "
+        f"lambda={lam / o.regularization_growth:.3g} * I"
     )
 
 
@@ -107,29 +207,64 @@ def solve_newton(
     settings: SolveSettings,
     max_iterations: int,
     callback: Callback | None = None,
+    options: NewtonOptions | None = None,
 ) -> tuple[torch.Tensor, SolveInfo]:
     """Minimize the model's energy from ``x0`` with projected Newton.
 
     Args:
-        model: the simulation model (see :class:`~torchgarment.sim.solvers.common.SolverModel`).
+        model: the simulation model (see :class:`~torchgarment.sim.solvers.common.SolverModel`; with
+            ``options.value_only_line_search`` it also needs ``energy(x)``). A model may also provide
+            ``hessian_block_parts(x, project_psd) -> list[HessianBlocks]`` (the Hessian's blocks in groups
+            whose sum is ``hessian_blocks``), assembled group by group.
         x0: (V, 3) initial positions (metres); must be feasible (all barriers finite).
         settings: solver settings (validated by the caller).
         max_iterations: iteration budget (Newton steps).
         callback: called after every iteration as ``callback(k, x, |g|, E)``; returning True stops.
+        options: :class:`NewtonOptions` (free unknowns, step bound, regularization policy, extra stops).
 
     Returns:
-        ``(x, info)``: the final positions (V, 3) and a :class:`SolveInfo`.
+        ``(x, info)``: the final positions (V, 3) and a :class:`SolveInfo` (``message`` is "converged",
+        "max iterations reached", "stopped by callback", "small step", "energy stalled" or starts with
+        "line search failed").
     """
+    o = options or NewtonOptions()
     timer = Timer()
     info = SolveInfo(solver=SolverKind.NEWTON.value)
-    slack = 16.0 * torch.finfo(x0.dtype).eps
+    eps = torch.finfo(x0.dtype).eps
     assembler = CSRAssembler(model.num_vertices)
+    part_assemblers: list[CSRAssembler] = []
+    block_parts = getattr(model, "hessian_block_parts", None)
+
+    def assemble_hessian(x: torch.Tensor) -> scipy.sparse.csr_matrix:
+        """The Hessian as CSR; a model with ``hessian_block_parts`` (blocks grouped by how often their
+        sparsity changes) gets one cached assembler per group, so a changing contact pattern does not
+        re-sort the rest."""
+        if block_parts is None:
+            return assembler.assemble(model.hessian_blocks(x, project_psd=settings.project_psd))
+        parts = block_parts(x, project_psd=settings.project_psd)
+        while len(part_assemblers) < len(parts):
+            part_assemblers.append(CSRAssembler(model.num_vertices))
+        mats = [asm.assemble(b) for asm, b in zip(part_assemblers, parts)]
+        h = mats[0]
+        for m in mats[1:]:
+            h = h + m
+        return h.tocsr()
+
+    free = None if o.free is None else o.free.detach().to("cpu", torch.bool).numpy().reshape(-1)
+
+    def free_norm(g: torch.Tensor, gn: float) -> float:
+        if free is None:
+            return gn
+        g64 = g.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
+        return float(np.linalg.norm(g64[free]))
 
     with torch.no_grad():
         x = x0.detach().clone()
         e, g, gn = evaluate(model, x, 0, "initial state")
+        gn = free_norm(g, gn)
         info.residual_history.append(gn)
         info.energy_history.append(e)
+        step_energies = [e]
         tol = tolerance(settings, gn)
         info.message = "max iterations reached"
         if gn <= tol:
@@ -140,38 +275,68 @@ def solve_newton(
         cache = FactorCache() if settings.reuse_factorization else None
         while not info.converged and k < max_iterations:
             k += 1
-            h = assembler.assemble(model.hessian_blocks(x, project_psd=settings.project_psd))
+            h = assemble_hessian(x)
             if not np.all(np.isfinite(h.data)):
                 raise NonFiniteError(f"model returned a non-finite Hessian at solver iteration {k}")
             g64 = g.detach().to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
+            if free is not None:
+                h = h[free][:, free]
+                g64 = g64[free]
             diag = np.maximum(np.abs(h.diagonal()), 1e-12 * float(np.abs(h.diagonal()).max() or 1.0))
             accepted = False
             trial = 0
-            while not accepted and trial <= LEVENBERG_RETRIES:
+            while not accepted and trial <= (LEVENBERG_RETRIES if o.levenberg else 0):
                 hk = h if damping == 0.0 else (h + scipy.sparse.diags(damping * diag, format="csr")).tocsr()
-                dx64, retries = newton_direction(hk, g64, settings, k, cache if damping == 0.0 else None)
+                dxf, retries = newton_direction(hk, g64, settings, k, cache if damping == 0.0 else None, o)
                 info.restarts += retries
-                slope = float(g64 @ dx64)  # < 0
+                slope = float(g64 @ dxf)  # < 0
+                if free is None:
+                    dx64 = dxf
+                else:
+                    dx64 = np.zeros(free.shape[0])
+                    dx64[free] = dxf
                 dx = torch.from_numpy(dx64).to(device=x.device, dtype=x.dtype).reshape(x.shape)
-                a = checked_max_step(model, x, dx, k)
-                a = 1.0 if a >= 1.0 else settings.step_fraction * a
-                for _ in range(settings.max_backtracks):
+                if o.step_bound is None:
+                    a_max = checked_max_step(model, x, dx, k)
+                    a_max = 1.0 if a_max >= 1.0 else settings.step_fraction * a_max
+                else:
+                    a_max = float(o.step_bound.max_step(x, dx))
+                trial_state: dict = {}
+
+                def energy_at(a: float, dx: torch.Tensor = dx, state: dict = trial_state) -> float:
                     xt = x + a * dx
-                    et, gt, gnt = evaluate(model, xt, k, f"line search, step {a:.3g}")
-                    if et <= e + settings.armijo_c * a * slope + slack * abs(e):
-                        accepted = True
-                        break
-                    a *= settings.backtrack
+                    state["x"] = xt
+                    if o.value_only_line_search:
+                        return float(model.energy(xt))
+                    state["e_g_gn"] = evaluate(model, xt, k, f"line search, step {a:.3g}")
+                    return state["e_g_gn"][0]
+
+                if a_max > 0.0:
+                    a, et, accepted = armijo_backtracking(
+                        energy_at, e, slope, a_max, armijo_c=settings.armijo_c, backtrack=settings.backtrack,
+                        max_backtracks=settings.max_backtracks, slack=o.armijo_slack * eps * abs(e))
                 if not accepted:
                     trial += 1
-                    damping = LEVENBERG_START if damping == 0.0 else 10.0 * damping
-                    info.restarts += 1
+                    if o.levenberg:
+                        damping = LEVENBERG_START if damping == 0.0 else 10.0 * damping
+                        info.restarts += 1
             if not accepted:
-                info.message = f"line search failed at iteration {k} (no sufficient decrease, damping {damping:.3g})"
+                info.message = (
+                    f"line search failed at iteration {k} (no sufficient decrease, damping {damping:.3g})"
+                )
                 k -= 1
                 break
             damping = 0.0 if damping <= LEVENBERG_START else 0.1 * damping
-            x, e, g, gn = xt, et, gt, gnt
+            x = trial_state["x"]
+            if o.value_only_line_search:
+                e, g, gnt = evaluate(model, x, k, "accepted step")
+            else:
+                e, g, gnt = trial_state["e_g_gn"]
+            step = NewtonStep(k, e, gn, a, a_max, a * _displacement(o, dx))
+            if o.after_step is not None and o.after_step(x, step):
+                e, g, gnt = evaluate(model, x, k, "after the step hook")
+            gn = free_norm(g, gnt)
+            step_energies.append(step.energy)
             info.final_step = a
             info.residual_history.append(gn)
             info.energy_history.append(e)
@@ -180,7 +345,24 @@ def solve_newton(
             if callback is not None and callback(k, x, gn, e) and not info.converged:
                 info.message = "stopped by callback"
                 break
+            if info.converged:
+                break
+            w = o.energy_window
+            if o.energy_tol > 0 and len(step_energies) > w + 1 and \
+                    step_energies[-1 - w] - step_energies[-1] <= o.energy_tol * abs(step_energies[-1]):
+                info.converged, info.message = True, "energy stalled"
+                break
+            if o.step_tol > 0 and step.displacement <= o.step_tol:
+                info.message = "small step"
+                break
 
     info.iterations = k
     info.seconds = timer.elapsed()
     return x, info
+
+
+def _displacement(options: NewtonOptions, dx: torch.Tensor) -> float:
+    """The step bound's displacement measure of ``dx`` (default: the largest vertex displacement)."""
+    if options.step_bound is not None:
+        return float(options.step_bound.displacement(dx))
+    return float(torch.linalg.vector_norm(dx, dim=-1).max()) if dx.numel() else 0.0
