@@ -33,6 +33,7 @@ import torch
 from torchgarment.adjust.inexact import AdjustProblem, InexactRunner, InexactSettings, IterationRecord
 from torchgarment.adjust.optimizers import OptimizerKind, make_optimizer
 from torchgarment.errors import InputError, PatternError
+from torchgarment.logging import RunLogger
 from torchgarment.sim.diff import AdjointLinearSolver
 from torchgarment.sim.drape import DrapeSettings, drape
 from torchgarment.sim.scene import Effect, Scene
@@ -301,46 +302,15 @@ def _save_checkpoint(directory: Path, state: dict) -> Path:
     return path
 
 
-class _Logger:
-    """TensorBoard scalars (when ``log_dir``) and a tqdm bar (when ``progress``)."""
-
-    def __init__(self, log_dir: str | Path | None, progress: bool, total: int, initial: int) -> None:
-        self.writer = None
-        if log_dir is not None:
-            from torch.utils.tensorboard import SummaryWriter
-
-            self.writer = SummaryWriter(log_dir=str(log_dir))
-        self.bar = None
-        if progress:
-            import sys
-
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=total, initial=initial, desc="adjust", unit="it", file=sys.stderr,
-                            leave=False)
-
-    def log(self, rec: IterationRecord, terms: dict[str, float]) -> None:
-        if self.writer is not None:
-            k = rec.iteration
-            self.writer.add_scalar("objective", rec.objective, k)
-            self.writer.add_scalar("objective_exact" if rec.exact else "objective_inexact", rec.objective, k)
-            for name, v in terms.items():
-                self.writer.add_scalar(f"terms/{name}", v, k)
-            self.writer.add_scalar("step_length", rec.step, k)
-            self.writer.add_scalar("step_norm_m", rec.step_norm, k)
-            self.writer.add_scalar("S", rec.inner_iterations, k)
-            self.writer.add_scalar("wall_time_s", rec.seconds, k)
-            self.writer.add_scalar("closure_calls", rec.closure_calls, k)
-        if self.bar is not None:
-            self.bar.update(1)
-            self.bar.set_postfix(f=f"{rec.objective:.4g}", S=rec.inner_iterations, refresh=False)
-
-    def close(self) -> None:
-        if self.writer is not None:
-            self.writer.flush()
-            self.writer.close()
-        if self.bar is not None:
-            self.bar.close()
+def _log_iteration(logger: RunLogger, rec: IterationRecord, terms: dict[str, float]) -> None:
+    """TensorBoard scalars of one outer iteration and the progress bar's step."""
+    k = rec.iteration
+    logger.scalars({"objective": rec.objective,
+                    "objective_exact" if rec.exact else "objective_inexact": rec.objective}, k)
+    logger.scalars(terms, k, prefix="terms/")
+    logger.scalars({"step_length": rec.step, "step_norm_m": rec.step_norm, "S": rec.inner_iterations,
+                    "wall_time_s": rec.seconds, "closure_calls": rec.closure_calls}, k)
+    logger.advance({"f": f"{rec.objective:.4g}", "S": rec.inner_iterations})
 
 
 # ---------------------------------------------------------------------------------------------- adjust
@@ -535,12 +505,12 @@ def optimize(
         return {"runner": runner.state_dict(), "term_history": term_history, "optimizer": kind.value,
                 "objective_initial": setup.objective_initial}
 
-    logger = _Logger(log_dir, progress, settings.iterations, runner.iteration)
+    logger = RunLogger(log_dir, progress, "adjust", total=settings.iterations, initial=runner.iteration)
 
     def on_iteration(rec: IterationRecord) -> None:
         terms = problem.term_values()
         term_history.append(terms)
-        logger.log(rec, terms)
+        _log_iteration(logger, rec, terms)
         if callback is not None:
             callback(rec, terms)
         if (ckpt_path is not None and settings.checkpoint_every
