@@ -368,6 +368,10 @@ class InexactSettings:
     min_step: float = 1e-8
     exact: bool = False
 
+    def __post_init__(self) -> None:
+        """Validate at construction (and on ``dataclasses.replace``)."""
+        self.validate()
+
     def validate(self) -> None:
         """Raise :class:`InputError` for out-of-range settings."""
         checks = [

@@ -90,6 +90,10 @@ class CostWeights:
     boundary_position_weight: float = DEFAULT_BOUNDARY_POSITION_WEIGHT
     reference_edge_length: float | None = None
 
+    def __post_init__(self) -> None:
+        """Validate at construction (and on ``dataclasses.replace``)."""
+        self.validate()
+
     def validate(self) -> None:
         """Raise :class:`InputError` unless every entry is finite and >= 0 (``reference_edge_length``: None or
         > 0)."""

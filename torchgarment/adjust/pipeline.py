@@ -117,6 +117,10 @@ class AdjustSettings:
     band: float | None = None
     checkpoint_every: int = 0
 
+    def __post_init__(self) -> None:
+        """Validate at construction (and on ``dataclasses.replace``)."""
+        self.validate()
+
     def validate(self) -> None:
         """Normalize option names and raise :class:`InputError` for out-of-range values."""
         self.optimizer = OptimizerKind.resolve(self.optimizer)

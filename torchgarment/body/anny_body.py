@@ -160,6 +160,16 @@ class FitSettings:
     plane_motion_below: float = 0.02
     fd_step: float = 1e-3
 
+    def __post_init__(self) -> None:
+        """Raise :class:`InputError` for non-positive or non-finite values."""
+        for name in ("tolerance", "prior", "accept", "max_step", "plane_motion_below", "fd_step"):
+            v = getattr(self, name)
+            number = isinstance(v, (int, float)) and math.isfinite(v)
+            if not (number and (v > 0 or (name == "prior" and v == 0))):
+                raise InputError(f"FitSettings.{name} must be a positive number, got {v!r}")
+        if not (isinstance(self.max_rounds, int) and self.max_rounds >= 1):
+            raise InputError(f"FitSettings.max_rounds must be an integer >= 1, got {self.max_rounds!r}")
+
 
 @dataclass
 class AnnyFit:

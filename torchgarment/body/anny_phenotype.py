@@ -148,6 +148,10 @@ class PhenotypeRanges:
         """The default ranges of ``"female"`` or ``"male"`` adults."""
         return cls.male() if Population.resolve(population) is Population.MALE else cls.female()
 
+    def __post_init__(self) -> None:
+        """Validate at construction (and on ``dataclasses.replace``)."""
+        self.validate()
+
     def validate(self) -> None:
         """Raise :class:`InputError` for empty, reversed or out-of-range intervals."""
         for name in ("gender", "weight", "muscle", "proportions", "cupsize", "firmness", "race"):

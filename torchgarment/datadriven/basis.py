@@ -79,6 +79,10 @@ class BasisSettings:
     c: float = 1.0
     drape: DrapeSettings = field(default_factory=DrapeSettings)
 
+    def __post_init__(self) -> None:
+        """Validate at construction (and on ``dataclasses.replace``)."""
+        self.validate()
+
     def validate(self) -> None:
         if not (isinstance(self.c, (int, float)) and math.isfinite(self.c) and 0 < self.c <= 4):
             raise InputError(f"BasisSettings.c must be in (0, 4] standard deviations, got {self.c!r}")

@@ -182,14 +182,14 @@ def newton_direction(
         if dx is not None and float(g @ dx) < 0.0:
             return dx, 0
     if not o.regularize_first:
-        dx = sparse_solve(h, -g, cache)
+        dx = sparse_solve(h, -g, cache, backend=settings.sparse_backend)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, 0
     scale = float(np.abs(h.diagonal()).mean()) or 1.0
     eye = scipy.sparse.identity(h.shape[0], format="csr", dtype=np.float64)
     lam = settings.regularization * scale
     for retry in range(1, settings.max_regularizations + 1):
-        dx = sparse_solve((h + lam * eye).tocsr(), -g, cache, lam)
+        dx = sparse_solve((h + lam * eye).tocsr(), -g, cache, lam, backend=settings.sparse_backend)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, retry
         lam *= o.regularization_growth
