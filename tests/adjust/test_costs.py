@@ -89,6 +89,19 @@ def test_hinge_kernel_vanishes_on_flat_embeddings():
     assert float(lx.abs().max()) < 1e-13
 
 
+def test_hinge_kernel_equals_the_bending_energy_weights():
+    """The cost's Bergou kernel is the bending energy's four-vertex kernel (one formula per angle here, see
+    hinge_kernel's docstring), to round-off."""
+    from torchgarment.sim.energies.bend import hinge_weights
+
+    m = base_mesh()
+    K = hinge_kernel(m.p, m.hinges)
+    rest = torch.cat([m.p, torch.zeros_like(m.p[:, :1])], dim=1)
+    w, _, _ = hinge_weights(rest, m.hinges[:, [0, 1, 2, 0, 1, 3]])
+    ref = torch.stack([w[:, 0] + w[:, 3], w[:, 1] + w[:, 4], w[:, 2], w[:, 5]], dim=1)
+    assert float((K - ref).abs().max()) <= 1e-12 * float(ref.abs().max())
+
+
 def test_smoothness_cost():
     m = base_mesh()
     c = SmoothnessCost(m, weight=0.05)

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import scipy.sparse
+import scipy.sparse.linalg
 import torch
 
 from torchgarment.errors import InputError, NonConvergenceError, SingularMatrixError
@@ -95,6 +96,23 @@ def test_factor_cache_solves_nearby_systems_by_pcg() -> None:
     y = cache.solve(near, np.ones(30), 1e-10, 50)
     np.testing.assert_allclose(y, np.linalg.solve(near.toarray(), np.ones(30)), rtol=1e-8)
     assert cache.pcg_solves == 1 and cache.factorizations == 1
+
+
+def test_pcg_on_numpy_reproduces_scipy_cg_bit_for_bit() -> None:
+    """The numpy path of pcg runs scipy.sparse.linalg.cg's arithmetic (the reused-factorization Newton solves
+    of the drape depended on it): same iterate, same convergence decision within the same budget."""
+    a = _spd(60, seed=3)
+    near = (a + scipy.sparse.diags(0.05 * np.ones(60))).tocsr()
+    lu = factorize(a)
+    b = np.random.default_rng(1).standard_normal(60)
+    m = scipy.sparse.linalg.LinearOperator((60, 60), matvec=lu.solve, dtype=np.float64)
+    for maxiter, rtol in ((50, 1e-10), (3, 1e-12)):
+        ref, info = scipy.sparse.linalg.cg(near, b, rtol=rtol, atol=0.0, maxiter=maxiter, M=m)
+        y, k, res = pcg(lambda v: near @ v, b, lu.solve, rtol, maxiter - 1)
+        assert (info == 0) == (res <= rtol)
+        if info == 0:
+            assert np.array_equal(y, ref)
+        assert isinstance(y, np.ndarray)
 
 
 def test_pcg_matches_a_dense_solve_and_raises_at_negative_curvature() -> None:

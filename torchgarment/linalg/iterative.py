@@ -1,60 +1,67 @@
-"""Preconditioned conjugate gradients on torch tensors."""
+"""Preconditioned conjugate gradients on torch tensors or numpy arrays (one algorithm, both array types)."""
 
 from __future__ import annotations
 
 from typing import Callable
 
+import numpy as np
 import torch
 
 from torchgarment.errors import NonConvergenceError
 
-#: ``v -> K v``, same shape as ``v``.
-MatVec = Callable[[torch.Tensor], torch.Tensor]
-#: ``r -> M^-1 r``, same shape as ``r``.
-Preconditioner = Callable[[torch.Tensor], torch.Tensor]
+Array = torch.Tensor | np.ndarray
+#: ``v -> K v``, same shape and type as ``v``.
+MatVec = Callable[[Array], Array]
+#: ``r -> M^-1 r``, same shape and type as ``r``.
+Preconditioner = Callable[[Array], Array]
 
 
 def pcg(
-    matvec: MatVec, b: torch.Tensor, preconditioner: Preconditioner | None, rtol: float, max_iterations: int,
-    *, x0: torch.Tensor | None = None, stop_at_negative_curvature: bool = False,
-) -> tuple[torch.Tensor, int, float]:
+    matvec: MatVec, b: Array, preconditioner: Preconditioner | None, rtol: float, max_iterations: int,
+    *, x0: Array | None = None, stop_at_negative_curvature: bool = False,
+) -> tuple[Array, int, float]:
     """Preconditioned conjugate gradients for ``K y = b`` with ``K`` symmetric positive definite.
 
+    The same recurrences run on torch tensors (any device; inner products ``sum(u * v)``, fused axpy) or on
+    float64 numpy arrays (BLAS ``dot`` and the ``x += a p`` updates of ``scipy.sparse.linalg.cg``, so a
+    numpy solve reproduces scipy's iterates bit for bit).
+
     Args:
-        matvec: ``v -> K v`` for ``v`` of ``b``'s shape.
+        matvec: ``v -> K v`` for ``v`` of ``b``'s shape and type.
         b: the right-hand side, any shape (e.g. (V, 3) or (n,)); the inner products run over all entries.
         preconditioner: ``r -> M^-1 r`` (e.g. block Jacobi, or a sparse factorization of a nearby matrix);
             None: no preconditioning.
         rtol: stop when ``|r| <= rtol |b|`` (the recursively updated residual).
         max_iterations: iteration budget.
-        x0: warm start of ``b``'s shape (default zero).
+        x0: warm start of ``b``'s shape and type (default zero).
         stop_at_negative_curvature: return the iterate reached so far at a direction with ``p^T K p <= 0``
             instead of raising (Steihaug's rule; for inexact solves that accept an approximate answer).
 
     Returns:
-        ``(y, iterations, |r| / |b|)``; the caller checks convergence.
+        ``(y, iterations, |r| / |b|)`` with ``y`` of ``b``'s type; the caller checks convergence.
 
     Raises:
         NonConvergenceError: non-positive curvature ``p^T K p <= 0`` (``K`` is not positive definite), unless
             ``stop_at_negative_curvature``.
     """
+    ops = _NUMPY if isinstance(b, np.ndarray) else _TORCH
 
-    def apply(r: torch.Tensor) -> torch.Tensor:
-        return r.clone() if preconditioner is None else preconditioner(r)
+    def apply(r: Array) -> Array:
+        return ops.copy(r) if preconditioner is None else preconditioner(r)
 
-    y = torch.zeros_like(b) if x0 is None else x0.detach().to(b.dtype).clone()
-    bn = float(torch.linalg.vector_norm(b))
+    y = ops.zeros_like(b) if x0 is None else ops.start(x0, b)
+    bn = ops.norm(b)
     if bn == 0.0:
-        return torch.zeros_like(b), 0, 0.0
-    r = b - matvec(y) if x0 is not None and bool(y.any()) else b.clone()
+        return ops.zeros_like(b), 0, 0.0
+    r = b - matvec(y) if x0 is not None and bool(y.any()) else ops.copy(b)
     z = apply(r)
-    p = z.clone()
-    rz = float(torch.sum(r * z))
-    rn = float(torch.linalg.vector_norm(r))
+    p = ops.copy(z)
+    rz = ops.dot(r, z)
+    rn = ops.norm(r)
     k = 0
     while k < max_iterations and rn > rtol * bn:
         kp = matvec(p)
-        pkp = float(torch.sum(p * kp))
+        pkp = ops.dot(p, kp)
         if not pkp > 0.0:
             if stop_at_negative_curvature:
                 break
@@ -63,11 +70,79 @@ def pcg(
                 f"positive definite (a saddle or an unconverged state); use a sparse direct solve")
         k += 1
         a = rz / pkp
-        y.add_(p, alpha=a)
-        r.add_(kp, alpha=-a)
-        rn = float(torch.linalg.vector_norm(r))
+        ops.axpy_(y, a, p)
+        ops.axpy_(r, -a, kp)
+        rn = ops.norm(r)
         z = apply(r)
-        rz_new = float(torch.sum(r * z))
-        p.mul_(rz_new / rz).add_(z)
+        rz_new = ops.dot(r, z)
+        ops.scale_add_(p, rz_new / rz, z)
         rz = rz_new
     return y, k, rn / bn
+
+
+class _TorchOps:
+    """Array operations of :func:`pcg` on torch tensors."""
+
+    @staticmethod
+    def zeros_like(b: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(b)
+
+    @staticmethod
+    def start(x0: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return x0.detach().to(b.dtype).clone()
+
+    @staticmethod
+    def copy(v: torch.Tensor) -> torch.Tensor:
+        return v.clone()
+
+    @staticmethod
+    def norm(v: torch.Tensor) -> float:
+        return float(torch.linalg.vector_norm(v))
+
+    @staticmethod
+    def dot(u: torch.Tensor, v: torch.Tensor) -> float:
+        return float(torch.sum(u * v))
+
+    @staticmethod
+    def axpy_(y: torch.Tensor, a: float, x: torch.Tensor) -> None:
+        y.add_(x, alpha=a)
+
+    @staticmethod
+    def scale_add_(p: torch.Tensor, beta: float, z: torch.Tensor) -> None:
+        p.mul_(beta).add_(z)
+
+
+class _NumpyOps:
+    """Array operations of :func:`pcg` on float64 numpy arrays (scipy's ``cg`` arithmetic)."""
+
+    @staticmethod
+    def zeros_like(b: np.ndarray) -> np.ndarray:
+        return np.zeros_like(b)
+
+    @staticmethod
+    def start(x0: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.array(x0, dtype=b.dtype)
+
+    @staticmethod
+    def copy(v: np.ndarray) -> np.ndarray:
+        return v.copy()
+
+    @staticmethod
+    def norm(v: np.ndarray) -> float:
+        return float(np.linalg.norm(v))
+
+    @staticmethod
+    def dot(u: np.ndarray, v: np.ndarray) -> float:
+        return float(np.dot(u.ravel(), v.ravel()))
+
+    @staticmethod
+    def axpy_(y: np.ndarray, a: float, x: np.ndarray) -> None:
+        y += a * x
+
+    @staticmethod
+    def scale_add_(p: np.ndarray, beta: float, z: np.ndarray) -> None:
+        p *= beta
+        p += z
+
+
+_TORCH, _NUMPY = _TorchOps(), _NumpyOps()

@@ -259,22 +259,15 @@ class FactorCache:
         if fact is None or tuple(fact.shape) != (n, n):
             return None
         a = h + self.shift * scipy.sparse.identity(n, format="csr") if self.shift > 0 else h
-
-        def matvec(v: torch.Tensor) -> torch.Tensor:
-            return torch.from_numpy(a @ v.numpy())
-
-        def precondition(r: torch.Tensor) -> torch.Tensor:
-            return torch.from_numpy(np.asarray(fact.solve(r.numpy()), dtype=np.float64))
-
+        b = np.asarray(rhs, dtype=np.float64)
+        # maxiter - 1 updates: scipy's cg (which this replaced) tests convergence before each of its maxiter
+        # updates, so its last update is never accepted; the same budget keeps every Newton iterate unchanged
         try:
-            y, _, res = pcg(matvec, torch.from_numpy(np.asarray(rhs, dtype=np.float64)), precondition, rtol,
-                            maxiter, stop_at_negative_curvature=True)
+            out, _, res = pcg(lambda v: a @ v, b, fact.solve, rtol, maxiter - 1,
+                              stop_at_negative_curvature=True)
         except SingularMatrixError:
             return None
-        if not res <= rtol:
-            return None
-        out = y.numpy()
-        if not np.all(np.isfinite(out)):
+        if not res <= rtol or not np.all(np.isfinite(out)):
             return None
         self.pcg_solves += 1
         return out
