@@ -62,6 +62,9 @@ def main() -> None:
     ap.add_argument("--reuse-factorization", action="store_true",
                     help="Newton solves reuse their LU factorization through PCG "
                          "(AdjustSettings.reuse_factorization)")
+    ap.add_argument("--sparse-backend", default="superlu", choices=["superlu", "pardiso", "cholespy"],
+                    help="sparse direct solver of Newton systems, adjoints and tangents (pardiso/cholespy: "
+                         "when installed)")
     ap.add_argument("--setup", default=None, metavar="FILE",
                     help="load the precomputation from FILE when it exists, else compute it and save it "
                          "there (torch.save of the AdjustSetup; the timed optimization is unaffected)")
@@ -82,7 +85,8 @@ def main() -> None:
                               inner_iterations=args.inner_iterations, exact_interval=args.exact_interval,
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
                               adjoint_max_iterations=args.adjoint_max_iterations,
-                              reuse_factorization=args.reuse_factorization)
+                              reuse_factorization=args.reuse_factorization,
+                              sparse_backend=args.sparse_backend)
     t0 = time.perf_counter()
     if args.setup and Path(args.setup).is_file():
         setup = torch.load(args.setup, weights_only=False)
@@ -101,14 +105,15 @@ def main() -> None:
                    replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
                                   exact_interval=args.exact_interval, inner_solver=args.inner_solver,
                                   adjoint=args.adjoint, adjoint_max_iterations=args.adjoint_max_iterations,
-                                  reuse_factorization=args.reuse_factorization),
+                                  reuse_factorization=args.reuse_factorization,
+                                  sparse_backend=args.sparse_backend),
                    progress=True)
     m = res.metrics
     out = {
         "garment": args.garment, "vertices": m["vertices"], "boundary_vertices": m["boundary_vertices"],
         "edge_length_mm": 1e3 * edge, "iterations": m["iterations"], "threads": args.threads,
         "inner_iterations": args.inner_iterations, "exact_interval": args.exact_interval,
-        "inner_solver": args.inner_solver, "adjoint": args.adjoint,
+        "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
         "adjoint_iterations": m["adjoint_iterations"],
         "adjoint_max_iterations": args.adjoint_max_iterations,
         "adjoint_factorizations": m["factorizations"],

@@ -33,6 +33,7 @@ import torch
 from torchgarment.adjust.inexact import AdjustProblem, InexactRunner, InexactSettings, IterationRecord
 from torchgarment.adjust.optimizers import OptimizerKind, make_optimizer
 from torchgarment.errors import InputError, PatternError
+from torchgarment.linalg import SparseBackend
 from torchgarment.logging import RunLogger
 from torchgarment.sim.diff import AdjointLinearSolver
 from torchgarment.sim.drape import DrapeSettings, drape
@@ -89,6 +90,8 @@ class AdjustSettings:
             thread): 62.3 s without, 35.8 s with. Off by default: CG's stopping decisions amplify round-off,
             so two runs of one setup then differ (1e-3 of the objective on the 5 cm skirt, 15 % on the 3K
             dress; without it by ~1e-10) and a resumed run no longer repeats the uninterrupted one.
+        sparse_backend: the sparse direct solver of the simulation's Newton systems, adjoints and tangents
+            (:class:`~torchgarment.linalg.SparseBackend`: ``"superlu"``, or ``"pardiso"`` when installed).
         band: blending band ``B`` of the deformation transfer in metres; None = its default.
         checkpoint_every: also write a checkpoint every this many iterations (0 = only on Ctrl-C).
     """
@@ -114,6 +117,7 @@ class AdjustSettings:
     adjoint_rtol: float = 1e-3
     adjoint_max_iterations: int = 50
     reuse_factorization: bool = False
+    sparse_backend: SparseBackend = SparseBackend.SUPERLU
     band: float | None = None
     checkpoint_every: int = 0
 
@@ -127,6 +131,7 @@ class AdjustSettings:
         self.inner_solver = SolverKind.resolve(self.inner_solver)
         self.solver = SolverKind.resolve(self.solver)
         self.adjoint = AdjointLinearSolver.resolve(self.adjoint)
+        self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
         checks = [
             (self.iterations >= 0, "iterations must be >= 0"),
             (self.inner_iterations >= 1 and self.exact_interval >= 1,
@@ -367,7 +372,8 @@ class AdjustSetup:
         return AdjustProblem(self.model, self.param, self.objective,
                              self.x_init if x_start is None else x_start,
                              exact_settings=replace(self.exact_settings,
-                                                    reuse_factorization=s.reuse_factorization),
+                                                    reuse_factorization=s.reuse_factorization,
+                                                    sparse_backend=s.sparse_backend),
                              solver=s.solver, inexact_solver=s.inner_solver, adjoint=s.adjoint,
                              adjoint_rtol=s.adjoint_rtol, adjoint_max_iterations=s.adjoint_max_iterations,
                              retain_graph=s.optimizer == OptimizerKind.GN)
@@ -435,7 +441,8 @@ def prepare(
     weight = float(mesh_base.rest_face_areas.abs().sum()) * mat.density * mat.gravity
     exact = SolveSettings(rtol=0.0, atol=settings.atol_weight * weight,
                           max_iterations=settings.max_solver_iterations,
-                          reuse_factorization=settings.reuse_factorization)
+                          reuse_factorization=settings.reuse_factorization,
+                          sparse_backend=settings.sparse_backend)
     problem = AdjustProblem(model, param, objective, x_transfer, exact_settings=exact, solver=settings.solver,
                             inexact_solver=settings.inner_solver)
     q_base = param.initial().detach()
