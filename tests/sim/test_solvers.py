@@ -462,7 +462,7 @@ def test_newton_reusing_its_factorization_reaches_the_same_equilibrium(
     calls = {"n": 0}
     splu = scipy.sparse.linalg.splu
 
-    def counting(*a, **kw):  # noqa: ANN002, ANN003, ANN202
+    def counting(*a, **kw):
         calls["n"] += 1
         return splu(*a, **kw)
 

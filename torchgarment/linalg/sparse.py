@@ -81,11 +81,11 @@ Solve = Callable[[np.ndarray, bool], np.ndarray]
 
 
 def _superlu(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
-    if symmetric:
-        lu = scipy.sparse.linalg.splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                      options={"SymmetricMode": True})
-    else:
-        lu = scipy.sparse.linalg.splu(a if a.format == "csc" else a.tocsc())
+    # symmetric: SuperLU's symmetric mode (MMD ordering on A^T + A, no pivoting); else scipy's defaults
+    # (COLAMD, partial pivoting)
+    mode: dict = (dict(permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+                  if symmetric else {})
+    lu = scipy.sparse.linalg.splu(a.tocsc(), **mode)
 
     def solve(b: np.ndarray, transpose: bool) -> np.ndarray:
         return lu.solve(b, trans="T") if transpose else lu.solve(b)
