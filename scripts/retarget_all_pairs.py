@@ -165,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--source-size", default="12", help="anny chart size of the source body (default 12)")
     ap.add_argument("--avatar", action="append", help="avatar names (default: all of list_avatars())")
     ap.add_argument("--fit-weight", type=float, default=RetargetSettings().w_fit)
+    ap.add_argument("--sparse-backend", default="superlu", choices=["superlu", "pardiso", "cholespy"],
+                    help="sparse direct solver of the Newton systems (pardiso/cholespy: when installed)")
     ap.add_argument("--out", type=Path, default=Path("out/retarget_pairs"))
     ap.add_argument("--columns", type=int, default=5)
     args = ap.parse_args(argv)
@@ -180,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
     avatars = args.avatar or list_avatars()
     source = Body.from_size(args.source_size)
-    settings = RetargetSettings(w_fit=args.fit_weight)
+    settings = RetargetSettings(w_fit=args.fit_weight, sparse_backend=args.sparse_backend)
     records, tiles, bad = [], [], 0
     print(
         f"{'garment':<22}{'avatar':<16}{'verts':>7}{'avatar':>8}{'iters':>7}{'seconds':>9}{'inter':>7}"

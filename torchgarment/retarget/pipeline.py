@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from torchgarment.errors import InputError, TorchGarmentError
+from torchgarment.linalg import SparseBackend
 from torchgarment.logging import RunLogger
 from torchgarment.retarget.inputs import REFERENCE_HEIGHT, RetargetProblem
 from torchgarment.retarget.objectives import (
@@ -95,6 +96,8 @@ class RetargetSettings:
         threads: torch intra-op threads during the run (restored afterwards); None keeps the current number.
             The per-element work is many small tensor ops, for which one thread is fastest (measured: 2
             threads were 2-3x slower on a loaded 2-core machine).
+        sparse_backend: the sparse direct solver of the Newton systems (``"superlu"``; ``"pardiso"`` when
+            installed).
     """
 
     w_fit: float = 2.0
@@ -119,9 +122,11 @@ class RetargetSettings:
     stiffness_scale: float = 100.0
     cull_radius: float | None = 0.06
     threads: int | None = 1
+    sparse_backend: SparseBackend | str = SparseBackend.SUPERLU
 
     def __post_init__(self) -> None:
         self.step_bound = StepBound.resolve(self.step_bound)
+        self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
         self.broad_phase = BroadPhase.resolve(self.broad_phase)
         for name in ("w_fit", "w_pos", "w_surf", "w_curve"):
             v = getattr(self, name)
@@ -345,6 +350,7 @@ def retarget(
             max_displacement=s.max_displacement,
             step_bound=s.step_bound,
             rtol=0.0,
+            sparse_backend=s.sparse_backend,
         )
         iters2, snapped, bound_s, rounds = 0, False, 0.0, 0
         snap_min = s.snap_min_distance * s.dhat
@@ -425,6 +431,7 @@ def retarget(
                 step_bound=s.step_bound,
                 rtol=s.rtol,
                 energy_tol=s.energy_tol,
+                sparse_backend=s.sparse_backend,
             ),
             callback=lambda st: log("fit", st),
         )

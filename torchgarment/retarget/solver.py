@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from torchgarment.errors import InputError
+from torchgarment.linalg import SparseBackend
 from torchgarment.retarget.objectives import (
     Contact,
     RetargetEnergy,
@@ -141,6 +142,8 @@ class NewtonSettings:
             few triangular solves instead of a factorization (0.36 s at 6K garment vertices).
         pcg_rtol: relative residual of the preconditioned CG solve.
         pcg_max_iterations: CG iterations before a fresh factorization.
+        sparse_backend: the sparse direct solver of the Newton systems
+            (:class:`~torchgarment.linalg.SparseBackend`).
     """
 
     max_iterations: int = 100
@@ -158,9 +161,11 @@ class NewtonSettings:
     reuse_factorization: bool = True
     pcg_rtol: float = 1e-2
     pcg_max_iterations: int = 25
+    sparse_backend: SparseBackend | str = SparseBackend.SUPERLU
 
     def __post_init__(self) -> None:
         self.step_bound = StepBound.resolve(self.step_bound)
+        self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
         if self.max_iterations < 0 or not self.rtol >= 0 or not self.atol >= 0 or not self.step_tol >= 0:
             raise InputError("NewtonSettings: max_iterations, rtol, atol and step_tol must be non-negative")
         if not (0 < self.pcg_rtol < 1) or self.pcg_max_iterations < 1:
@@ -186,6 +191,7 @@ class NewtonSettings:
             reuse_factorization=self.reuse_factorization,
             pcg_rtol=self.pcg_rtol,
             pcg_max_iterations=self.pcg_max_iterations,
+            sparse_backend=self.sparse_backend,
         )
         s.validate()
         return s
