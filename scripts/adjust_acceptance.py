@@ -1,36 +1,33 @@
-"""Acceptance checks of sewing-pattern adjustment (issue 4, Wang et al. 2018) at a coarse resolution.
+"""Acceptance of sewing-pattern adjustment by fit preservation, measured where the garment sits (issue 18).
 
 Every case drafts a library garment for chart size 12, adjusts it with
-:func:`torchgarment.adjust.pipeline.adjust` (pgd, Algorithm 1) and measures the adjusted pattern. Resolution
-(documented, coarse to fit 2 CPU cores): 5 cm triangle edges (``--edge-length``), 10 mm SDF voxels
-(``--voxel``), ``--iterations`` outer iterations (default 32, ``--quick`` 16), exact check every 8 iterations.
-``--quick``: straight skirt only, sizes 20 and 6 (cached bodies).
+:func:`torchgarment.adjust.pipeline.adjust` to a target body and measures, per construction line
+(:func:`torchgarment.adjust.fit.construction_lines`: waist and hips for skirts and trousers; bust, waist,
+(hips,) hem for the T-shirt and the sheath dress), the fit of the base drape (base pattern on the base body)
+and of the target (adjusted pattern at its equilibrium on the target body), :func:`torchgarment.adjust.fit.
+measure_fit`: the line's height, the pattern's girth there, the body's girth at that height, the ease
+(their difference) and the placement (height above the body's nearest waist / hip / bust plane). A line
+passes (:func:`torchgarment.adjust.fit.fit_rows`) when |ease change|, |pattern change - body change| (the
+same number) and |placement change| are all <= 1 cm; the chart's girth change is printed for reference.
 
-1. Manufactured solution: target body = base body scaled uniformly by s (1.05, 0.95) about its feet centre
-   (vertices, skeleton joints and landmarks scaled). Per panel the adjusted boundary vertices are compared
-   with s times the base boundary vertices after removing a rigid motion (2D Procrustes without scale);
-   reported in mm and in % of the panel size (the base panel's bounding-box diagonal). The unadjusted
-   pattern's deviation is reported as the reference (what the adjustment has to recover).
-2. Grading: straight skirt (and T-shirt unless ``--quick``) from size 12 to chart sizes up and down. The width
-   of a panel at a construction line is the distance between the line's two corner vertices of the pattern
-   (skirt: waist = the ends of the waist edges, hip = the side-seam corners between ``side_low`` and
-   ``side_hip``; T-shirt: bust = the underarm corners, waist = the corners between ``side_low`` and
-   ``side_up``), summed over panels, i.e. the pattern's girth at that line. Its change from the base pattern
-   is compared with the chart's girth difference (:func:`torchgarment.body.size_chart.chart_row`); the
-   discrepancy is in cm. Also reported for the skirt, as a diagnostic: ``body@band``, the bodies' own girth
-   change at the height where the waistband sits (its corners in the base drape on the base body, and in the
-   transferred garment on the target body). A tight band's fit-preserving girth follows it; the fitted bodies
-   match the chart only at their landmark planes.
-3. Hips-only change: the base body with x, z of the torso vertices scaled about the hip axis by
-   ``1 + a w(y)``, ``w`` a cos^2 bump equal to 1 at the hip landmark height and 0 at the waist landmark and at
-   the thigh landmark (arms and hands, by skin weight, excluded). Reported: hip-width change, largest move of
-   the side-seam boundary vertices and the largest move of the waistband boundary vertices (waist edges), in
-   mm (the pass test); also the waistband's shape change after its own best rigid motion per panel, and its
-   length change. A row with the target equal to the base body (amount 0) is the control: what the adjustment
-   moves when nothing should change.
+Resolution: ``torchgarment adjust``'s defaults (:class:`~torchgarment.adjust.pipeline.AdjustSettings`);
+``--edge-length``, ``--voxel`` and ``--iterations`` override them (coarse runs: 0.05, 0.01, 16).
 
-Run: ``python scripts/adjust_acceptance.py [--quick] [--only manufactured grading hips] [--garments ...]
-[--sizes ...] [--weights JSON] [--json FILE]``.
+1. Grading: straight skirt, A-line skirt, trousers, T-shirt, sheath dress (``--garments``) from size 12 to
+   6, 8, 10, 14, 16, 20 (``--sizes``). ``--half-resolution`` also runs each case at half the edge length and
+   reports the difference of the pattern changes per line (pass: <= 5 mm).
+2. Made to measure (``mtm``): the straight skirt onto the size-12 body with only the hips +6 cm
+   (:func:`~torchgarment.adjust.acceptance.hips_body`, its amount solved for a measured +6 cm): the
+   waistband (waist edges) moves <= 2 mm in the pattern and the hip line takes the change within 1 cm
+   (its fit row passes: |pattern change - body change| and |placement change| <= 1 cm); the T-shirt onto
+   the body with only the bust +6 cm (:func:`~torchgarment.adjust.acceptance.bust_body`): the hem's girth
+   changes <= 5 mm.
+3. Manufactured solution: the straight skirt onto the base body scaled by s = 1.05 and 0.95; the adjusted
+   panels must be s times the base panels within 1.5 mm after a rigid motion
+   (:func:`~torchgarment.adjust.acceptance.scaled_outline_deviation`).
+
+Run: ``python scripts/adjust_acceptance.py [--only grading mtm manufactured] [--garments ...] [--sizes ...]
+[--edge-length M] [--voxel M] [--iterations N] [--half-resolution] [--weights JSON] [--json FILE]``.
 """
 
 from __future__ import annotations
@@ -44,252 +41,229 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 
-from torchgarment.adjust.acceptance import (
+# SKIRT_LINES, TSHIRT_LINES and pattern_line_widths are re-exported for scripts/adjust_drafted_vs_adjusted.py
+from torchgarment.adjust.acceptance import (  # noqa: F401
     SKIRT_LINES,
     TSHIRT_LINES,
-    body_girth_at,
-    boundary_vertex_labels,
-    edges_length,
-    girth,
+    amount_for_girth_change,
+    bust_body,
+    edge_moves,
     hips_body,
-    line_vertices,
     pattern_line_widths,
-    procrustes_deviation,
     scaled_body,
+    scaled_outline_deviation,
 )
+from torchgarment.adjust.fit import adjustment_fit, chart_changes
 
 if TYPE_CHECKING:
     from torchgarment.adjust.pipeline import AdjustResult, AdjustSettings
     from torchgarment.body import Body
-    from torchgarment.pattern.spec import SewingPattern
 
-ACCEPT_MS_PERCENT = 1.0
-ACCEPT_GRADING_CM = 1.0
-ACCEPT_WAISTBAND_MM = 2.0
+GARMENTS = ("straight_skirt", "aline_skirt", "trousers", "tshirt", "sheath_dress")
+SIZES = ("6", "8", "10", "14", "16", "20")
+BASE_SIZE = "12"
+FIT_TOLERANCE_M = 0.01
+HALF_RESOLUTION_M = 0.005
+WAISTBAND_MOVE_M = 0.002
+HEM_CHANGE_M = 0.005
+MANUFACTURED_M = 0.0015
+MTM_CHANGE_M = 0.06
+
 
 # ---------------------------------------------------------------------------------------------- cases
-def _run(pattern: SewingPattern, base: Body, target: Body, settings: AdjustSettings) -> AdjustResult:
+def _adjust(garment: str, base: Body, target: Body, settings: AdjustSettings) -> AdjustResult:
     from torchgarment.adjust.pipeline import adjust
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
 
-    return adjust(pattern, base, target, settings, progress=False)
+    return adjust(draft(garment, chart_row(BASE_SIZE)), base, target, settings, progress=False)
 
 
 def _summary(res: AdjustResult) -> dict:
     m = res.metrics
-    return {k: m.get(k)
-            for k in ("objective_base", "objective_initial", "objective_final", "reduction_percent",
-                      "initialization_used", "stopped", "backtracks", "max_boundary_displacement_mm",
-                      "total_seconds")}
+    keys = ("objective_base", "objective_initial", "objective_final", "reduction_percent", "stopped",
+            "max_boundary_displacement_mm", "total_seconds")
+    return {k: m.get(k) for k in keys}
 
 
-def manufactured(pattern: SewingPattern, base: Body, s: float, settings: AdjustSettings) -> dict:
-    res = _run(pattern, base, scaled_body(base, s), settings)
-    bidx = res.boundary_index.cpu().numpy()
-    vp = res.mesh_base.vertex_panel_ids.cpu().numpy()[bidx]
-    pb = res.mesh_base.p.detach().cpu().double().numpy()[bidx]
-    pn = res.mesh_target.p.detach().cpu().double().numpy()[bidx]
-    panels = {}
-    for k, name in enumerate(res.mesh_base.panel_names):
-        m = vp == k
-        size = float(np.linalg.norm(pb[m].max(axis=0) - pb[m].min(axis=0)))
-        dev = procrustes_deviation(pn[m], s * pb[m])
-        ref = procrustes_deviation(pb[m], s * pb[m])
-        panels[name] = {"size_mm": 1e3 * size, "max_mm": 1e3 * dev.max(), "mean_mm": 1e3 * dev.mean(),
-                        "max_percent": 100 * dev.max() / size, "mean_percent": 100 * dev.mean() / size,
-                        "unadjusted_max_mm": 1e3 * ref.max(), "unadjusted_mean_mm": 1e3 * ref.mean()}
-    worst = max(p["max_percent"] for p in panels.values())
-    return {"scale": s, "panels": panels, "max_percent": worst, "pass": worst <= ACCEPT_MS_PERCENT,
-            "adjust": _summary(res)}
+def _fit(res: AdjustResult, base: Body, target: Body, chart: dict[str, float] | None) -> dict:
+    fb, ft, rows = adjustment_fit(res, base, target, chart, FIT_TOLERANCE_M)
+    return {"base": {k: v.to_dict() for k, v in fb.items()},
+            "target": {k: v.to_dict() for k, v in ft.items()}, "rows": rows}
 
 
-def grading(garment: str, base_size: str, target_size: str, base: Body, settings: AdjustSettings) -> dict:
+def grading(garment: str, size: str, base: Body, settings: AdjustSettings, half: bool) -> dict:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
-    from torchgarment.pattern.library import draft
 
-    lines = SKIRT_LINES if "skirt" in garment else TSHIRT_LINES
-    row_b, row_t = chart_row(base_size), chart_row(target_size)
-    pattern = draft(garment, row_b)
-    target = Body.from_size(target_size)
-    res = _run(pattern, base, target, settings)
-    w0, w1 = pattern_line_widths(pattern, lines), pattern_line_widths(res.pattern, lines)
-    wd = pattern_line_widths(draft(garment, row_t), lines)
-    out = {"garment": garment, "from": base_size, "to": target_size, "lines": {},
+    target = Body.from_size(size)
+    chart = chart_changes(chart_row(BASE_SIZE), chart_row(size), ("waist", "hips", "bust"))
+    res = _adjust(garment, base, target, settings)
+    out = {"garment": garment, "from": BASE_SIZE, "to": size, **_fit(res, base, target, chart),
            "adjust": _summary(res)}
-    for line in lines:
-        chart = 100 * (row_t[line] - row_b[line])
-        change = 100 * (w1[line] - w0[line])
-        out["lines"][line] = {"chart_cm": chart, "pattern_change_cm": change, "drafted_change_cm":
-                              100 * (wd[line] - w0[line]), "discrepancy_cm": change - chart}
-    if "skirt" in garment:
-        # a diagnostic: the skirt's waistband is a tight band whose girth is the pattern's waist width, so a
-        # fit-preserving pattern follows the bodies' girth change where the band sits (the base drape's waist
-        # corners on the base body, the transferred ones on the target body), not at the chart's waist plane.
-        # (Lines that cross loose cloth, the hips and the bust, are set by the fullest girth below them
-        # instead.)
-        idx = line_vertices(pattern, res.mesh_base, *lines["waist"])
-        yb, yt = float(res.mesh_base.x[idx, 1].mean()), float(res.x_transfer[idx, 1].mean())
-        at_band = 100 * (body_girth_at(target, yt) - body_girth_at(base, yb))
-        out["lines"]["waist"].update({
-            "body_at_band_cm": at_band,
-            "discrepancy_body_at_band_cm": out["lines"]["waist"]["pattern_change_cm"] - at_band,
-            "band_height_base_m": yb, "band_height_target_m": yt})
-    if "skirt" in garment:  # the waistband's length along the (possibly curved) waist edges, reported only
-        wb = [edges_length(p, ("waist_r", "waist_l")) for p in (pattern, res.pattern)]
-        out["waistband_length_change_cm"] = 100 * (wb[1] - wb[0])
-    out["max_discrepancy_cm"] = max(abs(v["discrepancy_cm"]) for v in out["lines"].values())
-    out["pass"] = out["max_discrepancy_cm"] <= ACCEPT_GRADING_CM
+    out["pass"] = all(r["pass"] for r in out["rows"])
+    if half:
+        res2 = _adjust(garment, base, target, replace(settings, edge_length=settings.edge_length / 2))
+        fit2 = _fit(res2, base, target, chart)
+        diff = {a["line"]: b["pattern_change_m"] - a["pattern_change_m"]
+                for a, b in zip(out["rows"], fit2["rows"], strict=True)}
+        out["half_resolution"] = {"edge_length": settings.edge_length / 2, "rows": fit2["rows"],
+                                  "pattern_change_difference_m": diff, "adjust": _summary(res2),
+                                  "pass": all(abs(v) <= HALF_RESOLUTION_M for v in diff.values())}
     return out
 
 
-def hips_only(pattern: SewingPattern, base: Body, amount: float, settings: AdjustSettings) -> dict:
+def mtm_hips(base: Body, settings: AdjustSettings) -> dict:
+    from torchgarment.adjust.acceptance import girth
+
+    amount = amount_for_girth_change(hips_body, base, "hips", MTM_CHANGE_M)
     target = hips_body(base, amount)
-    res = _run(pattern, base, target, settings)
-    verts, labels = boundary_vertex_labels(pattern, res.mesh_base)
-    pb = res.mesh_base.p.detach().cpu().double().numpy()
-    pn = res.mesh_target.p.detach().cpu().double().numpy()
-    disp = np.linalg.norm(pn - pb, axis=1)
-    waist = np.isin(labels, ["waist_r", "waist_l"])
-    side = np.array([str(x).startswith(("side_hip", "side_low")) for x in labels])
-    w0, w1 = pattern_line_widths(pattern, SKIRT_LINES), pattern_line_widths(res.pattern, SKIRT_LINES)
-    hb, ht = girth(base, "hips"), girth(target, "hips")
-    waist_mm = 1e3 * float(disp[verts[waist]].max())
-    inner = np.setdiff1d(verts[waist], verts[side])  # waistband without its corners on the side seams
-    # the waistband's own shape change: each panel's waistband vertices after their best rigid motion (a panel
-    # moved on the cutting table is the same pattern), and the waistband's length change
-    panel = res.mesh_base.vertex_panel_ids.cpu().numpy()
-    shape_mm = 0.0
-    for k in np.unique(panel[verts[waist]]):
-        wv = verts[waist][panel[verts[waist]] == k]
-        shape_mm = max(shape_mm, 1e3 * float(procrustes_deviation(pn[wv], pb[wv]).max()))
-    band = [edges_length(pt, ("waist_r", "waist_l")) for pt in (pattern, res.pattern)]
-    return {"amount": amount, "body_hips_change_mm": 1e3 * (ht - hb),
-            "hip_width_change_mm": 1e3 * (w1["hips"] - w0["hips"]),
-            "waist_width_change_mm": 1e3 * (w1["waist"] - w0["waist"]),
-            "side_seam_max_move_mm": 1e3 * float(disp[verts[side]].max()),
-            "waistband_max_move_mm": waist_mm, "pass": waist_mm <= ACCEPT_WAISTBAND_MM,
-            "waistband_interior_max_move_mm": 1e3 * float(disp[inner].max()) if inner.size else math.nan,
-            "waistband_shape_change_mm": shape_mm, "waistband_length_change_mm": 1e3 * (band[1] - band[0]),
-            "body_waist_change_mm": 1e3 * (girth(target, "waist") - girth(base, "waist")),
+    res = _adjust("straight_skirt", base, target, settings)
+    fit = _fit(res, base, target, None)
+    hips = next(r for r in fit["rows"] if r["line"] == "hips")
+    band = edge_moves(res.base_pattern, res, ("waist_r", "waist_l"))
+    hip_error = hips["pattern_change_m"] - hips["body_change_m"]
+    return {"case": "hips +6 cm", "garment": "straight_skirt", "amount": amount,
+            "body_hips_change_m": girth(target, "hips") - girth(base, "hips"),
+            "body_waist_change_m": girth(target, "waist") - girth(base, "waist"),
+            "waistband_move_m": band["max_m"], "waistband_shape_change_m": band["shape_max_m"],
+            "hip_line_error_m": hip_error, "hip_line_pattern_change_m": hips["pattern_change_m"], **fit,
+            "adjust": _summary(res), "pass": band["max_m"] <= WAISTBAND_MOVE_M and hips["pass"]}
+
+
+def mtm_bust(base: Body, settings: AdjustSettings) -> dict:
+    from torchgarment.adjust.acceptance import girth
+
+    amount = amount_for_girth_change(bust_body, base, "bust", MTM_CHANGE_M)
+    target = bust_body(base, amount)
+    res = _adjust("tshirt", base, target, settings)
+    fit = _fit(res, base, target, None)
+    hem = next(r for r in fit["rows"] if r["line"] == "hem")
+    return {"case": "bust +6 cm", "garment": "tshirt", "amount": amount,
+            "body_bust_change_m": girth(target, "bust") - girth(base, "bust"),
+            "body_waist_change_m": girth(target, "waist") - girth(base, "waist"),
+            "hem_change_m": hem["pattern_change_m"], **fit, "adjust": _summary(res),
+            "pass": abs(hem["pattern_change_m"]) <= HEM_CHANGE_M}
+
+
+def manufactured(base: Body, s: float, settings: AdjustSettings) -> dict:
+    res = _adjust("straight_skirt", base, scaled_body(base, s), settings)
+    panels = scaled_outline_deviation(res, s)
+    worst = max(p["max_m"] for p in panels.values())
+    return {"scale": s, "panels": panels, "max_m": worst, "pass": worst <= MANUFACTURED_M,
             "adjust": _summary(res)}
 
 
-# ---------------------------------------------------------------------------------------------- main
-def print_tables(results: dict) -> None:
-    """Print the acceptance tables of a ``results`` dict (as written by ``--json``)."""
+# ---------------------------------------------------------------------------------------------- output
+def _cm(v: float) -> str:
+    return "     -" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:6.2f}"
+
+
+def print_table(results: dict) -> None:
+    """Print the acceptance table of a ``results`` dict (as written by ``--json``)."""
     st = results["settings"]
-    print(f"resolution: {st['edge_length'] * 100:.0f} cm edges, {st['voxel_size'] * 1e3:.0f} mm voxels, "
-          f"{st['optimizer']}, {st['iterations']} iterations")
-    print("\n1. manufactured solution (straight skirt, deviation from s * base outline after a rigid motion)")
-    print(f"{'s':>5} {'panel':>12} {'size mm':>8} {'max mm':>7} {'mean mm':>8} {'max %':>6} {'mean %':>7} "
-          f"{'unadj. max mm':>13}  pass")
+    print(f"resolution: {100 * st['edge_length']:.1f} cm edges, {1e3 * st['voxel_size']:.1f} mm voxels, "
+          f"{st['iterations']} iterations; tolerance {100 * FIT_TOLERANCE_M:.0f} cm; changes in cm")
+    print(f"{'case':>22} {'line':>5} {'height':>6} {'pat':>6} {'body':>6} {'chart':>6} {'ease_b':>6} "
+          f"{'ease_t':>6} {'d_ease':>6} {'d_place':>7} {'half':>6}  pass")
+    cases = [(f"{r['garment']} {r['from']}->{r['to']}", r) for r in results["grading"]]
+    cases += [(f"{r['garment']} {r['case']}", r) for r in results["mtm"]]
+    for name, r in cases:
+        half = r.get("half_resolution", {}).get("pattern_change_difference_m", {})
+        for row in r["rows"]:
+            b, t = r["base"][row["line"]], r["target"][row["line"]]
+            print(f"{name:>22} {row['line']:>5} {t['height_m']:6.3f} {_cm(row['pattern_change_m'])} "
+                  f"{_cm(row['body_change_m'])} {_cm(row['chart_change_m'])} {_cm(b['ease_m'])} "
+                  f"{_cm(t['ease_m'])} {_cm(row['ease_change_m'])} {_cm(row['placement_change_m']):>7} "
+                  f"{_cm(half.get(row['line']))}  {'yes' if row['pass'] else 'NO'}")
+    for r in results["mtm"]:
+        if "waistband_move_m" in r:
+            print(f"  {r['case']}: body hips {_cm(r['body_hips_change_m'])}, waist "
+                  f"{_cm(r['body_waist_change_m'])}; waistband moves {1e3 * r['waistband_move_m']:.1f} mm "
+                  f"(<= {1e3 * WAISTBAND_MOVE_M:.0f}; shape {1e3 * r['waistband_shape_change_m']:.1f}); hip "
+                  f"line: pattern {_cm(r['hip_line_pattern_change_m'])}, error {_cm(r['hip_line_error_m'])} "
+                  f"-> {'pass' if r['pass'] else 'FAIL'}")
+        else:
+            print(f"  {r['case']}: body bust {_cm(r['body_bust_change_m'])}, waist "
+                  f"{_cm(r['body_waist_change_m'])}; hem girth change {1e3 * r['hem_change_m']:.1f} mm "
+                  f"(<= {1e3 * HEM_CHANGE_M:.0f}) -> {'pass' if r['pass'] else 'FAIL'}")
     for r in results["manufactured"]:
-        for name, p in r["panels"].items():
-            print(f"{r['scale']:5.2f} {name:>12} {p['size_mm']:8.0f} {p['max_mm']:7.1f} {p['mean_mm']:8.1f} "
-                  f"{p['max_percent']:6.2f} {p['mean_percent']:7.2f} {p['unadjusted_max_mm']:13.1f}  "
-                  f"{'yes' if r['pass'] else 'NO'}")
-    print("\n2. grading from size 12 (pattern girth change vs chart girth change, cm)")
-    print("   body@band (skirt waist only): the bodies' girth change at the height where the waistband sits, "
-          "not at the chart's waist plane; err@band: pattern - body@band (a diagnostic, not the pass test)")
-    print(f"{'garment':>15} {'to':>3} {'line':>6} {'chart':>7} {'pattern':>8} {'drafted':>8} {'error':>7} "
-          f"{'body@band':>9} {'err@band':>8}  pass")
+        per = ", ".join(f"{k} {1e3 * p['max_m']:.1f} (unadjusted {1e3 * p['unadjusted_max_m']:.1f})"
+                        for k, p in r["panels"].items())
+        print(f"  manufactured s = {r['scale']:.2f}: max deviation mm {per} (<= {1e3 * MANUFACTURED_M:.1f}) "
+              f"-> {'pass' if r['pass'] else 'FAIL'}")
     for r in results["grading"]:
-        for line, v in r["lines"].items():
-            print(f"{r['garment']:>15} {r['to']:>3} {line:>6} {v['chart_cm']:7.2f} "
-                  f"{v['pattern_change_cm']:8.2f} {v['drafted_change_cm']:8.2f} {v['discrepancy_cm']:7.2f} "
-                  f"{v.get('body_at_band_cm', math.nan):9.2f} "
-                  f"{v.get('discrepancy_body_at_band_cm', math.nan):8.2f}  {'yes' if r['pass'] else 'NO'}")
-        if "waistband_length_change_cm" in r:
-            print(f"{'':>15} {r['to']:>3} waistband length (along the waist edges) change "
-                  f"{r['waistband_length_change_cm']:.2f} cm")
-    print("\n3. hips-only change (straight skirt, mm)")
-    for r in results["hips_only"]:
-        print(f"amount {r['amount']:.3f}: body hips {r['body_hips_change_mm']:+.1f}, pattern hip width "
-              f"{r['hip_width_change_mm']:+.1f}, waist width {r['waist_width_change_mm']:+.1f}, side seam "
-              f"max move {r['side_seam_max_move_mm']:.1f}, waistband max move "
-              f"{r['waistband_max_move_mm']:.1f} (<= {ACCEPT_WAISTBAND_MM} mm: "
-              f"{'yes' if r['pass'] else 'NO'}), without its corners "
-              f"{r.get('waistband_interior_max_move_mm', math.nan):.1f}, after its own rigid motion "
-              f"{r.get('waistband_shape_change_mm', math.nan):.1f}, waistband length "
-              f"{r.get('waistband_length_change_mm', math.nan):+.1f}, body waist "
-              f"{r.get('body_waist_change_mm', math.nan):+.1f}")
-    print("\nadjust runs: objective base -> initialized -> final, init used, stop reason, seconds")
-    for sec in ("manufactured", "grading", "hips_only"):
-        for r in results[sec]:
-            a = r["adjust"]
-            tag = r.get("scale", r.get("amount"))
-            tag = f"{r['garment']} {r['to']}" if tag is None else tag
-            print(f"{sec:>12} {tag!s:>18}: {a['objective_base']:.4g} -> {a['objective_initial']:.4g} -> "
-                  f"{a['objective_final']:.4g}, {a['initialization_used']}, {a['stopped']}, "
-                  f"{a['total_seconds']:.0f} s")
-    print(f"\ntotal {results['seconds']:.0f} s")
+        if "half_resolution" in r:
+            d = max(abs(v) for v in r["half_resolution"]["pattern_change_difference_m"].values())
+            print(f"  {r['garment']} {r['from']}->{r['to']} at half the edge length: pattern changes differ "
+                  f"by at most {1e3 * d:.1f} mm (<= {1e3 * HALF_RESOLUTION_M:.0f}) "
+                  f"-> {'pass' if r['half_resolution']['pass'] else 'FAIL'}")
+    n = sum(r["pass"] for sec in ("grading", "mtm", "manufactured") for r in results[sec])
+    total = sum(len(results[sec]) for sec in ("grading", "mtm", "manufactured"))
+    print(f"{n}/{total} cases pass; {results['seconds']:.0f} s")
 
 
 def main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
+    from torchgarment.adjust.objective import CostWeights
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.body import Body
-    from torchgarment.body.size_chart import chart_row
-    from torchgarment.pattern.library import draft
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true",
-                    help="skirt only, sizes 20 and 6 (cached bodies), 16 iterations")
-    ap.add_argument("--iterations", type=int, default=None, help="outer iterations (default 32, --quick 16)")
-    ap.add_argument("--edge-length", type=float, default=0.05,
-                    help="triangle edge length in metres (default 0.05)")
-    ap.add_argument("--voxel", type=float, default=0.01, help="body SDF voxel size in metres (default 0.01)")
-    ap.add_argument("--hips", type=float, default=0.10,
-                    help="hips-only enlargement factor (default 0.10, about +9 cm hip girth: more than the "
-                         "skirt's 4 cm hip ease); a 0.0 row (target = base body) is run as the noise-floor "
-                         "control")
-    ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    ap.add_argument("--weights", type=json.loads, default=None,
-                    help="cost weights overriding the paper's, as JSON, "
-                         'e.g. \'{"fixing": 4, "curvature": 1600}\'')
-    ap.add_argument("--only", choices=("manufactured", "grading", "hips"), nargs="+", default=None,
+    ap.add_argument("--only", choices=("grading", "mtm", "manufactured"), nargs="+", default=None,
                     help="run only these checks (default all)")
-    ap.add_argument("--garments", nargs="+", choices=("straight_skirt", "tshirt"), default=None,
-                    help="garments of the grading check (default both; --quick: the skirt)")
+    ap.add_argument("--garments", nargs="+", choices=GARMENTS, default=None,
+                    help=f"garments of the grading check (default {' '.join(GARMENTS)})")
     ap.add_argument("--sizes", nargs="+", default=None,
-                    help="target chart sizes of the grading check (default 16 20 8 6; --quick: 20 6)")
+                    help=f"target chart sizes of the grading check (default {' '.join(SIZES)})")
+    ap.add_argument("--edge-length", type=float, default=None,
+                    help="triangle edge length in metres (default: torchgarment adjust's)")
+    ap.add_argument("--voxel", type=float, default=None,
+                    help="body SDF voxel size in metres (default: torchgarment adjust's)")
+    ap.add_argument("--iterations", type=int, default=None,
+                    help="outer iterations (default: torchgarment adjust's)")
+    ap.add_argument("--half-resolution", action="store_true",
+                    help="also run every grading case at half the edge length and compare the pattern "
+                         "changes (pass: within 5 mm)")
+    ap.add_argument("--weights", type=json.loads, default=None,
+                    help="cost weights overriding the defaults, as JSON, e.g. '{\"fixing\": 4}'")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    it = args.iterations if args.iterations is not None else (16 if args.quick else 32)
-    from torchgarment.adjust.objective import CostWeights
-
-    weights = CostWeights.from_dict(args.weights) if args.weights else None
-    settings = AdjustSettings(edge_length=args.edge_length, voxel_size=args.voxel, iterations=it,
-                              exact_interval=8,
-                              weights=weights)
-    base = Body.from_size("12")
-    skirt = draft("straight_skirt", chart_row("12"))
-    sizes = args.sizes or (["20", "6"] if args.quick else ["16", "20", "8", "6"])
-    garments = args.garments or (["straight_skirt"] if args.quick else ["straight_skirt", "tshirt"])
-    jobs = [("ms", s) for s in (1.05, 0.95)] + [("grade", (g, t)) for g in garments for t in sizes] + \
-        [("hips", 0.0), ("hips", args.hips)]
-    only = set(args.only or ("manufactured", "grading", "hips"))
-    jobs = [j for j in jobs if {"ms": "manufactured", "grade": "grading", "hips": "hips"}[j[0]] in only]
+    overrides = {k: v for k, v in (("edge_length", args.edge_length), ("voxel_size", args.voxel),
+                                   ("iterations", args.iterations)) if v is not None}
+    if args.weights:
+        overrides["weights"] = CostWeights.from_dict(args.weights)
+    settings = AdjustSettings(**overrides)
+    base = Body.from_size(BASE_SIZE)
+    only = set(args.only or ("grading", "mtm", "manufactured"))
+    jobs = []
+    if "grading" in only:
+        jobs += [("grading", (g, s)) for g in (args.garments or GARMENTS) for s in (args.sizes or SIZES)]
+    if "mtm" in only:
+        jobs += [("mtm", "hips"), ("mtm", "bust")]
+    if "manufactured" in only:
+        jobs += [("manufactured", s) for s in (1.05, 0.95)]
     results = {"settings": {"edge_length": settings.edge_length, "voxel_size": settings.voxel_size,
-                            "iterations": it, "optimizer": "pgd", "exact_interval": settings.exact_interval,
-                            "weights": (weights or CostWeights()).to_dict()},
-               "manufactured": [], "grading": [], "hips_only": []}
+                            "iterations": settings.iterations, "optimizer": str(settings.optimizer),
+                            "weights": (settings.weights or CostWeights()).to_dict(),
+                            "fit_tolerance_m": FIT_TOLERANCE_M},
+               "grading": [], "mtm": [], "manufactured": []}
     t0 = time.perf_counter()
     for kind, arg in tqdm(jobs, desc="acceptance", unit="case", file=sys.stderr):
-        if kind == "ms":
-            results["manufactured"].append(manufactured(skirt, base, arg, replace(settings)))
-        elif kind == "grade":
-            results["grading"].append(grading(arg[0], "12", arg[1], base, replace(settings)))
+        if kind == "grading":
+            results["grading"].append(grading(arg[0], arg[1], base, replace(settings), args.half_resolution))
+        elif kind == "mtm":
+            results["mtm"].append((mtm_hips if arg == "hips" else mtm_bust)(base, replace(settings)))
         else:
-            results["hips_only"].append(hips_only(skirt, base, arg, replace(settings)))
+            results["manufactured"].append(manufactured(base, arg, replace(settings)))
     results["seconds"] = time.perf_counter() - t0
 
-    print_tables(results)
+    print_table(results)
     if args.json is not None:
         from torchgarment.io.atomic import atomic_open
 

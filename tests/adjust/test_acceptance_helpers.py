@@ -194,3 +194,70 @@ def test_body_girth_at_on_a_cylinder(acc):
     perimeter = 64 * 2 * r * math.sin(math.pi / 64)  # the inscribed 64-gon
     for y in (0.2, 0.5, 0.83):
         assert acc.body_girth_at(body, y) == pytest.approx(perimeter, rel=1e-9)
+
+
+def test_bust_body_changes_only_the_bust(acc):
+    from torchgarment.body import Body
+
+    base = Body.from_size("12")
+    amount = acc.amount_for_girth_change(acc.bust_body, base, "bust", 0.06)
+    target = acc.bust_body(base, amount)
+    assert 0.03 < amount < 0.1
+    assert acc.girth(target, "bust") - acc.girth(base, "bust") == pytest.approx(0.06, abs=1e-3)
+    assert abs(acc.girth(target, "waist") - acc.girth(base, "waist")) < 1e-3
+    assert acc.girth(target, "hips") == pytest.approx(acc.girth(base, "hips"), abs=1e-9)
+    # below the waist landmark nothing moved
+    y_waist = float(base.landmarks["waist"][1])
+    below = base.vertices[:, 1] <= y_waist
+    assert torch.allclose(target.vertices[below], base.vertices[below], rtol=0.0, atol=1e-15)
+    # the same solve for the hips
+    a_h = acc.amount_for_girth_change(acc.hips_body, base, "hips", 0.06)
+    hips = acc.girth(acc.hips_body(base, a_h), "hips")
+    assert hips - acc.girth(base, "hips") == pytest.approx(0.06, abs=1e-3)
+    with pytest.raises(InputError, match="finite"):
+        acc.amount_for_girth_change(acc.bust_body, base, "bust", math.nan)
+
+
+def _fake_result(pattern, mesh, p_target):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(mesh_base=mesh, mesh_target=SimpleNamespace(p=p_target),
+                           boundary_index=torch.as_tensor(np.unique(acc_labels(pattern, mesh))))
+
+
+def acc_labels(pattern, mesh):
+    from torchgarment.adjust.acceptance import boundary_vertex_labels
+
+    return boundary_vertex_labels(pattern, mesh)[0]
+
+
+def test_scaled_outline_deviation_and_edge_moves(acc):
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+    from torchgarment.pattern.meshing import mesh_pattern
+
+    pattern = draft("straight_skirt", chart_row("12"))
+    mesh = mesh_pattern(pattern, 0.05)
+    p = mesh.p.double()
+    rot = torch.as_tensor(_rot(0.3))
+    # the exact manufactured answer, rotated and moved: no deviation; the base pattern itself deviates by
+    # 5 % of its distance from the centroid
+    dev = acc.scaled_outline_deviation(_fake_result(pattern, mesh, 1.05 * p @ rot.T + 0.2), 1.05)
+    assert set(dev) == set(pattern.panels)
+    for d in dev.values():
+        assert d["max_m"] < 1e-12 and 0.01 < d["unadjusted_max_m"] < 0.05 and 0.5 < d["size_m"] < 1.0
+    # a pattern moved by (3 mm, 4 mm): the waistband moves 5 mm, its shape not at all
+    moved = acc.edge_moves(pattern, _fake_result(pattern, mesh, p + torch.tensor([0.003, 0.004],
+                                                                                 dtype=p.dtype)),
+                           ("waist_r", "waist_l"))
+    assert moved["max_m"] == pytest.approx(0.005, abs=1e-12) and moved["shape_max_m"] < 1e-12
+    # widening the panels by 1 % about their centre line changes the waistband's shape: its ends move by
+    # 1 % of the half waist width, and no rigid motion of the symmetric band undoes that
+    q = p.clone()
+    q[:, 0] *= 1.01
+    widened = acc.edge_moves(pattern, _fake_result(pattern, mesh, q), ("waist_r", "waist_l"))
+    half_waist = max(acc.line_width(pn, "waist_r", "waist_l") for pn in pattern.panels.values()) / 2
+    assert widened["max_m"] == pytest.approx(0.01 * half_waist, abs=1e-12)
+    assert widened["shape_max_m"] == pytest.approx(widened["max_m"], rel=1e-6)
+    with pytest.raises(PatternError):
+        acc.edge_moves(pattern, _fake_result(pattern, mesh, q), ("armhole_r",))

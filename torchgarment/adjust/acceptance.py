@@ -8,7 +8,8 @@
   :class:`~torchgarment.structures.MeshLayout` (:func:`boundary_vertex_labels`, :func:`line_vertices`).
 * Rigid-motion-free deviation of 2D outlines (:func:`procrustes_deviation`).
 * Bodies: the horizontal girth at a height (:func:`body_girth_at`) and derived target bodies, uniformly scaled
-  (:func:`scaled_body`) or with enlarged hips (:func:`hips_body`, :func:`hip_weight`).
+  (:func:`scaled_body`), with enlarged hips or bust (:func:`hips_body`, :func:`bust_body`,
+  :func:`hip_weight`, :func:`amount_for_girth_change`).
 
 Lengths are in metres.
 """
@@ -16,6 +17,7 @@ Lengths are in metres.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -24,9 +26,10 @@ import torch
 from torchgarment.body.body import Body
 from torchgarment.body.measure import SectionPlane, section_girths
 from torchgarment.body.skeleton import Skeleton
-from torchgarment.errors import InputError, PatternError
+from torchgarment.errors import InputError, MeshError, PatternError
 
 if TYPE_CHECKING:
+    from torchgarment.adjust.pipeline import AdjustResult
     from torchgarment.pattern.spec import Panel, SewingPattern
     from torchgarment.structures.garment_mesh import GarmentMesh, MeshLayout
 
@@ -34,16 +37,21 @@ __all__ = [
     "ARM_KEYS",
     "SKIRT_LINES",
     "TSHIRT_LINES",
+    "amount_for_girth_change",
     "body_girth_at",
     "boundary_vertex_labels",
+    "bust_body",
+    "edge_moves",
     "edges_length",
     "girth",
     "hip_weight",
     "hips_body",
+    "line_corners",
     "line_vertices",
     "line_width",
     "pattern_line_widths",
     "procrustes_deviation",
+    "scaled_outline_deviation",
     "scaled_body",
 ]
 
@@ -80,9 +88,41 @@ def procrustes_deviation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(A @ R.T - B, axis=1)
 
 
+def scaled_outline_deviation(result: AdjustResult, s: float) -> dict[str, dict[str, float]]:
+    """Per panel, the adjusted boundary's distance from ``s`` times the base boundary, rigid motion removed.
+
+    The manufactured solution: adjusted onto the base body scaled by ``s``, the exact answer is the base
+    pattern scaled by ``s``. Per panel, :func:`procrustes_deviation` of the adjusted boundary vertices from
+    ``s`` times the base ones.
+
+    Returns:
+        Per panel name: ``size_m`` (the base panel's bounding-box diagonal), ``max_m``, ``mean_m`` (the
+        deviation), ``unadjusted_max_m``, ``unadjusted_mean_m`` (the base pattern's own deviation: what the
+        adjustment has to recover).
+    """
+    bidx = result.boundary_index.cpu().numpy()
+    vp = result.mesh_base.vertex_panel_ids.cpu().numpy()[bidx]
+    pb = result.mesh_base.p.detach().cpu().double().numpy()[bidx]
+    pn = result.mesh_target.p.detach().cpu().double().numpy()[bidx]
+    out = {}
+    for k, name in enumerate(result.mesh_base.panel_names):
+        m = vp == k
+        dev = procrustes_deviation(pn[m], s * pb[m])
+        ref = procrustes_deviation(pb[m], s * pb[m])
+        out[name] = {"size_m": float(np.linalg.norm(pb[m].max(axis=0) - pb[m].min(axis=0))),
+                     "max_m": float(dev.max()), "mean_m": float(dev.mean()),
+                     "unadjusted_max_m": float(ref.max()), "unadjusted_mean_m": float(ref.mean())}
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- widths
-def line_width(panel: Panel, first: str, second: str) -> float:
-    """Distance (m) between the start vertex of the edge labelled ``first`` and the end vertex of ``second``.
+def line_corners(panel: Panel, first: str, second: str) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The two corners of a construction line on a panel, as ``(edge index, 0 = start / 1 = end)`` pairs.
+
+    The line joins the two ends of the run of edges from the edge labelled ``first`` to the one labelled
+    ``second`` in the panel's edge order: the start of ``first`` and the end of ``second`` when ``first``
+    comes first (or is ``second``: the edge's own ends), else the start of ``second`` and the end of
+    ``first`` (a mirrored panel lists its edges in the reverse order).
 
     Raises:
         PatternError: the panel has no edge labelled ``first`` or ``second``.
@@ -90,8 +130,21 @@ def line_width(panel: Panel, first: str, second: str) -> float:
     labels = [e.label for e in panel.edges]
     if first not in labels or second not in labels:
         raise PatternError(f"panel {panel.name!r} has no edges {first!r}/{second!r}")
-    a = panel.edge_endpoints(labels.index(first))[0]
-    b = panel.edge_endpoints(labels.index(second))[1]
+    i, j = labels.index(first), labels.index(second)
+    if i > j:
+        i, j = j, i
+    return (i, 0), (j, 1)
+
+
+def line_width(panel: Panel, first: str, second: str) -> float:
+    """Distance (m) between the two corners of a construction line on a panel (:func:`line_corners`).
+
+    Raises:
+        PatternError: the panel has no edge labelled ``first`` or ``second``.
+    """
+    (i, a_end), (j, b_end) = line_corners(panel, first, second)
+    a = panel.edge_endpoints(i)[a_end]
+    b = panel.edge_endpoints(j)[b_end]
     return float(np.linalg.norm(np.asarray(b) - np.asarray(a)))
 
 
@@ -160,11 +213,37 @@ def boundary_vertex_labels(pattern: SewingPattern, mesh: GarmentMesh) -> tuple[n
     return np.concatenate(verts), np.concatenate(labels)
 
 
+def edge_moves(pattern: SewingPattern, result: AdjustResult, labels: tuple[str, ...]) -> dict[str, float]:
+    """How the pattern moved along the edges with these labels in an adjustment (m).
+
+    Returns:
+        ``max_m``: the largest move of their boundary vertices in panel coordinates (base to adjusted);
+        ``shape_max_m``: the largest after each panel's own best rigid motion of those vertices
+        (:func:`procrustes_deviation`: a piece moved on the cutting table is the same piece).
+
+    Raises:
+        PatternError: no edge has one of the labels.
+    """
+    verts, lab = boundary_vertex_labels(pattern, result.mesh_base)
+    sel = np.unique(verts[np.isin(lab, list(labels))])
+    if sel.size == 0:
+        raise PatternError(f"pattern {pattern.name!r} has no edges labelled {labels}")
+    pb = result.mesh_base.p.detach().cpu().double().numpy()
+    pn = result.mesh_target.p.detach().cpu().double().numpy()
+    panel = result.mesh_base.vertex_panel_ids.cpu().numpy()
+    shape = 0.0
+    for k in np.unique(panel[sel]):
+        v = sel[panel[sel] == k]
+        if v.size >= 2:
+            shape = max(shape, float(procrustes_deviation(pn[v], pb[v]).max()))
+    return {"max_m": float(np.linalg.norm(pn[sel] - pb[sel], axis=1).max()), "shape_max_m": shape}
+
+
 def line_vertices(pattern: SewingPattern, mesh: GarmentMesh, first: str, second: str) -> np.ndarray:
     """Mesh vertex indices of a construction line's corners.
 
-    Per panel with both edges, the start vertex of the edge labelled ``first`` and the end vertex of
-    ``second`` (the two points :func:`line_width` measures).
+    Per panel with both edges, the two corners of :func:`line_corners` (the two points :func:`line_width`
+    measures).
 
     Args:
         pattern: the pattern ``mesh`` was made from. mesh: made by ``mesh_pattern`` (it has a ``layout``).
@@ -179,10 +258,11 @@ def line_vertices(pattern: SewingPattern, mesh: GarmentMesh, first: str, second:
     layout = _layout(mesh)
     out = []
     for name, panel in pattern.panels.items():
-        labels = [e.label for e in panel.edges]
+        labels = {e.label for e in panel.edges}
         if first in labels and second in labels:
             runs = layout.runs(name)
-            out += [int(runs[labels.index(first)][0]), int(runs[labels.index(second)][-1])]
+            (i, a_end), (j, b_end) = line_corners(panel, first, second)
+            out += [int(runs[i][0 if a_end == 0 else -1]), int(runs[j][0 if b_end == 0 else -1])]
     if not out:
         raise PatternError(f"pattern {pattern.name!r}: no panel has edges {first!r} and {second!r}")
     return np.asarray(out, dtype=np.int64)
@@ -192,13 +272,42 @@ def line_vertices(pattern: SewingPattern, mesh: GarmentMesh, first: str, second:
 def body_girth_at(body: Body, y: float) -> float:
     """The body's horizontal tape girth (m) at height ``y`` (m).
 
-    The perimeter of the convex hull of the section loop around the body's vertical axis (x = z = 0, where
-    bodies are centred), as :func:`torchgarment.body.measure.section_girths`.
+    Above the crotch, the perimeter of the convex hull of the section loop around the body's vertical axis
+    (x = z = 0, where bodies are centred), as :func:`torchgarment.body.measure.section_girths` (arms, separate
+    loops, are left out). Below it, where no loop encloses the axis, the tape goes around both legs: the
+    convex hull of the two loops nearest the axis.
+
+    Raises:
+        MeshError: the plane misses the body.
     """
+    from scipy.spatial import ConvexHull
+
+    from torchgarment.body.measure import _cut, _plane_basis, _topology
+
     v = body.vertices
     pt = torch.tensor([0.0, float(y), 0.0], dtype=v.dtype, device=v.device)
     up = torch.tensor([0.0, 1.0, 0.0], dtype=v.dtype, device=v.device)
-    return float(section_girths(v, body.faces, {"line": SectionPlane("line", pt, up, pt)})["line"])
+    vn = v.detach().cpu().numpy().astype(np.float64)
+    loops = [lp for lp in _cut(vn, _topology(body.faces), pt.cpu().numpy(), up.cpu().numpy()) if lp.closed]
+    if not loops:
+        raise MeshError(f"the horizontal plane at y = {y:.3f} m misses the body")
+    basis = _plane_basis(up.cpu().numpy())
+    if any(_encloses_origin(lp.points @ basis.T, lp.segments) for lp in loops):
+        return float(section_girths(v, body.faces, {"line": SectionPlane("line", pt, up, pt)})["line"])
+    near = sorted(loops, key=lambda lp: float(np.min(np.linalg.norm(lp.points[:, [0, 2]], axis=1))))[:2]
+    p2 = np.concatenate([lp.points for lp in near]) @ basis.T
+    h = p2[ConvexHull(p2).vertices]
+    return float(np.linalg.norm(h - np.roll(h, 1, axis=0), axis=1).sum())
+
+
+def _encloses_origin(p2: np.ndarray, segments: np.ndarray) -> bool:
+    """Whether the closed polygon of the (K, 2) points ``p2`` joined by ``segments`` (S, 2) encloses (0, 0)
+    (ray casting along +u)."""
+    a, b = p2[segments[:, 0]], p2[segments[:, 1]]
+    straddle = (a[:, 1] > 0.0) != (b[:, 1] > 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_cross = a[:, 0] - a[:, 1] * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+    return int(np.count_nonzero(straddle & (x_cross > 0.0))) % 2 == 1
 
 
 def girth(body: Body, name: str) -> float:
@@ -233,21 +342,60 @@ def hip_weight(y: torch.Tensor, y_hip: float, y_waist: float, y_thigh: float) ->
     return torch.cos(0.5 * math.pi * t) ** 2
 
 
+def _widened(body: Body, w: torch.Tensor, centre: torch.Tensor, amount: float, tag: str) -> Body:
+    """``body`` with x, z scaled by ``1 + amount * w`` about the vertical axis through ``centre``, the
+    vertices of the arms and hands (skin weight of the bones named by :data:`ARM_KEYS`) unchanged."""
+    v = body.vertices
+    if body.skin_weights is not None and body.skeleton is not None and body.skeleton.names:
+        arm = torch.tensor([any(k in n for k in ARM_KEYS) for n in body.skeleton.names], device=v.device)
+        w = w * (1.0 - body.skin_weights[arm].sum(dim=0).clamp(0.0, 1.0))
+    f = 1.0 + amount * w
+    nv = v.clone()
+    nv[:, 0] = centre[0] + f * (v[:, 0] - centre[0])
+    nv[:, 2] = centre[2] + f * (v[:, 2] - centre[2])
+    return Body(vertices=nv, faces=body.faces.clone(), skeleton=body.skeleton,
+                skin_weights=body.skin_weights, landmarks=dict(body.landmarks),
+                params={"derived": tag, "amount": amount})
+
+
 def hips_body(body: Body, amount: float) -> Body:
     """``body`` with the hips enlarged: x, z scaled by ``1 + amount * w(y)`` about the hip landmark's vertical
     axis (:func:`hip_weight` between the waist and thigh landmarks), arm/hand vertices (skin weight of the
     bones named by :data:`ARM_KEYS`) unchanged."""
     lm = body.landmarks
-    v = body.vertices
-    w = hip_weight(v[:, 1], float(lm["hips"][1]), float(lm["waist"][1]), float(lm["thigh"][1]))
-    if body.skin_weights is not None and body.skeleton is not None and body.skeleton.names:
-        arm = torch.tensor([any(k in n for k in ARM_KEYS) for n in body.skeleton.names], device=v.device)
-        w = w * (1.0 - body.skin_weights[arm].sum(dim=0).clamp(0.0, 1.0))
-    c = lm["hips"]
-    f = 1.0 + amount * w
-    nv = v.clone()
-    nv[:, 0] = c[0] + f * (v[:, 0] - c[0])
-    nv[:, 2] = c[2] + f * (v[:, 2] - c[2])
-    return Body(vertices=nv, faces=body.faces.clone(), skeleton=body.skeleton,
-                skin_weights=body.skin_weights, landmarks=dict(body.landmarks),
-                params={"derived": "hips", "amount": amount})
+    w = hip_weight(body.vertices[:, 1], float(lm["hips"][1]), float(lm["waist"][1]), float(lm["thigh"][1]))
+    return _widened(body, w, lm["hips"], amount, "hips")
+
+
+def bust_body(body: Body, amount: float) -> Body:
+    """``body`` with the bust enlarged: x, z scaled by ``1 + amount * w(y)`` about the bust landmark's
+    vertical axis, ``w`` the cos^2 bump of :func:`hip_weight` equal to 1 at the bust landmark and 0 at and
+    below the waist landmark and at and above the neck landmark; arm/hand vertices (:data:`ARM_KEYS`)
+    unchanged. The waist and everything below it keep their shape."""
+    lm = body.landmarks
+    w = hip_weight(body.vertices[:, 1], float(lm["bust"][1]), float(lm["neck"][1]), float(lm["waist"][1]))
+    return _widened(body, w, lm["bust"], amount, "bust")
+
+
+def amount_for_girth_change(make: Callable[[Body, float], Body], body: Body, name: str, change: float,
+                            steps: int = 2) -> float:
+    """The ``amount`` of a derived-body maker (:func:`hips_body`, :func:`bust_body`) whose body's measured
+    girth ``name`` (:meth:`Body.measurements`) is ``change`` (m) larger than ``body``'s.
+
+    Starts from ``change / girth`` (exact for a uniform scaling of the whole section) and takes ``steps``
+    secant steps on the measured girth.
+
+    Raises:
+        InputError: ``change`` is not finite.
+    """
+    if not math.isfinite(change):
+        raise InputError(f"the girth change must be finite, got {change}")
+    g0 = girth(body, name)
+    a0, c0 = 0.0, 0.0
+    a1 = change / g0
+    for _ in range(steps):
+        c1 = girth(make(body, a1), name) - g0
+        if abs(c1 - change) < 1e-6 or c1 == c0:
+            break
+        a0, c0, a1 = a1, c1, a1 + (change - c1) * (a1 - a0) / (c1 - c0)
+    return float(a1)

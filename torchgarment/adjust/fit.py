@@ -1,0 +1,249 @@
+"""Fit of a draped garment at its construction lines, and fit preservation between two drapes (issue 18).
+
+A garment's *construction lines* (:func:`construction_lines`) are the horizontal lines a pattern maker
+grades: waist and hips for bottoms (skirts, trousers); bust, waist and hem for tops and dresses (the sheath
+dress also has its hip line; the bodysuit, without a hem, its hip line instead). A line is named by two
+edge labels: per panel it joins the two corners of :func:`torchgarment.adjust.acceptance.line_corners`.
+
+On a drape (:func:`measure_fit`), each line has
+
+* **height**: the mean height of its corner vertices in the drape;
+* **pattern girth**: the pattern's girth at the line (the corner-to-corner widths summed over the panels,
+  :func:`~torchgarment.adjust.acceptance.pattern_line_widths`);
+* **body girth**: the body's horizontal tape girth at that height
+  (:func:`~torchgarment.adjust.acceptance.body_girth_at`);
+* **ease**: pattern girth minus body girth;
+* **placement**: the height above the body's nearest landmark plane among waist, hips and bust
+  (:meth:`Body.measurements`, the planes of :func:`torchgarment.body.measure.find_section_planes`).
+
+Between a base drape (base pattern on the base body) and a target drape (adjusted pattern on the target
+body), :func:`fit_rows` gives per line the ease change, the pattern change, the body change (each body's girth
+where the line sits on it) and the placement change (against the base line's landmark), and the pass test
+of issue 18: each within the tolerance (1 cm), with ``|pattern change - body change|``. Note that with these
+definitions ``ease change == pattern change - body change`` identically: the two tests are one.
+
+Lengths are in metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
+
+from torchgarment.adjust.acceptance import body_girth_at, line_vertices, pattern_line_widths
+from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    import torch
+
+    from torchgarment.adjust.pipeline import AdjustResult
+    from torchgarment.body.body import Body
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.structures.garment_mesh import GarmentMesh
+
+__all__ = [
+    "CONSTRUCTION_LINES",
+    "LANDMARKS",
+    "ROW_KEYS",
+    "LineFit",
+    "adjustment_fit",
+    "chart_changes",
+    "construction_lines",
+    "fit_rows",
+    "landmark_heights",
+    "measure_fit",
+]
+
+_BOTTOM = {"waist": ("waist_r", "waist_l"), "hips": ("side_hip_r", "side_hip_l")}
+CONSTRUCTION_LINES: dict[str, dict[str, tuple[str, str]]] = {
+    "straight_skirt": dict(_BOTTOM),
+    "aline_skirt": dict(_BOTTOM),
+    "trousers": {"waist": ("waist", "waist"), "hips": ("side_hip", "centre")},
+    "tshirt": {"bust": ("armhole_r", "armhole_l"), "waist": ("side_up_r", "side_up_l"),
+               "hem": ("side_low_r", "side_low_l")},
+    "sheath_dress": {"bust": ("armhole_r", "armhole_l"), "waist": ("side_bust_r", "side_bust_l"),
+                     "hips": ("side_hip_r", "side_hip_l"), "hem": ("side_low_r", "side_low_l")},
+    "bodysuit": {"bust": ("armhole_r", "armhole_l"), "waist": ("side_bust_r", "side_bust_l"),
+                 "hips": ("side_hip_r", "side_hip_l")},
+}
+"""Construction lines of the library garments: garment -> line name -> (first, second) edge labels (see
+:func:`torchgarment.adjust.acceptance.line_corners`)."""
+
+LANDMARKS = ("waist", "hips", "bust")
+"""The body's landmark planes a line's placement is measured from."""
+
+ROW_KEYS = ("line", "pattern_girth_m", "body_girth_m", "ease_m", "ease_change_m", "pattern_change_m",
+            "body_change_m", "chart_change_m", "placement_change_m", "pass")
+"""The keys of a :func:`fit_rows` row, in order."""
+
+
+@dataclass
+class LineFit:
+    """The fit of a draped garment at one construction line (metres).
+
+    Attributes:
+        line: the line's name.
+        height_m: mean height of the line's corner vertices in the drape.
+        pattern_girth_m: the pattern's girth at the line.
+        body_girth_m: the body's horizontal girth at ``height_m``.
+        ease_m: ``pattern_girth_m - body_girth_m``.
+        landmark: the nearest of the body's landmark planes (:data:`LANDMARKS`).
+        placement_m: ``height_m`` minus that plane's height.
+        landmark_heights: the heights of all the body's :data:`LANDMARKS` planes (so a placement can be
+            taken against another landmark, :func:`fit_rows`).
+    """
+
+    line: str
+    height_m: float
+    pattern_girth_m: float
+    body_girth_m: float
+    ease_m: float
+    landmark: str
+    placement_m: float
+    landmark_heights: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """The fields as plain JSON-ready values."""
+        return asdict(self)
+
+
+def construction_lines(pattern: SewingPattern) -> dict[str, tuple[str, str]]:
+    """The construction lines of a pattern: line name -> (first, second) edge labels.
+
+    A library garment (its name or ``metadata["garment"]`` in :data:`CONSTRUCTION_LINES`) gets its table;
+    any other pattern the first table of :data:`CONSTRUCTION_LINES` whose every line has a panel with both
+    labels (a renamed or re-exported library garment), else an empty dict.
+    """
+    for key in (pattern.metadata.get("garment") if pattern.metadata else None, pattern.name):
+        if key in CONSTRUCTION_LINES:
+            return dict(CONSTRUCTION_LINES[key])
+    panel_labels = [{e.label for e in p.edges} for p in pattern.panels.values()]
+    for table in CONSTRUCTION_LINES.values():
+        if all(any(a in lab and b in lab for lab in panel_labels) for a, b in table.values()):
+            return dict(table)
+    return {}
+
+
+def landmark_heights(body: Body) -> dict[str, float]:
+    """Heights (m) of the body's landmark planes :data:`LANDMARKS` (:meth:`Body.measurements`, cached on the
+    body)."""
+    planes = body.measurements().planes
+    return {name: float(planes[name].point[1]) for name in LANDMARKS}
+
+
+def measure_fit(pattern: SewingPattern, mesh: GarmentMesh, x: torch.Tensor, body: Body, *,
+                lines: dict[str, tuple[str, str]] | None = None,
+                landmarks: dict[str, float] | None = None) -> dict[str, LineFit]:
+    """The fit of a drape at each construction line (see the module doc).
+
+    Args:
+        pattern: the pattern ``mesh`` was made from (its girths are measured).
+        mesh: made by ``mesh_pattern`` (it has a ``layout``).
+        x: (V, 3) the drape of ``pattern`` on ``body``, metres.
+        body: the body.
+        lines: line name -> (first, second) edge labels; default :func:`construction_lines`.
+        landmarks: landmark name -> plane height (m); default :func:`landmark_heights` of ``body``.
+
+    Returns:
+        Per line name, its :class:`LineFit`.
+
+    Raises:
+        InputError: ``x`` is not (V, 3) for the mesh's V, no landmark is given, or the mesh has no layout.
+        PatternError: a line's labels are on no panel.
+    """
+    if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] != mesh.x.shape[0]:
+        raise InputError(f"x must be ({mesh.x.shape[0]}, 3), the mesh's vertices, got {tuple(x.shape)}")
+    lines = construction_lines(pattern) if lines is None else lines
+    lm = landmark_heights(body) if landmarks is None else {k: float(v) for k, v in landmarks.items()}
+    if not lm:
+        raise InputError("measure_fit needs at least one landmark height")
+    girths = pattern_line_widths(pattern, lines)
+    xd = x.detach()
+    out = {}
+    for line, (first, second) in lines.items():
+        idx = line_vertices(pattern, mesh, first, second)
+        y = float(xd[idx, 1].mean())
+        body_girth = body_girth_at(body, y)
+        near = min(lm, key=lambda k: abs(y - lm[k]))
+        out[line] = LineFit(line=line, height_m=y, pattern_girth_m=girths[line], body_girth_m=body_girth,
+                            ease_m=girths[line] - body_girth, landmark=near, placement_m=y - lm[near],
+                            landmark_heights=dict(lm))
+    return out
+
+
+def fit_rows(base: dict[str, LineFit], target: dict[str, LineFit], chart_change: dict[str, float] | None,
+             tolerance_m: float = 0.01) -> list[dict]:
+    """Fit preservation per construction line, from a base and a target :func:`measure_fit`.
+
+    Per line of ``base``: ``pattern_girth_m``, ``body_girth_m`` and ``ease_m`` of the target;
+    ``ease_change_m = ease_t - ease_b``, ``pattern_change_m = pattern_t - pattern_b``, ``body_change_m =
+    body_t - body_b`` (each body's girth where the line sits on it), ``chart_change_m`` (``chart_change``'s
+    value for the line, for reference; NaN when absent), ``placement_change_m = placement_t - placement_b``
+    with the target's placement taken against the base line's landmark, and ``pass``: each of
+    ``|ease_change|``, ``|pattern_change - body_change|`` and ``|placement_change|`` within ``tolerance_m``
+    (NaN fails).
+
+    Returns:
+        One dict per line (keys :data:`ROW_KEYS`), in ``base``'s order.
+
+    Raises:
+        InputError: a line of ``base`` is not in ``target``, or the tolerance is not positive and finite.
+    """
+    if not (math.isfinite(tolerance_m) and tolerance_m > 0):
+        raise InputError(f"tolerance_m must be positive and finite, got {tolerance_m}")
+    missing = [k for k in base if k not in target]
+    if missing:
+        raise InputError(f"the target fit has no line(s) {missing}; measure both drapes with the same lines")
+    chart_change = chart_change or {}
+    rows = []
+    for line, b in base.items():
+        t = target[line]
+        if t.landmark != b.landmark and b.landmark in t.landmark_heights:
+            placement_t = t.height_m - t.landmark_heights[b.landmark]
+        else:
+            placement_t = t.placement_m
+        ease_change = t.ease_m - b.ease_m
+        pattern_change = t.pattern_girth_m - b.pattern_girth_m
+        body_change = t.body_girth_m - b.body_girth_m
+        placement_change = placement_t - b.placement_m
+        ok = (abs(ease_change) <= tolerance_m and abs(pattern_change - body_change) <= tolerance_m
+              and abs(placement_change) <= tolerance_m)
+        rows.append({"line": line, "pattern_girth_m": t.pattern_girth_m, "body_girth_m": t.body_girth_m,
+                     "ease_m": t.ease_m, "ease_change_m": ease_change, "pattern_change_m": pattern_change,
+                     "body_change_m": body_change,
+                     "chart_change_m": float(chart_change.get(line, math.nan)),
+                     "placement_change_m": placement_change, "pass": bool(ok)})
+    return rows
+
+
+def chart_changes(base_row: dict[str, float], target_row: dict[str, float],
+                  lines: dict[str, tuple[str, str]] | list[str]) -> dict[str, float]:
+    """The chart's girth change (m) for each line named like a chart girth (``waist``, ``hips``, ``bust``):
+    ``target_row[line] - base_row[line]`` (e.g. :func:`torchgarment.body.size_chart.chart_row`); lines
+    without a chart girth (the hem) are left out."""
+    return {k: float(target_row[k]) - float(base_row[k]) for k in lines if k in base_row and k in target_row}
+
+
+def adjustment_fit(result: AdjustResult, base_body: Body, target_body: Body,
+                   chart_change: dict[str, float] | None = None, tolerance_m: float = 0.01,
+                   lines: dict[str, tuple[str, str]] | None = None
+                   ) -> tuple[dict[str, LineFit], dict[str, LineFit], list[dict]]:
+    """The fit of an :func:`~torchgarment.adjust.pipeline.adjust` result: the base fit (base pattern draped
+    on the base body, ``result.mesh_base``), the target fit (adjusted pattern at its equilibrium on the target
+    body, ``result.mesh_target``) and their :func:`fit_rows`.
+
+    Args:
+        result: an adjustment of a :class:`~torchgarment.pattern.spec.SewingPattern` (not of a bare mesh).
+        base_body, target_body: the bodies it was adjusted between.
+        chart_change, tolerance_m: as :func:`fit_rows`. lines: default :func:`construction_lines`.
+
+    Raises:
+        InputError: the result has no pattern (a mesh was adjusted).
+    """
+    if result.pattern is None or result.base_pattern is None:
+        raise InputError("the adjustment has no pattern (a mesh was adjusted): the lines need edge labels")
+    lines = construction_lines(result.base_pattern) if lines is None else lines
+    base = measure_fit(result.base_pattern, result.mesh_base, result.mesh_base.x, base_body, lines=lines)
+    target = measure_fit(result.pattern, result.mesh_target, result.mesh_target.x, target_body, lines=lines)
+    return base, target, fit_rows(base, target, chart_change, tolerance_m)
