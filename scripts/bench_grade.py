@@ -29,6 +29,7 @@ def main() -> None:
 
     import torch
 
+    from torchgarment.adjust.cli import write_outputs
     from torchgarment.adjust.grade import format_table, grade
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.body import Body
@@ -45,7 +46,7 @@ def main() -> None:
     b = chart_row(args.base_size)
     chart = {s: {m: chart_row(s)[m] - b[m] for m in b if m != "height"} for s in args.sizes}
     result = grade(pattern, base_body, targets, settings, Path(args.out), resume=False, progress=True,
-                   base_size=args.base_size, chart_changes=chart)
+                   base_size=args.base_size, chart_changes=chart, writer=write_outputs)
     m = result.metrics
     print(format_table(result.rows))
     print()

@@ -5,14 +5,15 @@ size, prepares and optimizes the adjustment (:func:`torchgarment.adjust.pipeline
 computed once, then :func:`~torchgarment.adjust.pipeline.optimize`) and measures the fit at every
 construction line (:mod:`torchgarment.adjust.fit`: ease, pattern change, body change, placement).
 
-With an output folder it writes, per size, ``DIR/<size>/`` with everything ``torchgarment adjust`` writes
-(:func:`torchgarment.adjust.cli.write_outputs`) plus ``fit.json`` (the size's construction-line rows), each
-size staged (:func:`torchgarment.io.staging.staged_output`: a size folder is published whole or not at all);
-then, for the whole run, ``grade.dxf`` (every size of every piece, :func:`~torchgarment.pattern.dxf.
-save_graded_dxf`), ``grade_nest.png`` (:func:`~torchgarment.pattern.plot.plot_grade_nest`), ``grade.csv``
-(:data:`CSV_COLUMNS`, one row per size and line, the base size first) and ``metrics.json`` (per size and the
-acceptance figures). ``resume=True`` skips sizes whose folder is complete (:data:`SIZE_FILES`). A size that
-fails is reported (one line on stderr) and the others go on; :attr:`GradeResult.failed` lists them.
+With an output folder it writes, per size, ``DIR/<size>/`` with what the ``writer`` writes (the command
+passes ``torchgarment adjust``'s ``write_outputs``; default :func:`write_pattern_files`) plus ``fit.json``
+(the size's construction-line rows), each size staged (:func:`torchgarment.io.staging.staged_output`: a size
+folder is published whole or not at all); then, for the whole run, ``grade.dxf`` (every size of every piece,
+:func:`~torchgarment.pattern.dxf.save_graded_dxf`), ``grade_nest.png``
+(:func:`~torchgarment.pattern.plot.plot_grade_nest`), ``grade.csv`` (:data:`CSV_COLUMNS`, one row per size
+and line, the base size first) and ``metrics.json`` (per size and the acceptance figures). ``resume=True``
+skips sizes whose folder is complete (:func:`size_complete`). A size that fails is reported (one line on
+stderr) and the others go on; :attr:`GradeResult.failed` lists them.
 
 Lengths are in metres.
 """
@@ -36,6 +37,8 @@ from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from torchgarment.adjust.pipeline import AdjustResult
     from torchgarment.body import Body
     from torchgarment.pattern.spec import SewingPattern
@@ -44,6 +47,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CSV_COLUMNS",
+    "PATTERN_SIZE_FILES",
     "SIZE_FILES",
     "GradeResult",
     "SizeOutcome",
@@ -52,6 +56,7 @@ __all__ = [
     "format_table",
     "grade",
     "size_complete",
+    "write_pattern_files",
 ]
 
 CSV_COLUMNS = ("size", "line", "pattern_girth_m", "body_girth_m", "ease_m", "ease_change_m",
@@ -59,7 +64,10 @@ CSV_COLUMNS = ("size", "line", "pattern_girth_m", "body_girth_m", "ease_m", "eas
 """Columns of ``grade.csv`` and of the printed table (changes against the base size, metres)."""
 SIZE_FILES = ("pattern.json", "pattern.svg", "pattern.dxf", "garment_base.obj", "garment_target.obj",
               "target_before.png", "target_after.png", "overlay.png", "metrics.json", "fit.json")
-"""The files of a finished size folder (what ``torchgarment adjust`` writes, plus ``fit.json``)."""
+"""The files of a finished size folder of ``torchgarment grade`` (what ``torchgarment adjust`` writes, its
+``write_outputs`` passed as ``writer``, plus ``fit.json``)."""
+PATTERN_SIZE_FILES = ("pattern.json", "pattern.svg", "pattern.dxf", "metrics.json", "fit.json")
+"""The files of a finished size folder without a ``writer`` (:func:`write_pattern_files`, ``fit.json``)."""
 TOLERANCE_M = 0.01
 """Pass tolerance of the fit-preservation acceptance (issue 18, section 2)."""
 
@@ -178,9 +186,23 @@ class GradeResult:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-def size_complete(folder: Path) -> bool:
-    """Whether a size folder holds every file of :data:`SIZE_FILES` (a finished size)."""
-    return all((folder / name).is_file() for name in SIZE_FILES)
+def size_complete(folder: Path, files: tuple[str, ...] = SIZE_FILES) -> bool:
+    """Whether a size folder holds every one of ``files`` (a finished size)."""
+    return all((folder / name).is_file() for name in files)
+
+
+def write_pattern_files(result: AdjustResult, stage: Path, base_body: Body, target_body: Body,
+                        title: str) -> None:
+    """The default per-size writer of :func:`grade`: ``pattern.json/.svg/.dxf`` and ``metrics.json`` (the
+    command passes ``torchgarment adjust``'s ``write_outputs``, which adds garments and renders)."""
+    from torchgarment.pattern.dxf import save_dxf
+    from torchgarment.pattern.garmentcode import save_pattern
+    from torchgarment.pattern.svg import save_svg
+
+    save_pattern(stage / "pattern.json", result.pattern)
+    save_svg(stage / "pattern.svg", result.pattern)
+    save_dxf(stage / "pattern.dxf", result.pattern)
+    _write_json(stage / "metrics.json", result.metrics)
 
 
 def _json_safe(v: Any) -> Any:
@@ -316,6 +338,7 @@ def grade(
     *,
     base_size: str = "base",
     chart_changes: dict[str, dict[str, float]] | None = None,
+    writer: Callable[[AdjustResult, Path, Body, Body, str], None] | None = None,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
 ) -> GradeResult:
@@ -332,6 +355,10 @@ def grade(
         base_size: the base's name in the tables, the graded DXF (``Sample Size``) and the nest.
         chart_changes: size name -> (line -> the chart's girth difference to the base, m), printed beside
             the measured changes; None = none.
+        writer: ``writer(result, stage, base_body, target_body, title)`` writes a size's files into its
+            staging folder; None = :func:`write_pattern_files` (then a size is finished when its folder
+            holds :data:`PATTERN_SIZE_FILES`, else :data:`SIZE_FILES`). ``torchgarment grade`` passes
+            :func:`torchgarment.adjust.cli.write_outputs`.
         dtype, device: of the computation.
 
     Returns:
@@ -359,7 +386,9 @@ def grade(
     base_fit: dict[str, dict] | None = None
     base_seconds = 0.0
 
-    todo = [k for k in targets if not (resume and out is not None and size_complete(out / k))]
+    files = SIZE_FILES if writer is not None else PATTERN_SIZE_FILES
+    writer = writer if writer is not None else write_pattern_files
+    todo = [k for k in targets if not (resume and out is not None and size_complete(out / k, files))]
     for k in targets:
         if k not in todo:
             folder = out / k
@@ -393,12 +422,10 @@ def grade(
                                                            tolerance_m=TOLERANCE_M)]
                 seconds = time.perf_counter() - t0
                 if out is not None:
-                    from torchgarment.adjust.cli import write_outputs
                     from torchgarment.io.staging import staged_output
 
                     with staged_output(out / k) as stage:
-                        write_outputs(result, stage, base_body, targets[k],
-                                      f"{pattern.name}: {base_size} -> {k}")
+                        writer(result, stage, base_body, targets[k], f"{pattern.name}: {base_size} -> {k}")
                         _write_json(stage / "fit.json", {"size": k, "base_size": base_size,
                                                          "base": _fits_dict(fit_base),
                                                          "target": _fits_dict(fit_target), "rows": rows,

@@ -101,7 +101,7 @@ def _targets(specs: list[str], flag: str) -> dict[str, Body]:
 
 def cmd_grade(args: argparse.Namespace) -> int:
     """Run ``torchgarment grade``; returns the exit code (1 when a size failed)."""
-    from torchgarment.adjust.cli import _load_body, _load_pattern
+    from torchgarment.adjust.cli import _load_body, _load_pattern, write_outputs
     from torchgarment.adjust.grade import format_table, grade
     from torchgarment.body.size_chart import chart_row, list_sizes
 
@@ -126,7 +126,8 @@ def cmd_grade(args: argparse.Namespace) -> int:
                  for k in targets if k in list_sizes()}
     out = Path(args.out)
     result = grade(pattern, base_body, targets, settings, out, resume=args.resume,
-                   progress=not args.no_progress, base_size=base_name, chart_changes=chart)
+                   progress=not args.no_progress, base_size=base_name, chart_changes=chart,
+                   writer=write_outputs)
     print(format_table(result.rows))
     acc = result.metrics["acceptance"]
     done = [k for k, s in result.sizes.items() if s.status != "failed"]
