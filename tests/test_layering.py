@@ -50,6 +50,7 @@ LAYERS: dict[str, int] = {
 
 MODULE_LAYERS: dict[str, int] = {
     "adjust.cli": 7,
+    "adjust.grade_cli": 7,
     "adjust.demo": 7,
     "retarget.cli": 7,
     "datadriven.cli": 7,

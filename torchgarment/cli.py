@@ -1,7 +1,8 @@
 """The ``torchgarment`` command line.
 
-Subcommands: ``body``, ``pattern``, ``measure``, ``drape``, ``demo``. Every subcommand has ``--help``. Bad
-input ends with one readable line on stderr and exit code 2; outputs are staged and published only on success.
+Subcommands: ``body``, ``pattern``, ``measure``, ``drape``, ``adjust``, ``grade``, ``retarget``, ``pca``,
+``demo``. Every subcommand has ``--help``. Bad input ends with one readable line on stderr and exit code 2;
+outputs are staged and published only on success.
 """
 
 from __future__ import annotations
@@ -264,10 +265,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_drape_parser(sub)
 
     from torchgarment.adjust.cli import add_adjust_parser
+    from torchgarment.adjust.grade_cli import add_grade_parser
     from torchgarment.datadriven.cli import add_pca_parser
     from torchgarment.retarget.cli import add_retarget_parser
 
     add_adjust_parser(sub)
+    add_grade_parser(sub)
     add_retarget_parser(sub)
     add_pca_parser(sub)
 

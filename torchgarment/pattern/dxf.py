@@ -748,3 +748,113 @@ def _parse_stitch(line: str, by_block: dict[str, tuple[str, list[list[int]]]]) -
         raise
     except ValueError as exc:
         raise PatternError(f"malformed DXF stitch entry '{line}'") from exc
+
+
+# ---------------------------------------------------------------------------------------------- graded sets
+def graded_dxf_document(patterns: dict[str, SewingPattern], *, sample_size: str | None = None,
+                        style: str | None = None) -> Drawing:
+    """One ASTM D6673 / AAMA DXF holding every size of a graded pattern ("all sizes in the DXF file").
+
+    A graded set goes to CAD systems either as the sample size plus grade rules (a ``.rul`` table) or, as
+    here, with every size's piece written out: one ``BLOCK`` per piece per size, block name
+    ``<piece>_<size>`` (DXF-legal, unique), holding exactly what :func:`save_dxf` writes for that piece
+    (same layers, ``TORCHGARMENT`` data) plus the piece system text ``Size: <size>``; the piece name text
+    (``Piece Name: <panel>``) is the same for every size, so importers group the sizes of a piece. All
+    sizes of a piece are inserted at one sheet position (a graded nest, panel-local coordinates). Model
+    space carries ``Style Name``, ``Sample Size`` (when given), ``Units: METRIC`` and one ``stitch`` data
+    entry per stitch per size (block names of that size), so :func:`load_dxf` reads the file back as one
+    pattern with every size's pieces.
+
+    Args:
+        patterns: size name -> the pattern of that size (metres), in size order; every size should have the
+            same panels.
+        sample_size: the base (sample) size, written as ``Sample Size: <name>``; must be a key of
+            ``patterns``.
+        style: style name; default the first pattern's name.
+
+    Returns:
+        The DXF R12 document.
+
+    Raises:
+        PatternError: no sizes, an unknown ``sample_size``, or what :func:`pattern_dxf_document` raises for a
+            size's pattern.
+    """
+    if not patterns:
+        raise PatternError("graded DXF: no sizes to write")
+    if sample_size is not None and sample_size not in patterns:
+        raise PatternError(f"graded DXF: sample size {sample_size!r} is not one of the sizes "
+                           f"{', '.join(patterns)}")
+    first = next(iter(patterns.values()))
+    offsets, _ = svg_panel_layout(first)
+    doc = Drawing.new("R12")
+    msp = doc.modelspace()
+    keys = [(size, name) for size, pat in patterns.items() for name in pat.panels]
+    graded = _block_names([f"{name}_{size}" for size, name in keys])
+    stitch_texts = []
+    for size, pattern in patterns.items():
+        src = pattern_dxf_document(pattern)  # validates the pattern; one block per panel
+        own = _block_names(list(pattern.panels))
+        for name, panel in pattern.panels.items():
+            block = graded[f"{name}_{size}"]
+            blk = doc.blocks.new(name=block)
+            for e in src.blocks.get(own[name]):
+                blk.add_foreign_entity(e)
+            centre = panel.outline(resolution=16).mean(axis=0) * _MM
+            blk.add_text(_escape_text(f"Size: {size}"), dxfattribs={"layer": "1", "height": 8.0,
+                                                                   "insert": (centre[0], centre[1] - 36.0)})
+            off = offsets.get(name)
+            msp.add_blockref(block, tuple((off if off is not None else np.zeros(2)) * _MM))
+        for s in pattern.stitches:
+            stitch_texts.append(f"stitch {graded[f'{s.a.panel}_{size}']} {s.a.edge} "
+                                f"{graded[f'{s.b.panel}_{size}']} {s.b.edge} {s.orientation.value}")
+    header = [f"Style Name: {style if style is not None else first.name}"]
+    if sample_size is not None:
+        header.append(f"Sample Size: {sample_size}")
+    header.append("Units: METRIC")
+    for k, text in enumerate(header):
+        msp.add_text(_escape_text(text), dxfattribs={"layer": "1", "height": 8.0, "insert": (0.0, -12.0 * k)})
+    for k, text in enumerate(stitch_texts):
+        msp.add_text(_escape_text(text), dxfattribs={"layer": DATA_LAYER, "height": 2.0,
+                                                     "insert": (0.0, -12.0 * len(header) - 3.0 * k)})
+    return doc
+
+
+def save_graded_dxf(path: str | os.PathLike, patterns: dict[str, SewingPattern], *,
+                    sample_size: str | None = None, style: str | None = None) -> None:
+    """Write every size of a graded pattern into one ASTM D6673 / AAMA DXF (see :func:`graded_dxf_document`);
+    atomic.
+
+    Args:
+        path: destination ``.dxf`` file.
+        patterns: size name -> pattern (metres). sample_size: the base size's name. style: style name.
+    """
+    doc = graded_dxf_document(patterns, sample_size=sample_size, style=style)
+    with atomic_open(path, "w", encoding="ascii") as f:
+        gerber_D6673.export_stream(doc, f)
+
+
+def graded_dxf_sizes(path: str | os.PathLike) -> dict[str, dict[str, str]]:
+    """The sizes of a graded DXF (as :func:`save_graded_dxf` writes): size -> piece name -> block name.
+
+    Blocks without a ``Size:`` text are listed under the size ``""``.
+
+    Raises:
+        PatternError: unreadable or non-DXF file.
+    """
+    doc = _read_doc(path)
+    out: dict[str, dict[str, str]] = {}
+    for block in doc.blocks:
+        if block.block_record.is_any_layout:
+            continue
+        piece, size = block.name, ""
+        for e in block:
+            if e.dxftype() != "TEXT" or e.dxf.layer != "1":
+                continue
+            text = _unescape_text(e.dxf.text)
+            low = text.lower()
+            if low.startswith("piece name:"):
+                piece = text.split(":", 1)[1].strip() or piece
+            elif low.startswith("size:"):
+                size = text.split(":", 1)[1].strip()
+        out.setdefault(size, {})[piece] = block.name
+    return out

@@ -218,3 +218,103 @@ def plot_pattern_overlay(
     ax.plot([], [], color="#1f4e9c", label=new.name or "new")
     fig.legend(loc="upper left", fontsize=9, frameon=False, ncols=2)
     _save(fig, path)
+
+
+def grade_reference_vertices(pattern: SewingPattern) -> dict[str, int]:
+    """Per panel, the turn point a grade nest is aligned at: the vertex nearest the top centre of the panel's
+    bounding box (the centre-front / centre-back waist point of a skirt's or bodice's full panels).
+
+    Returns:
+        panel name -> vertex index into ``panel.vertices``.
+    """
+    out = {}
+    for name, panel in pattern.panels.items():
+        bb = panel_bbox(panel)
+        top = np.array([0.5 * (bb[0, 0] + bb[1, 0]), bb[1, 1]])
+        out[name] = int(np.argmin(np.linalg.norm(np.asarray(panel.vertices) - top, axis=1)))
+    return out
+
+
+def plot_grade_nest(
+    patterns: dict[str, SewingPattern],
+    path: str | os.PathLike,
+    *,
+    base: str | None = None,
+    reference: dict[str, int] | None = None,
+    title: str | None = None,
+    cmap: str = "viridis",
+) -> dict[str, int]:
+    """Write a grade-nest PNG: every size of each panel overlaid, aligned at a reference point; atomic.
+
+    As a pattern maker checks a grade: the outlines of one panel in every size are translated so that their
+    reference turn points coincide (marked with a dot), coloured by size in the given order (``cmap``),
+    the base size drawn thicker and dashed. The steps between neighbouring sizes should be even and the
+    outlines should not cross. Panels are matched by name; each panel gets one place on a shelf layout.
+
+    Args:
+        patterns: size name -> pattern (metres), smallest size first; the sizes share panel names and
+            vertex numbering (as adjusted patterns of one base do).
+        path: destination ``.png``.
+        base: the base size's name (a key of ``patterns``), drawn dashed.
+        reference: panel name -> reference vertex index; default :func:`grade_reference_vertices` of the
+            base (or the first) pattern.
+        title: optional title above the sheet.
+        cmap: matplotlib colormap name of the size colours.
+
+    Returns:
+        The reference vertex of each panel.
+
+    Raises:
+        PatternError: no sizes or panels, or a reference vertex a panel does not have. InputError: unknown
+            ``base``.
+    """
+    from matplotlib import colormaps
+
+    if not patterns:
+        raise PatternError("grade nest: no sizes to plot")
+    if base is not None and base not in patterns:
+        raise InputError(f"grade nest: base size {base!r} is not one of {', '.join(patterns)}")
+    ref_pattern = patterns[base] if base is not None else next(iter(patterns.values()))
+    if reference is None:
+        reference = grade_reference_vertices(ref_pattern)
+    names: list[str] = []
+    for pat in patterns.values():
+        names += [n for n in pat.panels if n not in names]
+    if not names:
+        raise PatternError("grade nest: the patterns have no panels")
+    anchors: dict[tuple[str, str], np.ndarray] = {}
+    boxes = {}
+    for n in names:
+        k = reference.get(n, 0)
+        bb = []
+        for size, pat in patterns.items():
+            if n not in pat.panels:
+                continue
+            verts = np.asarray(pat.panels[n].vertices)
+            if not 0 <= k < verts.shape[0]:
+                raise PatternError(f"grade nest: panel {n!r} of size {size} has no vertex {k}")
+            anchors[size, n] = verts[k]
+            bb.append(panel_bbox(pat.panels[n]) - verts[k])
+        boxes[n] = np.stack([np.min([b[0] for b in bb], axis=0), np.max([b[1] for b in bb], axis=0)])
+    offsets, sheet = shelf_layout(boxes)
+    fig, ax = _new_figure(sheet, title)
+    colours = colormaps[cmap](np.linspace(0.0, 0.9, max(len(patterns), 2)))
+    for i, (size, pat) in enumerate(patterns.items()):
+        col = colours[i]
+        is_base = size == base
+        for n in names:
+            if n not in pat.panels:
+                continue
+            off = offsets[n] - anchors[size, n]
+            o = _outline(pat.panels[n], off)
+            closed = np.concatenate([o, o[:1]])
+            ax.plot(closed[:, 0], closed[:, 1], color=col, lw=1.8 if is_base else 1.0,
+                    ls="--" if is_base else "-", zorder=3 if is_base else 2)
+        ax.plot([], [], color=col, lw=1.8 if is_base else 1.0, ls="--" if is_base else "-",
+                label=f"{size} (base)" if is_base else str(size))
+    for n in names:
+        ax.plot(*offsets[n], "o", color="k", ms=3, zorder=4)
+        ax.text(offsets[n][0] + 0.01, offsets[n][1] - 0.02, n, fontsize=9, va="top", zorder=4)
+    fig.legend(loc="upper left", fontsize=9, frameon=False, ncols=min(len(patterns), 8), title="size")
+    _save(fig, path)
+    return dict(reference)
