@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from torchgarment.adjust.fit import fit_rows, measure_fit
 from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
 from torchgarment.errors import InputError
 
@@ -43,7 +44,6 @@ if TYPE_CHECKING:
     from torchgarment.body import Body
     from torchgarment.pattern.spec import SewingPattern
     from torchgarment.sim.drape import DrapeResult, DrapeSettings
-    from torchgarment.structures.garment_mesh import GarmentMesh
 
 __all__ = [
     "CSV_COLUMNS",
@@ -73,66 +73,6 @@ TOLERANCE_M = 0.01
 
 
 # ---------------------------------------------------------------------------------------------- fit lines
-try:
-    from torchgarment.adjust.fit import construction_lines, fit_rows, measure_fit
-except ImportError:  # stand-in until fitlines lands (the integrator removes this block and _StandinLineFit)
-    from torchgarment.adjust.acceptance import (
-        SKIRT_LINES,
-        TSHIRT_LINES,
-        body_girth_at,
-        line_vertices,
-        pattern_line_widths,
-    )
-
-    @dataclass
-    class _StandinLineFit:
-        line: str
-        height_m: float
-        pattern_girth_m: float
-        body_girth_m: float
-        ease_m: float
-        landmark: str
-        placement_m: float
-
-    def construction_lines(pattern: SewingPattern) -> dict[str, tuple[str, str]]:
-        labels = {e.label for p in pattern.panels.values() for e in p.edges}
-        for lines in (SKIRT_LINES, TSHIRT_LINES):
-            if all(a in labels and b in labels for a, b in lines.values()):
-                return dict(lines)
-        return {}
-
-    def measure_fit(pattern: SewingPattern, mesh: GarmentMesh, x: torch.Tensor, body: Body
-                    ) -> dict[str, _StandinLineFit]:
-        out = {}
-        for line, (a, b) in construction_lines(pattern).items():
-            idx = torch.as_tensor(line_vertices(pattern, mesh, a, b), device=x.device)
-            y = float(x[idx, 1].mean())
-            g_pat = pattern_line_widths(pattern, {line: (a, b)})[line]
-            g_body = body_girth_at(body, y)
-            marks = {k: float(v[1]) for k, v in body.landmarks.items() if k in ("waist", "hips", "bust")}
-            lm = min(marks, key=lambda k: abs(y - marks[k])) if marks else ""
-            out[line] = _StandinLineFit(line, y, g_pat, g_body, g_pat - g_body, lm,
-                                        y - marks[lm] if lm else math.nan)
-        return out
-
-    def fit_rows(base: dict, target: dict, chart_change: dict[str, float] | None,
-                 tolerance_m: float = TOLERANCE_M) -> list[dict]:
-        rows = []
-        for line, b in base.items():
-            if line not in target:
-                continue
-            t = target[line]
-            row = {"line": line, "pattern_girth_m": t.pattern_girth_m, "body_girth_m": t.body_girth_m,
-                   "ease_m": t.ease_m, "ease_change_m": t.ease_m - b.ease_m,
-                   "pattern_change_m": t.pattern_girth_m - b.pattern_girth_m,
-                   "body_change_m": t.body_girth_m - b.body_girth_m,
-                   "chart_change_m": (chart_change or {}).get(line, math.nan),
-                   "placement_change_m": t.placement_m - b.placement_m}
-            row["pass"] = bool(abs(row["ease_change_m"]) <= tolerance_m
-                               and abs(row["pattern_change_m"] - row["body_change_m"]) <= tolerance_m
-                               and abs(row["placement_change_m"]) <= tolerance_m)
-            rows.append(row)
-        return rows
 
 
 # ---------------------------------------------------------------------------------------------- results
