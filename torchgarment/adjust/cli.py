@@ -79,6 +79,12 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
                    help="rescale the regularizers to the balance of a mesh of this edge length in metres "
                         "(0.008: the paper's Table 1 dress; see CostWeights.reference_edge_length); default: "
                         "coefficients as given")
+    p.add_argument("--support", metavar="PANEL:EDGE[,...]",
+                   help="the support (waistband) held by sticking springs: unstitched edges forming one "
+                        "closed loop, each PANEL:EDGE with an edge label or index (default: the library "
+                        "garment's; for a pattern file without one, the topmost closed loop of a bottom "
+                        "garment, named on stderr)")
+    p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
     p.add_argument("--exact", action="store_true",
                    help="exact simulation at every iteration (no Algorithm 1)")
     p.add_argument("--no-init", action="store_true", help="skip the section-7 initialization")
@@ -180,6 +186,8 @@ def cmd_adjust(args: argparse.Namespace) -> int:
 
     if args.iterations < 0:
         raise InputError(f"--iterations must be >= 0, got {args.iterations}")
+    if args.support is not None and args.no_support:
+        raise InputError("--support and --no-support exclude each other")
     if args.device == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: CUDA is not available on this machine")
     from torchgarment.adjust.objective import CostWeights
@@ -191,7 +199,7 @@ def cmd_adjust(args: argparse.Namespace) -> int:
                               voxel_size=args.voxel, inner_iterations=args.inner_iterations,
                               exact_interval=args.exact_interval, inexact=not args.exact,
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
-                              initialize=not args.no_init, weights=weights)
+                              initialize=not args.no_init, weights=weights, support=not args.no_support)
     settings.validate()
     base_spec = args.base_body if args.base_body is not None else args.base_size
     target_spec = args.target_body if args.target_body is not None else args.target_size
@@ -203,6 +211,11 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     base_size = base_spec if base_spec in list_sizes() else None
     spec, flag = (args.garment, "--garment") if args.garment is not None else (args.pattern, "--pattern")
     pattern = _load_pattern(spec, base_size, flag)
+    from torchgarment.pattern.support import choose_support
+
+    pattern, note = choose_support(pattern, args.support, not args.no_support)
+    if note:
+        print(note, file=sys.stderr)
     device = torch.device(args.device)
     if device.type != "cpu":
         base_body, target_body = base_body.to(device), target_body.to(device)

@@ -36,9 +36,11 @@ from torchgarment.errors import InputError, PatternError
 from torchgarment.linalg import SparseBackend
 from torchgarment.logging import RunLogger
 from torchgarment.sim.diff import AdjointLinearSolver
-from torchgarment.sim.drape import DrapeSettings, drape
+from torchgarment.sim.drape import DrapeResult, DrapeSettings, drape
+from torchgarment.sim.energies.pins import Pins
 from torchgarment.sim.scene import Effect, Scene
 from torchgarment.sim.solvers import SolverKind, SolveSettings
+from torchgarment.sim.support import support_metrics
 from torchgarment.structures.garment_mesh import GarmentMesh
 
 if TYPE_CHECKING:
@@ -94,6 +96,11 @@ class AdjustSettings:
             (:class:`~torchgarment.linalg.SparseBackend`: ``"superlu"``, or ``"pardiso"`` when installed).
         band: blending band ``B`` of the deformation transfer in metres; None = its default.
         checkpoint_every: also write a checkpoint every this many iterations (0 = only on Ctrl-C).
+        support: stick the pattern's support (:attr:`SewingPattern.support`, e.g. a skirt's waistband; the
+            paper's sticking energy ``F(x)`` of Eq. 4): the base drape holds it at the base body's waist
+            (``DrapeSettings.support``) and the target simulation holds its vertices at their base positions
+            carried by the deformation transfer (the positional cost's ``x_transfer``), with the base drape's
+            pin stiffness. False: no support in either (the garment hangs by its own tension).
     """
 
     optimizer: OptimizerKind = OptimizerKind.PGD
@@ -120,6 +127,7 @@ class AdjustSettings:
     sparse_backend: SparseBackend = SparseBackend.SUPERLU
     band: float | None = None
     checkpoint_every: int = 0
+    support: bool = True
 
     def __post_init__(self) -> None:
         """Validate at construction (and on ``dataclasses.replace``)."""
@@ -262,7 +270,8 @@ def pattern_from_mesh(pattern: SewingPattern, mesh: GarmentMesh, p: torch.Tensor
         panels[name] = Panel(name, verts, edges, translation=panel.translation.copy(),
                              rotation=panel.rotation.copy(), label=panel.label, notches=list(panel.notches),
                              grainline=panel.grainline.copy())
-    out = SewingPattern(pattern.name, panels, list(pattern.stitches), dict(pattern.metadata))
+    out = SewingPattern(pattern.name, panels, list(pattern.stitches), dict(pattern.metadata),
+                        support=pattern.support)
     return out, worst
 
 
@@ -294,6 +303,18 @@ def _initialize(objective: AdjustObjective, param: BoundaryParametrization, q_ba
 
     opt.step(closure)
     return q.detach()
+
+
+def _pins(model: torch.nn.Module) -> Pins | None:
+    """The model's sticking term (the support), or None."""
+    return next((t for t in getattr(model, "terms", ()) if isinstance(t, Pins)), None)
+
+
+def _support_metrics(model: torch.nn.Module, x: torch.Tensor) -> dict:
+    """``support_force_n``, ``support_max_displacement_mm``, ... of the target model's support pins at ``x``
+    (see :func:`~torchgarment.sim.support.support_metrics`); empty without a support."""
+    pins = _pins(model)
+    return {} if pins is None else support_metrics(x, pins.indices, pins.targets, pins.stiffness)
 
 
 def _terms(objective: AdjustObjective, x: torch.Tensor, p: torch.Tensor) -> dict[str, float]:
@@ -385,12 +406,21 @@ def prepare(
     target_body: Body,
     settings: AdjustSettings | None = None,
     *,
+    base: DrapeResult | None = None,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
 ) -> AdjustSetup:
     """Steps 1-3: base drape, transfer, parametrization/objective/simulation, base objective, initialization.
 
-    Args: see :func:`adjust`.
+    Args:
+        base: an already computed base drape of the same pattern on ``base_body`` with this ``settings``'
+            drape settings (``drape(pattern, base_body, settings=...)``; a grade drapes once for all sizes);
+            None = drape here. Its support pins (if any) are reused: with ``settings.support`` the target
+            simulation sticks ``base.support_indices`` to their transferred positions.
+        others: see :func:`adjust`.
+
+    Raises:
+        InputError: see :func:`adjust`; ``base`` of another mesh.
     """
     from torchgarment.adjust.objective import AdjustObjective
     from torchgarment.adjust.parametrization import BoundaryParametrization
@@ -406,8 +436,16 @@ def prepare(
     t0 = time.perf_counter()
     dset = (settings.drape if settings.drape is not None
             else DrapeSettings(edge_length=settings.edge_length, voxel_size=settings.voxel_size))
+    dset = replace(dset, support=dset.support and settings.support)
     settings.drape = dset
-    base = drape(pattern_or_mesh, base_body, settings=dset, dtype=dtype, device=device)
+    if base is None:
+        base = drape(pattern_or_mesh, base_body, settings=dset, dtype=dtype, device=device)
+    elif not isinstance(base, DrapeResult):
+        raise InputError(f"prepare(base=...) takes a DrapeResult, got {type(base).__name__}")
+    elif isinstance(pattern_or_mesh, SewingPattern) and (
+            base.mesh.layout is None or tuple(base.mesh.layout.panel_names) != tuple(pattern_or_mesh.panels)):
+        raise InputError("prepare(base=...) is a drape of another pattern: its mesh's panels are not the "
+                         "pattern's")
     mesh_base = base.mesh
     timings["drape_seconds"] = time.perf_counter() - t0
 
@@ -437,7 +475,15 @@ def prepare(
     effects = {Effect.STRETCH, Effect.BEND, Effect.GRAVITY, Effect.BODY_BARRIER}
     if mesh_base.seam_pairs.shape[0]:
         effects.add(Effect.SEW)
-    model = Scene(mesh_base.with_positions(x_transfer), body_sdf=sdf, effects=effects, material=mat).build()
+    pin_idx = pin_tgt = None
+    if settings.support and base.support_indices is not None:
+        # sticking targets: the base drape's support positions carried by the deformation transfer (Eq. 15)
+        pin_idx = base.support_indices.to(mesh_base.device)
+        pin_tgt = x_transfer[pin_idx].detach().clone()
+        mat.pin_stiffness = float(base.support_stiffness)
+        effects.add(Effect.PINS)
+    model = Scene(mesh_base.with_positions(x_transfer), body_sdf=sdf, effects=effects, material=mat,
+                  pin_indices=pin_idx, pin_targets=pin_tgt).build()
     weight = float(mesh_base.rest_face_areas.abs().sum()) * mat.density * mat.gravity
     exact = SolveSettings(rtol=0.0, atol=settings.atol_weight * weight,
                           max_iterations=settings.max_solver_iterations,
@@ -580,7 +626,11 @@ def optimize(
         "backtracks": run.backtracks,
         "stopped": run.stopped,
         "base_drape_ok": bool(bd.get("ok", False)),
-        "base_drape": {k: bd.get(k) for k in ("residual", "min_sdf_mm", "max_seam_gap_mm", "converged")},
+        "base_drape": {k: bd.get(k) for k in ("residual", "min_sdf_mm", "max_seam_gap_mm", "converged",
+                                              "support_force_n", "support_max_displacement_mm",
+                                              "support_target")},
+        "support": bd.get("support") if _pins(setup.model) is not None else None,
+        **_support_metrics(setup.model, run.x),
         "pattern_fit_error_mm": None if fit_error is None else 1e3 * fit_error,
         **setup.timings,
     }
@@ -601,6 +651,7 @@ def adjust(
     checkpoint_dir: str | Path | None = None,
     progress: bool = True,
     resume: bool = False,
+    base: DrapeResult | None = None,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
 ) -> AdjustResult:
@@ -617,6 +668,7 @@ def adjust(
         progress: tqdm bar on stderr.
         resume: continue the optimization from ``checkpoint_dir/adjust.pt`` (same input and settings expected;
             steps 1-3 are recomputed, they are deterministic).
+        base: a base drape to reuse (see :func:`prepare`).
         dtype, device: of the computation.
 
     Returns:
@@ -624,7 +676,11 @@ def adjust(
         ``objective_final``, ``reduction_percent``, ``reduction_vs_base_percent``, ``terms`` (base, initial,
         final), ``max_boundary_displacement_mm``, ``iterations``, ``seconds`` (optimization),
         ``seconds_per_iteration``, ``closure_calls``, ``sim_iterations``, ``backtracks``,
-        ``exact_evaluations`` and the timings of each stage (``total_seconds`` included).
+        ``exact_evaluations``, the timings of each stage (``total_seconds`` included) and, with a support,
+        ``support`` (``PANEL:EDGE,...``), ``support_force_n`` (``|sum k (t - x)|``, the net force of the
+        target's pins, N), ``support_force_sum_n`` (sum of the pins' force magnitudes, N) and
+        ``support_max_displacement_mm`` (largest ``|x - t|``) at the result (the base drape's under
+        ``base_drape``).
 
     Raises:
         InputError: bad settings or input; ``resume`` without a checkpoint.
@@ -632,7 +688,7 @@ def adjust(
     t0 = time.perf_counter()
     if resume and (checkpoint_dir is None or not (Path(checkpoint_dir) / CHECKPOINT_NAME).is_file()):
         raise InputError(f"resume=True but there is no checkpoint in {checkpoint_dir}")
-    setup = prepare(pattern_or_mesh, base_body, target_body, settings, dtype=dtype, device=device)
+    setup = prepare(pattern_or_mesh, base_body, target_body, settings, base=base, dtype=dtype, device=device)
     result = optimize(setup, log_dir=log_dir, checkpoint_dir=checkpoint_dir, progress=progress, resume=resume)
     result.metrics["total_seconds"] = time.perf_counter() - t0
     return result

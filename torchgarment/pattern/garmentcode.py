@@ -39,8 +39,9 @@ Writers always store the key in both sides, and add the ``"right_wrong"`` entry 
 both GarmentCode and we read the intended orientation. GarmentCode readers ignore the unknown key.
 
 Extra keys we read and write (all ignored by GarmentCode): per panel ``"notches": [{"edge": i, "t": f,
-"name": s}]`` and ``"grainline": [x, y]``; top level ``"name"`` and ``"metadata"`` (the pattern's JSON
-metadata). GarmentCode's own ``parameters``, ``parameter_order`` and extra ``properties`` are kept in
+"name": s}]`` and ``"grainline": [x, y]``; top level ``"name"``, ``"metadata"`` (the pattern's JSON
+metadata) and ``"support"`` (``[[panel, edge], ...]``, :attr:`SewingPattern.support`). GarmentCode's own
+``parameters``, ``parameter_order`` and extra ``properties`` are kept in
 ``metadata["garmentcode"]`` and written back to their places.
 
 Every problem with the input raises :class:`~torchgarment.errors.PatternError` with a one-line message
@@ -202,7 +203,11 @@ def pattern_from_dict(
     if gc and _GC_KEY not in metadata:
         metadata[_GC_KEY] = gc
 
-    pattern = SewingPattern(name=name, panels=panels, stitches=stitches, metadata=metadata)
+    support = d.get("support", [])
+    if not (isinstance(support, list) and all(isinstance(s, list) and len(s) == 2 for s in support)):
+        raise PatternError("'support' must be a list of [panel, edge] pairs")
+    pattern = SewingPattern(name=name, panels=panels, stitches=stitches, metadata=metadata,
+                            support=tuple((str(a), str(b)) for a, b in support))
     if validate:
         pattern.validate(max_stitch_length_ratio=max_stitch_length_ratio)
     return pattern
@@ -452,6 +457,8 @@ def pattern_to_dict(p: SewingPattern) -> dict:
         "properties": props,
         "metadata": meta,
     }
+    if p.support:
+        out["support"] = [[a, b] for a, b in p.support]
     try:
         json.dumps(out, allow_nan=False)
     except (TypeError, ValueError) as exc:

@@ -285,12 +285,46 @@ class SewingPattern:
         panels: panels by name, in a stable order.
         stitches: seams between panel edges.
         metadata: free-form information carried through files (drafting measurements, source file).
+        support: the supporting line, the paper's sticking line (Wang 2018, Eq. 4's ``F(x)``): (panel name,
+            edge) pairs, the edge given by its label or, for an unlabelled edge, its index as a string; the
+            edges form one closed loop of unstitched edges (a waistband). Empty: the garment hangs from the
+            shoulders. See :mod:`torchgarment.pattern.support`.
     """
 
     name: str
     panels: dict[str, Panel]
     stitches: list[Stitch] = field(default_factory=list)
     metadata: dict = field(default_factory=dict)
+    support: tuple[tuple[str, str], ...] = ()
+
+    def __post_init__(self) -> None:
+        self.support = tuple((str(a), str(b)) for a, b in self.support)
+
+    def edge_index(self, panel: str, edge: str) -> int:
+        """The index of the edge of ``panel`` named ``edge``: its label (unique in the panel), else an index.
+
+        Raises:
+            PatternError: no panel ``panel``, or no edge labelled ``edge`` and ``edge`` is not an index in
+                range (or the label is ambiguous).
+        """
+        if panel not in self.panels:
+            raise PatternError(f"pattern '{self.name}' has no panel '{panel}' (panels: "
+                               f"{', '.join(self.panels)})")
+        edges = self.panels[panel].edges
+        hits = [i for i, e in enumerate(edges) if e.label and e.label == edge]
+        if len(hits) == 1:
+            return hits[0]
+        if len(hits) > 1:
+            raise PatternError(f"panel '{panel}' has {len(hits)} edges labelled '{edge}'; name the edge by "
+                               f"its index (0..{len(edges) - 1})")
+        if edge.isdigit() and int(edge) < len(edges):
+            return int(edge)
+        labels = [e.label or str(i) for i, e in enumerate(edges)]
+        raise PatternError(f"panel '{panel}' has no edge '{edge}' (edges: {', '.join(labels)})")
+
+    def support_refs(self) -> list[EdgeRef]:
+        """The support's edges as :class:`EdgeRef` s, in declaration order (see :meth:`edge_index`)."""
+        return [EdgeRef(p, self.edge_index(p, e)) for p, e in self.support]
 
     def edge_length(self, ref: EdgeRef) -> float:
         """Arc length (metres) of a referenced edge."""
@@ -303,7 +337,7 @@ class SewingPattern:
         indices that chain into one closed loop visiting every vertex once, a non-self-crossing outline and a
         non-zero area; every stitch refers to existing panels and edges, no edge is stitched twice, and the
         two sides' lengths differ by at most ``max_stitch_length_ratio`` (ease is allowed, gross mismatch is
-        not).
+        not); the support (if any) is one closed loop of unstitched edges.
         """
         if not self.panels:
             raise PatternError(f"pattern '{self.name}' has no panels")
@@ -328,6 +362,10 @@ class SewingPattern:
                     f"mm vs {s.b.panel}[{s.b.edge}] {lb * 1000:.1f} mm (ratio limit "
                     f"{max_stitch_length_ratio})"
                 )
+        if self.support:
+            from torchgarment.pattern.support import ordered_loop
+
+            ordered_loop(self)
 
 
 def _validate_panel(name: str, panel: Panel) -> None:

@@ -8,7 +8,13 @@
    :attr:`DrapeSettings.sew_gap` (or at its iteration budget / tolerance).
 2. **settle**: the full scene (gravity on) with sewing springs stiffened to
    :attr:`DrapeSettings.final_sew_stiffness` so that seams close to well under a millimetre against the cloth
-   tension, solved to equilibrium.
+   tension, solved to equilibrium. With a support (a pattern whose :attr:`SewingPattern.support` is not empty,
+   e.g. a skirt's waistband, and :attr:`DrapeSettings.support` on) this stage also holds the support where
+   the garment is worn: soft sticking springs (``Effect.PINS``) from its vertices to the body's waist line
+   (:func:`~torchgarment.sim.support.waist_band_targets`: the band's loop in the waist plane, around the
+   convex hull of the body's section, keeping its own length, rotated to match the sewn band), with the
+   stiffness :func:`~torchgarment.sim.support.support_stiffness` (the band holds the garment's weight with a
+   mean give of :attr:`DrapeSettings.support_sag`).
 
 Every stage keeps its :class:`~torchgarment.sim.solvers.SolveInfo` (residual and energy histories). The
 result reports the body clearance ``min phi`` (SDF), the largest distance between paired seam vertices and
@@ -36,6 +42,12 @@ from torchgarment.errors import InputError
 from torchgarment.sdf.grid import SDFSampling
 from torchgarment.sim.scene import Effect, Material, Scene, SimModel
 from torchgarment.sim.solvers import SolveInfo, SolverKind, SolveSettings, solve
+from torchgarment.sim.support import (
+    DEFAULT_SUPPORT_SAG,
+    support_metrics,
+    support_stiffness,
+    waist_band_targets,
+)
 from torchgarment.structures.garment_mesh import GarmentMesh
 
 if TYPE_CHECKING:
@@ -90,6 +102,11 @@ class DrapeSettings:
         max_displacement: GD trust region per iteration in metres.
         check_interval: iterations between seam-gap checks in the sewing stage.
         max_seam_gap: largest acceptable seam gap in metres for :attr:`DrapeResult.ok`.
+        support: hold the pattern's support (:attr:`SewingPattern.support`) at the body's waist in the settle
+            stage (needs a body mesh: a :class:`Body`, not only an SDF); no effect for a pattern without a
+            support or a :class:`GarmentMesh`.
+        support_sag: the support's stiffness: its pins hold the garment's whole weight with this mean
+            displacement in metres (``k = W / (P sag)`` per pin, see :mod:`torchgarment.sim.support`).
     """
 
     edge_length: float = 0.02
@@ -110,6 +127,8 @@ class DrapeSettings:
     max_displacement: float | None = 0.01
     check_interval: int = 5
     max_seam_gap: float = 1.0e-3
+    support: bool = True
+    support_sag: float = DEFAULT_SUPPORT_SAG
 
     def __post_init__(self) -> None:
         self.sew_solver = SolverKind.resolve(self.sew_solver)
@@ -124,7 +143,7 @@ class DrapeSettings:
                 raise InputError(f"DrapeSettings.{name} must be one of {[k.value for k in kind]}, "
                                  f"got {getattr(self, name)!r}")
         positive = {"edge_length": self.edge_length, "voxel_size": self.voxel_size, "sew_gap": self.sew_gap,
-                    "max_seam_gap": self.max_seam_gap}
+                    "max_seam_gap": self.max_seam_gap, "support_sag": self.support_sag}
         for name, v in positive.items():
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise InputError(f"DrapeSettings.{name} must be a positive number, got {v!r}")
@@ -166,8 +185,14 @@ class DrapeResult:
         metrics: JSON-serializable numbers: ``vertices``, ``faces``, ``iterations``, ``seconds``,
             ``residual``, ``tolerance``, ``min_sdf_mm``, ``inside_vertices``, ``max_seam_gap_mm``,
             ``mean_seam_gap_mm``, ``energy_start``, ``energy``, ``energy_terms`` (J per term), ``converged``,
-            ``ok``.
+            ``ok``, ``support`` (the held support as ``PANEL:EDGE,...``, or None) and, with a support, the
+            numbers of :func:`~torchgarment.sim.support.support_metrics` (``support_force_n``,
+            ``support_force_sum_n``, ``support_max_displacement_mm``, ...) and ``support_target`` (waist plane
+            height, hull girth, band length, offset).
         model: the settle stage's :class:`SimModel` (to evaluate energies or continue solving).
+        support_indices: (P,) long pinned support vertices, or None without a support.
+        support_targets: (P, 3) their targets in metres, or None.
+        support_stiffness: the pins' spring constant in N/m, or None.
     """
 
     x: torch.Tensor
@@ -176,6 +201,9 @@ class DrapeResult:
     stages: list[DrapeStage]
     metrics: dict
     model: SimModel
+    support_indices: torch.Tensor | None = None
+    support_targets: torch.Tensor | None = None
+    support_stiffness: float | None = None
 
     @property
     def converged(self) -> bool:
@@ -331,9 +359,16 @@ def drape(
         final_mat.sew_stiffness = float(settings.final_sew_stiffness)
     if settings.barrier_mu is not None:
         final_mat.barrier_mu = float(settings.barrier_mu)
-    scene = Scene(mesh, body_sdf=sdf, effects=base | {Effect.GRAVITY}, material=final_mat)
     weight = (float(mesh.rest_face_areas.abs().sum()) * mat.density * mat.gravity if mesh.p is not None
               else 0.0)
+    support = _support_pins(pattern_or_mesh, mesh, body, x, weight, settings)
+    effects = base | {Effect.GRAVITY}
+    if support is not None:
+        final_mat.pin_stiffness = support[2]
+        effects.add(Effect.PINS)
+    scene = Scene(mesh, body_sdf=sdf, effects=effects, material=final_mat,
+                  pin_indices=None if support is None else support[0],
+                  pin_targets=None if support is None else support[1])
     settle_settings = SolveSettings(rtol=settings.rtol, atol=settings.atol_weight * weight,
                                     max_iterations=settings.max_iterations,
                                     max_displacement=settings.max_displacement,
@@ -376,5 +411,34 @@ def drape(
         "stages": [s.to_dict() for s in stages],
     }
     metrics["ok"] = bool(info.converged and min_phi >= 0 and gap <= settings.max_seam_gap)
+    metrics["support"] = None
+    if support is not None:
+        from torchgarment.pattern.support import format_support
+
+        metrics["support"] = format_support(pattern_or_mesh.support)
+        metrics.update(support_metrics(x, support[0], support[1], support[2]))
+        metrics["support_target"] = support[3]
     return DrapeResult(x=x, mesh=mesh.with_positions(x), info=info, stages=stages, metrics=metrics,
-                       model=model)
+                       model=model, support_indices=None if support is None else support[0],
+                       support_targets=None if support is None else support[1],
+                       support_stiffness=None if support is None else support[2])
+
+
+def _support_pins(pattern_or_mesh: SewingPattern | GarmentMesh, mesh: GarmentMesh,
+                  body: Body | BodySDF | None, x: torch.Tensor, weight: float, settings: DrapeSettings
+                  ) -> tuple[torch.Tensor, torch.Tensor, float, dict] | None:
+    """(indices, targets, stiffness, target info) of the support's pins, or None without a support."""
+    support = getattr(pattern_or_mesh, "support", ())
+    if not settings.support or isinstance(pattern_or_mesh, GarmentMesh) or not support:
+        return None
+    verts, faces = getattr(body, "vertices", None), getattr(body, "faces", None)
+    if verts is None or faces is None:
+        raise InputError("holding the support at the waist needs the body mesh: pass a Body (not only an "
+                         "SDF) or DrapeSettings(support=False)")
+    if weight <= 0:
+        raise InputError("the support's stiffness needs the garment's weight: the mesh has no rest pattern p")
+    from torchgarment.pattern.support import support_vertices
+
+    idx, s, length = support_vertices(pattern_or_mesh, mesh)
+    targets, info = waist_band_targets(verts, faces, x[idx], s, length)
+    return idx, targets, support_stiffness(weight, int(idx.numel()), settings.support_sag), info

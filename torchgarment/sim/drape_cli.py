@@ -48,6 +48,12 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                    help=f"solver of the final (settle) stage (default {d.solver.value})")
     p.add_argument("--max-iterations", type=int, default=d.max_iterations, metavar="N",
                    help=f"iteration budget of the settle stage (default {d.max_iterations})")
+    p.add_argument("--support", metavar="PANEL:EDGE[,...]",
+                   help="the support (waistband) held at the body's waist: unstitched edges forming one "
+                        "closed loop, each PANEL:EDGE with an edge label or index (default: the library "
+                        "garment's; for a pattern file without one, the topmost closed loop of a bottom "
+                        "garment, named on stderr)")
+    p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_drape)
     return p
@@ -125,12 +131,19 @@ def cmd_drape(args: argparse.Namespace) -> int:
 
     if args.max_iterations < 0:
         raise InputError(f"--max-iterations must be >= 0, got {args.max_iterations}")
+    if args.support is not None and args.no_support:
+        raise InputError("--support and --no-support exclude each other")
     settings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel, solver=args.solver,
-                             max_iterations=args.max_iterations)
+                             max_iterations=args.max_iterations, support=not args.no_support)
     settings.validate()
     t0 = time.perf_counter()
     body, body_name = _load_body(args.body)
     pattern = _load_pattern(args.pattern, args.size, args.body)
+    from torchgarment.pattern.support import choose_support
+
+    pattern, note = choose_support(pattern, args.support, not args.no_support)
+    if note:
+        print(note, file=sys.stderr)
     progress = _Progress({"sew": settings.sew_max_iterations, "settle": settings.max_iterations},
                          enabled=not args.no_progress)
     try:

@@ -20,7 +20,8 @@ def aline_skirt(m: DraftMeasurements, *, waist_ease: float = 0.01, hip_ease: flo
         flare: side-seam angle from vertical below the hip line (radians, default 0.15 = 8.6 deg).
 
     Returns:
-        pattern with panels ``skirt_front`` and ``skirt_back`` and four side-seam stitches.
+        pattern with panels ``skirt_front`` and ``skirt_back`` and four side-seam stitches, supported by the
+        waist line (edges ``waist_r`` and ``waist_l`` of both panels).
     """
     return draft_skirt("aline_skirt", m, waist_ease=waist_ease, hip_ease=hip_ease, front_bias=front_bias,
                        length_below_knee=length_below_knee, flare=flare)

@@ -60,7 +60,8 @@ def bodysuit(m: DraftMeasurements, *, bust_ease: float = 0.0, waist_ease: float 
     f, b = "bodysuit_front", "bodysuit_back"
     t.stitches.append(seam(f, t.index["front"], "crotch_r", b, t.index["back"], "crotch_l"))
     t.stitches.append(seam(f, t.index["front"], "crotch_l", b, t.index["back"], "crotch_r"))
-    return SewingPattern(name="bodysuit", panels=t.panels, stitches=t.stitches, metadata={
+    # no support: it hangs from the shoulders
+    return SewingPattern(name="bodysuit", support=(), panels=t.panels, stitches=t.stitches, metadata={
         "garment": "bodysuit", "measurements": m.to_dict(),
         "options": {"bust_ease": bust_ease, "waist_ease": waist_ease, "hip_ease": hip_ease,
                     "crotch_drop": crotch_drop, "gusset_width": gusset_width, "leg_cut": leg_cut,

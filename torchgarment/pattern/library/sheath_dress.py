@@ -50,7 +50,8 @@ def sheath_dress(m: DraftMeasurements, *, bust_ease: float = 0.05, waist_ease: f
         return c
 
     t = draft_torso("dress", m, lower, neck, ["side_low", "side_hip", "side_bust"])
-    return SewingPattern(name="sheath_dress", panels=t.panels, stitches=t.stitches, metadata={
+    # no support: it hangs from the shoulders
+    return SewingPattern(name="sheath_dress", support=(), panels=t.panels, stitches=t.stitches, metadata={
         "garment": "sheath_dress", "measurements": m.to_dict(),
         "options": {"bust_ease": bust_ease, "waist_ease": waist_ease, "hip_ease": hip_ease,
                     "front_bias": front_bias, "length_below_knee": length_below_knee,

@@ -43,7 +43,9 @@ def draft_skirt(name: str, m: DraftMeasurements, *, waist_ease: float, hip_ease:
         seam("skirt_front", index["front"], f"{e}_l", "skirt_back", index["back"], f"{e}_r")
         for e in ("side_low", "side_hip")
     ]
-    return SewingPattern(name=name, panels=panels, stitches=stitches, metadata={
+    # held up by the waist line (the waistband): the top edges of both panels
+    support = tuple((f"skirt_{part}", f"waist_{side}") for part in ("front", "back") for side in ("r", "l"))
+    return SewingPattern(name=name, panels=panels, stitches=stitches, support=support, metadata={
         "garment": name, "measurements": m.to_dict(),
         "options": {"waist_ease": waist_ease, "hip_ease": hip_ease, "front_bias": front_bias,
                     "length_below_knee": length_below_knee, "flare": flare}})

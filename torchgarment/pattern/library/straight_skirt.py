@@ -18,7 +18,8 @@ def straight_skirt(m: DraftMeasurements, *, waist_ease: float = 0.01, hip_ease: 
         length_below_knee: hem distance below the knee (metres).
 
     Returns:
-        pattern with panels ``skirt_front`` and ``skirt_back`` and four side-seam stitches.
+        pattern with panels ``skirt_front`` and ``skirt_back`` and four side-seam stitches, supported by the
+        waist line (edges ``waist_r`` and ``waist_l`` of both panels).
     """
     pattern = draft_skirt("straight_skirt", m, waist_ease=waist_ease, hip_ease=hip_ease,
                           front_bias=front_bias,

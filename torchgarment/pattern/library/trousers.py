@@ -32,7 +32,7 @@ def trousers(m: DraftMeasurements, *, waist_ease: float = 0.01, hip_ease: float 
 
     Returns:
         pattern with panels ``{front,back}_{left,right}``; seams: inseam, side seam (two segments), centre
-        front/back and crotch curves.
+        front/back and crotch curves; supported by the waist line (the ``waist`` edge of every panel).
     """
     for k, v in (("waist_ease", waist_ease), ("hip_ease", hip_ease), ("thigh_ease", thigh_ease),
                  ("hem_above_ankle", hem_above_ankle), ("front_bias", front_bias)):
@@ -81,7 +81,8 @@ def trousers(m: DraftMeasurements, *, waist_ease: float = 0.01, hip_ease: float 
         for e in ("centre", "crotch"):
             stitches.append(seam(f"{part}_left", idx[f"{part}_left"], e, f"{part}_right",
                                  idx[f"{part}_right"], e))
-    return SewingPattern(name="trousers", panels=panels, stitches=stitches, metadata={
+    support = tuple((f"{part}_{s}", "waist") for part in ("front", "back") for s in ("left", "right"))
+    return SewingPattern(name="trousers", panels=panels, stitches=stitches, support=support, metadata={
         "garment": "trousers", "measurements": m.to_dict(),
         "options": {"waist_ease": waist_ease, "hip_ease": hip_ease, "thigh_ease": thigh_ease,
                     "hem_ratio": hem_ratio, "hem_above_ankle": hem_above_ankle, "front_bias": front_bias}})

@@ -105,7 +105,8 @@ def tshirt(m: DraftMeasurements, *, bust_ease: float = 0.08, hip_ease: float = 0
         stitches.append(seam(b, bi, body_back, sb, idx[sb], "cap"))
         stitches.append(seam(sf, idx[sf], "overarm", sb, idx[sb], "overarm"))
         stitches.append(seam(sf, idx[sf], "underarm", sb, idx[sb], "underarm"))
-    return SewingPattern(name="tshirt", panels=panels, stitches=stitches, metadata={
+    # no support: it hangs from the shoulders
+    return SewingPattern(name="tshirt", support=(), panels=panels, stitches=stitches, metadata={
         "garment": "tshirt", "measurements": m.to_dict(),
         "options": {"bust_ease": bust_ease, "hip_ease": hip_ease, "sleeve_ease": sleeve_ease,
                     "cap_ease": cap_ease, "sleeve_length": sleeve_length,
