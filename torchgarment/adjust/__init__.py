@@ -14,7 +14,12 @@ Re-exported here:
 * :class:`BoundaryParametrization` (boundary vertices -> rest positions) and :func:`transfer_deformation`
   (the base drape carried to the target body);
 * the optimizers (``torch.optim.Optimizer``\\ s): :func:`make_optimizer`, :class:`OptimizerKind`,
-  :class:`PreconditionedGD`, :class:`LBFGS`, :class:`GaussNewton`, :class:`FixedPoint`.
+  :class:`PreconditionedGD`, :class:`LBFGS`, :class:`GaussNewton`, :class:`FixedPoint`;
+* the differentiable problem on the simulator's autograd Function: :class:`AdjustProblem`;
+* grading a size run (:mod:`torchgarment.adjust.grade`): :func:`grade` and its :class:`GradeResult`,
+  :func:`base_drape_settings` (the base drape every size shares);
+* fit preservation (:mod:`torchgarment.adjust.fit`): :func:`measure_fit`, :class:`LineFit`, :func:`fit_rows`,
+  :func:`construction_lines`.
 
 The command line is :mod:`torchgarment.adjust.cli` and its demo :mod:`torchgarment.adjust.demo` (both in the
 command layer, not re-exported); the acceptance-study measurements are in
@@ -22,6 +27,9 @@ command layer, not re-exported); the acceptance-study measurements are in
 """
 
 from torchgarment.adjust.costs import DistanceCost, PositionalCost, SmoothnessCost, StretchingCost
+from torchgarment.adjust.fit import LineFit, construction_lines, fit_rows, measure_fit
+from torchgarment.adjust.grade import GradeResult, grade
+from torchgarment.adjust.inexact import AdjustProblem
 from torchgarment.adjust.objective import AdjustObjective, CostWeights
 from torchgarment.adjust.optimizers import (
     LBFGS,
@@ -37,6 +45,7 @@ from torchgarment.adjust.pipeline import (
     AdjustSettings,
     AdjustSetup,
     adjust,
+    base_drape_settings,
     optimize,
     pattern_from_mesh,
     prepare,
@@ -51,6 +60,14 @@ from torchgarment.adjust.transfer import transfer_deformation
 __all__ = [
     "LBFGS",
     "AdjustObjective",
+    "AdjustProblem",
+    "GradeResult",
+    "LineFit",
+    "base_drape_settings",
+    "construction_lines",
+    "fit_rows",
+    "grade",
+    "measure_fit",
     "AdjustResult",
     "AdjustSettings",
     "AdjustSetup",

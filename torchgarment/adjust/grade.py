@@ -21,7 +21,6 @@ Lengths are in metres.
 from __future__ import annotations
 
 import csv
-import inspect
 import io
 import json
 import math
@@ -34,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from torchgarment.adjust.fit import fit_rows, measure_fit
-from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
+from torchgarment.adjust.pipeline import AdjustSettings, base_drape_settings, optimize, prepare
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
@@ -43,7 +42,7 @@ if TYPE_CHECKING:
     from torchgarment.adjust.pipeline import AdjustResult
     from torchgarment.body import Body
     from torchgarment.pattern.spec import SewingPattern
-    from torchgarment.sim.drape import DrapeResult, DrapeSettings
+    from torchgarment.sim.drape import DrapeResult
 
 __all__ = [
     "CSV_COLUMNS",
@@ -169,24 +168,12 @@ def _num(v: Any) -> float:
     return math.nan if v is None else float(v)
 
 
-def _drape_settings(settings: AdjustSettings) -> DrapeSettings:
-    from torchgarment.sim.drape import DrapeSettings
-
-    return (settings.drape if settings.drape is not None
-            else DrapeSettings(edge_length=settings.edge_length, voxel_size=settings.voxel_size))
-
-
-def _prepare_takes_base() -> bool:
-    # stand-in until support lands: prepare(..., base=...) of interface 1 (then always true)
-    return "base" in inspect.signature(prepare).parameters
-
-
 def drape_base(pattern: SewingPattern, base_body: Body, settings: AdjustSettings, *,
                dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> DrapeResult:
     """The base drape :func:`prepare` would compute (same drape settings), computed once for every size."""
     from torchgarment.sim.drape import drape
 
-    return drape(pattern, base_body, settings=_drape_settings(settings), dtype=dtype, device=device)
+    return drape(pattern, base_body, settings=base_drape_settings(settings), dtype=dtype, device=device)
 
 
 def adjust_to_target(pattern: SewingPattern, base_body: Body, target_body: Body, settings: AdjustSettings,
@@ -195,8 +182,7 @@ def adjust_to_target(pattern: SewingPattern, base_body: Body, target_body: Body,
     """Adjust ``pattern`` to one target body from an already computed base drape (steps 2-4 of
     :func:`torchgarment.adjust.pipeline.adjust`); ``base=None`` drapes again."""
     t0 = time.perf_counter()
-    kw = {"base": base} if base is not None and _prepare_takes_base() else {}
-    setup = prepare(pattern, base_body, target_body, settings, dtype=dtype, device=device, **kw)
+    setup = prepare(pattern, base_body, target_body, settings, dtype=dtype, device=device, base=base)
     result = optimize(setup, progress=False)
     result.metrics["total_seconds"] = time.perf_counter() - t0
     return result
@@ -339,7 +325,7 @@ def grade(
                                       json.loads((folder / "metrics.json").read_text(encoding="utf-8")),
                                       float(fit.get("seconds", 0.0)))
             base_fit = base_fit or fit["base"]
-    if todo and _prepare_takes_base():
+    if todo:
         t0 = time.perf_counter()
         base = drape_base(pattern, base_body, settings, dtype=dtype, device=device)
         base_seconds = time.perf_counter() - t0

@@ -400,6 +400,15 @@ class AdjustSetup:
                              retain_graph=s.optimizer == OptimizerKind.GN)
 
 
+def base_drape_settings(settings: AdjustSettings) -> DrapeSettings:
+    """The settings of the base drape :func:`prepare` computes (and that a ``base=`` drape must use):
+    ``settings.drape`` or ``DrapeSettings(edge_length, voxel_size)``, with the support held only when
+    ``settings.support``."""
+    dset = (settings.drape if settings.drape is not None
+            else DrapeSettings(edge_length=settings.edge_length, voxel_size=settings.voxel_size))
+    return replace(dset, support=dset.support and settings.support)
+
+
 def prepare(
     pattern_or_mesh: SewingPattern | GarmentMesh,
     base_body: Body,
@@ -434,9 +443,7 @@ def prepare(
                          f"{type(pattern_or_mesh).__name__}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    dset = (settings.drape if settings.drape is not None
-            else DrapeSettings(edge_length=settings.edge_length, voxel_size=settings.voxel_size))
-    dset = replace(dset, support=dset.support and settings.support)
+    dset = base_drape_settings(settings)
     settings.drape = dset
     if base is None:
         base = drape(pattern_or_mesh, base_body, settings=dset, dtype=dtype, device=device)
