@@ -100,12 +100,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iterations", type=int, default=32, help="outer iterations of Algorithm 1")
     ap.add_argument("--exact-interval", type=int, default=8, help="M: exact solve every this many iterations")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    ap.add_argument("--no-support", action="store_true",
+                    help="no sticking supports (the figures before supports existed)")
     ap.add_argument("--json", type=Path, default=None, help="write the rows to this JSON file")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     garments = args.garment or list_garments()
     settings = AdjustSettings(edge_length=args.edge_length, voxel_size=args.voxel, iterations=args.iterations,
-                              exact_interval=args.exact_interval)
+                              exact_interval=args.exact_interval, support=not args.no_support)
     rows = []
     jobs = [(g, t) for g in garments for t in args.target_size]
     for g, t in tqdm(jobs, desc="adjust", unit="run", file=sys.stderr):
