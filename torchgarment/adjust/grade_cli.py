@@ -68,6 +68,8 @@ def add_grade_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     p.add_argument("--init-iterations", type=int, default=d.init_iterations, metavar="N",
                    help=f"L-BFGS iterations of the section-7 initialization (default {d.init_iterations})")
     p.add_argument("--no-init", action="store_true", help="skip the section-7 initialization")
+    p.add_argument("--no-support", action="store_true",
+                   help="do not hold the pattern's support (waistband) with the sticking energy")
     p.add_argument("--resume", action="store_true", help="skip the sizes whose DIR/<size>/ is complete")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_grade)
@@ -83,7 +85,7 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
     return AdjustSettings(optimizer=args.optimizer, iterations=args.iterations, edge_length=args.edge_length,
                           voxel_size=args.voxel, inner_iterations=args.inner_iterations,
                           exact_interval=args.exact_interval, init_iterations=args.init_iterations,
-                          initialize=not args.no_init)
+                          initialize=not args.no_init, support=not args.no_support)
 
 
 def _targets(specs: list[str], flag: str) -> dict[str, Body]:
