@@ -58,8 +58,8 @@ def _body_layer(body: Body) -> MeshLayer:
 def _write_body_outputs(body: Body, stage: Path, title: str) -> dict:
     """Write body.obj, skeleton.obj, measurements.json and body.png into ``stage``; return the
     measurements."""
+    from torchgarment.body.skeleton_io import write_skeleton_obj
     from torchgarment.io.mesh import save_obj
-    from torchgarment.io.skeleton import write_skeleton_obj
     from torchgarment.render import render_views
 
     save_obj(stage / "body.obj", body.vertices, body.faces)

@@ -11,9 +11,9 @@ import trimesh
 from torchgarment.body.body import Body
 from torchgarment.body.load import BodyMeshWarning, load_body
 from torchgarment.body.skeleton import Skeleton
+from torchgarment.body.skeleton_io import write_skeleton_obj, write_skin_weights
 from torchgarment.errors import InputError
 from torchgarment.io.mesh import save_obj
-from torchgarment.io.skeleton import write_skeleton_obj, write_skin_weights
 
 
 @pytest.fixture

@@ -10,9 +10,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pytest
 
+from torchgarment.body.skeleton_io import write_skeleton_obj
 from torchgarment.errors import TorchGarmentError
 from torchgarment.io.mesh import read_obj, save_obj
-from torchgarment.io.skeleton import write_skeleton_obj
 from torchgarment.retarget.avatars import toy_case
 from torchgarment.retarget.cli import add_retarget_parser
 

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from torchgarment.body.skeleton import Skeleton
+from torchgarment.body.skeleton_io import write_skeleton_obj, write_skin_weights
 from torchgarment.errors import InputError, MeshError
 from torchgarment.io.mesh import read_obj, save_obj
-from torchgarment.io.skeleton import write_skeleton_obj, write_skin_weights
 from torchgarment.retarget.avatars import toy_case, tube_mesh
 from torchgarment.retarget.inputs import (
     Similarity,

@@ -15,9 +15,9 @@ import torch
 from torchgarment.body.body import Body
 from torchgarment.body.kinematics import check_bone_forest
 from torchgarment.body.skeleton import Skeleton
+from torchgarment.body.skeleton_io import read_skeleton_obj, read_skin_weights, validate_skin_weights
 from torchgarment.errors import InputError
 from torchgarment.io.mesh import load_mesh
-from torchgarment.io.skeleton import read_skeleton_obj, read_skin_weights, validate_skin_weights
 from torchgarment.structures.mesh_checks import find_degenerate_faces
 
 __all__ = ["BodyMeshWarning", "load_body"]
@@ -40,7 +40,7 @@ def load_body(
 
     Args:
         path: mesh file in metres, +Y up.
-        skeleton: a :class:`Skeleton` or a skeleton OBJ edge graph (see :mod:`torchgarment.io.skeleton`).
+        skeleton: a :class:`Skeleton` or a skeleton OBJ edge graph (see :mod:`torchgarment.body.skeleton_io`).
         skin_weights: a (J, V) tensor or a weights text file (joints x vertices); needs ``skeleton``.
             Columns are normalized to sum to one.
         dtype: floating dtype of all tensors.

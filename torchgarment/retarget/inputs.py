@@ -21,8 +21,8 @@ fit distance, the solver's dhat) are relative to it.
 
 File conventions (those of the reference implementation): the garment is a manifold triangle OBJ (vertices
 split along UV seams are welded first, see :func:`weld_garment`); skeletons are OBJ edge graphs (``v`` joints,
-``l`` bones, read by :func:`torchgarment.io.skeleton.read_skeleton_obj`) with the same connectivity and joint
-order in the source and the target; the target avatar is a triangle mesh that may be non-manifold,
+``l`` bones, read by :func:`torchgarment.body.skeleton_io.read_skeleton_obj`) with the same connectivity and
+joint order in the source and the target; the target avatar is a triangle mesh that may be non-manifold,
 disconnected and self-intersecting (degenerate triangles are dropped, the rest kept); skin weights are a
 joints x avatar-vertices text matrix; the no-fit file lists whitespace-separated **0-based** garment vertex
 indices (indices of the file, before welding) that the fit term ignores; the curves file has one curve loop
@@ -46,14 +46,14 @@ import torch
 from torchgarment.body.body import Body
 from torchgarment.body.kinematics import check_bone_forest
 from torchgarment.body.skeleton import Skeleton
-from torchgarment.errors import InputError, MeshError
-from torchgarment.io.mesh import load_mesh
-from torchgarment.io.skeleton import (
+from torchgarment.body.skeleton_io import (
     read_skeleton_obj,
     read_skin_weights,
     read_text_file,
     validate_skin_weights,
 )
+from torchgarment.errors import InputError, MeshError
+from torchgarment.io.mesh import load_mesh
 from torchgarment.structures.mesh_checks import check_mesh, find_unreferenced_vertices, weld_vertices
 
 __all__ = [

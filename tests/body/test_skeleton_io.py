@@ -6,14 +6,14 @@ import pytest
 import torch
 
 from torchgarment.body.skeleton import Skeleton
-from torchgarment.errors import InputError
-from torchgarment.io.skeleton import (
+from torchgarment.body.skeleton_io import (
     read_skeleton_obj,
     read_skin_weights,
     validate_skin_weights,
     write_skeleton_obj,
     write_skin_weights,
 )
+from torchgarment.errors import InputError
 
 
 def test_read_polyline_and_comments(tmp_path):
