@@ -25,42 +25,24 @@ from typing import TYPE_CHECKING, Any
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
-    from torchgarment.adjust.pipeline import AdjustResult
+    from torchgarment.adjust.pipeline import AdjustResult, AdjustSettings
     from torchgarment.body import Body
     from torchgarment.pattern.spec import SewingPattern
 
 
-def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add the ``adjust`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
+def add_settings_arguments(p: argparse.ArgumentParser) -> None:
+    """Add the options of :class:`~torchgarment.adjust.pipeline.AdjustSettings` that ``adjust`` and ``grade``
+    share (read back by :func:`settings_from_args`)."""
     from torchgarment.adjust.optimizers import OptimizerKind
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.sim.solvers import SolverKind
 
     d = AdjustSettings()
-    p = subparsers.add_parser(
-        "adjust", help="adjust a sewing pattern to another body (Wang et al. 2018)",
-        description="Drape the pattern on the base body, transfer the garment to the target body and "
-                    "optimize the pattern so that the garment fits the target body as the base garment fits "
-                    "the base body. Writes pattern.json/.svg/.dxf, garment_base.obj, garment_target.obj, "
-                    "renders, overlay.png and metrics.json; TensorBoard scalars under logs/adjust/<run> "
-                    "(--log-dir).")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--pattern", metavar="P",
-                     help="a pattern file (.json GarmentCode or .dxf) or a library name")
-    src.add_argument("--garment", metavar="NAME", help="a library garment, drafted for the base size")
-    base = p.add_mutually_exclusive_group(required=True)
-    base.add_argument("--base-body", metavar="B", help="base body: a mesh file or a chart size")
-    base.add_argument("--base-size", metavar="S", help="base body: a chart size")
-    tgt = p.add_mutually_exclusive_group(required=True)
-    tgt.add_argument("--target-body", metavar="T", help="target body: a mesh file or a chart size")
-    tgt.add_argument("--target-size", metavar="S", help="target body: a chart size")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--optimizer", default=d.optimizer.value, choices=[k.value for k in OptimizerKind],
                    help=f"optimizer (default {d.optimizer.value}: preconditioned gradient descent, Algorithm "
                         "1)")
     p.add_argument("--iterations", type=int, default=d.iterations, metavar="N",
                    help=f"outer iterations (default {d.iterations})")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device (default cpu)")
     p.add_argument("--edge-length", type=float, default=d.edge_length, metavar="M",
                    help=f"triangle edge length in metres (default {d.edge_length})")
     p.add_argument("--voxel", type=float, default=d.voxel_size, metavar="M",
@@ -79,15 +61,58 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
                    help="rescale the regularizers to the balance of a mesh of this edge length in metres "
                         "(0.008: the paper's Table 1 dress; see CostWeights.reference_edge_length); default: "
                         "coefficients as given")
+    p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
+    p.add_argument("--exact", action="store_true",
+                   help="exact simulation at every iteration (no Algorithm 1)")
+    p.add_argument("--init-iterations", type=int, default=d.init_iterations, metavar="N",
+                   help=f"L-BFGS iterations of the section-7 initialization (default {d.init_iterations})")
+    p.add_argument("--no-init", action="store_true", help="skip the section-7 initialization")
+
+
+def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
+    """The :class:`~torchgarment.adjust.pipeline.AdjustSettings` of the options of
+    :func:`add_settings_arguments` (validated: bad values raise InputError)."""
+    from torchgarment.adjust.objective import CostWeights
+    from torchgarment.adjust.pipeline import AdjustSettings
+
+    if args.iterations < 0:
+        raise InputError(f"--iterations must be >= 0, got {args.iterations}")
+    weights = CostWeights(reference_edge_length=args.reference_edge_length)
+    return AdjustSettings(optimizer=args.optimizer, iterations=args.iterations, edge_length=args.edge_length,
+                          voxel_size=args.voxel, inner_iterations=args.inner_iterations,
+                          exact_interval=args.exact_interval, inexact=not args.exact,
+                          inner_solver=args.inner_solver, adjoint=args.adjoint,
+                          init_iterations=args.init_iterations, initialize=not args.no_init, weights=weights,
+                          support=not args.no_support)
+
+
+def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the ``adjust`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
+    p = subparsers.add_parser(
+        "adjust", help="adjust a sewing pattern to another body (Wang et al. 2018)",
+        description="Drape the pattern on the base body, transfer the garment to the target body and "
+                    "optimize the pattern so that the garment fits the target body as the base garment fits "
+                    "the base body. Writes pattern.json/.svg/.dxf, garment_base.obj, garment_target.obj, "
+                    "renders, overlay.png and metrics.json; TensorBoard scalars under logs/adjust/<run> "
+                    "(--log-dir).")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--pattern", metavar="P",
+                     help="a pattern file (.json GarmentCode or .dxf) or a library name")
+    src.add_argument("--garment", metavar="NAME", help="a library garment, drafted for the base size")
+    base = p.add_mutually_exclusive_group(required=True)
+    base.add_argument("--base-body", metavar="B", help="base body: a mesh file or a chart size")
+    base.add_argument("--base-size", metavar="S", help="base body: a chart size")
+    tgt = p.add_mutually_exclusive_group(required=True)
+    tgt.add_argument("--target-body", metavar="T", help="target body: a mesh file or a chart size")
+    tgt.add_argument("--target-size", metavar="S", help="target body: a chart size")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    add_settings_arguments(p)
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device (default cpu)")
     p.add_argument("--support", metavar="PANEL:EDGE[,...]",
                    help="the support (waistband) held by sticking springs: unstitched edges forming one "
                         "closed loop, each PANEL:EDGE with an edge label or index (default: the library "
                         "garment's; for a pattern file without one, the topmost closed loop of a bottom "
                         "garment, named on stderr)")
-    p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
-    p.add_argument("--exact", action="store_true",
-                   help="exact simulation at every iteration (no Algorithm 1)")
-    p.add_argument("--no-init", action="store_true", help="skip the section-7 initialization")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint/adjust.pt")
     p.add_argument("--log-dir", metavar="DIR",
                    help="TensorBoard folder (default logs/adjust/<garment>-<base>-to-<target>-<time>)")
@@ -181,26 +206,14 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     """Run ``torchgarment adjust``; returns the exit code."""
     import torch
 
-    from torchgarment.adjust.pipeline import AdjustSettings, adjust
+    from torchgarment.adjust.pipeline import adjust
     from torchgarment.io.staging import staged_output
 
-    if args.iterations < 0:
-        raise InputError(f"--iterations must be >= 0, got {args.iterations}")
     if args.support is not None and args.no_support:
         raise InputError("--support and --no-support exclude each other")
     if args.device == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: CUDA is not available on this machine")
-    from torchgarment.adjust.objective import CostWeights
-
-    weights = CostWeights(reference_edge_length=args.reference_edge_length)
-    weights.validate()
-    settings = AdjustSettings(optimizer=args.optimizer, iterations=args.iterations,
-                              edge_length=args.edge_length,
-                              voxel_size=args.voxel, inner_iterations=args.inner_iterations,
-                              exact_interval=args.exact_interval, inexact=not args.exact,
-                              inner_solver=args.inner_solver, adjoint=args.adjoint,
-                              initialize=not args.no_init, weights=weights, support=not args.no_support)
-    settings.validate()
+    settings = settings_from_args(args)
     base_spec = args.base_body if args.base_body is not None else args.base_size
     target_spec = args.target_body if args.target_body is not None else args.target_size
     base_body, base_name = _load_body(base_spec, "base-body" if args.base_body is not None else "base-size")

@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
-    from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.body import Body
 
 EXIT_SIZE_FAILED = 1
@@ -31,10 +30,8 @@ EXIT_SIZE_FAILED = 1
 
 def add_grade_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``grade`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
-    from torchgarment.adjust.optimizers import OptimizerKind
-    from torchgarment.adjust.pipeline import AdjustSettings
+    from torchgarment.adjust.cli import add_settings_arguments
 
-    d = AdjustSettings()
     p = subparsers.add_parser(
         "grade", help="grade a sewing pattern over a size run (pattern adjustment to every size's body)",
         description="Drape the pattern on the base body once and adjust it to every target body (Wang et al. "
@@ -53,39 +50,11 @@ def add_grade_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     tgt.add_argument("--target-body", nargs="+", metavar="T",
                      help="target bodies: body files or chart sizes")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--optimizer", default=d.optimizer.value, choices=[k.value for k in OptimizerKind],
-                   help=f"optimizer (default {d.optimizer.value})")
-    p.add_argument("--iterations", type=int, default=d.iterations, metavar="N",
-                   help=f"outer iterations per size (default {d.iterations})")
-    p.add_argument("--edge-length", type=float, default=d.edge_length, metavar="M",
-                   help=f"triangle edge length in metres (default {d.edge_length})")
-    p.add_argument("--voxel", type=float, default=d.voxel_size, metavar="M",
-                   help=f"body SDF voxel size in metres (default {d.voxel_size})")
-    p.add_argument("--inner-iterations", type=int, default=d.inner_iterations, metavar="S",
-                   help=f"simulation iterations per inexact outer iteration (default {d.inner_iterations})")
-    p.add_argument("--exact-interval", type=int, default=d.exact_interval, metavar="M",
-                   help=f"outer iterations between exact solves (default {d.exact_interval})")
-    p.add_argument("--init-iterations", type=int, default=d.init_iterations, metavar="N",
-                   help=f"L-BFGS iterations of the section-7 initialization (default {d.init_iterations})")
-    p.add_argument("--no-init", action="store_true", help="skip the section-7 initialization")
-    p.add_argument("--no-support", action="store_true",
-                   help="do not hold the pattern's support (waistband) with the sticking energy")
+    add_settings_arguments(p)
     p.add_argument("--resume", action="store_true", help="skip the sizes whose DIR/<size>/ is complete")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_grade)
     return p
-
-
-def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
-    """The :class:`AdjustSettings` of the command-line options (validated: bad values raise InputError)."""
-    from torchgarment.adjust.pipeline import AdjustSettings
-
-    if args.iterations < 0:
-        raise InputError(f"--iterations must be >= 0, got {args.iterations}")
-    return AdjustSettings(optimizer=args.optimizer, iterations=args.iterations, edge_length=args.edge_length,
-                          voxel_size=args.voxel, inner_iterations=args.inner_iterations,
-                          exact_interval=args.exact_interval, init_iterations=args.init_iterations,
-                          initialize=not args.no_init, support=not args.no_support)
 
 
 def _targets(specs: list[str], flag: str) -> dict[str, Body]:
@@ -103,7 +72,7 @@ def _targets(specs: list[str], flag: str) -> dict[str, Body]:
 
 def cmd_grade(args: argparse.Namespace) -> int:
     """Run ``torchgarment grade``; returns the exit code (1 when a size failed)."""
-    from torchgarment.adjust.cli import _load_body, _load_pattern, write_outputs
+    from torchgarment.adjust.cli import _load_body, _load_pattern, settings_from_args, write_outputs
     from torchgarment.adjust.grade import format_table, grade
     from torchgarment.body.size_chart import chart_row, list_sizes
 
