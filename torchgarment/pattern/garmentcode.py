@@ -53,7 +53,6 @@ from __future__ import annotations
 import json
 import math
 import os
-from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +60,7 @@ import numpy as np
 
 from torchgarment.errors import PatternError
 from torchgarment.io.atomic import atomic_open
+from torchgarment.options import OptionEnum
 from torchgarment.pattern.spec import (
     Edge,
     EdgeKind,
@@ -85,7 +85,7 @@ _OWN_PROPERTIES = ("units_in_meter", "curvature_coords", "normalize_panel_transl
 _RIGHT_WRONG = "right_wrong"
 
 
-class OrientationRule(str, Enum):
+class OrientationRule(OptionEnum):
     """How to decide a stitch's orientation when the file does not store it (see the module docstring)."""
 
     GARMENTCODE = "garmentcode"  # "right_wrong" third entry -> SAME, else OPPOSITE

@@ -21,15 +21,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from enum import Enum
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from torchgarment.errors import PatternError
+from torchgarment.options import OptionEnum
 
 
-class EdgeKind(str, Enum):
+class EdgeKind(OptionEnum):
     """Shape of a panel edge."""
 
     LINE = "line"
@@ -38,7 +38,7 @@ class EdgeKind(str, Enum):
     ARC = "circle"
 
 
-class StitchOrientation(str, Enum):
+class StitchOrientation(OptionEnum):
     """Which ends of two stitched edges meet."""
 
     OPPOSITE = "opposite"  # a.start <-> b.end

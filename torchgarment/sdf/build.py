@@ -26,17 +26,17 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from enum import Enum
 
 import numpy as np
 
 from torchgarment.errors import InputError, MeshError
+from torchgarment.options import OptionEnum
 
 DEFAULT_BAND = 0.02
 """Default narrow-band half-width in metres (raised to the far-field minimum for coarse voxels)."""
 
 
-class SignType(str, Enum):
+class SignType(OptionEnum):
     """How the sign of the distance (inside / outside) is decided."""
 
     FAST_WINDING_NUMBER = "fast_winding_number"

@@ -38,12 +38,12 @@ import importlib
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from enum import Enum
 from types import ModuleType
 
 import torch
 
 from torchgarment.errors import InputError, MeshError
+from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.barrier import DEFAULT_BARRIER_DHAT, DEFAULT_BARRIER_MU, BodyBarrier
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 from torchgarment.sim.energies.bend import DEFAULT_BEND_STIFFNESS, QuadraticBending
@@ -67,7 +67,7 @@ MIN_REST_ANGLE_DEG = 0.1
 """Smallest rest-triangle angle in degrees a scene accepts (bending weights grow like 1 / angle)."""
 
 
-class Effect(str, Enum):
+class Effect(OptionEnum):
     """Physical effects a scene may include (each becomes one energy term)."""
 
     STRETCH = "stretch"
@@ -531,13 +531,7 @@ def _unit_hint(ratio: float) -> str:
 def _as_effects(effects: Iterable[Effect | str]) -> set[Effect]:
     if isinstance(effects, (str, Effect)):
         effects = [effects]
-    out = set()
-    for e in effects:
-        try:
-            out.add(Effect(e))
-        except ValueError as exc:
-            raise InputError(f"unknown effect {e!r}; choose from {[x.value for x in Effect]}") from exc
-    return out
+    return {Effect.resolve(e) for e in effects}
 
 
 def _rest_positions(g: GarmentMesh) -> torch.Tensor:
