@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from torchgarment.body.body import Body
-from torchgarment.body.measure import SectionPlane, section_girths
+from torchgarment.body.measure import SectionPlane, plane_basis, section_girths, section_loops
 from torchgarment.body.skeleton import Skeleton
 from torchgarment.errors import InputError, MeshError, PatternError
 
@@ -282,16 +282,13 @@ def body_girth_at(body: Body, y: float) -> float:
     """
     from scipy.spatial import ConvexHull
 
-    from torchgarment.body.measure import _cut, _plane_basis, _topology
-
     v = body.vertices
     pt = torch.tensor([0.0, float(y), 0.0], dtype=v.dtype, device=v.device)
     up = torch.tensor([0.0, 1.0, 0.0], dtype=v.dtype, device=v.device)
-    vn = v.detach().cpu().numpy().astype(np.float64)
-    loops = [lp for lp in _cut(vn, _topology(body.faces), pt.cpu().numpy(), up.cpu().numpy()) if lp.closed]
+    loops = [lp for lp in section_loops(v, body.faces, pt, up) if lp.closed]
     if not loops:
         raise MeshError(f"the horizontal plane at y = {y:.3f} m misses the body")
-    basis = _plane_basis(up.cpu().numpy())
+    basis = plane_basis(up.cpu().numpy())
     if any(_encloses_origin(lp.points @ basis.T, lp.segments) for lp in loops):
         return float(section_girths(v, body.faces, {"line": SectionPlane("line", pt, up, pt)})["line"])
     near = sorted(loops, key=lambda lp: float(np.min(np.linalg.norm(lp.points[:, [0, 2]], axis=1))))[:2]

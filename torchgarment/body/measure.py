@@ -194,7 +194,7 @@ def _topology(faces: torch.Tensor | np.ndarray) -> _Topology:
     return topo
 
 
-def _plane_basis(normal: np.ndarray) -> np.ndarray:
+def plane_basis(normal: np.ndarray) -> np.ndarray:
     """(2, 3) orthonormal in-plane axes (u, w) with u x w = normal."""
     n = normal / np.linalg.norm(normal)
     a = np.eye(3)[int(np.argmin(np.abs(n)))]
@@ -204,7 +204,7 @@ def _plane_basis(normal: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class _Loop:
+class SectionLoop:
     """One connected section loop (detached, numpy).
 
     Attributes:
@@ -236,7 +236,7 @@ class _Loop:
         return float(np.linalg.norm(h - np.roll(h, 1, axis=0), axis=1).sum())
 
 
-def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.ndarray) -> list[_Loop]:
+def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.ndarray) -> list[SectionLoop]:
     """Cut a mesh by a plane; return its connected section loops (detached numpy).
 
     A vertex is on the positive side when its signed distance is > 0, so every face is crossed by 0 or 2 of
@@ -287,7 +287,7 @@ def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.nd
         local[nodes] = np.arange(len(nodes))
         segs = local[seg[seg_order[seg_bounds[c] : seg_bounds[c + 1]]]]
         loops.append(
-            _Loop(
+            SectionLoop(
                 edge_ids=edge_ids[nodes],
                 points=pts[nodes],
                 closed=bool(np.all(degree[nodes] == 2)),
@@ -297,7 +297,7 @@ def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.nd
     return loops
 
 
-def _pick_loop(loops: list[_Loop], seed: np.ndarray, basis: np.ndarray) -> _Loop | None:
+def _pick_loop(loops: list[SectionLoop], seed: np.ndarray, basis: np.ndarray) -> SectionLoop | None:
     """The innermost loop whose polygon encloses ``seed`` (ray casting in the plane), else the nearest
     loop."""
     if not loops:
@@ -316,6 +316,25 @@ def _pick_loop(loops: list[_Loop], seed: np.ndarray, basis: np.ndarray) -> _Loop
         if best_key is None or key < best_key:
             best, best_key = loop, key
     return best
+
+
+def section_loops(vertices: torch.Tensor, faces: torch.Tensor, point: torch.Tensor,
+                  normal: torch.Tensor) -> list[SectionLoop]:
+    """The loops (closed and open, detached, numpy) where the plane through ``point`` (3,) with ``normal``
+    (3,) cuts the mesh ``vertices`` (V, 3) / ``faces`` (F, 3); the same cut as :func:`section_girths`."""
+    _check_mesh(vertices, faces)
+    vd = vertices.detach().cpu().numpy().astype(np.float64, copy=False)
+    p = np.asarray(point.detach().cpu() if isinstance(point, torch.Tensor) else point, dtype=np.float64)
+    n = np.asarray(normal.detach().cpu() if isinstance(normal, torch.Tensor) else normal, dtype=np.float64)
+    return _cut(vd, _topology(faces), p, n / np.linalg.norm(n))
+
+
+def section_loop(vertices: torch.Tensor, faces: torch.Tensor, plane: SectionPlane) -> SectionLoop | None:
+    """The loop :func:`section_girths` measures for ``plane``: the innermost one enclosing the plane's seed,
+    else the nearest; None when the plane misses the mesh."""
+    n = plane.normal.detach().cpu().numpy().astype(np.float64)
+    loops = section_loops(vertices, faces, plane.point, plane.normal)
+    return _pick_loop(loops, plane.seed.detach().cpu().numpy().astype(np.float64), plane_basis(n))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -388,7 +407,7 @@ def section_girths(
         n = plane.normal.detach().cpu().numpy().astype(np.float64)
         n = n / np.linalg.norm(n)
         seed = plane.seed.detach().cpu().numpy().astype(np.float64)
-        basis = _plane_basis(n)
+        basis = plane_basis(n)
         loop = _pick_loop(_cut(vd, topo, p, n), seed, basis)
         if loop is None:
             raise MeshError(f"the {name!r} plane does not cut the mesh")
@@ -471,10 +490,10 @@ class _Slicer:
         self.frame = _Frame(y0=y0, height=h, left=left, front=front)
         self.basis = np.stack([left, front])  # 2D coordinates of horizontal sections: (lateral, depth)
 
-    def horizontal(self, y: float) -> list[_Loop]:
+    def horizontal(self, y: float) -> list[SectionLoop]:
         return _cut(self.v, self.topo, np.array([0.0, y, 0.0]), _UP)
 
-    def lateral_range(self, loop: _Loop) -> tuple[float, float]:
+    def lateral_range(self, loop: SectionLoop) -> tuple[float, float]:
         s = loop.points @ self.frame.left
         return float(s.min()), float(s.max())
 
@@ -539,7 +558,7 @@ def _find_crotch(sl: _Slicer) -> tuple[float, float, list[tuple[float, float]]]:
     return 0.5 * (lo + hi), centre, legs
 
 
-def _torso_loop(sl: _Slicer, loops: list[_Loop], centre: float) -> _Loop | None:
+def _torso_loop(sl: _Slicer, loops: list[SectionLoop], centre: float) -> SectionLoop | None:
     """The loop whose lateral range contains the body's lateral centre (the largest if several)."""
     cands = [lp for lp in loops if (lambda r: r[0] < centre < r[1])(sl.lateral_range(lp))]
     if not cands:
@@ -668,7 +687,7 @@ def _perp_girths(sl: _Slicer, line: np.ndarray, normal: np.ndarray, fractions: n
         (girths (N,), centreline points (N, 3))
     """
     pts = np.stack([np.interp(fractions, arc, line[:, k]) for k in range(3)], axis=1)
-    basis = _plane_basis(normal)
+    basis = plane_basis(normal)
     g = np.full(len(fractions), np.nan)
     for i, p in enumerate(pts):
         lp = _pick_loop(_cut(sl.v, sl.topo, p, normal), p, basis)
@@ -877,7 +896,7 @@ def _neck_plane(sl: _Slicer, armpit: float, centre: float,
     axis = (c_hi - c_lo) / np.linalg.norm(c_hi - c_lo)
     c_mid = 0.5 * (c_lo + c_hi)
     best = None
-    basis = _plane_basis(axis)
+    basis = plane_basis(axis)
     for off in np.linspace(-0.008 * h, 0.008 * h, 9):
         p = c_mid + off * axis
         lp = _pick_loop(_cut(sl.v, sl.topo, p, axis), p, basis)

@@ -60,15 +60,12 @@ def _waist_hull(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[float, np.
     """Height of the waist plane and the convex hull (H, 2) of the torso section there, (x, z), CCW."""
     from scipy.spatial import ConvexHull
 
-    # the tape measure's own section code (private helpers of body.measure: one implementation of the cut)
-    from torchgarment.body.measure import _cut, _pick_loop, _plane_basis, _topology, find_section_planes
+    # the tape measure's own section (the loop its waist girth is measured on)
+    from torchgarment.body.measure import find_section_planes, section_loop
 
     plane = find_section_planes(vertices, faces, names=("waist",))["waist"]
-    v = vertices.detach().cpu().double().numpy()
     p = plane.point.detach().cpu().double().numpy()
-    n = plane.normal.detach().cpu().double().numpy()
-    loop = _pick_loop(_cut(v, _topology(faces), p, n), plane.seed.detach().cpu().double().numpy(),
-                      _plane_basis(n))
+    loop = section_loop(vertices, faces, plane)
     if loop is None:
         raise InputError("the body's waist plane does not cut the body")
     xz = loop.points[:, [0, 2]]
