@@ -121,22 +121,7 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     return p
 
 
-def _load_body(spec: str, what: str) -> tuple[Body, str]:
-    from torchgarment.body import Body
-    from torchgarment.body.size_chart import list_sizes
-
-    if spec in list_sizes():
-        return Body.from_size(spec), f"size {spec}"
-    path = Path(spec)
-    if not path.is_file():
-        raise InputError(f"--{what} {spec}: neither a chart size ({', '.join(list_sizes())}) nor an existing "
-                         "mesh file")
-    from torchgarment.body.load import load_body
-
-    return load_body(path), path.stem
-
-
-def _load_pattern(spec: str, base_size: str | None, flag: str) -> SewingPattern:
+def load_pattern_spec(spec: str, base_size: str | None, flag: str) -> SewingPattern:
     from torchgarment.body.size_chart import chart_row, list_sizes
     from torchgarment.pattern.library import draft, list_garments
 
@@ -216,14 +201,17 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     base_spec = args.base_body if args.base_body is not None else args.base_size
     target_spec = args.target_body if args.target_body is not None else args.target_size
-    base_body, base_name = _load_body(base_spec, "base-body" if args.base_body is not None else "base-size")
-    target_body, target_name = _load_body(target_spec,
-                                          "target-body" if args.target_body is not None else "target-size")
+    from torchgarment.body.load import load_body_spec
+
+    base_flag = "base-body" if args.base_body is not None else "base-size"
+    target_flag = "target-body" if args.target_body is not None else "target-size"
+    base_body, base_name = load_body_spec(base_spec, base_flag)
+    target_body, target_name = load_body_spec(target_spec, target_flag)
     from torchgarment.body.size_chart import list_sizes
 
     base_size = base_spec if base_spec in list_sizes() else None
     spec, flag = (args.garment, "--garment") if args.garment is not None else (args.pattern, "--pattern")
-    pattern = _load_pattern(spec, base_size, flag)
+    pattern = load_pattern_spec(spec, base_size, flag)
     from torchgarment.pattern.support import choose_support
 
     pattern, note = choose_support(pattern, args.support, not args.no_support)

@@ -58,11 +58,11 @@ def add_grade_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
 
 
 def _targets(specs: list[str], flag: str) -> dict[str, Body]:
-    from torchgarment.adjust.cli import _load_body
+    from torchgarment.body.load import load_body_spec
 
     out: dict[str, Body] = {}
     for spec in specs:
-        body, name = _load_body(spec, flag)
+        body, name = load_body_spec(spec, flag)
         name = name.removeprefix("size ").replace("/", "_").replace(" ", "_")
         if name in out:
             raise InputError(f"--{flag}: two targets are named {name!r}")
@@ -72,8 +72,9 @@ def _targets(specs: list[str], flag: str) -> dict[str, Body]:
 
 def cmd_grade(args: argparse.Namespace) -> int:
     """Run ``torchgarment grade``; returns the exit code (1 when a size failed)."""
-    from torchgarment.adjust.cli import _load_body, _load_pattern, settings_from_args, write_outputs
+    from torchgarment.adjust.cli import load_pattern_spec, settings_from_args, write_outputs
     from torchgarment.adjust.grade import format_table, grade
+    from torchgarment.body.load import load_body_spec
     from torchgarment.body.size_chart import chart_row, list_sizes
 
     settings = settings_from_args(args)
@@ -85,8 +86,8 @@ def cmd_grade(args: argparse.Namespace) -> int:
             raise InputError(f"--sizes {' '.join(bad)}: not chart sizes ({', '.join(list_sizes())})")
     base_size = base_spec if base_spec in list_sizes() else None
     spec, flag = (args.garment, "--garment") if args.garment is not None else (args.pattern, "--pattern")
-    pattern = _load_pattern(spec, base_size, flag)
-    base_body, base_name = _load_body(base_spec, base_flag)
+    pattern = load_pattern_spec(spec, base_size, flag)
+    base_body, base_name = load_body_spec(base_spec, base_flag)
     base_name = base_name.removeprefix("size ").replace("/", "_").replace(" ", "_")
     targets = _targets(args.sizes if args.sizes is not None else args.target_body,
                        "sizes" if args.sizes is not None else "target-body")

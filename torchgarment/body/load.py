@@ -105,3 +105,29 @@ def load_body(
         )
     return Body(vertices=vertices, faces=faces, skeleton=skel, skin_weights=weights,
                 params={"source": str(path)})
+
+
+def load_body_spec(spec: str, flag: str) -> tuple[Body, str]:
+    """The body a command-line option names: a chart size (:meth:`Body.from_size`) or a mesh file
+    (:func:`load_body`).
+
+    Args:
+        spec: the option's value. flag: the option's name without dashes, for the error message.
+
+    Returns:
+        ``(body, name)``: the body and a short name for outputs (``"size 12"`` or the file's stem).
+
+    Raises:
+        InputError: neither a chart size nor an existing file (one line naming the sizes).
+    """
+    from pathlib import Path
+
+    from torchgarment.body.size_chart import list_sizes
+
+    if spec in list_sizes():
+        return Body.from_size(spec), f"size {spec}"
+    path = Path(spec)
+    if not path.is_file():
+        raise InputError(f"--{flag} {spec}: neither a chart size ({', '.join(list_sizes())}) nor an existing "
+                         "mesh file")
+    return load_body(path), path.stem

@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
-    from torchgarment.body import Body
     from torchgarment.pattern.spec import SewingPattern
 
 
@@ -57,21 +56,6 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_drape)
     return p
-
-
-def _load_body(spec: str) -> tuple[Body, str]:
-    from torchgarment.body import Body
-    from torchgarment.body.size_chart import list_sizes
-
-    if spec in list_sizes():
-        return Body.from_size(spec), f"size {spec}"
-    path = Path(spec)
-    if not path.is_file():
-        raise InputError(f"--body {spec}: neither a chart size ({', '.join(list_sizes())}) nor an existing "
-                         "mesh file")
-    from torchgarment.body.load import load_body
-
-    return load_body(path), path.stem
 
 
 def _load_pattern(spec: str, size: str | None, body_spec: str) -> SewingPattern:
@@ -137,7 +121,9 @@ def cmd_drape(args: argparse.Namespace) -> int:
                              max_iterations=args.max_iterations, support=not args.no_support)
     settings.validate()
     t0 = time.perf_counter()
-    body, body_name = _load_body(args.body)
+    from torchgarment.body.load import load_body_spec
+
+    body, body_name = load_body_spec(args.body, "body")
     pattern = _load_pattern(args.pattern, args.size, args.body)
     from torchgarment.pattern.support import choose_support
 
