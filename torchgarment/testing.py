@@ -200,6 +200,32 @@ def check_hessian_blocks(
     return r1, r2
 
 
+def directional_derivatives(f: Callable[[torch.Tensor], float], q0: torch.Tensor, grad: torch.Tensor, *,
+                            directions: int = 2, h: float = 1e-5,
+                            seed: int = 0) -> list[tuple[float, float]]:
+    """Analytic and central-difference directional derivatives of a scalar function along random unit
+    directions (for functions too costly for :func:`check_gradient`'s per-entry differences, e.g. a whole
+    simulate-then-evaluate objective).
+
+    Args:
+        f: ``q -> f(q)``; it must restore any state it depends on (e.g. a solver's warm start) itself.
+        q0: the point, any shape. grad: ``df/dq`` at ``q0``, shaped like ``q0``.
+        directions: how many random directions. h: the difference step along a unit direction.
+        seed: of the directions.
+
+    Returns:
+        ``[(grad . v, (f(q0 + h v) - f(q0 - h v)) / 2h), ...]``, one pair per direction.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    out = []
+    for _ in range(directions):
+        v = torch.randn(q0.shape, generator=gen, dtype=torch.float64).to(q0.dtype)
+        v = v / torch.linalg.vector_norm(v)
+        fd = (f(q0 + h * v) - f(q0 - h * v)) / (2.0 * h)
+        out.append((float((grad * v).sum()), fd))
+    return out
+
+
 def min_eigenvalue(blocks: HessianBlocks, num_vertices: int) -> float:
     """Smallest eigenvalue of the assembled (dense) block matrix, for PSD checks on small meshes."""
     H = blocks.to_sparse(num_vertices).to_dense().double()

@@ -15,6 +15,7 @@ from torchgarment.adjust.inexact import AdjustProblem
 from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
 from torchgarment.errors import InputError
 from torchgarment.sim.diff import AdjointLinearSolver
+from torchgarment.testing import directional_derivatives
 
 if TYPE_CHECKING:
     from torchgarment.adjust.inexact import IterationRecord
@@ -197,15 +198,10 @@ def test_pipeline_gradient_is_loss_backward_through_the_solve_function(skirt_cas
     assert x.grad_fn is not None and x.grad_fn.name() == f"{QuasistaticSolve.__name__}Backward"
     assert torch.equal(qr.grad, ev.grad)
     x_eq = prob.x.clone()
-    gen = torch.Generator().manual_seed(3)
-    h = 1e-5
-    for _ in range(2):
-        v = torch.randn(q0.shape, generator=gen, dtype=q0.dtype)
-        v = v / torch.linalg.vector_norm(v)
+
+    def objective(q: torch.Tensor) -> float:
         prob.reset_state(x_eq)
-        fp = prob.evaluate(q0 + h * v, exact=True, need_grad=False).objective
-        prob.reset_state(x_eq)
-        fm = prob.evaluate(q0 - h * v, exact=True, need_grad=False).objective
-        fd = (fp - fm) / (2 * h)
-        ad = float((ev.grad * v).sum())
+        return prob.evaluate(q, exact=True, need_grad=False).objective
+
+    for ad, fd in directional_derivatives(objective, q0, ev.grad, directions=2, h=1e-5, seed=3):
         assert abs(ad - fd) <= 1e-4 * abs(fd), (ad, fd)

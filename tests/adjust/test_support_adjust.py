@@ -12,6 +12,7 @@ from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
 from torchgarment.errors import InputError
 from torchgarment.sim.drape import DrapeSettings, drape
 from torchgarment.sim.energies.pins import Pins
+from torchgarment.testing import directional_derivatives
 
 SETTINGS = AdjustSettings(edge_length=0.05, voxel_size=0.01, iterations=4, exact_interval=2)
 
@@ -94,17 +95,12 @@ def test_full_objective_gradient_with_supports_matches_finite_differences(case):
     # the pins act at this equilibrium (the band is held off its free position)
     pins = _pins(setup.model)
     assert float(torch.linalg.vector_norm(x_eq[pins.indices] - pins.targets, dim=1).max()) > 1e-4
-    gen = torch.Generator().manual_seed(5)
-    h = 1e-5
-    for _ in range(2):
-        v = torch.randn(q0.shape, generator=gen, dtype=q0.dtype)
-        v = v / torch.linalg.vector_norm(v)
+
+    def objective(q: torch.Tensor) -> float:
         prob.reset_state(x_eq)
-        fp = prob.evaluate(q0 + h * v, exact=True, need_grad=False).objective
-        prob.reset_state(x_eq)
-        fm = prob.evaluate(q0 - h * v, exact=True, need_grad=False).objective
-        fd = (fp - fm) / (2 * h)
-        ad = float((ev.grad * v).sum())
+        return prob.evaluate(q, exact=True, need_grad=False).objective
+
+    for ad, fd in directional_derivatives(objective, q0, ev.grad, directions=2, h=1e-5, seed=5):
         assert abs(ad - fd) <= 1e-4 * abs(fd), (ad, fd)
 
 
