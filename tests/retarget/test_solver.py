@@ -166,8 +166,8 @@ def test_newton_solve_reuses_its_factorization_through_pcg() -> None:
     that factorization (no new factorization), to the requested relative residual, as a descent direction."""
     import scipy.sparse as sp
 
+    from torchgarment.linalg import FactorCache
     from torchgarment.retarget.solver import NewtonSettings as RetargetNewtonSettings
-    from torchgarment.sim.solvers.common import FactorCache
     from torchgarment.sim.solvers.newton import NewtonOptions, newton_direction
 
     options = NewtonOptions(regularize_first=True, regularization_growth=100.0, gradient_fallback=True)

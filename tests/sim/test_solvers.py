@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from torchgarment.errors import InputError
+from torchgarment.linalg import CSRAssembler
 from torchgarment.sim.energies.base import HessianBlocks
 from torchgarment.sim.solvers import (
     NonFiniteError,
@@ -21,7 +22,6 @@ from torchgarment.sim.solvers import (
     solve,
 )
 from torchgarment.sim.solvers.chebyshev import jacobi_inverse
-from torchgarment.sim.solvers.common import CSRAssembler
 
 
 class SpringNetModel:

@@ -19,12 +19,12 @@ from typing import Callable, Protocol
 import torch
 
 from torchgarment.errors import InputError, TorchGarmentError
-from torchgarment.linalg import CSRAssembler, FactorCache, SparseBackend
+from torchgarment.linalg import SparseBackend
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.base import HessianBlocks
 
 __all__ = [
-    "Callback", "CSRAssembler", "FactorCache", "NonFiniteError", "Preconditioner", "Safeguard", "SolveInfo",
+    "Callback", "NonFiniteError", "Preconditioner", "Safeguard", "SolveInfo",
     "SolveSettings", "SolverKind", "SolverModel", "Timer", "check_x0", "checked_max_step", "evaluate",
     "evaluate_with_diagonal", "supports_elastic_reuse", "tolerance",
 ]

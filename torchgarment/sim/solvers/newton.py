@@ -32,11 +32,9 @@ import scipy.sparse.linalg
 import torch
 
 from torchgarment.errors import InputError, SingularMatrixError
-from torchgarment.linalg import SparseBackend, armijo_backtracking, factorize
+from torchgarment.linalg import CSRAssembler, FactorCache, SparseBackend, armijo_backtracking, factorize
 from torchgarment.sim.solvers.common import (
     Callback,
-    CSRAssembler,
-    FactorCache,
     NonFiniteError,
     SolveInfo,
     SolverKind,
