@@ -13,7 +13,7 @@ exclude it). A garment that fails is reported with its error and the script goes
 Usage::
 
     python scripts/adjust_table1.py [--edge-length 0.05] [--voxel 0.01] [--iterations 32] \\
-        [--target-size 6 20] [--garment NAME ...] [--json FILE] [--threads 1]
+        [--target-size 6 20] [--garment NAME ...] [--weights JSON] [--json FILE] [--threads 1]
 
 Prints a Markdown table; ``--json`` writes every row. Runs are independent, so a long sweep can be split by
 ``--garment``.
@@ -88,6 +88,7 @@ def _markdown(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
+    from torchgarment.adjust.objective import CostWeights
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.pattern.library import list_garments
 
@@ -102,12 +103,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--no-support", action="store_true",
                     help="no sticking supports (the figures before supports existed)")
+    ap.add_argument("--weights", type=json.loads, default=None,
+                    help="cost weights overriding the defaults, as JSON; '{\"reference_edge_length\": null}' "
+                         "gives the paper's coefficients as given at any resolution (the figures before "
+                         "issue 18 made the resolution-consistent rescaling the default)")
     ap.add_argument("--json", type=Path, default=None, help="write the rows to this JSON file")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     garments = args.garment or list_garments()
+    weights = CostWeights.from_dict(args.weights) if args.weights else CostWeights()
     settings = AdjustSettings(edge_length=args.edge_length, voxel_size=args.voxel, iterations=args.iterations,
-                              exact_interval=args.exact_interval, support=not args.no_support)
+                              exact_interval=args.exact_interval, support=not args.no_support,
+                              weights=weights)
     rows = []
     jobs = [(g, t) for g in garments for t in args.target_size]
     for g, t in tqdm(jobs, desc="adjust", unit="run", file=sys.stderr):
@@ -117,8 +124,10 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
             rows.append({"garment": g, "base_size": args.base_size, "target_size": t, "ok": False,
                          "error": f"{type(exc).__name__}: {exc}".splitlines()[0]})
+    ref = weights.reference_edge_length
     print(f"\nresolution: {args.edge_length * 100:g} cm edges, {args.voxel * 1e3:g} mm voxels, pgd, "
-          f"{args.iterations} iterations, exact every {args.exact_interval}; base size {args.base_size}\n")
+          f"{args.iterations} iterations, exact every {args.exact_interval}; base size {args.base_size}; "
+          f"regularizers {'as given' if ref is None else f'rescaled to {ref * 1e3:g} mm edges'}\n")
     print(_markdown(rows))
     if args.json is not None:
         from torchgarment.io.atomic import atomic_open

@@ -63,4 +63,20 @@ def test_bad_input(tmp_path):
                            "--out", str(tmp_path), "--reference-edge-length", "-1"]))
     with pytest.raises(SystemExit):
         _parse(["--garment", "straight_skirt", "--base-size", "12", "--out", str(tmp_path)])  # no target
+    with pytest.raises(SystemExit):
+        _parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out",
+                str(tmp_path), "--reference-edge-length", "fine"])
     assert not any(tmp_path.iterdir())
+
+
+def test_reference_edge_length_option():
+    """The regularizers are resolution-consistent by default; ``none`` gives the paper's coefficients as
+    given."""
+    from torchgarment.adjust.cli import settings_from_args
+
+    base = ["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", "o"]
+    assert settings_from_args(_parse(base)).weights.reference_edge_length == 0.008
+    off = settings_from_args(_parse(base + ["--reference-edge-length", "none"]))
+    assert off.weights.reference_edge_length is None
+    fine = settings_from_args(_parse(base + ["--reference-edge-length", "0.01"]))
+    assert fine.weights.reference_edge_length == 0.01

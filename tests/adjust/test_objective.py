@@ -104,7 +104,8 @@ def test_paper_default_weights():
     w = CostWeights()
     assert (w.fixing, w.curvature, w.distance, w.smoothness, w.stretching, w.positional) == (100, 1e6, 1,
                                                                                              0.05, 1, 100)
-    assert w.reference_edge_length is None  # the paper's coefficients as given unless asked
+    # resolution-consistent by default (issue 18): the coefficients refer to the paper's 8 mm mesh
+    assert w.reference_edge_length == 0.008
 
 
 def test_resolution_factors_rescale_the_regularizers():
@@ -122,8 +123,8 @@ def test_resolution_factors_rescale_the_regularizers():
     with pytest.raises(InputError):
         CostWeights(reference_edge_length=-1.0).validate()
     _, mesh, P = setup()
-    raw = objective()
-    norm = objective(weights=CostWeights(reference_edge_length=0.008))
+    raw = objective(weights=CostWeights(reference_edge_length=None))
+    norm = objective()
     r = 0.008 / norm.edge_length
     assert abs(norm.regularizers["fixing"].weight - r * raw.regularizers["fixing"].weight) < 1e-9
     assert abs(norm.regularizers["curvature"].weight - r ** 4 * raw.regularizers["curvature"].weight) < 1e-6

@@ -49,11 +49,12 @@ def _panel_areas(pattern: SewingPattern) -> float:
 def test_initialization_then_optimization_reduce_the_objective(skirt_case):
     _, setup, result = skirt_case
     m = result.metrics
-    # measured: base 118.9 -> initialized 64.9 -> 17.9 after 16 pgd iterations (72 % reduction),
-    # 16 closure calls
-    assert m["objective_initial"] < 0.8 * m["objective_base"]
-    assert m["objective_final"] < 0.5 * m["objective_initial"]
-    assert m["reduction_percent"] > 50.0
+    # measured with the resolution-consistent coefficients (the default): base 118.9 -> initialized 2.39 ->
+    # 1.87 after 16 pgd iterations (22 % below the initialized), 16 closure calls. (With the coefficients as
+    # given, reference_edge_length=None: 118.9 -> 64.9 -> 17.9; the initialization does most of the work now.)
+    assert m["objective_initial"] < 0.1 * m["objective_base"]
+    assert m["objective_final"] < 0.9 * m["objective_initial"]
+    assert m["reduction_percent"] > 10.0
     assert m["iterations"] == 16 and m["closure_calls"] >= 16
     assert set(m["terms"]) == {"base", "initial", "final"}
     assert set(m["terms"]["final"]) >= {"distance", "smoothness", "stretching", "positional", "fixing",
@@ -126,6 +127,8 @@ def test_ctrl_c_leaves_a_resumable_checkpoint(skirt_case, tmp_path):
         torch.set_num_threads(n)
     assert resumed.metrics["iterations"] == 4 and len(resumed.records) == 4
     assert resumed.metrics["objective_final"] == pytest.approx(straight.metrics["objective_final"], rel=1e-6)
+    # issue 18: the resumed pattern is the uninterrupted one within 0.1 mm (measured: equal to round-off)
+    assert float((resumed.q - straight.q).abs().max()) <= 1e-4
     assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "logs").iterdir())
     with pytest.raises(InputError, match="no checkpoint"):
         optimize(setup, settings, checkpoint_dir=tmp_path / "none", resume=True, progress=False)
@@ -170,14 +173,25 @@ def test_setup_pickles_and_optimizes_after_loading(skirt_case, tmp_path):
 
 def test_adjust_with_the_large_mesh_path_reduces_the_objective(skirt_case):
     """gd-chebyshev S-iteration simulations and the iterative adjoint (bench_adjust.py's large-mesh
-    options)."""
-    _, setup, _ = skirt_case
-    st = replace(setup.settings, iterations=8, inner_solver="gd-chebyshev", inner_iterations=8,
+    options), from the base pattern (no section-7 initialization: the initialized pattern is already within
+    25 % of what 16 exact-path iterations reach, too close to test a reduction)."""
+    from torchgarment.body import Body
+
+    pattern, _, _ = skirt_case
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        raw = prepare(pattern, Body.from_size("12"), Body.from_size("20"),
+                      replace(SETTINGS, initialize=False))
+    finally:
+        torch.set_num_threads(n)
+    st = replace(raw.settings, iterations=8, inner_solver="gd-chebyshev", inner_iterations=8,
                  adjoint="iterative", adjoint_max_iterations=50)
-    res = optimize(setup, st, progress=False)
+    res = optimize(raw, st, progress=False)
     m = res.metrics
     assert m["adjoint"] == "cg" and m["factorizations"] == 0 and m["adjoint_iterations"] > 0
-    assert m["objective_final"] < 0.9 * m["objective_initial"]
+    # measured: 31.2 -> 29.2 (the 5 mm step bound limits 8 iterations)
+    assert m["objective_final"] < 0.97 * m["objective_initial"]
 
 
 def test_pipeline_gradient_is_loss_backward_through_the_solve_function(skirt_case):

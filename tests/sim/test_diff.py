@@ -285,6 +285,24 @@ def test_warm_start_same_solution_fewer_iterations():
     assert torch.equal(model.term("stretch").p.detach(), p0 * 1.001)  # the call wrote the parameter
 
 
+def test_set_state_makes_an_infeasible_warm_start_feasible():
+    """A warm start with vertices inside the body (a transferred garment can start 0.6 mm deep) is projected
+    out like ``x0``: the next solve starts with a finite energy and converges to the cold-start solution."""
+    model, x0 = build("barrier_sphere")
+    layer = DifferentiableSolver(model, x0, TIGHT)
+    p0 = model.term("stretch").p.detach().clone()
+    x_ref = layer(p=p0).detach()
+    sdf = SphereSDF((0.06, -0.045, 0.06), 0.05)
+    inside = x_ref.clone()
+    near = torch.argmin(sdf(inside))
+    inside[near] = torch.tensor((0.06, -0.045 + 0.049, 0.06), dtype=inside.dtype)  # 1 mm deep
+    assert float(sdf(inside).min()) < 0 and not torch.isfinite(model(inside))
+    layer.set_state(inside)
+    assert float(sdf(layer.state).min()) > 0 and torch.isfinite(model(layer.state))
+    x = layer(p=p0)
+    assert float((x - x_ref).abs().max()) <= 1e-7
+
+
 def test_non_converged_forward_raises_or_warns():
     model, x0 = build("gravity")
     tight = SolveSettings(rtol=0.0, atol=1e-11, max_iterations=1)

@@ -30,9 +30,20 @@ if TYPE_CHECKING:
     from torchgarment.pattern.spec import SewingPattern
 
 
+def _length_or_none(text: str) -> float | None:
+    """argparse type: a length in metres, or ``none`` (None). Range checks are CostWeights'."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a length in metres or 'none', got {text!r}") from None
+
+
 def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     """Add the options of :class:`~torchgarment.adjust.pipeline.AdjustSettings` that ``adjust`` and ``grade``
     share (read back by :func:`settings_from_args`)."""
+    from torchgarment.adjust.objective import DEFAULT_REFERENCE_EDGE_LENGTH
     from torchgarment.adjust.optimizers import OptimizerKind
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.sim.solvers import SolverKind
@@ -57,10 +68,12 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--adjoint", default="direct", choices=["direct", "iterative", "sparse", "cg"],
                    help="adjoint solve of the gradients: direct (= sparse, the default) or iterative "
                         "(= cg, for large meshes)")
-    p.add_argument("--reference-edge-length", type=float, default=None, metavar="M",
+    p.add_argument("--reference-edge-length", type=_length_or_none, default=DEFAULT_REFERENCE_EDGE_LENGTH,
+                   metavar="M",
                    help="rescale the regularizers to the balance of a mesh of this edge length in metres "
-                        "(0.008: the paper's Table 1 dress; see CostWeights.reference_edge_length); default: "
-                        "coefficients as given")
+                        "(see CostWeights.reference_edge_length); 'none' uses the paper's coefficients as "
+                        f"given at any resolution (default {DEFAULT_REFERENCE_EDGE_LENGTH}: the paper's "
+                        "Table 1 dress)")
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
     p.add_argument("--exact", action="store_true",
                    help="exact simulation at every iteration (no Algorithm 1)")
