@@ -2,8 +2,9 @@
 
 Issue 18 asks not to tune coefficients on its acceptance cases (base size 12 to 6, 8, 10, 14, 16, 20 for
 the straight and A-line skirts, trousers, T-shirt, sheath dress). This script grades *other* cases (by default
-from size 14 to 18 and from size 18 to 14, sizes the acceptance never targets from a base it never uses, and
-the bodysuit, which it does not grade) under each candidate set of coefficients, and reports the fit
+from size 14 to 18 and from size 18 to 14, sizes the acceptance never targets from a base it never uses;
+four-size shrinks from 18 and 16; and the bodysuit, which it does not grade) under each candidate set of
+coefficients, and reports the fit
 preservation of :func:`torchgarment.adjust.fit.adjustment_fit` per construction line: pattern change against
 body change and placement change (pass: both within 1 cm), plus the worst line and the run time per
 candidate.
@@ -32,7 +33,8 @@ if TYPE_CHECKING:
     from torchgarment.adjust.pipeline import AdjustSettings
 
 CASES = ("straight_skirt:14:18", "straight_skirt:18:14", "aline_skirt:14:18", "trousers:18:14",
-         "tshirt:14:18", "tshirt:18:14", "sheath_dress:14:18", "bodysuit:12:18")
+         "tshirt:14:18", "tshirt:18:14", "sheath_dress:14:18", "bodysuit:12:18",
+         "straight_skirt:18:10", "aline_skirt:16:8", "trousers:16:8", "tshirt:18:10", "sheath_dress:18:10")
 """garment:base:target; none is an acceptance case (base 12 to 6/8/10/14/16/20 of the five garments)."""
 
 

@@ -101,7 +101,12 @@ def test_weights_turn_terms_off_and_scale_them():
 
 
 def test_paper_default_weights():
+    w = CostWeights.paper()
+    assert (w.fixing, w.curvature, w.distance, w.smoothness, w.stretching, w.positional) == (100, 1e6, 1,
+                                                                                             0.05, 1, 100)
+    assert w.reference_edge_length is None
     w = CostWeights()
+    # the defaults: the paper's coefficients, rescaled to the mesh resolution
     assert (w.fixing, w.curvature, w.distance, w.smoothness, w.stretching, w.positional) == (100, 1e6, 1,
                                                                                              0.05, 1, 100)
     # resolution-consistent by default (issue 18): the coefficients refer to the paper's 8 mm mesh

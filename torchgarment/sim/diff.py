@@ -575,10 +575,14 @@ class DifferentiableSolver(torch.nn.Module):
         return self.x_init if self._x_last is None else self._x_last
 
     def set_state(self, x: torch.Tensor) -> None:
-        """Set the warm start (V, 3) of the next solve (e.g. going back to an earlier iterate), made feasible
-        with ``model.project_feasible`` like ``x0`` (a transferred garment may start a little inside the
-        body: the trousers 18 -> 14 put two vertices 0.6 mm deep)."""
-        self._x_last = self.model.project_feasible(x.detach().to(self.model.dtype).clone())
+        """Set the warm start (V, 3) of the next solve (e.g. going back to an earlier iterate). A state where
+        the model's energy is infinite (vertices inside the body: a transferred garment may start there, the
+        trousers 18 -> 14 put two vertices 0.6 mm deep) is made feasible with ``model.project_feasible`` like
+        ``x0``; a feasible state is kept as given."""
+        x = x.detach().to(self.model.dtype).clone()
+        with torch.no_grad():
+            feasible = bool(torch.isfinite(self.model(x)))
+        self._x_last = x if feasible else self.model.project_feasible(x)
 
     @property
     def factorizations(self) -> int:
