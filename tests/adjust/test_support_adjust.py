@@ -46,6 +46,12 @@ def test_target_pins_sit_at_the_transferred_base_positions(case):
     assert torch.equal(pins.indices, base.support_indices)
     # the sticking targets are the base drape's support positions carried by the positional cost's transfer
     assert torch.equal(pins.targets.detach(), setup.x_transfer[base.support_indices])
+    # levelled: the band sits as high above the size-10 body's waist plane as above the size-12 body's
+    b12, b10 = case[1], case[2]
+    above_base = float(base.support_targets[:, 1].mean()) - float(b12.measurements().planes["waist"].point[1])
+    above_target = float(pins.targets[:, 1].mean()) - float(b10.measurements().planes["waist"].point[1])
+    assert above_target == pytest.approx(above_base, abs=1e-9)
+    assert setup.support_level_shift_m is not None and abs(setup.support_level_shift_m) < 0.05
     assert pins.stiffness == base.support_stiffness
     # prepare reused the given base drape: the objective's base garment is that drape
     assert torch.equal(setup.mesh_base.x, base.x)

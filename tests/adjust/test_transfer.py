@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from torchgarment.adjust.transfer import point_triangle_closest, transfer_deformation, two_minimum_triangles
+from torchgarment.adjust.transfer import (
+    level_support,
+    point_triangle_closest,
+    transfer_deformation,
+    two_minimum_triangles,
+)
 from torchgarment.body.body import Body
 from torchgarment.errors import InputError
 
@@ -134,3 +139,23 @@ def test_bad_input():
         transfer_deformation(x[:, :2], b, b)
     with pytest.raises(InputError):
         transfer_deformation(x, b, b, offset="sideways")
+
+
+def test_level_support_moves_the_band_to_its_height_and_fades_to_the_hips():
+    """The support's mean height becomes ``height``; vertices follow with a weight linear in their base
+    height, 1 at the band, 0 at the base hip plane and below; only y changes."""
+    yb = torch.tensor([1.05, 1.05, 1.00, 0.95, 0.90, 0.80], dtype=torch.float64)
+    x_base = torch.stack([torch.arange(6.0, dtype=torch.float64), yb, torch.zeros(6, dtype=torch.float64)], 1)
+    x_t = x_base + torch.tensor([0.01, 0.02, 0.0], dtype=torch.float64)  # the transfer moved it up 2 cm
+    out, delta = level_support(x_t, x_base, torch.tensor([0, 1]), 1.06, base_hips=0.90)
+    assert delta == pytest.approx(1.06 - 1.07, abs=1e-12)
+    assert float(out[:2, 1].mean()) == pytest.approx(1.06, abs=1e-12)
+    w = torch.tensor([1.0, 1.0, 2 / 3, 1 / 3, 0.0, 0.0], dtype=torch.float64)
+    assert torch.allclose(out[:, 1] - x_t[:, 1], delta * w, atol=1e-12)
+    assert torch.equal(out[:, [0, 2]], x_t[:, [0, 2]])
+    with pytest.raises(InputError, match="below the support"):
+        level_support(x_t, x_base, torch.tensor([0, 1]), 1.06, base_hips=1.10)
+    with pytest.raises(InputError, match="support must be"):
+        level_support(x_t, x_base, torch.tensor([], dtype=torch.long), 1.06, base_hips=0.9)
+    with pytest.raises(InputError, match="finite"):
+        level_support(x_t, x_base, torch.tensor([0, 1]), float("nan"), base_hips=0.9)

@@ -100,7 +100,11 @@ class AdjustSettings:
             paper's sticking energy ``F(x)`` of Eq. 4): the base drape holds it at the base body's waist
             (``DrapeSettings.support``) and the target simulation holds its vertices at their base positions
             carried by the deformation transfer (the positional cost's ``x_transfer``), with the base drape's
-            pin stiffness. False: no support in either (the garment hangs by its own tension).
+            pin stiffness. The transfer is levelled first
+            (:func:`~torchgarment.adjust.transfer.level_support`): the support sits as high above the
+            target's waist plane as above the base's, and the garment down to the hip plane follows (the
+            shift is ``support_level_shift_mm`` in the metrics). False: no support in either (the garment
+            hangs by its own tension).
     """
 
     optimizer: OptimizerKind = OptimizerKind.PGD
@@ -305,6 +309,11 @@ def _initialize(objective: AdjustObjective, param: BoundaryParametrization, q_ba
     return q.detach()
 
 
+def _plane_height(body: Body, name: str) -> float:
+    """Height (m) of one of the body's landmark planes (:meth:`Body.measurements`, cached on the body)."""
+    return float(body.measurements().planes[name].point[1])
+
+
 def _pins(model: torch.nn.Module) -> Pins | None:
     """The model's sticking term (the support), or None."""
     return next((t for t in getattr(model, "terms", ()) if isinstance(t, Pins)), None)
@@ -363,6 +372,8 @@ class AdjustSetup:
         q_init: (B, 2) initialized boundary; objective_initial, terms_initial its objective and terms;
         x_init: (V, 3) its equilibrium. initialization_used: whether it beat the base pattern.
         timings: seconds of each stage.
+        support_level_shift_m: how far (m, up positive) :func:`~torchgarment.adjust.transfer.level_support`
+            moved the transferred support to the target's waist plane; None without a support.
     """
 
     settings: AdjustSettings
@@ -384,6 +395,7 @@ class AdjustSetup:
     terms_initial: dict
     initialization_used: bool
     timings: dict = field(default_factory=dict)
+    support_level_shift_m: float | None = None
 
     def new_problem(self, x_start: torch.Tensor | None = None, settings: AdjustSettings | None = None
                     ) -> AdjustProblem:
@@ -433,7 +445,7 @@ def prepare(
     """
     from torchgarment.adjust.objective import AdjustObjective
     from torchgarment.adjust.parametrization import BoundaryParametrization
-    from torchgarment.adjust.transfer import transfer_deformation
+    from torchgarment.adjust.transfer import level_support, transfer_deformation
     from torchgarment.pattern.spec import SewingPattern
 
     settings = replace(settings) if settings is not None else AdjustSettings()
@@ -460,6 +472,13 @@ def prepare(
     kw = {} if settings.band is None else {"band": settings.band}
     x_transfer = transfer_deformation(base.x, base_body, target_body,
                                       **kw).to(dtype=dtype, device=mesh_base.device)
+    support_shift = None
+    if settings.support and base.support_indices is not None:
+        # the support sits as high above the target's waist plane as it sat above the base's
+        above = float(base.support_targets[:, 1].mean()) - _plane_height(base_body, "waist")
+        x_transfer, support_shift = level_support(x_transfer, base.x.to(x_transfer), base.support_indices,
+                                                  _plane_height(target_body, "waist") + above,
+                                                  _plane_height(base_body, "hips"))
     timings["transfer_seconds"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
@@ -484,7 +503,8 @@ def prepare(
         effects.add(Effect.SEW)
     pin_idx = pin_tgt = None
     if settings.support and base.support_indices is not None:
-        # sticking targets: the base drape's support positions carried by the deformation transfer (Eq. 15)
+        # sticking targets: the base drape's support positions carried by the deformation transfer (Eq. 15),
+        # levelled with the target's waist plane (level_support)
         pin_idx = base.support_indices.to(mesh_base.device)
         pin_tgt = x_transfer[pin_idx].detach().clone()
         mat.pin_stiffness = float(base.support_stiffness)
@@ -519,7 +539,7 @@ def prepare(
     pattern = pattern_or_mesh if isinstance(pattern_or_mesh, SewingPattern) else None
     return AdjustSetup(settings, pattern, mesh_base, dict(base.metrics), x_transfer, param, objective, model,
                        exact, q_base, x_before, f_base, terms_base, q_init, x_init, f_init, terms_init,
-                       init_used, timings)
+                       init_used, timings, support_level_shift_m=support_shift)
 
 
 def optimize(
@@ -638,6 +658,8 @@ def optimize(
                                               "support_target")},
         "support": bd.get("support") if _pins(setup.model) is not None else None,
         **_support_metrics(setup.model, run.x),
+        "support_level_shift_mm": (None if setup.support_level_shift_m is None
+                                   else 1e3 * setup.support_level_shift_m),
         "pattern_fit_error_mm": None if fit_error is None else 1e3 * fit_error,
         **setup.timings,
     }

@@ -261,3 +261,48 @@ def transfer_deformation(x_base: torch.Tensor, base_body: Body, target_body: Bod
         x1 = place(np.where(has1, t1, t0))
         out[has1] = w[has1, None] * x0[has1] + (1.0 - w[has1, None]) * x1[has1]
     return torch.as_tensor(out, dtype=x_base.dtype, device=x_base.device)
+
+
+def level_support(x_transfer: torch.Tensor, x_base: torch.Tensor, support: torch.Tensor, height: float,
+                  base_hips: float) -> tuple[torch.Tensor, float]:
+    """Level a transferred garment's support with the target body's waist plane.
+
+    The transfer follows the body's surface, the landmark planes do not: between chart sizes the waist plane
+    (the smallest torso girth) moves by up to 2 cm relative to the surface, so a waistband transferred from
+    the base's waist lands above or below the target's. This moves the support's vertices vertically by
+    ``δ = height - mean(x̃_y[support])`` and every other vertex between the support and the base body's hip
+    plane by ``δ`` times a weight falling linearly with its base height from 1 at the support's mean height to
+    0 at ``base_hips`` (vertices below are unchanged, vertices above move by ``δ``): the garment below the
+    band follows it instead of hanging away from the positional cost's targets.
+
+    Args:
+        x_transfer: (V, 3) transferred garment (metres). x_base: (V, 3) the base drape it came from.
+        support: (P,) long indices of the support's vertices.
+        height: the support's target mean height (m): the target's waist plane plus the base support's height
+            above the base's waist plane.
+        base_hips: height (m) of the base body's hip plane.
+
+    Returns:
+        The levelled (V, 3) garment and ``δ`` (m, up positive).
+
+    Raises:
+        InputError: shapes differ, an empty support, a non-finite height, or a hip plane not below the
+            support.
+    """
+    if x_transfer.shape != x_base.shape or x_base.ndim != 2 or x_base.shape[1] != 3:
+        raise InputError(f"x_transfer and x_base must be the same (V, 3), got {tuple(x_transfer.shape)} and "
+                         f"{tuple(x_base.shape)}")
+    if support.ndim != 1 or support.numel() == 0:
+        raise InputError(f"support must be (P,) indices with P >= 1, got {tuple(support.shape)}")
+    if not (np.isfinite(height) and np.isfinite(base_hips)):
+        raise InputError(f"the support's height and the hip plane must be finite, got {height}, {base_hips}")
+    support = support.to(x_transfer.device)
+    band = float(x_base[support, 1].mean())
+    if not base_hips < band:
+        raise InputError(f"the base hip plane ({base_hips:.3f} m) must be below the support ({band:.3f} m)")
+    delta = float(height) - float(x_transfer[support, 1].mean())
+    w = ((x_base[:, 1].to(x_transfer) - base_hips) / (band - base_hips)).clamp(0.0, 1.0)
+    w[support] = 1.0  # the whole support moves by δ (its vertices sag a little below their mean height)
+    out = x_transfer.clone()
+    out[:, 1] += delta * w
+    return out, delta
