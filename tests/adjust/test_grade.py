@@ -192,6 +192,10 @@ def test_bad_input_one_line_exit_2(tmp_path, capsys):
           str(tmp_path / "a")], "base's name"),
         (["grade", "--garment", "straight_skirt", "--base-size", "12", "--sizes", "10", "--out",
           str(tmp_path / "a"), "--iterations", "-1"], "iterations"),
+        (["grade", "--garment", "straight_skirt", "--base-size", "12", "--sizes", "10", "--out",
+          str(tmp_path / "a"), "--support", "skirt_front:waist_r", "--no-support"], "exclude each other"),
+        (["grade", "--garment", "straight_skirt", "--base-size", "12", "--sizes", "10", "--out",
+          str(tmp_path / "a"), "--support", "nopanel:waist"], "nopanel"),
     ):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()

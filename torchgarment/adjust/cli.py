@@ -108,30 +108,56 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
                     "the base body. Writes pattern.json/.svg/.dxf, garment_base.obj, garment_target.obj, "
                     "renders, overlay.png and metrics.json; TensorBoard scalars under logs/adjust/<run> "
                     "(--log-dir).")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--pattern", metavar="P",
-                     help="a pattern file (.json GarmentCode or .dxf) or a library name")
-    src.add_argument("--garment", metavar="NAME", help="a library garment, drafted for the base size")
-    base = p.add_mutually_exclusive_group(required=True)
-    base.add_argument("--base-body", metavar="B", help="base body: a mesh file or a chart size")
-    base.add_argument("--base-size", metavar="S", help="base body: a chart size")
+    add_pattern_arguments(p)
     tgt = p.add_mutually_exclusive_group(required=True)
     tgt.add_argument("--target-body", metavar="T", help="target body: a mesh file or a chart size")
     tgt.add_argument("--target-size", metavar="S", help="target body: a chart size")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     add_settings_arguments(p)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device (default cpu)")
-    p.add_argument("--support", metavar="PANEL:EDGE[,...]",
-                   help="the support (waistband) held by sticking springs: unstitched edges forming one "
-                        "closed loop, each PANEL:EDGE with an edge label or index (default: the library "
-                        "garment's; for a pattern file without one, the topmost closed loop of a bottom "
-                        "garment, named on stderr)")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint/adjust.pt")
     p.add_argument("--log-dir", metavar="DIR",
                    help="TensorBoard folder (default logs/adjust/<garment>-<base>-to-<target>-<time>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_adjust)
     return p
+
+
+def add_pattern_arguments(p: argparse.ArgumentParser) -> None:
+    """Add the pattern and base-body options that ``adjust`` and ``grade`` share (read back by
+    :func:`pattern_from_args`): ``--pattern | --garment``, ``--base-body | --base-size`` and ``--support``."""
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--pattern", metavar="P",
+                     help="a pattern file (.json GarmentCode or .dxf) or a library name")
+    src.add_argument("--garment", metavar="NAME", help="a library garment, drafted for the base size")
+    base = p.add_mutually_exclusive_group(required=True)
+    base.add_argument("--base-body", metavar="B", help="base body: a body file or a chart size")
+    base.add_argument("--base-size", metavar="S", help="base body: a chart size")
+    p.add_argument("--support", metavar="PANEL:EDGE[,...]",
+                   help="the support (waistband) held by sticking springs: unstitched edges forming one "
+                        "closed loop, each PANEL:EDGE with an edge label or index (default: the library "
+                        "garment's; for a pattern file without one, the topmost closed loop of a bottom "
+                        "garment, named on stderr)")
+
+
+def pattern_from_args(args: argparse.Namespace, base_size: str | None) -> SewingPattern:
+    """The pattern of the options of :func:`add_pattern_arguments` (with ``--no-support`` of
+    :func:`add_settings_arguments`), its support chosen (:func:`~torchgarment.pattern.support.choose_support`;
+    a proposed support is named on stderr).
+
+    Raises:
+        InputError: ``--support`` with ``--no-support``, or a bad pattern or support.
+    """
+    from torchgarment.pattern.support import choose_support
+
+    if args.support is not None and args.no_support:
+        raise InputError("--support and --no-support exclude each other")
+    spec, flag = (args.garment, "--garment") if args.garment is not None else (args.pattern, "--pattern")
+    pattern = load_pattern_spec(spec, base_size, flag)
+    pattern, note = choose_support(pattern, args.support, not args.no_support)
+    if note:
+        print(note, file=sys.stderr)
+    return pattern
 
 
 def load_pattern_spec(spec: str, base_size: str | None, flag: str) -> SewingPattern:
@@ -207,29 +233,20 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     from torchgarment.adjust.pipeline import adjust
     from torchgarment.io.staging import staged_output
 
-    if args.support is not None and args.no_support:
-        raise InputError("--support and --no-support exclude each other")
     if args.device == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: CUDA is not available on this machine")
     settings = settings_from_args(args)
     base_spec = args.base_body if args.base_body is not None else args.base_size
     target_spec = args.target_body if args.target_body is not None else args.target_size
     from torchgarment.body.load import load_body_spec
+    from torchgarment.body.size_chart import list_sizes
 
     base_flag = "base-body" if args.base_body is not None else "base-size"
     target_flag = "target-body" if args.target_body is not None else "target-size"
     base_body, base_name = load_body_spec(base_spec, base_flag)
     target_body, target_name = load_body_spec(target_spec, target_flag)
-    from torchgarment.body.size_chart import list_sizes
-
     base_size = base_spec if base_spec in list_sizes() else None
-    spec, flag = (args.garment, "--garment") if args.garment is not None else (args.pattern, "--pattern")
-    pattern = load_pattern_spec(spec, base_size, flag)
-    from torchgarment.pattern.support import choose_support
-
-    pattern, note = choose_support(pattern, args.support, not args.no_support)
-    if note:
-        print(note, file=sys.stderr)
+    pattern = pattern_from_args(args, base_size)
     device = torch.device(args.device)
     if device.type != "cpu":
         base_body, target_body = base_body.to(device), target_body.to(device)

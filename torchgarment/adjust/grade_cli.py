@@ -30,7 +30,7 @@ EXIT_SIZE_FAILED = 1
 
 def add_grade_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``grade`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
-    from torchgarment.adjust.cli import add_settings_arguments
+    from torchgarment.adjust.cli import add_pattern_arguments, add_settings_arguments
 
     p = subparsers.add_parser(
         "grade", help="grade a sewing pattern over a size run (pattern adjustment to every size's body)",
@@ -38,13 +38,7 @@ def add_grade_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                     "2018). Writes DIR/<size>/ (pattern.json/.svg/.dxf, garments, renders, metrics.json, "
                     "fit.json), grade.dxf (every size of every piece, AAMA/ASTM D6673), grade_nest.png, "
                     "grade.csv and metrics.json; prints the table of grade.csv.")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--pattern", metavar="P",
-                     help="a pattern file (.json GarmentCode or .dxf) or a library name")
-    src.add_argument("--garment", metavar="NAME", help="a library garment, drafted for the base size")
-    base = p.add_mutually_exclusive_group(required=True)
-    base.add_argument("--base-body", metavar="B", help="base body: a body file or a chart size")
-    base.add_argument("--base-size", metavar="S", help="base body: a chart size")
+    add_pattern_arguments(p)
     tgt = p.add_mutually_exclusive_group(required=True)
     tgt.add_argument("--sizes", nargs="+", metavar="S", help="target chart sizes")
     tgt.add_argument("--target-body", nargs="+", metavar="T",
@@ -72,7 +66,7 @@ def _targets(specs: list[str], flag: str) -> dict[str, Body]:
 
 def cmd_grade(args: argparse.Namespace) -> int:
     """Run ``torchgarment grade``; returns the exit code (1 when a size failed)."""
-    from torchgarment.adjust.cli import load_pattern_spec, settings_from_args, write_outputs
+    from torchgarment.adjust.cli import pattern_from_args, settings_from_args, write_outputs
     from torchgarment.adjust.grade import format_table, grade
     from torchgarment.body.load import load_body_spec
     from torchgarment.body.size_chart import chart_row, list_sizes
@@ -85,8 +79,7 @@ def cmd_grade(args: argparse.Namespace) -> int:
         if bad:
             raise InputError(f"--sizes {' '.join(bad)}: not chart sizes ({', '.join(list_sizes())})")
     base_size = base_spec if base_spec in list_sizes() else None
-    spec, flag = (args.garment, "--garment") if args.garment is not None else (args.pattern, "--pattern")
-    pattern = load_pattern_spec(spec, base_size, flag)
+    pattern = pattern_from_args(args, base_size)
     base_body, base_name = load_body_spec(base_spec, base_flag)
     base_name = base_name.removeprefix("size ").replace("/", "_").replace(" ", "_")
     targets = _targets(args.sizes if args.sizes is not None else args.target_body,
