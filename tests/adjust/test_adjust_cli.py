@@ -61,6 +61,10 @@ def test_bad_input(tmp_path):
     with pytest.raises(InputError, match="reference_edge_length"):
         cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
                            "--out", str(tmp_path), "--reference-edge-length", "-1"]))
+    for flag in ("--ease-weight", "--placement-weight"):
+        with pytest.raises(InputError, match="ease|placement"):
+            cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
+                               "--out", str(tmp_path), flag, "nan"]))
     with pytest.raises(SystemExit):
         _parse(["--garment", "straight_skirt", "--base-size", "12", "--out", str(tmp_path)])  # no target
     with pytest.raises(SystemExit):
@@ -80,3 +84,15 @@ def test_reference_edge_length_option():
     assert off.weights.reference_edge_length is None
     fine = settings_from_args(_parse(base + ["--reference-edge-length", "0.01"]))
     assert fine.weights.reference_edge_length == 0.01
+
+
+def test_line_term_options():
+    """The construction lines' ease and placement terms: library defaults, settable, 0 turns them off."""
+    from torchgarment.adjust.cli import settings_from_args
+    from torchgarment.adjust.objective import CostWeights
+
+    base = ["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", "o"]
+    w = settings_from_args(_parse(base)).weights
+    assert (w.ease, w.placement) == (CostWeights().ease, CostWeights().placement)
+    w = settings_from_args(_parse(base + ["--ease-weight", "0", "--placement-weight", "250"])).weights
+    assert (w.ease, w.placement) == (0.0, 250.0)

@@ -9,6 +9,7 @@ import torch
 
 from torchgarment.adjust.costs import (
     DistanceCost,
+    LinePlacementCost,
     PositionalCost,
     SmoothnessCost,
     StretchingCost,
@@ -156,10 +157,35 @@ def test_positional_cost():
         PositionalCost(target, torch.full((m.num_vertices,), -1.0, dtype=torch.float64))
 
 
+def test_line_placement_cost():
+    m = base_mesh()
+    V = m.num_vertices
+    verts = torch.tensor([0, 1, 2, 3, 4, 5])
+    line_of = torch.tensor([0, 0, 1, 1, 1, 1])
+    h = torch.stack([m.x[:2, 1].mean(), m.x[2:6, 1].mean()])
+    c = LinePlacementCost(verts, line_of, h, V, weight=1e4)
+    assert torch.allclose(c.heights(m.x), h, atol=1e-15) and float(c(m.x, m.p)) == 0.0
+    # lifting the garment by 1 cm lifts every line by 1 cm
+    up = m.x + torch.tensor([0.0, 0.01, 0.0], dtype=m.x.dtype)
+    assert float(c(up, m.p)) == pytest.approx(0.5 * 1e4 * 2 * 1e-4, rel=1e-9)
+    x, p = perturbed(m)
+    grad_checks(c, x, p)
+    with pytest.raises(InputError, match="needs vertices"):
+        LinePlacementCost(verts, torch.zeros(6, dtype=torch.long), h, V)
+    with pytest.raises(InputError, match="vertex indices"):
+        LinePlacementCost(torch.tensor([0, V]), torch.tensor([0, 1]), h, V)
+    with pytest.raises(InputError, match=r"\(M,\)"):
+        LinePlacementCost(verts, line_of[:3], h, V)
+    with pytest.raises(InputError):
+        c(m.x[:-1], m.p[:-1])
+
+
 def test_residuals_give_the_value():
     m = base_mesh()
     x, p = perturbed(m)
     for c in (StretchingCost(m, 3.0), SmoothnessCost(m, 0.5), PositionalCost.for_mesh(m, m.x, 7.0),
-              DistanceCost.from_garment(m.x, SphereSDF(0.1), SphereSDF(0.12), 2.0)):
+              DistanceCost.from_garment(m.x, SphereSDF(0.1), SphereSDF(0.12), 2.0),
+              LinePlacementCost(torch.arange(4), torch.tensor([0, 0, 1, 1]),
+                                torch.tensor([0.9, 1.0], dtype=torch.float64), m.num_vertices, 5.0)):
         assert float(c(x, p)) == pytest.approx(0.5 * c.weight * float(c.residuals(x, p).pow(2).sum()),
                                                rel=1e-12)

@@ -286,3 +286,44 @@ def test_adjustment_fit_of_an_unchanged_result(skirt_drape):
     assert rows[0]["chart_change_m"] == 0.0
     with pytest.raises(InputError, match="no pattern"):
         adjustment_fit(SimpleNamespace(pattern=None, base_pattern=None), body, body)
+
+
+def test_line_targets_keep_the_base_ease_and_placement():
+    """Same body: the targets are the base girths and heights; a body scaled by s about its feet, with the
+    garment scaled alike: each line's target height is where the scaled landmark plane puts it, and its
+    target girth grows by the body's girth change there (about (s - 1) times its girth)."""
+    from torchgarment.adjust.acceptance import body_girth_at, pattern_line_widths, scaled_body
+    from torchgarment.adjust.fit import construction_lines, landmark_heights, line_targets
+    from torchgarment.body import Body
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+    from torchgarment.pattern.meshing import mesh_pattern
+
+    pattern = draft("straight_skirt", chart_row("12"))
+    mesh = mesh_pattern(pattern, 0.05)
+    body = Body.from_size("12")
+    widths = pattern_line_widths(pattern, construction_lines(pattern))
+    same = line_targets(pattern, mesh, mesh.x, mesh.x, body, body)
+    assert same.lines == ["waist", "hips"] and not same.skipped
+    assert same.landmark == ["waist", "hips"]
+    assert same.body_change_m == [0.0, 0.0]
+    assert same.target_height_m == pytest.approx(same.base_height_m, abs=1e-12)
+    assert same.target_girth_m == pytest.approx([widths["waist"], widths["hips"]], abs=1e-9)
+    s = 1.05
+    big = scaled_body(body, s)
+    c = torch.stack([body.vertices[:, 0].mean(), body.vertices[:, 1].min(), body.vertices[:, 2].mean()])
+    xs = c + s * (mesh.x - c)
+    lm_b, lm_t = landmark_heights(body), landmark_heights(big)
+    for at_landmarks in (True, False):
+        out = line_targets(pattern, mesh, mesh.x, xs, body, big, at_landmarks=at_landmarks)
+        for i, line in enumerate(out.lines):
+            yb, lm = out.base_height_m[i], out.landmark[i]
+            assert out.transfer_height_m[i] == pytest.approx(float(c[1]) + s * (yb - float(c[1])))
+            expected = lm_t[lm] + yb - lm_b[lm] if at_landmarks else out.transfer_height_m[i]
+            assert out.target_height_m[i] == pytest.approx(expected, abs=1e-12)
+            change = body_girth_at(big, out.target_height_m[i]) - body_girth_at(body, yb)
+            assert out.body_change_m[i] == pytest.approx(change, abs=1e-12)
+            assert out.body_change_m[i] == pytest.approx((s - 1) * body_girth_at(body, yb), abs=5e-3), line
+            assert out.target_girth_m[i] == pytest.approx(widths[line] + out.body_change_m[i], abs=1e-9)
+    d = out.to_dict()
+    assert set(d["lines"]) == {"waist", "hips"} and d["skipped"] == {}

@@ -74,6 +74,8 @@ def test_total_is_sum_of_terms_and_gradients():
     q = P.initial() + 0.003 * torch.randn(P.initial().shape, generator=g, dtype=torch.float64)
     p = P(q)
     vals = obj.term_values(x, p)
+    # no construction-line targets given: no line terms
+    assert vals.pop("ease") == 0.0 and vals.pop("placement") == 0.0
     assert all(v > 0 for v in vals.values()), vals
     assert float(obj(x, p)) == pytest.approx(sum(vals.values()), rel=1e-12)
     check_gradient(lambda v: obj(v, p), x, rtol=1e-6, num_samples=20)
@@ -104,7 +106,7 @@ def test_paper_default_weights():
     w = CostWeights.paper()
     assert (w.fixing, w.curvature, w.distance, w.smoothness, w.stretching, w.positional) == (100, 1e6, 1,
                                                                                              0.05, 1, 100)
-    assert w.reference_edge_length is None
+    assert w.reference_edge_length is None and w.ease == 0.0 and w.placement == 0.0  # the paper's terms
     w = CostWeights()
     # the defaults: the paper's coefficients, rescaled to the mesh resolution
     assert (w.fixing, w.curvature, w.distance, w.smoothness, w.stretching, w.positional) == (100, 1e6, 1,
@@ -118,11 +120,12 @@ def test_resolution_factors_rescale_the_regularizers():
     the normalization off, they are the coefficients as given."""
     from torchgarment.adjust.objective import resolution_factors
 
-    assert resolution_factors(0.05, None) == {"fixing": 1.0, "seam": 1.0, "curvature": 1.0}
+    assert resolution_factors(0.05, None) == {"fixing": 1.0, "seam": 1.0, "curvature": 1.0, "lines": 1.0}
     f = resolution_factors(0.04, 0.008)
     assert abs(f["fixing"] - 0.2) < 1e-12 and abs(f["seam"] - 0.008) < 1e-12 and abs(f["curvature"]
                                                                                      - 0.0016) < 1e-12
-    assert resolution_factors(0.008, 0.008) == {"fixing": 1.0, "seam": 1.0, "curvature": 1.0}
+    assert abs(f["lines"] - 0.04) < 1e-12
+    assert resolution_factors(0.008, 0.008) == {"fixing": 1.0, "seam": 1.0, "curvature": 1.0, "lines": 1.0}
     with pytest.raises(InputError):
         resolution_factors(0.0, 0.008)
     with pytest.raises(InputError):
@@ -216,3 +219,39 @@ def test_default_body_sdfs():
     f = obj(x, mesh.p)
     (g,) = torch.autograd.grad(f, x)
     assert torch.isfinite(g).all() and float(obj.term_values(x.detach(), mesh.p)["distance"]) > 0
+
+
+def test_line_terms_are_built_from_line_targets_and_differentiate():
+    """With construction-line targets the objective has the ease regularizer and the placement cost, weighted
+    by ``weight * r^2``; each is zero when its targets are the base's, and the total's gradients are right."""
+    from torchgarment.adjust.fit import line_targets
+
+    body, mesh, P = setup()
+    pattern = draft("straight_skirt", chart_row("12"))
+    placed = mesh_pattern(pattern, 0.05)
+    targets = line_targets(pattern, placed, placed.x, placed.x, body, body)
+    targets.target_girth_m = [g + d for g, d in zip(targets.target_girth_m, (0.03, -0.02), strict=True)]
+    targets.target_height_m = [float(mesh.x[targets.corners[targets.line_of == i].reshape(-1), 1].mean()) + d
+                               for i, d in enumerate((0.01, -0.005))]
+    w = CostWeights(placement=1e4)
+    obj = AdjustObjective(mesh, body, body, P, w, base_sdf=ShiftedSphereSDF(0.15),
+                          target_sdf=ShiftedSphereSDF(0.15), lines=targets)
+    r = 0.008 / obj.edge_length
+    assert obj.regularizers["ease"].weight == pytest.approx(w.ease * r ** 2, rel=1e-12)
+    assert obj.costs["placement"].weight == pytest.approx(w.placement * r ** 2, rel=1e-12)
+    q0 = P.initial()
+    vals = obj.term_values(mesh.x, P(q0))
+    assert vals["ease"] == pytest.approx(0.5 * obj.regularizers["ease"].weight * (0.03 ** 2 + 0.02 ** 2),
+                                         rel=1e-9)
+    assert vals["placement"] == pytest.approx(
+        0.5 * obj.costs["placement"].weight * (0.01 ** 2 + 0.005 ** 2), rel=1e-9)
+    g = torch.Generator().manual_seed(5)
+    q = q0 + 0.003 * torch.randn(q0.shape, generator=g, dtype=q0.dtype)
+    x = mesh.x + 0.005 * torch.randn(mesh.x.shape, generator=g, dtype=torch.float64)
+    check_gradient(lambda v: obj.regularization(P(v)), q, rtol=1e-6)
+    check_gradient(lambda v: obj(v, P(q)), x, rtol=1e-6, num_samples=20)
+    # the paper's weights: neither term
+    off = AdjustObjective(mesh, body, body, P, CostWeights.paper(), base_sdf=ShiftedSphereSDF(0.15),
+                          target_sdf=ShiftedSphereSDF(0.15), lines=targets)
+    assert "ease" not in off.regularizers and "placement" not in off.costs
+    assert off.term_values(mesh.x, P(q0))["ease"] == 0.0

@@ -49,16 +49,20 @@ def _panel_areas(pattern: SewingPattern) -> float:
 def test_initialization_then_optimization_reduce_the_objective(skirt_case):
     _, setup, result = skirt_case
     m = result.metrics
-    # measured with the resolution-consistent coefficients (the default): base 118.9 -> initialized 2.39 ->
-    # 1.87 after 16 pgd iterations (22 % below the initialized), 16 closure calls. (With the coefficients as
-    # given, reference_edge_length=None: 118.9 -> 64.9 -> 17.9; the initialization does most of the work now.)
+    # measured with the default coefficients (resolution-consistent, with the construction lines' terms):
+    # base 156.0 -> initialized 2.21 -> 1.95 after 16 pgd iterations (12 % below the initialized), 16 closure
+    # calls.
+    # (Without the line terms: 118.9 -> 2.39 -> 1.87; with the coefficients as given and no line terms,
+    # CostWeights.paper(): 118.9 -> 64.9 -> 17.9; the initialization does most of the work now.)
     assert m["objective_initial"] < 0.1 * m["objective_base"]
-    assert m["objective_final"] < 0.9 * m["objective_initial"]
-    assert m["reduction_percent"] > 10.0
+    assert m["objective_final"] < 0.95 * m["objective_initial"]
+    assert m["reduction_percent"] > 5.0
     assert m["iterations"] == 16 and m["closure_calls"] >= 16
     assert set(m["terms"]) == {"base", "initial", "final"}
     assert set(m["terms"]["final"]) >= {"distance", "smoothness", "stretching", "positional", "fixing",
-                                        "curvature"}
+                                        "curvature", "ease"}
+    assert m["terms"]["final"]["ease"] > 0.0 and m["terms"]["final"]["placement"] > 0.0
+    assert set(m["line_targets"]["lines"]) == {"waist", "hips"}
     assert math.isclose(sum(m["terms"]["final"].values()), m["objective_final"], rel_tol=1e-6)
     assert 1.0 < m["max_boundary_displacement_mm"] < 200.0
     assert len(result.records) == 16 and len(result.term_history) == 16

@@ -11,6 +11,7 @@ from torchgarment.adjust.parametrization import BoundaryParametrization
 from torchgarment.adjust.regularizers import (
     BoundaryCurvatureRegularizer,
     FixingRegularizer,
+    LineEaseRegularizer,
     SeamLengthRegularizer,
 )
 from torchgarment.body.size_chart import chart_row
@@ -147,5 +148,60 @@ def test_residuals_give_the_value():
     mesh, P = setup()
     q = noisy(P.initial())
     for R in (FixingRegularizer(P.initial(), 3.0), BoundaryCurvatureRegularizer(P, 5.0, 0.2),
-              SeamLengthRegularizer(P, 7.0)):
+              SeamLengthRegularizer(P, 7.0), line_ease((0.01, 0.03), 11.0)[0]):
         assert float(R(q)) == pytest.approx(0.5 * R.weight * float(R.residuals(q).pow(2).sum()), rel=1e-12)
+
+
+def line_ease(targets_change: tuple[float, ...] | None = None, weight: float = 1e4):
+    """The ease regularizer of the 12 straight skirt's construction lines, targets = base girths + change."""
+    from torchgarment.adjust.acceptance import line_vertices, pattern_line_widths
+    from torchgarment.adjust.fit import construction_lines
+
+    mesh, P = setup()
+    pattern = draft("straight_skirt", chart_row("12"))
+    lines = construction_lines(pattern)
+    pos = torch.full((mesh.num_vertices,), -1, dtype=torch.long)
+    pos[P.boundary_index] = torch.arange(P.num_boundary)
+    corners, line_of = [], []
+    for k, (a, b) in enumerate(lines.values()):
+        c = pos[torch.as_tensor(line_vertices(pattern, mesh, a, b)).reshape(-1, 2)]
+        corners.append(c)
+        line_of.append(torch.full((c.shape[0],), k, dtype=torch.long))
+    base = torch.tensor(list(pattern_line_widths(pattern, lines).values()), dtype=torch.float64)
+    change = torch.zeros_like(base) if targets_change is None else torch.tensor(targets_change,
+                                                                                 dtype=torch.float64)
+    reg = LineEaseRegularizer(torch.cat(corners), torch.cat(line_of), base + change, P.initial(), weight)
+    return reg, base
+
+
+def test_line_ease_girths_value_gradient_hessian():
+    _, P = setup()
+    q0 = P.initial()
+    R, base = line_ease()
+    # the pattern's girth at each line is the fit measure's (pattern_line_widths), zero at the base targets
+    assert torch.allclose(R.girths(q0), base, atol=1e-12)
+    assert float(R(q0)) < 1e-24
+    # a uniform scale s of every panel scales the girths by s
+    assert torch.allclose(R.girths(1.05 * q0), 1.05 * base, atol=1e-12)
+    R2, _ = line_ease((0.04, -0.02))
+    assert float(R2(q0)) == pytest.approx(0.5 * 1e4 * (0.04 ** 2 + 0.02 ** 2), rel=1e-10)
+    check_gradient(R2, noisy(q0), rtol=1e-6)
+    H = R.hessian()
+    assert abs(H - H.T).max() < 1e-9
+    assert np.linalg.eigvalsh(H.toarray()).min() > -1e-6
+    # at zero residuals the Gauss-Newton Hessian is the exact one
+    assert np.allclose(H.toarray(), dense_hessian(R, q0).numpy(), rtol=1e-8, atol=1e-6)
+    with pytest.raises(InputError):
+        R(q0[:-1])
+
+
+def test_line_ease_rejects_bad_corners():
+    _, P = setup()
+    q0 = P.initial()
+    t = torch.zeros(2, dtype=torch.float64)
+    with pytest.raises(InputError, match="needs corners"):
+        LineEaseRegularizer(torch.tensor([[0, 1]]), torch.tensor([0]), t, q0)
+    with pytest.raises(InputError, match="corner positions"):
+        LineEaseRegularizer(torch.tensor([[0, q0.shape[0]]]), torch.tensor([0]), t[:1], q0)
+    with pytest.raises(InputError, match=r"\(K, 2\)"):
+        LineEaseRegularizer(torch.tensor([0, 1]), torch.tensor([0]), t[:1], q0)

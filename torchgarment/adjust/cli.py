@@ -43,7 +43,11 @@ def _length_or_none(text: str) -> float | None:
 def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     """Add the options of :class:`~torchgarment.adjust.pipeline.AdjustSettings` that ``adjust`` and ``grade``
     share (read back by :func:`settings_from_args`)."""
-    from torchgarment.adjust.objective import DEFAULT_REFERENCE_EDGE_LENGTH
+    from torchgarment.adjust.objective import (
+        DEFAULT_EASE_WEIGHT,
+        DEFAULT_PLACEMENT_WEIGHT,
+        DEFAULT_REFERENCE_EDGE_LENGTH,
+    )
     from torchgarment.adjust.optimizers import OptimizerKind
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.sim.solvers import SolverKind
@@ -74,6 +78,14 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
                         "(see CostWeights.reference_edge_length); 'none' uses the paper's coefficients as "
                         f"given at any resolution (default {DEFAULT_REFERENCE_EDGE_LENGTH}: the paper's "
                         "Table 1 dress)")
+    p.add_argument("--ease-weight", type=float, default=DEFAULT_EASE_WEIGHT, metavar="W",
+                   help="coefficient (1/m^2) of the construction lines' ease term (the base ease kept at the "
+                        "waist, hips, bust and hem of a library garment; not in the paper); 0 turns it off "
+                        f"(default {DEFAULT_EASE_WEIGHT:g})")
+    p.add_argument("--placement-weight", type=float, default=DEFAULT_PLACEMENT_WEIGHT, metavar="W",
+                   help="coefficient (1/m^2) of the construction lines' placement term (each line as high "
+                        "above the target's waist, hip or bust plane as it sat above the base's; not in the "
+                        f"paper); 0 turns it off (default {DEFAULT_PLACEMENT_WEIGHT:g})")
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
     p.add_argument("--exact", action="store_true",
                    help="exact simulation at every iteration (no Algorithm 1)")
@@ -90,7 +102,8 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
 
     if args.iterations < 0:
         raise InputError(f"--iterations must be >= 0, got {args.iterations}")
-    weights = CostWeights(reference_edge_length=args.reference_edge_length)
+    weights = CostWeights(reference_edge_length=args.reference_edge_length, ease=args.ease_weight,
+                          placement=args.placement_weight)
     return AdjustSettings(optimizer=args.optimizer, iterations=args.iterations, edge_length=args.edge_length,
                           voxel_size=args.voxel, inner_iterations=args.inner_iterations,
                           exact_interval=args.exact_interval, inexact=not args.exact,

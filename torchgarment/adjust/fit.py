@@ -31,6 +31,8 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from torchgarment.adjust.acceptance import body_girth_at, line_vertices, pattern_line_widths
 from torchgarment.errors import InputError
 
@@ -45,6 +47,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CONSTRUCTION_LINES",
     "LANDMARKS",
+    "LineTargets",
     "ROW_KEYS",
     "LineFit",
     "adjustment_fit",
@@ -52,6 +55,7 @@ __all__ = [
     "construction_lines",
     "fit_rows",
     "landmark_heights",
+    "line_targets",
     "measure_fit",
 ]
 
@@ -247,3 +251,107 @@ def adjustment_fit(result: AdjustResult, base_body: Body, target_body: Body,
     base = measure_fit(result.base_pattern, result.mesh_base, result.mesh_base.x, base_body, lines=lines)
     target = measure_fit(result.pattern, result.mesh_target, result.mesh_target.x, target_body, lines=lines)
     return base, target, fit_rows(base, target, chart_change, tolerance_m)
+
+
+@dataclass
+class LineTargets:
+    """Where each construction line should be and how wide, on the target (metres), from
+    :func:`line_targets`: the targets of the objective's line terms
+    (:class:`~torchgarment.adjust.regularizers.LineEaseRegularizer`,
+    :class:`~torchgarment.adjust.costs.LinePlacementCost`).
+
+    Attributes:
+        lines: the line names, in order.
+        corners: (K, 2) mesh vertex indices of each panel line's two corners.
+        line_of: (K,) the line (position in ``lines``) of each row of ``corners``.
+        landmark: per line, the base body's landmark plane nearest to it (:data:`LANDMARKS`).
+        base_height_m: per line, its mean corner height in the base drape.
+        transfer_height_m: per line, its mean corner height in the transferred garment.
+        target_height_m: per line, where it should sit on the target: as high above the target's
+            ``landmark`` plane as it sat above the base's (``at_landmarks``), else ``transfer_height_m``.
+        base_girth_m: per line, the base pattern's girth.
+        body_change_m: per line, the target body's girth at ``target_height_m`` minus the base body's at
+            ``base_height_m``.
+        target_girth_m: per line, ``base_girth_m + body_change_m`` (the base ease kept).
+        skipped: lines left out (name -> why: a plane that misses a body).
+    """
+
+    lines: list[str]
+    corners: np.ndarray
+    line_of: np.ndarray
+    landmark: list[str]
+    base_height_m: list[float]
+    transfer_height_m: list[float]
+    target_height_m: list[float]
+    base_girth_m: list[float]
+    body_change_m: list[float]
+    target_girth_m: list[float]
+    skipped: dict[str, str] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """JSON-ready: per line its figures, and the skipped lines."""
+        keys = ("landmark", "base_height_m", "transfer_height_m", "target_height_m", "base_girth_m",
+                "body_change_m", "target_girth_m")
+        return {"lines": {name: {k: getattr(self, k)[i] for k in keys} for i, name in enumerate(self.lines)},
+                "skipped": dict(self.skipped)}
+
+
+def line_targets(pattern: SewingPattern, mesh: GarmentMesh, x_base: torch.Tensor, x_transfer: torch.Tensor,
+                 base_body: Body, target_body: Body, *, at_landmarks: bool = True,
+                 lines: dict[str, tuple[str, str]] | None = None) -> LineTargets:
+    """Target heights and girths that keep the base drape's fit at each construction line.
+
+    Per line: its height in the base drape ``y_b`` and in the transferred garment ``y_t`` (mean of its corner
+    vertices), its nearest landmark plane on the base body (``h_b``; ``h_t`` that plane on the target), the
+    target height ``y* = h_t + (y_b - h_b)`` (the base placement kept; ``y_t`` when not ``at_landmarks``),
+    the base pattern's girth ``P_b`` (corner-to-corner widths of ``mesh.p``), and the target girth
+    ``P_b + G_t(y*) - G_b(y_b)`` with ``G`` each body's :func:`body_girth_at` (the base ease kept).
+
+    Args:
+        pattern: the pattern ``mesh`` was made from. mesh: its mesh (with a layout and ``p``).
+        x_base: (V, 3) the base drape. x_transfer: (V, 3) the transferred garment (Eq. 15).
+        base_body, target_body: the bodies. at_landmarks: place the lines by the landmark planes (else where
+        the transfer carries them). lines: default :func:`construction_lines`.
+
+    Returns:
+        The targets; a line whose plane misses a body is left out and named in ``skipped``.
+
+    Raises:
+        InputError: the mesh has no layout or no ``p``. PatternError: a line's labels are on no panel.
+    """
+    from torchgarment.errors import MeshError
+
+    if mesh.p is None:
+        raise InputError("line_targets needs the mesh's pattern positions p")
+    lines = construction_lines(pattern) if lines is None else lines
+    p = mesh.p.detach().cpu().double().numpy()
+    xb = x_base.detach().cpu().double().numpy()
+    xt = x_transfer.detach().cpu().double().numpy()
+    lm_b = landmark_heights(base_body)
+    lm_t = landmark_heights(target_body) if at_landmarks else lm_b
+    out = LineTargets([], np.zeros((0, 2), np.int64), np.zeros(0, np.int64), [], [], [], [], [], [], [])
+    corners, line_of = [], []
+    for name, (first, second) in lines.items():
+        idx = line_vertices(pattern, mesh, first, second).reshape(-1, 2)
+        yb, yt = float(xb[idx, 1].mean()), float(xt[idx, 1].mean())
+        near = min(lm_b, key=lambda k: abs(yb - lm_b[k]))
+        y = lm_t[near] + (yb - lm_b[near]) if at_landmarks else yt
+        try:
+            change = body_girth_at(target_body, y) - body_girth_at(base_body, yb)
+        except MeshError as e:
+            out.skipped[name] = str(e)
+            continue
+        girth = float(np.linalg.norm(p[idx[:, 1]] - p[idx[:, 0]], axis=1).sum())
+        corners.append(idx)
+        line_of.append(np.full(len(idx), len(out.lines), np.int64))
+        out.lines.append(name)
+        out.landmark.append(near)
+        out.base_height_m.append(yb)
+        out.transfer_height_m.append(yt)
+        out.target_height_m.append(y)
+        out.base_girth_m.append(girth)
+        out.body_change_m.append(change)
+        out.target_girth_m.append(girth + change)
+    if corners:
+        out.corners, out.line_of = np.concatenate(corners), np.concatenate(line_of)
+    return out

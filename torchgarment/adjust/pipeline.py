@@ -374,6 +374,8 @@ class AdjustSetup:
         timings: seconds of each stage.
         support_level_shift_m: how far (m, up positive) :func:`~torchgarment.adjust.transfer.level_support`
             moved the transferred support to the target's waist plane; None without a support.
+        lines: the construction lines' targets of the objective's ease and placement terms
+            (:func:`~torchgarment.adjust.fit.line_targets`); None without them.
     """
 
     settings: AdjustSettings
@@ -396,6 +398,7 @@ class AdjustSetup:
     initialization_used: bool
     timings: dict = field(default_factory=dict)
     support_level_shift_m: float | None = None
+    lines: object | None = None
 
     def new_problem(self, x_start: torch.Tensor | None = None, settings: AdjustSettings | None = None
                     ) -> AdjustProblem:
@@ -443,7 +446,8 @@ def prepare(
     Raises:
         InputError: see :func:`adjust`; ``base`` of another mesh.
     """
-    from torchgarment.adjust.objective import AdjustObjective
+    from torchgarment.adjust.fit import construction_lines, line_targets
+    from torchgarment.adjust.objective import AdjustObjective, CostWeights
     from torchgarment.adjust.parametrization import BoundaryParametrization
     from torchgarment.adjust.transfer import level_support, transfer_deformation
     from torchgarment.pattern.spec import SewingPattern
@@ -489,10 +493,18 @@ def prepare(
     # (quadratic sampling): the objective's own default grid (2.5 mm) cost 5-10 s per new body to build
     sdf = _target_sdf(target_body, dset.voxel_size, dtype, mesh_base.device)
     base_grid = _target_sdf(base_body, dset.voxel_size, dtype, mesh_base.device)
-    objective = AdjustObjective(mesh_base, base_body, target_body, param, settings.weights,
+    weights = settings.weights if settings.weights is not None else CostWeights()
+    lines = None
+    if ((weights.ease > 0 or weights.placement > 0) and isinstance(pattern_or_mesh, SewingPattern)
+            and construction_lines(pattern_or_mesh)):
+        # the line terms' targets: the base ease and placement at each construction line (placed by the
+        # landmark planes when the placement term is on, else where the transfer carries the line)
+        lines = line_targets(pattern_or_mesh, mesh_base, base.x, x_transfer, base_body, target_body,
+                             at_landmarks=weights.placement > 0)
+    objective = AdjustObjective(mesh_base, base_body, target_body, param, weights,
                                 x_transfer=x_transfer,
                                 base_sdf=base_grid.with_sampling(SDFSampling.TRILINEAR),
-                                target_sdf=sdf.with_sampling(SDFSampling.TRILINEAR))
+                                target_sdf=sdf.with_sampling(SDFSampling.TRILINEAR), lines=lines)
     mat = replace(dset.material)
     if mesh_base.seam_pairs.shape[0] and dset.final_sew_stiffness is not None:
         mat.sew_stiffness = float(dset.final_sew_stiffness)
@@ -539,7 +551,7 @@ def prepare(
     pattern = pattern_or_mesh if isinstance(pattern_or_mesh, SewingPattern) else None
     return AdjustSetup(settings, pattern, mesh_base, dict(base.metrics), x_transfer, param, objective, model,
                        exact, q_base, x_before, f_base, terms_base, q_init, x_init, f_init, terms_init,
-                       init_used, timings, support_level_shift_m=support_shift)
+                       init_used, timings, support_level_shift_m=support_shift, lines=lines)
 
 
 def optimize(
@@ -660,6 +672,7 @@ def optimize(
         **_support_metrics(setup.model, run.x),
         "support_level_shift_mm": (None if setup.support_level_shift_m is None
                                    else 1e3 * setup.support_level_shift_m),
+        "line_targets": None if setup.lines is None else setup.lines.to_dict(),
         "pattern_fit_error_mm": None if fit_error is None else 1e3 * fit_error,
         **setup.timings,
     }

@@ -207,3 +207,84 @@ class SeamLengthRegularizer(torch.nn.Module):
         cols = np.tile(g_idx, (1, 8)).ravel()
         vals = (g_val[:, :, None] * g_val[:, None, :]).reshape(-1)
         return (self.weight * scipy.sparse.coo_matrix((vals, (rows, cols)), shape=(2 * B, 2 * B))).tocsr()
+
+
+class LineEaseRegularizer(torch.nn.Module):
+    """Ease kept at a garment's construction lines (issue 18), a pattern maker's grade rule.
+
+    ``R_ease = weight / 2 * sum_l (sum_{k in l} |q_{b_k} - q_{a_k}| - g_l)^2``: per construction line ``l``
+    (waist, hips, bust, hem, see :func:`torchgarment.adjust.fit.construction_lines`), the pattern's girth at
+    the line (the corner-to-corner widths ``a_k -> b_k`` of its panels, as the fit measure
+    :func:`~torchgarment.adjust.acceptance.pattern_line_widths`) against a target girth ``g_l``. The targets
+    (:func:`~torchgarment.adjust.fit.line_targets`) keep the base drape's ease: the base pattern's girth
+    plus the body's girth change where the line sits (on the target body: where the line should be
+    placed). Not in the paper, whose costs keep the fit only implicitly (through the transferred positions); a
+    grader adds the body's girth change to the pattern at each construction line, and this term says so.
+
+    Attributes:
+        weight: coefficient (1/m^2).
+        corners: buffer (K, 2) long, the positions in ``q`` of each panel line's two corners.
+        line_of: buffer (K,) long, the line of each row of ``corners``.
+        targets: buffer (L,), ``g_l`` in metres.
+        q_base: buffer (B, 2), the base boundary (the Hessian's directions).
+    """
+
+    corners: torch.Tensor
+    line_of: torch.Tensor
+    targets: torch.Tensor
+    q_base: torch.Tensor
+
+    def __init__(self, corners: torch.Tensor, line_of: torch.Tensor, targets: torch.Tensor,
+                 q_base: torch.Tensor, weight: float = 1.0) -> None:
+        """Args: corners: (K, 2) positions in ``q``. line_of: (K,) line index in ``[0, L)``. targets: (L,)
+        metres. q_base: (B, 2) base boundary (metres). weight: coefficient (1/m^2).
+
+        Raises:
+            InputError: inconsistent shapes, indices out of range, or a line without corners.
+        """
+        super().__init__()
+        B, L = q_base.shape[0], targets.shape[0]
+        corners = torch.as_tensor(corners, dtype=torch.long)
+        line_of = torch.as_tensor(line_of, dtype=torch.long)
+        if corners.ndim != 2 or corners.shape[1] != 2 or line_of.shape != (corners.shape[0],):
+            raise InputError(f"LineEaseRegularizer: corners must be (K, 2) and line_of (K,), got "
+                             f"{tuple(corners.shape)} and {tuple(line_of.shape)}")
+        if corners.numel() and (int(corners.min()) < 0 or int(corners.max()) >= B):
+            raise InputError(f"LineEaseRegularizer: corner positions must be in [0, {B})")
+        if targets.ndim != 1 or bool((torch.bincount(line_of, minlength=L)[:L] == 0).any()) \
+                or (line_of.numel() and int(line_of.max()) >= L):
+            raise InputError(f"LineEaseRegularizer: every one of the {L} lines needs corners")
+        self.weight = float(weight)
+        self.register_buffer("corners", corners.clone())
+        self.register_buffer("line_of", line_of.clone())
+        self.register_buffer("targets", targets.detach().clone())
+        self.register_buffer("q_base", q_base.detach().clone())
+
+    def girths(self, q: torch.Tensor) -> torch.Tensor:
+        """(L,) the pattern's girth at each line (metres) for boundary positions ``q`` (B, 2)."""
+        _check_q(q, self.q_base.shape[0], "LineEaseRegularizer")
+        c = self.corners
+        w = (q[c[:, 1]] - q[c[:, 0]]).norm(dim=-1)
+        out = torch.zeros(self.targets.shape[0], dtype=q.dtype, device=q.device)
+        return out.index_add(0, self.line_of, w)
+
+    def residuals(self, q: torch.Tensor) -> torch.Tensor:
+        """(L,) girth minus target (metres)."""
+        return self.girths(q) - self.targets.to(q.dtype)
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """Value () for boundary positions ``q`` (B, 2)."""
+        return 0.5 * self.weight * self.residuals(q).pow(2).sum()
+
+    def hessian(self) -> scipy.sparse.csr_matrix:
+        """(2B, 2B) Gauss-Newton Hessian ``weight * J^T J`` with the corner directions of the base pattern."""
+        B, L = self.q_base.shape[0], self.targets.shape[0]
+        c = self.corners.cpu().numpy()
+        qb = self.q_base.detach().cpu().double().numpy()
+        u = qb[c[:, 1]] - qb[c[:, 0]]
+        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
+        rows = np.repeat(self.line_of.cpu().numpy(), 4)
+        cols = np.stack([2 * c[:, 1], 2 * c[:, 1] + 1, 2 * c[:, 0], 2 * c[:, 0] + 1], axis=1).ravel()
+        vals = np.concatenate([u, -u], axis=1).ravel()
+        J = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(L, 2 * B))
+        return (self.weight * (J.T @ J)).tocsr()
