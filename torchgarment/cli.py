@@ -294,6 +294,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
+        if isinstance(getattr(args, "out", None), str) and not args.out.strip():
+            # before any work: an empty --out would write into the current folder (after minutes of work)
+            raise _UsageError("--out is empty: give the output folder (or file) a name")
         return func(args)
     except _UsageError as e:
         parser.exit(EXIT_BAD_INPUT, f"torchgarment: error: {e}\n")

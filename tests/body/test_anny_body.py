@@ -80,6 +80,8 @@ def test_out_of_range_value_raises(key, value):
 def test_non_number_and_underbust_above_bust_raise():
     with pytest.raises(InputError, match="number"):
         validate_measurements(dict(chart_row("12"), bust="big"))
+    with pytest.raises(InputError, match="must be a number"):  # JSON true is not 1.0 m (issue 17)
+        validate_measurements(dict(chart_row("12"), height=True))
     with pytest.raises(InputError, match="underbust"):
         validate_measurements(dict(chart_row("12"), underbust=chart_row("12")["bust"] + 0.01))
 

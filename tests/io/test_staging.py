@@ -57,3 +57,45 @@ def test_atomic_files_get_ordinary_permissions(tmp_path: Path):
     finally:
         os.umask(umask)
     assert (tmp_path / "p.txt").stat().st_mode & 0o777 == 0o644
+
+
+def test_staged_output_refuses_empty_and_file_names(tmp_path: Path, monkeypatch):
+    from torchgarment.errors import InputError
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError, match="empty"):
+        with staged_output("") as stage:
+            (stage / "a.txt").write_text("a")
+    (tmp_path / "f").write_text("not a folder")
+    with pytest.raises(InputError, match="not a folder"):
+        with staged_output(tmp_path / "f"):
+            pass
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]
+
+
+def test_staged_output_moves_nothing_when_an_output_name_is_a_folder(tmp_path: Path):
+    """A folder named like an output file: nothing is moved, the old set stays whole (issue 17)."""
+    from torchgarment.errors import InputError
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.txt").write_text("old a")
+    (out / "b.txt").mkdir()
+    with pytest.raises(InputError, match="is a folder where an output file goes"):
+        with staged_output(out) as stage:
+            (stage / "a.txt").write_text("new a")
+            (stage / "b.txt").write_text("new b")
+    assert (out / "a.txt").read_text() == "old a" and (out / "b.txt").is_dir()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_cli_refuses_an_empty_out_before_any_work(tmp_path: Path, monkeypatch, capsys):
+    from torchgarment.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(["adjust", "--garment", "straight_skirt", "--base-size", "12", "--target-size", "14",
+              "--out", ""])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "--out is empty" in err[0]
+    assert list(tmp_path.iterdir()) == []

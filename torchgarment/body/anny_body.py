@@ -263,6 +263,8 @@ def validate_measurements(measurements: dict) -> dict[str, float]:
         if name not in measurements:
             continue
         try:
+            if isinstance(measurements[name], bool):  # JSON true would read as 1.0 m
+                raise TypeError
             value = float(measurements[name])
         except (TypeError, ValueError):
             raise InputError(f"body measurement {name!r} must be a number (metres), got "

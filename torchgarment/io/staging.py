@@ -13,6 +13,25 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
+from torchgarment.errors import InputError
+
+__all__ = ["check_output_folder", "staged_output"]
+
+
+def check_output_folder(out_dir: str | os.PathLike) -> Path:
+    """The output folder ``out_dir`` as a Path, checked before any work is done.
+
+    Raises:
+        InputError: the name is empty (``--out ""`` would write into the current folder), or a file (not a
+            folder) of that name exists.
+    """
+    if str(out_dir).strip() == "":
+        raise InputError("the output folder name is empty: give --out DIR")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"the output folder {out} exists and is not a folder")
+    return out
+
 
 @contextlib.contextmanager
 def staged_output(out_dir: str | os.PathLike) -> Iterator[Path]:
@@ -23,17 +42,26 @@ def staged_output(out_dir: str | os.PathLike) -> Iterator[Path]:
 
     Yields:
         The staging folder. It is removed whether the block succeeds or fails.
+
+    Raises:
+        InputError: see :func:`check_output_folder`; or, after the block, an output name that is a folder in
+            ``out_dir`` (checked for every file before any is moved, so ``out_dir`` is not left half old, half
+            new by it).
     """
-    out = Path(out_dir)
+    out = check_output_folder(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
     try:
         yield stage
+        out = check_output_folder(out_dir)
+        files = [src for src in sorted(stage.rglob("*")) if src.is_file()]
+        clash = [out / f.relative_to(stage) for f in files if (out / f.relative_to(stage)).is_dir()]
+        if clash:
+            raise InputError(f"{clash[0]} is a folder where an output file goes: move it away and run again")
         out.mkdir(parents=True, exist_ok=True)
-        for src in sorted(stage.rglob("*")):
-            if src.is_file():
-                dst = out / src.relative_to(stage)
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(src, dst)
+        for src in files:
+            dst = out / src.relative_to(stage)
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(src, dst)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
