@@ -24,6 +24,8 @@ def test_adjust_writes_every_output(tmp_path, capsys):
                    str(out),
                    "--iterations", "4", "--exact-interval", "2", "--edge-length", "0.05", "--voxel", "0.01",
                    "--log-dir", str(tmp_path / "tb"), "--no-progress"])
+    (out / "checkpoint").mkdir(parents=True)
+    (out / "checkpoint" / "adjust.pt").write_bytes(b"a stale checkpoint of an interrupted earlier run")
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -46,6 +48,7 @@ def test_adjust_writes_every_output(tmp_path, capsys):
     assert set(load_pattern(out / "pattern.json").panels) == {"front", "back"} or len(
         load_pattern(out / "pattern.json").panels) >= 2
     assert "reduction" in capsys.readouterr().out
+    assert not (out / "checkpoint").exists()  # a finished run removes its checkpoint (issue 17)
 
 
 def test_bad_input(tmp_path):

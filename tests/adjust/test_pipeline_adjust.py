@@ -136,6 +136,18 @@ def test_ctrl_c_leaves_a_resumable_checkpoint(skirt_case, tmp_path):
     assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "logs").iterdir())
     with pytest.raises(InputError, match="no checkpoint"):
         optimize(setup, settings, checkpoint_dir=tmp_path / "none", resume=True, progress=False)
+    # issue 17: a checkpoint of another run is refused (another optimizer; another target's transfer)
+    with pytest.raises(InputError, match="optimizer differs"):
+        optimize(setup, replace(settings, optimizer="lbfgs"), checkpoint_dir=tmp_path, resume=True,
+                 progress=False)
+    other = replace(setup, x_transfer=setup.x_transfer + 1e-3)
+    with pytest.raises(InputError, match="bodies or base drape differ"):
+        optimize(other, settings, checkpoint_dir=tmp_path, resume=True, progress=False)
+    state = torch.load(tmp_path / "adjust.pt", weights_only=False)
+    del state["fingerprint"]
+    torch.save(state, tmp_path / "adjust.pt")
+    with pytest.raises(InputError, match="does not say which run wrote it"):
+        optimize(setup, settings, checkpoint_dir=tmp_path, resume=True, progress=False)
 
 
 

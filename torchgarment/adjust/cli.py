@@ -16,6 +16,7 @@ leaves ``DIR/checkpoint/adjust.pt`` and ``--resume`` continues from it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -243,7 +244,7 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     """Run ``torchgarment adjust``; returns the exit code."""
     import torch
 
-    from torchgarment.adjust.pipeline import adjust
+    from torchgarment.adjust.pipeline import CHECKPOINT_NAME, adjust
     from torchgarment.io.staging import staged_output
 
     if args.device == "cuda" and not torch.cuda.is_available():
@@ -275,6 +276,10 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     title = f"{pattern.name}: {base_name} -> {target_name}"
     with staged_output(out) as stage:
         write_outputs(result, stage, base_body, target_body, title)
+    # a finished run's checkpoint is stale: a later --resume would start from it (issue 17)
+    (out / "checkpoint" / CHECKPOINT_NAME).unlink(missing_ok=True)
+    with contextlib.suppress(OSError):
+        (out / "checkpoint").rmdir()
     m = result.metrics
     print(f"adjust {title}: objective {m['objective_base']:.4g} (base) -> {m['objective_initial']:.4g} "
           f"(initialized) -> {m['objective_final']:.4g} ({m['reduction_percent']:.1f} % reduction), "

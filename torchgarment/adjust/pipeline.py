@@ -341,6 +341,34 @@ def _save_checkpoint(directory: Path, state: dict) -> Path:
     return path
 
 
+def _fingerprint(setup: AdjustSetup, settings: AdjustSettings) -> dict:
+    """What a checkpoint must share with the run that resumes it: the objective's coefficients, the optimizer,
+    the garment's size, the base boundary ``q_base`` and the transferred garment ``x_transfer`` (the bodies,
+    pattern and resolution show in those two)."""
+    w = getattr(setup.objective, "weights", None)
+    return {"weights": None if w is None else w.to_dict(), "optimizer": settings.optimizer.value,
+            "inexact": bool(settings.inexact), "vertices": int(setup.x_transfer.shape[0]),
+            "q_base": setup.q_base.detach().cpu().double().clone(),
+            "x_transfer": setup.x_transfer.detach().cpu().double().clone()}
+
+
+def _check_fingerprint(saved: dict | None, now: dict, path: Path) -> None:
+    """Raise :class:`InputError` unless a checkpoint's fingerprint matches this run's (1 µm on positions)."""
+    if saved is None:
+        raise InputError(f"the checkpoint {path} does not say which run wrote it (an older version): run "
+                         "without --resume")
+    for key in ("weights", "optimizer", "inexact", "vertices"):
+        if saved.get(key) != now[key]:
+            raise InputError(f"the checkpoint {path} is of another run ({key} differs: {saved.get(key)!r} "
+                             f"there, {now[key]!r} here): resume with the same inputs and settings, or run "
+                             "without --resume")
+    for key, what in (("q_base", "base pattern"), ("x_transfer", "bodies or base drape")):
+        a, b = saved.get(key), now[key]
+        if a is None or tuple(a.shape) != tuple(b.shape) or float((a - b).abs().max()) > 1e-6:
+            raise InputError(f"the checkpoint {path} is of another run (its {what} differ): resume with the "
+                             "same inputs and settings, or run without --resume")
+
+
 def _log_iteration(logger: RunLogger, rec: IterationRecord, terms: dict[str, float]) -> None:
     """TensorBoard scalars of one outer iteration and the progress bar's step."""
     k = rec.iteration
@@ -592,14 +620,16 @@ def optimize(
         inner_iterations=settings.inner_iterations, exact_interval=settings.exact_interval,
         exact=not use_inexact))
     term_history: list[dict[str, float]] = []
+    fingerprint = _fingerprint(setup, settings)
     if resume:
         state = torch.load(ckpt_path, weights_only=False)
+        _check_fingerprint(state.get("fingerprint"), fingerprint, ckpt_path)
         runner.load_state_dict(state["runner"])
         term_history = list(state["term_history"])
 
     def checkpoint_state() -> dict:
         return {"runner": runner.state_dict(), "term_history": term_history, "optimizer": kind.value,
-                "objective_initial": setup.objective_initial}
+                "objective_initial": setup.objective_initial, "fingerprint": fingerprint}
 
     logger = RunLogger(log_dir, progress, "adjust", total=settings.iterations, initial=runner.iteration)
 
