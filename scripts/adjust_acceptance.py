@@ -49,6 +49,8 @@ from torchgarment.adjust.acceptance import (  # noqa: F401
     TSHIRT_LINES,
     amount_for_girth_change,
     bust_body,
+    draft_measurements,
+    drafted_deviation,
     edge_moves,
     hips_body,
     pattern_line_widths,
@@ -94,6 +96,27 @@ def _fit(res: AdjustResult, base: Body, target: Body, chart: dict[str, float] | 
             "target": {k: v.to_dict() for k, v in ft.items()}, "rows": rows}
 
 
+def _drafted(garment: str, size: str, res: AdjustResult, base: Body, target: Body) -> dict:
+    """The graded pattern against drafts (reported, not a pass test): per panel the largest corner distance
+    after a rigid alignment, and the base pattern's own (the change a grade has to make). ``chart``: the
+    library's draft for the target's chart row (fixed height proportions); ``measured``: the base pattern
+    plus the change between the library's drafts from the two bodies' own measurements and landmark heights
+    (:func:`torchgarment.adjust.acceptance.draft_measurements`)."""
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+
+    drafted = draft(garment, chart_row(size))
+    grade = (res.base_pattern, draft(garment, draft_measurements(base)),
+             draft(garment, draft_measurements(target)))
+    out = {}
+    for key, kw in (("chart", {}), ("measured", {"grade": grade})):
+        graded = drafted_deviation(res.pattern, drafted, **kw)
+        ungraded = drafted_deviation(res.base_pattern, drafted, **kw)
+        out[key] = {"panels": graded, "max_m": max(p["max_m"] for p in graded.values()),
+                    "base_max_m": max(p["max_m"] for p in ungraded.values())}
+    return out
+
+
 def grading(garment: str, size: str, base: Body, settings: AdjustSettings, half: bool) -> dict:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
@@ -104,6 +127,7 @@ def grading(garment: str, size: str, base: Body, settings: AdjustSettings, half:
     out = {"garment": garment, "from": BASE_SIZE, "to": size, **_fit(res, base, target, chart),
            "adjust": _summary(res)}
     out["pass"] = all(r["pass"] for r in out["rows"])
+    out["drafted"] = _drafted(garment, size, res, base, target)
     if half:
         res2 = _adjust(garment, base, target, replace(settings, edge_length=settings.edge_length / 2))
         fit2 = _fit(res2, base, target, chart)
@@ -194,6 +218,15 @@ def print_table(results: dict) -> None:
                         for k, p in r["panels"].items())
         print(f"  manufactured s = {r['scale']:.2f}: max deviation mm {per} (<= {1e3 * MANUFACTURED_M:.1f}) "
               f"-> {'pass' if r['pass'] else 'FAIL'}")
+    for r in results["grading"]:
+        for key, what in (("chart", "the chart draft"), ("measured", "the measured bodies' draft grade")):
+            d = r.get("drafted", {}).get(key)
+            if d is None:
+                continue
+            worst = max(d["panels"].items(), key=lambda kv: kv[1]["max_m"])
+            print(f"  {r['garment']} {r['from']}->{r['to']} against {what}: corners within "
+                  f"{_cm(d['max_m']).strip()} cm ({worst[0]} at {worst[1]['worst_corner']}; the base "
+                  f"pattern: {_cm(d['base_max_m']).strip()} cm)")
     for r in results["grading"]:
         if "half_resolution" in r:
             d = max(abs(v) for v in r["half_resolution"]["pattern_change_difference_m"].values())

@@ -7,7 +7,8 @@ four-size shrinks from 18 and 16; and the bodysuit, which it does not grade) und
 coefficients, and reports the fit
 preservation of :func:`torchgarment.adjust.fit.adjustment_fit` per construction line: pattern change against
 body change and placement change (pass: both within 1 cm), plus the worst line and the run time per
-candidate.
+candidate, and how far the graded pattern's corners are from the library's draft for the target size
+(per panel, rigid motion removed: :func:`torchgarment.adjust.acceptance.drafted_deviation`).
 
 Usage::
 
@@ -40,6 +41,7 @@ CASES = ("straight_skirt:14:18", "straight_skirt:18:14", "aline_skirt:14:18", "t
 
 def run_case(garment: str, base_size: str, target_size: str, settings: AdjustSettings) -> dict:
     """Adjust one case and measure its fit preservation."""
+    from torchgarment.adjust.acceptance import draft_measurements, drafted_deviation
     from torchgarment.adjust.fit import adjustment_fit, chart_changes
     from torchgarment.adjust.pipeline import adjust
     from torchgarment.body import Body
@@ -52,8 +54,16 @@ def run_case(garment: str, base_size: str, target_size: str, settings: AdjustSet
     seconds = time.perf_counter() - t0
     chart = chart_changes(chart_row(base_size), chart_row(target_size), ("waist", "hips", "bust"))
     _, _, rows = adjustment_fit(res, base, target, chart)
+    drafted = draft(garment, chart_row(target_size))
+    graded, ungraded = drafted_deviation(res.pattern, drafted), drafted_deviation(res.base_pattern, drafted)
+    grade = (res.base_pattern, draft(garment, draft_measurements(base)),
+             draft(garment, draft_measurements(target)))
+    measured = drafted_deviation(res.pattern, drafted, grade=grade)
     return {"case": f"{garment} {base_size}->{target_size}", "rows": rows, "seconds": seconds,
-            "objective_final": float(res.metrics["objective_final"])}
+            "objective_final": float(res.metrics["objective_final"]),
+            "drafted": {"panels": graded, "max_m": max(p["max_m"] for p in graded.values()),
+                        "base_max_m": max(p["max_m"] for p in ungraded.values()),
+                        "measured_max_m": max(p["max_m"] for p in measured.values())}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,7 +111,14 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{label:>12} {r['case']:>24} {row['line']:>5} {100 * row['pattern_change_m']:8.2f} "
                       f"{100 * row['body_change_m']:7.2f} {100 * err:6.2f} "
                       f"{100 * row['placement_change_m']:6.2f}  {'yes' if row['pass'] else 'NO'}")
+        drafted = [r["drafted"]["max_m"] for r in runs]
+        for r in runs:
+            print(f"{label:>12} {r['case']:>24} against the draft for the target size: corners within "
+                  f"{100 * r['drafted']['max_m']:.2f} cm (base pattern "
+                  f"{100 * r['drafted']['base_max_m']:.2f}); against the measured bodies' draft grade "
+                  f"{100 * r['drafted']['measured_max_m']:.2f} cm")
         summary[label] = {"lines_passing": passed, "lines": total, "max_girth_error_m": max(errors),
+                          "mean_drafted_m": sum(drafted) / len(drafted), "max_drafted_m": max(drafted),
                           "mean_girth_error_m": sum(errors) / len(errors),
                           "max_placement_change_m": max(places),
                           "seconds": sum(r["seconds"] for r in runs),
@@ -110,7 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     for label, s in summary.items():
         print(f"{label:>12}: {s['lines_passing']}/{s['lines']} lines pass; girth error mean "
               f"{100 * s['mean_girth_error_m']:.2f} cm, max {100 * s['max_girth_error_m']:.2f} cm; placement "
-              f"max {100 * s['max_placement_change_m']:.2f} cm; {s['seconds']:.0f} s")
+              f"max {100 * s['max_placement_change_m']:.2f} cm; against the drafts mean "
+              f"{100 * s['mean_drafted_m']:.2f} cm, max {100 * s['max_drafted_m']:.2f} cm; "
+              f"{s['seconds']:.0f} s")
     if args.json is not None:
         from torchgarment.io.atomic import atomic_open
 

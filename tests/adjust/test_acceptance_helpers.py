@@ -261,3 +261,53 @@ def test_scaled_outline_deviation_and_edge_moves(acc):
     assert widened["shape_max_m"] == pytest.approx(widened["max_m"], rel=1e-6)
     with pytest.raises(PatternError):
         acc.edge_moves(pattern, _fake_result(pattern, mesh, q), ("armhole_r",))
+
+
+def test_drafted_deviation_of_a_pattern_and_of_a_grade(acc):
+    """Against itself or a rigidly moved copy: 0; one corner moved by 1 cm: the largest deviation is at that
+    corner and at most 1 cm; against a grade ``base + (drafted_target - drafted_base)``: 0 for the pattern
+    that makes exactly that change, and the drafts' own corner changes for the base."""
+    import copy
+
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+
+    base, big = draft("straight_skirt", chart_row("12")), draft("straight_skirt", chart_row("16"))
+    assert all(d["max_m"] < 1e-12 for d in acc.drafted_deviation(base, base).values())
+    moved = copy.deepcopy(base)
+    for p in moved.panels.values():
+        p.vertices = p.vertices @ _rot(0.3).T + np.array([0.5, -0.2])
+    assert all(d["max_m"] < 1e-12 for d in acc.drafted_deviation(moved, base).values())
+    bent = copy.deepcopy(base)
+    labels = [e.label for e in bent.panels["skirt_front"].edges]
+    corner = bent.panels["skirt_front"].edges[labels.index("side_low_r")].start  # the hem's right corner
+    bent.panels["skirt_front"].vertices[corner] += np.array([0.0, 0.01])
+    dev = acc.drafted_deviation(bent, base)
+    assert 0.005 < dev["skirt_front"]["max_m"] <= 0.01 and dev["skirt_front"]["worst_corner"] == "side_low_r"
+    assert dev["skirt_back"]["max_m"] < 1e-12
+    graded = copy.deepcopy(base)
+    for name, p in graded.panels.items():
+        p.vertices = base.panels[name].vertices + big.panels[name].vertices - base.panels[name].vertices
+    grade = (base, base, big)
+    assert all(d["max_m"] < 1e-12 for d in acc.drafted_deviation(graded, None, grade=grade).values())
+    via_grade, direct = acc.drafted_deviation(base, None, grade=grade), acc.drafted_deviation(base, big)
+    for name in direct:
+        assert via_grade[name]["max_m"] == pytest.approx(direct[name]["max_m"], abs=1e-12)
+        assert via_grade[name]["worst_corner"] == direct[name]["worst_corner"]
+    with pytest.raises(PatternError, match="counterpart"):
+        acc.drafted_deviation(draft("aline_skirt", chart_row("12")), draft("tshirt", chart_row("12")))
+
+
+def test_draft_measurements_take_the_body_landmark_heights(acc):
+    from torchgarment.body import Body
+    from torchgarment.pattern.library import draft
+
+    body = Body.from_size("12")
+    m, dm = body.measurements(), acc.draft_measurements(body)
+    floor = float(body.vertices[:, 1].min())
+    assert dm.height == pytest.approx(m.height) and dm.hips == pytest.approx(m.hips)
+    assert dm.waist_height == pytest.approx(float(m.planes["waist"].point[1]) - floor)
+    assert dm.hip_height == pytest.approx(float(m.planes["hips"].point[1]) - floor)
+    assert dm.knee_height == pytest.approx(0.285 * m.height)
+    skirt = draft("straight_skirt", dm)
+    assert set(skirt.panels) == {"skirt_front", "skirt_back"}

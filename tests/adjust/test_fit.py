@@ -303,7 +303,7 @@ def test_line_targets_keep_the_base_ease_and_placement():
     mesh = mesh_pattern(pattern, 0.05)
     body = Body.from_size("12")
     widths = pattern_line_widths(pattern, construction_lines(pattern))
-    same = line_targets(pattern, mesh, mesh.x, mesh.x, body, body)
+    same = line_targets(pattern, mesh, mesh.x, mesh.x, body, body, guides={})
     assert same.lines == ["waist", "hips"] and not same.skipped
     assert same.landmark == ["waist", "hips"]
     assert same.body_change_m == [0.0, 0.0]
@@ -315,7 +315,7 @@ def test_line_targets_keep_the_base_ease_and_placement():
     xs = c + s * (mesh.x - c)
     lm_b, lm_t = landmark_heights(body), landmark_heights(big)
     for at_landmarks in (True, False):
-        out = line_targets(pattern, mesh, mesh.x, xs, body, big, at_landmarks=at_landmarks)
+        out = line_targets(pattern, mesh, mesh.x, xs, body, big, at_landmarks=at_landmarks, guides={})
         for i, line in enumerate(out.lines):
             yb, lm = out.base_height_m[i], out.landmark[i]
             assert out.transfer_height_m[i] == pytest.approx(float(c[1]) + s * (yb - float(c[1])))
@@ -327,3 +327,47 @@ def test_line_targets_keep_the_base_ease_and_placement():
             assert out.target_girth_m[i] == pytest.approx(widths[line] + out.body_change_m[i], abs=1e-9)
     d = out.to_dict()
     assert set(d["lines"]) == {"waist", "hips"} and d["skipped"] == {}
+
+
+def test_guide_line_keeps_the_hem_on_the_leg_and_follows_the_hip_grade():
+    """The skirt's hem (a guide line): its target height keeps its height above the knee (the same height on
+    a body of the same height, whatever the transfer does), its target girth takes the hip line's change;
+    ``of_kind`` splits the lines with their corners; ``guides={}`` leaves it out."""
+    from torchgarment.adjust.acceptance import pattern_line_widths
+    from torchgarment.adjust.fit import KNEE_HEIGHT_RATIO, guide_lines, knee_height, line_targets
+    from torchgarment.body import Body
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+    from torchgarment.pattern.meshing import mesh_pattern
+
+    pattern = draft("straight_skirt", chart_row("12"))
+    assert set(guide_lines(pattern)) == {"hem"} and guide_lines(draft("tshirt", chart_row("12"))) == {}
+    mesh = mesh_pattern(pattern, 0.05)
+    base, target = Body.from_size("12"), Body.from_size("16")
+    assert knee_height(base) == pytest.approx(KNEE_HEIGHT_RATIO * base.measurements().height, abs=1e-6)
+    assert knee_height(target) == pytest.approx(knee_height(base), abs=1e-3)  # one chart height
+    xt = mesh.x + torch.tensor([0.0, -0.04, 0.0])  # a transfer that lowers everything by 4 cm
+    out = line_targets(pattern, mesh, mesh.x, xt, base, target)
+    assert out.lines == ["waist", "hips", "hem"] and out.kind == ["construction", "construction", "guide"]
+    h = out.lines.index("hem")
+    assert out.landmark[h] == "knee"
+    assert out.target_height_m[h] == pytest.approx(
+        knee_height(target) + out.base_height_m[h] - knee_height(base), abs=1e-12)
+    assert out.transfer_height_m[h] == pytest.approx(out.base_height_m[h] - 0.04, abs=1e-9)
+    assert out.body_change_m[h] == out.body_change_m[out.lines.index("hips")] > 0.05
+    hem_width = pattern_line_widths(pattern, {"hem": ("side_low_r", "side_low_l")})["hem"]
+    assert out.target_girth_m[h] == pytest.approx(hem_width + out.body_change_m[h], abs=1e-9)
+    guide, construction = out.of_kind("guide"), out.of_kind("construction")
+    assert guide.lines == ["hem"] and construction.lines == ["waist", "hips"]
+    assert guide.line_of.tolist() == [0] * len(guide.line_of) and len(guide.corners) == 2  # two panels
+    assert np.array_equal(guide.corners, out.corners[out.line_of == h])
+    assert construction.target_girth_m == out.target_girth_m[:2]
+    assert out.to_dict()["lines"]["hem"]["kind"] == "guide"
+    # every hem vertex is held at its base height moved like the line (the hem stays level)
+    hem_vertices = guide.held_vertices
+    assert set(guide.corners.reshape(-1).tolist()) <= set(hem_vertices.tolist())
+    assert len(hem_vertices) > len(guide.corners.reshape(-1)) and len(construction.held_vertices) == 0
+    shift = out.target_height_m[h] - out.base_height_m[h]
+    assert np.allclose(guide.held_height_m, mesh.x[hem_vertices, 1].numpy() + shift, atol=1e-12)
+    free = line_targets(pattern, mesh, mesh.x, xt, base, target, at_landmarks=False)
+    assert free.target_height_m[h] == pytest.approx(free.transfer_height_m[h], abs=1e-12)

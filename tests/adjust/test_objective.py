@@ -75,7 +75,7 @@ def test_total_is_sum_of_terms_and_gradients():
     p = P(q)
     vals = obj.term_values(x, p)
     # no construction-line targets given: no line terms
-    assert vals.pop("ease") == 0.0 and vals.pop("placement") == 0.0
+    assert all(vals.pop(k) == 0.0 for k in ("ease", "placement", "guide_ease", "guide_placement"))
     assert all(v > 0 for v in vals.values()), vals
     assert float(obj(x, p)) == pytest.approx(sum(vals.values()), rel=1e-12)
     check_gradient(lambda v: obj(v, p), x, rtol=1e-6, num_samples=20)
@@ -223,28 +223,45 @@ def test_default_body_sdfs():
 
 def test_line_terms_are_built_from_line_targets_and_differentiate():
     """With construction-line targets the objective has the ease regularizer and the placement cost, weighted
-    by ``weight * r^2``; each is zero when its targets are the base's, and the total's gradients are right."""
+    by ``weight * r^2``, and for the guide line (the hem) the same terms weighted ``guide`` times as much;
+    each is zero when its targets are the base's, and the total's gradients are right."""
     from torchgarment.adjust.fit import line_targets
 
     body, mesh, P = setup()
     pattern = draft("straight_skirt", chart_row("12"))
     placed = mesh_pattern(pattern, 0.05)
     targets = line_targets(pattern, placed, placed.x, placed.x, body, body)
-    targets.target_girth_m = [g + d for g, d in zip(targets.target_girth_m, (0.03, -0.02), strict=True)]
+    assert targets.lines == ["waist", "hips", "hem"]
+    dg, dy = (0.03, -0.02, 0.01), (0.01, -0.005, 0.02)
+    targets.target_girth_m = [g + d for g, d in zip(targets.target_girth_m, dg, strict=True)]
     targets.target_height_m = [float(mesh.x[targets.corners[targets.line_of == i].reshape(-1), 1].mean()) + d
-                               for i, d in enumerate((0.01, -0.005))]
-    w = CostWeights(placement=1e4)
+                               for i, d in enumerate(dy)]
+    held = targets.held_vertices
+    targets.held_height_m = mesh.x[held, 1].numpy() + 0.02
+    w = CostWeights(placement=1e4, guide=0.5)
     obj = AdjustObjective(mesh, body, body, P, w, base_sdf=ShiftedSphereSDF(0.15),
                           target_sdf=ShiftedSphereSDF(0.15), lines=targets)
     r = 0.008 / obj.edge_length
     assert obj.regularizers["ease"].weight == pytest.approx(w.ease * r ** 2, rel=1e-12)
     assert obj.costs["placement"].weight == pytest.approx(w.placement * r ** 2, rel=1e-12)
+    assert obj.regularizers["guide_ease"].weight == pytest.approx(0.5 * w.ease * r ** 2, rel=1e-12)
+    # the hem's height term holds each of its M vertices, weighted to count as its 4 corners
+    assert obj.costs["guide_placement"].weight == pytest.approx(0.5 * w.placement * r ** 2 * 4 / len(held),
+                                                                rel=1e-12)
     q0 = P.initial()
     vals = obj.term_values(mesh.x, P(q0))
     assert vals["ease"] == pytest.approx(0.5 * obj.regularizers["ease"].weight * (0.03 ** 2 + 0.02 ** 2),
                                          rel=1e-9)
     assert vals["placement"] == pytest.approx(
         0.5 * obj.costs["placement"].weight * (0.01 ** 2 + 0.005 ** 2), rel=1e-9)
+    assert vals["guide_ease"] == pytest.approx(0.5 * obj.regularizers["guide_ease"].weight * 0.01 ** 2,
+                                               rel=1e-9)
+    assert vals["guide_placement"] == pytest.approx(
+        0.5 * obj.costs["guide_placement"].weight * len(held) * 0.02 ** 2, rel=1e-9)
+    no_guide = AdjustObjective(mesh, body, body, P, CostWeights(placement=1e4, guide=0.0),
+                               base_sdf=ShiftedSphereSDF(0.15), target_sdf=ShiftedSphereSDF(0.15),
+                               lines=targets)
+    assert "guide_ease" not in no_guide.regularizers and "guide_placement" not in no_guide.costs
     g = torch.Generator().manual_seed(5)
     q = q0 + 0.003 * torch.randn(q0.shape, generator=g, dtype=q0.dtype)
     x = mesh.x + 0.005 * torch.randn(mesh.x.shape, generator=g, dtype=torch.float64)

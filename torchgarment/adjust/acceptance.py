@@ -30,6 +30,7 @@ from torchgarment.errors import InputError, MeshError, PatternError
 
 if TYPE_CHECKING:
     from torchgarment.adjust.pipeline import AdjustResult
+    from torchgarment.pattern.library import DraftMeasurements
     from torchgarment.pattern.spec import Panel, SewingPattern
     from torchgarment.structures.garment_mesh import GarmentMesh, MeshLayout
 
@@ -41,6 +42,8 @@ __all__ = [
     "body_girth_at",
     "boundary_vertex_labels",
     "bust_body",
+    "draft_measurements",
+    "drafted_deviation",
     "edge_moves",
     "edges_length",
     "girth",
@@ -112,6 +115,61 @@ def scaled_outline_deviation(result: AdjustResult, s: float) -> dict[str, dict[s
         out[name] = {"size_m": float(np.linalg.norm(pb[m].max(axis=0) - pb[m].min(axis=0))),
                      "max_m": float(dev.max()), "mean_m": float(dev.mean()),
                      "unadjusted_max_m": float(ref.max()), "unadjusted_mean_m": float(ref.mean())}
+    return out
+
+
+def draft_measurements(body: Body) -> DraftMeasurements:
+    """The drafting measurements of a body as a drafter would take them from it: the measured height and
+    girths (:meth:`Body.measurements`) and the heights above the floor of its waist, hip and bust planes and
+    of its crotch (0.01 of the height above the thigh plane); the rest from the proportion rules of
+    :class:`~torchgarment.pattern.library.DraftMeasurements`."""
+    from torchgarment.pattern.library import DraftMeasurements
+
+    m = body.measurements()
+    floor = float(body.vertices[:, 1].min())
+    y = {name: float(m.planes[name].point[1]) - floor for name in ("waist", "hips", "bust", "thigh")}
+    return DraftMeasurements(height=m.height, bust=m.bust, underbust=m.underbust, waist=m.waist, hips=m.hips,
+                             waist_height=y["waist"], hip_height=y["hips"], bust_height=y["bust"],
+                             crotch_height=y["thigh"] + 0.01 * m.height)
+
+
+def drafted_deviation(pattern: SewingPattern, drafted: SewingPattern,
+                      grade: tuple[SewingPattern, SewingPattern, SewingPattern] | None = None
+                      ) -> dict[str, dict]:
+    """Per panel, how far a graded pattern's corners are from a pattern drafted for the target, rigid motion
+    removed (how a graded pattern is checked against a reference grade: the paper's 1.5 cm against manual
+    grading).
+
+    Args:
+        pattern: the graded (adjusted) pattern. drafted: the same design drafted for the target body (e.g.
+            :func:`torchgarment.pattern.library.draft` for the target's chart row); panels of the same names
+            and corner counts.
+        grade: ``(base, drafted_base, drafted_target)``: compare instead with the drafting system's *grade*,
+            ``base + (drafted_target - drafted_base)`` corner by corner (the change a drafter's measurements
+            of the two bodies make, applied to the base pattern; ``drafted`` is then unused). With drafts
+            from the bodies' own landmark heights (:func:`draft_measurements`) this is the reference a
+            drafting system that measures the body, as GarmentCode does, gives.
+
+    Returns:
+        Per panel name: ``max_m``, ``mean_m`` (:func:`procrustes_deviation` of the corners, metres) and
+        ``worst_corner`` (the label of the edge that starts at the farthest corner).
+
+    Raises:
+        PatternError: a panel of ``drafted`` is missing from ``pattern`` or has another number of corners.
+    """
+    out = {}
+    for name, ref in (drafted if grade is None else grade[2]).panels.items():
+        others = [pattern] if grade is None else [pattern, grade[0], grade[1]]
+        if any(p.panels.get(name) is None or p.panels[name].vertices.shape != ref.vertices.shape
+               for p in others):
+            raise PatternError(f"panel {name!r} of the drafted pattern has no counterpart with as many "
+                               "corners in the graded pattern")
+        target = ref.vertices if grade is None else (
+            grade[0].panels[name].vertices + ref.vertices - grade[1].panels[name].vertices)
+        dev = procrustes_deviation(pattern.panels[name].vertices, target)
+        worst = int(dev.argmax())
+        label = next((e.label for e in ref.edges if e.start == worst), str(worst))
+        out[name] = {"max_m": float(dev.max()), "mean_m": float(dev.mean()), "worst_corner": label}
     return out
 
 

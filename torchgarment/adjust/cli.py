@@ -87,6 +87,10 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
                    help="coefficient (1/m^2) of the construction lines' placement term (each line as high "
                         "above the target's waist, hip or bust plane as it sat above the base's; not in the "
                         f"paper); 0 turns it off (default {DEFAULT_PLACEMENT_WEIGHT:g})")
+    p.add_argument("--guide-weight", type=float, default=1.0, metavar="R",
+                   help="weight of the guide lines (a skirt's hem: kept level at its height above the knee, "
+                        "its girth following the hip line's grade) relative to the construction lines; 0 "
+                        "turns them off (default 1)")
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
     p.add_argument("--exact", action="store_true",
                    help="exact simulation at every iteration (no Algorithm 1)")
@@ -104,7 +108,7 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
     if args.iterations < 0:
         raise InputError(f"--iterations must be >= 0, got {args.iterations}")
     weights = CostWeights(reference_edge_length=args.reference_edge_length, ease=args.ease_weight,
-                          placement=args.placement_weight)
+                          placement=args.placement_weight, guide=args.guide_weight)
     return AdjustSettings(optimizer=args.optimizer, iterations=args.iterations, edge_length=args.edge_length,
                           voxel_size=args.voxel, inner_iterations=args.inner_iterations,
                           exact_interval=args.exact_interval, inexact=not args.exact,
