@@ -22,6 +22,11 @@ where the line sits on it) and the placement change (against the base line's lan
 of issue 18: each within the tolerance (1 cm), with ``|pattern change - body change|``. Note that with these
 definitions ``ease change == pattern change - body change`` identically: the two tests are one.
 
+:func:`line_targets` turns the base drape into targets for the objective's line terms: per construction line
+a height (the base placement kept) and a girth (the base ease kept), and per *guide line*
+(:data:`GUIDE_LINES`, the skirts' hems; not acceptance lines) a height kept above the knee for every vertex
+along it and a girth that follows another line's grade.
+
 Lengths are in metres.
 """
 
