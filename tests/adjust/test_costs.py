@@ -170,6 +170,14 @@ def test_line_placement_cost():
     assert float(c(up, m.p)) == pytest.approx(0.5 * 1e4 * 2 * 1e-4, rel=1e-9)
     x, p = perturbed(m)
     grad_checks(c, x, p)
+    # per-line weights multiply each line's squared residual
+    cw = LinePlacementCost(verts, line_of, h, V, weight=1e4,
+                           line_weight=torch.tensor([1.0, 3.0], dtype=h.dtype))
+    assert float(cw(up, m.p)) == pytest.approx(0.5 * 1e4 * (1 + 3) * 1e-4, rel=1e-9)
+    grad_checks(cw, x, p)
+    for bad in (torch.tensor([1.0]), torch.tensor([1.0, -1.0]), torch.tensor([1.0, float("nan")])):
+        with pytest.raises(InputError, match="line_weight"):
+            LinePlacementCost(verts, line_of, h, V, line_weight=bad.to(h.dtype))
     with pytest.raises(InputError, match="needs vertices"):
         LinePlacementCost(verts, torch.zeros(6, dtype=torch.long), h, V)
     with pytest.raises(InputError, match="vertex indices"):

@@ -350,7 +350,14 @@ def test_guide_line_keeps_the_hem_on_the_leg_and_follows_the_hip_grade():
     out = line_targets(pattern, mesh, mesh.x, xt, base, target)
     assert out.lines == ["waist", "hips", "hem"] and out.kind == ["construction", "construction", "guide"]
     h = out.lines.index("hem")
-    assert out.landmark[h] == "knee"
+    assert out.landmark[h] == "knee" and out.girth_slope[h] == 0.0
+    from torchgarment.adjust.acceptance import body_girth_at
+    from torchgarment.adjust.fit import GIRTH_SLOPE_STEP_M as d
+
+    for i in range(2):  # the construction lines: the target body's girth slope at the target height
+        y = out.target_height_m[i]
+        assert out.girth_slope[i] == pytest.approx(
+            (body_girth_at(target, y + d) - body_girth_at(target, y - d)) / (2 * d), abs=1e-12)
     assert out.target_height_m[h] == pytest.approx(
         knee_height(target) + out.base_height_m[h] - knee_height(base), abs=1e-12)
     assert out.transfer_height_m[h] == pytest.approx(out.base_height_m[h] - 0.04, abs=1e-9)

@@ -238,6 +238,8 @@ def test_line_terms_are_built_from_line_targets_and_differentiate():
                                for i, d in enumerate(dy)]
     held = targets.held_vertices
     targets.held_height_m = mesh.x[held, 1].numpy() + 0.02
+    assert len(targets.girth_slope) == 3 and targets.girth_slope[2] == 0.0  # the guide line has none
+    targets.girth_slope = [0.0, 0.5, 0.0]  # the hip line sits where the girth grows by 5 mm per cm
     w = CostWeights(placement=1e4, guide=0.5)
     obj = AdjustObjective(mesh, body, body, P, w, base_sdf=ShiftedSphereSDF(0.15),
                           target_sdf=ShiftedSphereSDF(0.15), lines=targets)
@@ -253,7 +255,8 @@ def test_line_terms_are_built_from_line_targets_and_differentiate():
     assert vals["ease"] == pytest.approx(0.5 * obj.regularizers["ease"].weight * (0.03 ** 2 + 0.02 ** 2),
                                          rel=1e-9)
     assert vals["placement"] == pytest.approx(
-        0.5 * obj.costs["placement"].weight * (0.01 ** 2 + 0.005 ** 2), rel=1e-9)
+        0.5 * obj.costs["placement"].weight * (0.01 ** 2 + (1 + w.ease / w.placement * 0.25) * 0.005 ** 2),
+        rel=1e-9)
     assert vals["guide_ease"] == pytest.approx(0.5 * obj.regularizers["guide_ease"].weight * 0.01 ** 2,
                                                rel=1e-9)
     assert vals["guide_placement"] == pytest.approx(

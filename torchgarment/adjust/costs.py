@@ -316,25 +316,33 @@ class LinePlacementCost(_LeastSquaresCost):
     planes do not (they move by 2-3 cm relative to it between chart sizes), so a grader's waist, hip and bust
     lines would follow the surface to the wrong place without it.
 
+    With ``line_weight`` (L,) each line's squared residual is multiplied by its entry: the objective weights a
+    line by how much girth a misplacement loses there (see
+    :attr:`~torchgarment.adjust.fit.LineTargets.girth_slope`).
+
     Attributes:
         vertices: buffer (M,) long, the corner vertices of every line.
         line_of: buffer (M,) long, the line of each.
         targets: buffer (L,), ``y*_l`` (metres).
         counts: buffer (L,), the number of corner vertices of each line.
+        line_weight: buffer (L,), the lines' relative weights (ones by default).
     """
 
     vertices: torch.Tensor
     line_of: torch.Tensor
     targets: torch.Tensor
     counts: torch.Tensor
+    line_weight: torch.Tensor
 
     def __init__(self, vertices: torch.Tensor, line_of: torch.Tensor, targets: torch.Tensor,
-                 num_vertices: int, weight: float = 1.0) -> None:
+                 num_vertices: int, weight: float = 1.0, line_weight: torch.Tensor | None = None) -> None:
         """Args: vertices: (M,) corner vertex indices. line_of: (M,) line index in ``[0, L)``. targets: (L,)
-        heights (metres). num_vertices: V of the garment. weight: coefficient (1/m^2).
+        heights (metres). num_vertices: V of the garment. weight: coefficient (1/m^2). line_weight: (L,)
+        finite, >= 0 relative weights of the lines (default ones).
 
         Raises:
-            InputError: inconsistent shapes, indices out of range, or a line without vertices.
+            InputError: inconsistent shapes, indices out of range, a line without vertices, or bad line
+                weights.
         """
         super().__init__(weight)
         vertices = torch.as_tensor(vertices, dtype=torch.long).reshape(-1)
@@ -355,6 +363,10 @@ class LinePlacementCost(_LeastSquaresCost):
         self.register_buffer("line_of", line_of.clone())
         self.register_buffer("targets", targets.detach().clone())
         self.register_buffer("counts", counts.to(targets.dtype))
+        lw = torch.ones_like(targets) if line_weight is None else torch.as_tensor(line_weight).to(targets)
+        if lw.shape != (L,) or not bool(torch.isfinite(lw).all()) or bool((lw < 0).any()):
+            raise InputError(f"LinePlacementCost: line_weight must be ({L},) finite and >= 0")
+        self.register_buffer("line_weight", lw.detach().clone())
 
     def heights(self, x: torch.Tensor) -> torch.Tensor:
         """(L,) each line's mean corner height (metres) in the garment ``x`` (V, 3)."""
@@ -363,6 +375,6 @@ class LinePlacementCost(_LeastSquaresCost):
         return s.index_add(0, self.line_of, x[self.vertices, 1]) / self.counts.to(x.dtype)
 
     def residuals(self, x: torch.Tensor, p: torch.Tensor | None = None) -> torch.Tensor:
-        """(L,) height minus target (metres)."""
+        """(L,) height minus target (metres), times the square root of the line's weight."""
         _check(x, p, self.num_vertices, "LinePlacementCost")
-        return self.heights(x) - self.targets.to(x.dtype)
+        return (self.heights(x) - self.targets.to(x.dtype)) * self.line_weight.to(x.dtype).sqrt()

@@ -327,7 +327,10 @@ def adjustment_fit(result: AdjustResult, base_body: Body, target_body: Body,
 
 
 _PER_LINE = ("lines", "landmark", "base_height_m", "transfer_height_m", "target_height_m", "base_girth_m",
-             "body_change_m", "target_girth_m")
+             "body_change_m", "target_girth_m", "girth_slope")
+
+GIRTH_SLOPE_STEP_M = 0.003
+"""Half-step (m) of the central difference of :attr:`LineTargets.girth_slope`."""
 
 
 @dataclass
@@ -351,6 +354,12 @@ class LineTargets:
             ``base_height_m``.
         target_girth_m: per line, ``base_girth_m + body_change_m`` (the base ease kept); for a guide line,
             its base girth plus the girth change of the line it follows.
+        girth_slope: per line, the target body's girth change per metre of height at ``target_height_m``
+            (central differences over +-:data:`GIRTH_SLOPE_STEP_M`; 0 for a guide line, or where a plane
+            misses the body). Where a line sits on a steep part of the body (just under a full bust the girth
+            grows by 7 cm per cm of height on the size-20 chart body), a few millimetres of misplacement cost
+            centimetres of ease, so the placement term weights each line by ``1 + (ease / placement)
+            slope^2`` (:class:`~torchgarment.adjust.objective.AdjustObjective`).
         skipped: lines left out (name -> why: a plane that misses a body).
         kind: per line, ``"construction"`` or ``"guide"`` (a :class:`GuideLine`: its landmark is the knee,
             :func:`knee_height`, and its ``body_change_m`` is the followed line's target girth change).
@@ -372,6 +381,7 @@ class LineTargets:
     target_girth_m: list[float]
     skipped: dict[str, str] = field(default_factory=dict)
     kind: list[str] = field(default_factory=list)
+    girth_slope: list[float] = field(default_factory=list)
     held_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     held_height_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
@@ -383,7 +393,9 @@ class LineTargets:
         renumber = np.full(len(self.lines), -1, np.int64)
         renumber[keep] = np.arange(len(keep))
         rows = np.isin(self.line_of, keep)
-        per_line = {name: [getattr(self, name)[i] for i in keep] for name in _PER_LINE}
+        slopes = self.girth_slope if len(self.girth_slope) == len(self.lines) else [0.0] * len(self.lines)
+        per_line = {name: [(slopes if name == "girth_slope" else getattr(self, name))[i] for i in keep]
+                    for name in _PER_LINE}
         held = {} if kind == "construction" else {"held_vertices": self.held_vertices,
                                                   "held_height_m": self.held_height_m}
         return LineTargets(corners=self.corners[rows], line_of=renumber[self.line_of[rows]],
@@ -392,7 +404,7 @@ class LineTargets:
     def to_dict(self) -> dict:
         """JSON-ready: per line its figures, and the skipped lines."""
         keys = ("kind", "landmark", "base_height_m", "transfer_height_m", "target_height_m", "base_girth_m",
-                "body_change_m", "target_girth_m")
+                "body_change_m", "target_girth_m", "girth_slope")
         if len(self.kind) < len(self.lines):
             self.kind = self.kind + ["construction"] * (len(self.lines) - len(self.kind))
         return {"lines": {name: {k: getattr(self, k)[i] for k in keys} for i, name in enumerate(self.lines)},
@@ -444,14 +456,22 @@ def line_targets(pattern: SewingPattern, mesh: GarmentMesh, x_base: torch.Tensor
     corners, line_of = [], []
 
     def add(name: str, kind: str, idx: np.ndarray, landmark: str, yb: float, yt: float, y: float,
-            change: float) -> None:
+            change: float, slope: float) -> None:
         girth = float(np.linalg.norm(p[idx[:, 1]] - p[idx[:, 0]], axis=1).sum())
         corners.append(idx)
         line_of.append(np.full(len(idx), len(out.lines), np.int64))
         for key, value in (("lines", name), ("kind", kind), ("landmark", landmark), ("base_height_m", yb),
                            ("transfer_height_m", yt), ("target_height_m", y), ("base_girth_m", girth),
-                           ("body_change_m", change), ("target_girth_m", girth + change)):
+                           ("body_change_m", change), ("target_girth_m", girth + change),
+                           ("girth_slope", slope)):
             getattr(out, key).append(value)
+
+    def slope_at(y: float) -> float:
+        d = GIRTH_SLOPE_STEP_M
+        try:
+            return (body_girth_at(target_body, y + d) - body_girth_at(target_body, y - d)) / (2 * d)
+        except MeshError:
+            return 0.0
 
     for name, (first, second) in lines.items():
         idx = line_vertices(pattern, mesh, first, second).reshape(-1, 2)
@@ -463,7 +483,7 @@ def line_targets(pattern: SewingPattern, mesh: GarmentMesh, x_base: torch.Tensor
         except MeshError as e:
             out.skipped[name] = str(e)
             continue
-        add(name, "construction", idx, near, yb, yt, y, change)
+        add(name, "construction", idx, near, yb, yt, y, change, slope_at(y))
     knee_b = knee_height(base_body)
     knee_t = knee_height(target_body) if at_landmarks else knee_b
     held = []
@@ -475,7 +495,8 @@ def line_targets(pattern: SewingPattern, mesh: GarmentMesh, x_base: torch.Tensor
         idx = line_vertices(pattern, mesh, guide.first, guide.second).reshape(-1, 2)
         yb, yt = float(xb[idx, 1].mean()), float(xt[idx, 1].mean())
         y = knee_t + (yb - knee_b) if at_landmarks else yt
-        add(name, "guide", idx, "knee", yb, yt, y, out.body_change_m[out.lines.index(guide.girth_follows)])
+        add(name, "guide", idx, "knee", yb, yt, y, out.body_change_m[out.lines.index(guide.girth_follows)],
+            0.0)
         along = verts[np.isin(labels, guide.edges)]
         held.append((np.unique(np.concatenate([idx.reshape(-1), along])), y - yb))
     if corners:

@@ -311,12 +311,15 @@ class AdjustObjective(torch.nn.Module):
                         torch.as_tensor(part.held_height_m, dtype=dtype, device=device), V,
                         scale * w.placement * rf["lines"] * part.corners.size / len(held))
                 elif w.placement > 0:
+                    # a line on a steep part of the body loses (girth slope * misplacement) of ease
+                    slope = torch.tensor(part.girth_slope, dtype=dtype, device=device)
                     line_of = torch.as_tensor(part.line_of, dtype=torch.long)
                     costs[prefix + "placement"] = LinePlacementCost(
                         torch.as_tensor(part.corners, dtype=torch.long).reshape(-1).to(device),
                         line_of.repeat_interleave(2).to(device),
                         torch.tensor(part.target_height_m, dtype=dtype, device=device), V,
-                        scale * w.placement * rf["lines"])
+                        scale * w.placement * rf["lines"],
+                        line_weight=1.0 + w.ease / w.placement * slope ** 2)
         self.costs = torch.nn.ModuleDict(costs)
         self.regularizers = torch.nn.ModuleDict(regs)
         self.num_vertices = V
