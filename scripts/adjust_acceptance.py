@@ -15,7 +15,11 @@ Resolution: ``torchgarment adjust``'s defaults (:class:`~torchgarment.adjust.pip
 
 1. Grading: straight skirt, A-line skirt, trousers, T-shirt, sheath dress (``--garments``) from size 12 to
    6, 8, 10, 14, 16, 20 (``--sizes``). ``--half-resolution`` also runs each case at half the edge length and
-   reports the difference of the pattern changes per line (pass: <= 5 mm).
+   reports the difference of the pattern changes per line (pass: <= 5 mm). Each graded pattern is also
+   compared with drafts (reported, no pass test): per panel the largest corner distance after a rigid
+   alignment (:func:`~torchgarment.adjust.acceptance.drafted_deviation`) from the library's draft for the
+   target chart size, and from the grade of the library's drafts from the two bodies' own measurements
+   (:func:`~torchgarment.adjust.acceptance.draft_measurements`), beside the ungraded base pattern's.
 2. Made to measure (``mtm``): the straight skirt onto the size-12 body with only the hips +6 cm
    (:func:`~torchgarment.adjust.acceptance.hips_body`, its amount solved for a measured +6 cm): the
    waistband (waist edges) moves <= 2 mm in the pattern and the hip line takes the change within 1 cm
