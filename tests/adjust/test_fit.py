@@ -376,5 +376,13 @@ def test_guide_line_keeps_the_hem_on_the_leg_and_follows_the_hip_grade():
     assert len(hem_vertices) > len(guide.corners.reshape(-1)) and len(construction.held_vertices) == 0
     shift = out.target_height_m[h] - out.base_height_m[h]
     assert np.allclose(guide.held_height_m, mesh.x[hem_vertices, 1].numpy() + shift, atol=1e-12)
+    # targets built by hand, without kinds or slopes: every line a construction line of slope 0
+    from dataclasses import replace
+
+    bare = replace(out, kind=[], girth_slope=[])
+    assert bare.per_line("kind") == ["construction"] * 3 and bare.per_line("girth_slope") == [0.0] * 3
+    assert bare.of_kind("construction").lines == ["waist", "hips", "hem"]
+    assert bare.of_kind("guide").lines == []
+    assert guide_lines(draft("aline_skirt", chart_row("12"))) == guide_lines(pattern)
     free = line_targets(pattern, mesh, mesh.x, xt, base, target, at_landmarks=False)
     assert free.target_height_m[h] == pytest.approx(free.transfer_height_m[h], abs=1e-12)

@@ -176,23 +176,27 @@ def construction_lines(pattern: SewingPattern) -> dict[str, tuple[str, str]]:
     any other pattern the first table of :data:`CONSTRUCTION_LINES` whose every line has a panel with both
     labels (a renamed or re-exported library garment), else an empty dict.
     """
+    garment = _library_garment(pattern)
+    return {} if garment is None else dict(CONSTRUCTION_LINES[garment])
+
+
+def _library_garment(pattern: SewingPattern) -> str | None:
+    """The library garment a pattern is (its name or ``metadata["garment"]`` in :data:`CONSTRUCTION_LINES`,
+    else the first garment whose every construction line has a panel with both labels), or None."""
     for key in (pattern.metadata.get("garment") if pattern.metadata else None, pattern.name):
         if key in CONSTRUCTION_LINES:
-            return dict(CONSTRUCTION_LINES[key])
+            return key
     panel_labels = [{e.label for e in p.edges} for p in pattern.panels.values()]
-    for table in CONSTRUCTION_LINES.values():
+    for garment, table in CONSTRUCTION_LINES.items():
         if all(any(a in lab and b in lab for lab in panel_labels) for a, b in table.values()):
-            return dict(table)
-    return {}
+            return garment
+    return None
 
 
 def guide_lines(pattern: SewingPattern) -> dict[str, GuideLine]:
-    """The guide lines of a pattern: those of :data:`GUIDE_LINES` for the garment whose construction lines
-    it has (by name or ``metadata["garment"]``), else an empty dict."""
-    for key in (pattern.metadata.get("garment") if pattern.metadata else None, pattern.name):
-        if key in GUIDE_LINES:
-            return dict(GUIDE_LINES[key])
-    return {}
+    """The guide lines of a pattern: those of :data:`GUIDE_LINES` for the library garment whose construction
+    lines it has (found as by :func:`construction_lines`), else an empty dict."""
+    return dict(GUIDE_LINES.get(_library_garment(pattern), {}))
 
 
 def knee_height(body: Body) -> float:
@@ -329,6 +333,8 @@ def adjustment_fit(result: AdjustResult, base_body: Body, target_body: Body,
 _PER_LINE = ("lines", "landmark", "base_height_m", "transfer_height_m", "target_height_m", "base_girth_m",
              "body_change_m", "target_girth_m", "girth_slope")
 
+_DEFAULTS = {"kind": "construction", "girth_slope": 0.0}
+
 GIRTH_SLOPE_STEP_M = 0.003
 """Half-step (m) of the central difference of :attr:`LineTargets.girth_slope`."""
 
@@ -385,17 +391,22 @@ class LineTargets:
     held_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     held_height_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
+    def per_line(self, name: str) -> list:
+        """The per-line list ``name``; ``kind`` and ``girth_slope`` left empty (targets built by hand) read as
+        ``"construction"`` and 0 for every line."""
+        values = getattr(self, name)
+        if name in _DEFAULTS and len(values) != len(self.lines):
+            return [_DEFAULTS[name]] * len(self.lines)
+        return values
+
     def of_kind(self, kind: str) -> LineTargets:
         """The lines of one kind (``"construction"`` or ``"guide"``; a line without a kind is a construction
         line), renumbered from 0."""
-        kinds = self.kind + ["construction"] * (len(self.lines) - len(self.kind))
-        keep = [i for i, k in enumerate(kinds) if k == kind]
+        keep = [i for i, k in enumerate(self.per_line("kind")) if k == kind]
         renumber = np.full(len(self.lines), -1, np.int64)
         renumber[keep] = np.arange(len(keep))
         rows = np.isin(self.line_of, keep)
-        slopes = self.girth_slope if len(self.girth_slope) == len(self.lines) else [0.0] * len(self.lines)
-        per_line = {name: [(slopes if name == "girth_slope" else getattr(self, name))[i] for i in keep]
-                    for name in _PER_LINE}
+        per_line = {name: [self.per_line(name)[i] for i in keep] for name in _PER_LINE}
         held = {} if kind == "construction" else {"held_vertices": self.held_vertices,
                                                   "held_height_m": self.held_height_m}
         return LineTargets(corners=self.corners[rows], line_of=renumber[self.line_of[rows]],
@@ -405,9 +416,7 @@ class LineTargets:
         """JSON-ready: per line its figures, and the skipped lines."""
         keys = ("kind", "landmark", "base_height_m", "transfer_height_m", "target_height_m", "base_girth_m",
                 "body_change_m", "target_girth_m", "girth_slope")
-        if len(self.kind) < len(self.lines):
-            self.kind = self.kind + ["construction"] * (len(self.lines) - len(self.kind))
-        return {"lines": {name: {k: getattr(self, k)[i] for k in keys} for i, name in enumerate(self.lines)},
+        return {"lines": {name: {k: self.per_line(k)[i] for k in keys} for i, name in enumerate(self.lines)},
                 "skipped": dict(self.skipped)}
 
 
