@@ -64,8 +64,8 @@ def test_bad_input(tmp_path):
     with pytest.raises(InputError, match="reference_edge_length"):
         cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
                            "--out", str(tmp_path), "--reference-edge-length", "-1"]))
-    for flag in ("--ease-weight", "--placement-weight", "--guide-weight"):
-        with pytest.raises(InputError, match="ease|placement|guide"):
+    for flag in ("--ease-weight", "--placement-weight", "--guide-weight", "--support-shape-weight"):
+        with pytest.raises(InputError, match="ease|placement|guide|support_shape"):
             cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
                                "--out", str(tmp_path), flag, "nan"]))
     with pytest.raises(SystemExit):
@@ -98,5 +98,5 @@ def test_line_term_options():
     w = settings_from_args(_parse(base)).weights
     assert (w.ease, w.placement) == (CostWeights().ease, CostWeights().placement)
     w = settings_from_args(_parse(base + ["--ease-weight", "0", "--placement-weight", "250",
-                                          "--guide-weight", "0"])).weights
-    assert (w.ease, w.placement, w.guide) == (0.0, 250.0, 0.0)
+                                          "--guide-weight", "0", "--support-shape-weight", "0"])).weights
+    assert (w.ease, w.placement, w.guide, w.support_shape) == (0.0, 250.0, 0.0, 0.0)

@@ -74,8 +74,9 @@ def test_total_is_sum_of_terms_and_gradients():
     q = P.initial() + 0.003 * torch.randn(P.initial().shape, generator=g, dtype=torch.float64)
     p = P(q)
     vals = obj.term_values(x, p)
-    # no construction-line targets given: no line terms
-    assert all(vals.pop(k) == 0.0 for k in ("ease", "placement", "guide_ease", "guide_placement"))
+    # no construction-line targets and no support given: no line terms, no support-shape term
+    assert all(vals.pop(k) == 0.0 for k in ("ease", "placement", "guide_ease", "guide_placement",
+                                            "support_shape"))
     assert all(v > 0 for v in vals.values()), vals
     assert float(obj(x, p)) == pytest.approx(sum(vals.values()), rel=1e-12)
     check_gradient(lambda v: obj(v, p), x, rtol=1e-6, num_samples=20)
@@ -275,3 +276,38 @@ def test_line_terms_are_built_from_line_targets_and_differentiate():
                           target_sdf=ShiftedSphereSDF(0.15), lines=targets)
     assert "ease" not in off.regularizers and "placement" not in off.costs
     assert off.term_values(mesh.x, P(q0))["ease"] == 0.0
+
+
+def test_support_shape_term_is_built_from_the_support():
+    """Given the support's vertices the objective holds their outline with ``support_shape * placement * r^2``
+    spread so that each panel's support counts as two corners; off with ``support_shape=0``, with the
+    placement term off, or without a support; zero at the base pattern; its gradient through the
+    parametrization is right."""
+    from torchgarment.pattern.support import support_vertices
+
+    body, mesh, P = setup()
+    idx, _, _ = support_vertices(draft("straight_skirt", chart_row("12")), mesh)
+    kw = dict(base_sdf=ShiftedSphereSDF(0.15), target_sdf=ShiftedSphereSDF(0.15), support=idx)
+    w = CostWeights(support_shape=0.5)
+    obj = AdjustObjective(mesh, body, body, P, w, **kw)
+    reg = obj.regularizers["support_shape"]
+    r = 0.008 / obj.edge_length
+    n_panels = int(torch.unique(mesh.vertex_panel_ids[idx]).numel())
+    assert reg.rows.numel() == idx.numel()
+    assert reg.weight == pytest.approx(0.5 * w.placement * r ** 2 * 2 * n_panels / idx.numel(), rel=1e-12)
+    q0 = P.initial()
+    assert obj.term_values(mesh.x, P(q0))["support_shape"] < 1e-24
+    q = q0.clone()
+    q[reg.rows, 1] += 0.002
+    assert obj.term_values(mesh.x, P(q))["support_shape"] == pytest.approx(
+        0.5 * reg.weight * idx.numel() * 0.002 ** 2, rel=1e-9)
+    g = torch.Generator().manual_seed(2)
+    check_gradient(lambda v: obj.regularization(P(v)), q0 + 0.003 * torch.randn(q0.shape, generator=g,
+                                                                                dtype=q0.dtype), rtol=1e-6)
+    for off in (CostWeights(support_shape=0.0), CostWeights(placement=0.0)):
+        assert "support_shape" not in AdjustObjective(mesh, body, body, P, off, **kw).regularizers
+    assert "support_shape" not in objective().regularizers
+    with pytest.raises(InputError, match="support vertex"):
+        interior = torch.tensor([int(torch.nonzero(~torch.isin(torch.arange(mesh.num_vertices),
+                                                               P.boundary_index))[0])])
+        AdjustObjective(mesh, body, body, P, w, **{**kw, "support": torch.cat([idx, interior])})

@@ -13,6 +13,7 @@ from torchgarment.adjust.regularizers import (
     FixingRegularizer,
     LineEaseRegularizer,
     SeamLengthRegularizer,
+    SupportShapeRegularizer,
 )
 from torchgarment.body.size_chart import chart_row
 from torchgarment.errors import InputError
@@ -205,3 +206,58 @@ def test_line_ease_rejects_bad_corners():
         LineEaseRegularizer(torch.tensor([[0, q0.shape[0]]]), torch.tensor([0]), t[:1], q0)
     with pytest.raises(InputError, match=r"\(K, 2\)"):
         LineEaseRegularizer(torch.tensor([0, 1]), torch.tensor([0]), t[:1], q0)
+
+
+def support_shape(weight: float = 1e3):
+    """The support-shape regularizer of the 12 straight skirt's waistband (its support)."""
+    from torchgarment.pattern.support import support_vertices
+
+    mesh, P = setup()
+    pattern = draft("straight_skirt", chart_row("12"))
+    idx, _, _ = support_vertices(pattern, mesh)
+    pos = torch.full((mesh.num_vertices,), -1, dtype=torch.long)
+    pos[P.boundary_index] = torch.arange(P.num_boundary)
+    return SupportShapeRegularizer(pos[idx], mesh.vertex_panel_ids[idx], P.initial(), weight), pos[idx]
+
+
+def test_support_shape_holds_position_and_depth_but_not_length():
+    """Zero at the base and when each panel's waist is stretched along its chord about the chord's midpoint
+    (a waist graded by its length); a rise of the side-waist corners, a rigid move of the panel or a deeper
+    waist curve cost; gradient and Gauss-Newton Hessian are right."""
+    mesh, P = setup()
+    R, rows = support_shape()
+    q0 = P.initial()
+    assert R.rows.numel() == rows.numel() and float(R(q0)) < 1e-28
+    q = q0.clone()
+    for k in torch.unique(R.ends[:, 0]).tolist():  # stretch every panel's support along its chord by 6 %
+        sel = R.ends[:, 0] == k
+        c0, c1 = q0[R.ends[sel][0, 0]], q0[R.ends[sel][0, 1]]
+        u = (c1 - c0) / (c1 - c0).norm()
+        rel = q0[R.rows[sel]] - 0.5 * (c0 + c1)
+        q[R.rows[sel]] = q0[R.rows[sel]] + 0.06 * (rel @ u)[:, None] * u
+    assert float(R(q)) < 1e-20
+    corners = R.ends.unique()
+    up = q0.clone()
+    up[corners, 1] += 0.004  # the side-waist corners 4 mm higher
+    assert float(R(up)) > 0.5 * R.weight * 0.004 ** 2
+    moved = q0 + torch.tensor([0.0, 0.01], dtype=torch.float64)  # a rigid move of every panel
+    assert float(R(moved)) == pytest.approx(0.5 * R.weight * rows.numel() * 0.01 ** 2, rel=1e-9)
+    check_gradient(R, noisy(q0), rtol=1e-6)
+    H = R.hessian()
+    assert abs(H - H.T).max() < 1e-9
+    assert np.linalg.eigvalsh(H.toarray()).min() > -1e-6
+    assert np.allclose(H.toarray(), dense_hessian(R, q0).numpy(), rtol=1e-8, atol=1e-6)
+
+
+def test_support_shape_rejects_bad_vertices():
+    _, P = setup()
+    q0 = P.initial()
+    with pytest.raises(InputError, match="at least two"):
+        SupportShapeRegularizer(torch.tensor([0, 1, 2]), torch.tensor([0, 0, 1]), q0)
+    with pytest.raises(InputError, match="positions"):
+        SupportShapeRegularizer(torch.tensor([0, q0.shape[0]]), torch.tensor([0, 0]), q0)
+    with pytest.raises(InputError, match=r"\(P,\)"):
+        SupportShapeRegularizer(torch.tensor([[0, 1]]), torch.tensor([0, 0]), q0)
+    same = torch.cat([q0[:1], q0[:1], q0[2:]])
+    with pytest.raises(InputError, match="one point"):
+        SupportShapeRegularizer(torch.tensor([0, 1]), torch.tensor([0, 0]), same)

@@ -91,6 +91,10 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
                    help="weight of the guide lines (a skirt's hem: kept level at its height above the knee, "
                         "its girth following the hip line's grade) relative to the construction lines; 0 "
                         "turns them off (default 1)")
+    p.add_argument("--support-shape-weight", type=float, default=1.0, metavar="R",
+                   help="weight of the support's outline (a waistband graded by its length only: its "
+                        "position and curve held in the pattern) relative to the placement term; 0 turns it "
+                        "off (default 1)")
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
     p.add_argument("--exact", action="store_true",
                    help="exact simulation at every iteration (no Algorithm 1)")
@@ -108,7 +112,8 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
     if args.iterations < 0:
         raise InputError(f"--iterations must be >= 0, got {args.iterations}")
     weights = CostWeights(reference_edge_length=args.reference_edge_length, ease=args.ease_weight,
-                          placement=args.placement_weight, guide=args.guide_weight)
+                          placement=args.placement_weight, guide=args.guide_weight,
+                          support_shape=args.support_shape_weight)
     return AdjustSettings(optimizer=args.optimizer, iterations=args.iterations, edge_length=args.edge_length,
                           voxel_size=args.voxel, inner_iterations=args.inner_iterations,
                           exact_interval=args.exact_interval, inexact=not args.exact,

@@ -31,6 +31,7 @@ from torchgarment.adjust.regularizers import (
     FixingRegularizer,
     LineEaseRegularizer,
     SeamLengthRegularizer,
+    SupportShapeRegularizer,
 )
 from torchgarment.adjust.transfer import DEFAULT_BAND, transfer_deformation
 from torchgarment.body.body import Body
@@ -39,7 +40,7 @@ from torchgarment.structures.garment_mesh import GarmentMesh
 
 COST_NAMES = ("distance", "smoothness", "stretching", "positional", "placement", "guide_placement")
 """Names of the cost terms (functions of ``x`` and ``p``)."""
-REGULARIZER_NAMES = ("fixing", "curvature", "seam", "ease", "guide_ease")
+REGULARIZER_NAMES = ("fixing", "curvature", "seam", "ease", "guide_ease", "support_shape")
 """Names of the regularizers (functions of ``q``)."""
 TERM_NAMES = COST_NAMES + REGULARIZER_NAMES
 """Every term, in the order of :meth:`AdjustObjective.term_values`."""
@@ -102,6 +103,12 @@ class CostWeights:
             height term ``guide * placement`` (the terms ``guide_ease`` and ``guide_placement``); 0 turns
             them off. Default 1: a hem is graded with the same weight as the lines above it (not a tuned
             value).
+        support_shape: weight of the support's outline shape
+            (:class:`~torchgarment.adjust.regularizers.SupportShapeRegularizer`, built only when the objective
+            is given the support's vertices) relative to the construction lines' placement: its weight is
+            ``support_shape * placement`` at the reference resolution, spread over the held vertices so that
+            each panel's support counts as two corners (a millimetre of waist-curve depth costs what a
+            millimetre of a corner's misplacement does); 0 turns it off. Default 1 (not a tuned value).
         corner_weight: ``w_i`` of Eq. 10 at corners (1 elsewhere).
         boundary_position_weight: ``u_i`` of Eq. 16 on pattern-boundary vertices (1 elsewhere).
         reference_edge_length: the mesh resolution (mean rest edge length, metres) the coefficients refer to;
@@ -132,6 +139,7 @@ class CostWeights:
     ease: float = DEFAULT_EASE_WEIGHT
     placement: float = DEFAULT_PLACEMENT_WEIGHT
     guide: float = 1.0
+    support_shape: float = 1.0
     corner_weight: float = DEFAULT_CORNER_WEIGHT
     boundary_position_weight: float = DEFAULT_BOUNDARY_POSITION_WEIGHT
     reference_edge_length: float | None = DEFAULT_REFERENCE_EDGE_LENGTH
@@ -224,7 +232,8 @@ class AdjustObjective(torch.nn.Module):
                  parametrization: BoundaryParametrization, weights: CostWeights | None = None, *,
                  x_transfer: torch.Tensor | None = None, base_sdf: torch.nn.Module | None = None,
                  target_sdf: torch.nn.Module | None = None, band: float = DEFAULT_BAND,
-                 sdf_sampling: str = "trilinear", lines: LineTargets | None = None) -> None:
+                 sdf_sampling: str = "trilinear", lines: LineTargets | None = None,
+                 support: torch.Tensor | None = None) -> None:
         """Precompute every reference quantity.
 
         Args:
@@ -240,6 +249,9 @@ class AdjustObjective(torch.nn.Module):
             lines: the construction lines' target girths and heights
                 (:func:`~torchgarment.adjust.fit.line_targets`) of the ease and placement terms; None or no
                 lines: neither term.
+            support: (P,) mesh vertices of the garment's support (the sticking line, e.g.
+                :attr:`~torchgarment.sim.drape.DrapeResult.support_indices`) whose pattern outline the
+                support-shape term holds; None: no such term.
 
         Raises:
             InputError: bad weights, shapes, or bodies of different topologies (when transferring).
@@ -320,6 +332,18 @@ class AdjustObjective(torch.nn.Module):
                         torch.tensor(part.target_height_m, dtype=dtype, device=device), V,
                         scale * w.placement * rf["lines"],
                         line_weight=1.0 + w.ease / w.placement * slope ** 2)
+        if support is not None and w.support_shape > 0 and w.placement > 0:
+            pos = torch.full((V,), -1, dtype=torch.long)
+            pos[parametrization.boundary_index.cpu()] = torch.arange(parametrization.num_boundary)
+            rows = pos[torch.as_tensor(support, dtype=torch.long).cpu()]
+            if bool((rows < 0).any()):
+                raise InputError("a support vertex is not a boundary vertex of the parametrization")
+            panel_of = base_mesh.vertex_panel_ids.cpu()[torch.as_tensor(support, dtype=torch.long).cpu()]
+            reg = SupportShapeRegularizer(rows.to(device), panel_of.to(device), q0)
+            n_panels = int(torch.unique(panel_of).numel())
+            reg.weight = (w.support_shape * w.placement * rf["lines"] * 2 * n_panels
+                          / max(int(reg.rows.numel()), 1))
+            regs["support_shape"] = reg
         self.costs = torch.nn.ModuleDict(costs)
         self.regularizers = torch.nn.ModuleDict(regs)
         self.num_vertices = V

@@ -532,7 +532,8 @@ def prepare(
     objective = AdjustObjective(mesh_base, base_body, target_body, param, weights,
                                 x_transfer=x_transfer,
                                 base_sdf=base_grid.with_sampling(SDFSampling.TRILINEAR),
-                                target_sdf=sdf.with_sampling(SDFSampling.TRILINEAR), lines=lines)
+                                target_sdf=sdf.with_sampling(SDFSampling.TRILINEAR), lines=lines,
+                                support=base.support_indices if settings.support else None)
     mat = replace(dset.material)
     if mesh_base.seam_pairs.shape[0] and dset.final_sew_stiffness is not None:
         mat.sew_stiffness = float(dset.final_sew_stiffness)
