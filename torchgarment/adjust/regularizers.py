@@ -353,7 +353,8 @@ class SupportShapeRegularizer(torch.nn.Module):
             d = torch.cdist(qb[v], qb[v])
             a, b = divmod(int(d.argmax()), v.numel())
             if float(d[a, b]) <= 0.0:
-                raise InputError(f"SupportShapeRegularizer: the support's vertices on panel {k} are one point")
+                raise InputError(f"SupportShapeRegularizer: the support's vertices on panel {k} are one "
+                                 "point")
             rows.append(v)
             ends.append(torch.stack([v[a], v[b]]).expand(v.numel(), 2))
         r = torch.cat(rows) if rows else torch.zeros(0, dtype=torch.long)
