@@ -36,14 +36,9 @@ def _write_json(path: Path, data: dict) -> None:
 
 def _read_json_object(path: str) -> dict:
     from torchgarment.errors import InputError
+    from torchgarment.io.jsonfile import read_json
 
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{path}: no such file")
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: not valid JSON ({e})") from None
+    data = read_json(path, "measurements file")
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a JSON object of name -> value")
     return data

@@ -189,7 +189,7 @@ def test_bad_input(tmp_path):
     bad.write_text('{"pattern": {"panels": ')
     with pytest.raises(PatternError, match="malformed JSON at line 1"):
         load_pattern(bad)
-    with pytest.raises(PatternError, match="cannot read"):
+    with pytest.raises(PatternError, match="no such file"):
         load_pattern(tmp_path / "missing.json")
     with pytest.raises(PatternError, match="missing key 'pattern'"):
         pattern_from_dict({"properties": {}})

@@ -115,16 +115,10 @@ def load_pattern(
     Raises:
         PatternError: unreadable file, malformed JSON, missing keys, bad types or an invalid pattern.
     """
+    from torchgarment.io.jsonfile import read_json
+
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PatternError(f"{path}: cannot read pattern file ({exc})") from exc
-    try:
-        d = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise PatternError(f"{path}: malformed JSON at line {exc.lineno} column {exc.colno}: "
-                           f"{exc.msg}") from exc
+    d = read_json(path, "pattern file", PatternError)
     stem = path.stem
     if stem.endswith("_specification"):
         stem = stem[: -len("_specification")]

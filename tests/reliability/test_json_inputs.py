@@ -1,0 +1,60 @@
+"""Issue 17: JSON inputs that crashed (a ``RecursionError`` traceback on absurd nesting) or could not be what
+they claim (a folder, a huge file) end in one line and exit code 2, with nothing written."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from torchgarment.errors import InputError, PatternError
+from torchgarment.io import jsonfile
+from torchgarment.io.jsonfile import read_json
+
+
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "torchgarment", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=300)
+
+
+def _one_line(proc: subprocess.CompletedProcess, needle: str) -> None:
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert needle in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("command", [["body", "--measurements"], ["pattern"]])
+def test_deeply_nested_json_is_refused_in_one_line(tmp_path: Path, command: list[str]):
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000)
+    proc = _run(*command, str(deep), "--out", "o", cwd=tmp_path)
+    _one_line(proc, "nested too deeply")
+    assert not (tmp_path / "o").exists()
+
+
+def test_read_json_refusals(tmp_path: Path, monkeypatch):
+    good = tmp_path / "m.json"
+    good.write_text('{"height": 1.7}')
+    assert read_json(good) == {"height": 1.7}
+    with pytest.raises(InputError, match="is a folder"):
+        read_json(tmp_path, "measurements file")
+    with pytest.raises(InputError, match="no such file"):
+        read_json(tmp_path / "none.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"height": }')
+    with pytest.raises(PatternError, match="malformed JSON at line 1 column 12"):
+        read_json(bad, "pattern file", PatternError)
+    latin = tmp_path / "latin.json"
+    latin.write_bytes(b'{"name": "\xe9"}')
+    with pytest.raises(InputError, match="not a UTF-8"):
+        read_json(latin)
+    deep = tmp_path / "deep.json"
+    deep.write_text("{\"a\": " * 50_000)
+    with pytest.raises(InputError, match="nested too deeply to be a pattern file"):
+        read_json(deep, "pattern file")
+    monkeypatch.setattr(jsonfile, "MAX_JSON_BYTES", 8)
+    with pytest.raises(InputError, match="too large for a measurements file"):
+        read_json(good, "measurements file")
