@@ -151,10 +151,12 @@ def cmd_pattern(args: argparse.Namespace) -> int:
 
 
 def cmd_measure(args: argparse.Namespace) -> int:
+    from torchgarment.body.load import check_human_body
     from torchgarment.body.measure import measure_body
     from torchgarment.io.mesh import load_mesh
 
     vertices, faces = load_mesh(args.mesh)
+    check_human_body(vertices, faces, str(args.mesh))
     measured = measure_body(vertices, faces).to_dict()
     _write_json(Path(args.out), {"units": "metres", "mesh": str(args.mesh), "measured": measured})
     print(", ".join(f"{k} {v * 100:.1f} cm" for k, v in measured.items()))

@@ -20,7 +20,17 @@ from torchgarment.errors import InputError
 from torchgarment.io.mesh import load_mesh
 from torchgarment.structures.mesh_checks import find_degenerate_faces
 
-__all__ = ["BodyMeshWarning", "load_body"]
+__all__ = ["HUMAN_HEIGHT_RANGE", "BodyMeshWarning", "check_human_body", "load_body"]
+
+HUMAN_HEIGHT_RANGE = (0.4, 2.8)
+"""Heights (metres, along +Y) accepted for a human body by the commands that need one (``drape``, ``adjust``,
+``grade``, ``measure``, ``pca fit``): a toddler to well above the tallest person. Retargeting takes avatars of
+any size and does not apply it."""
+
+UPSIDE_DOWN_RATIO = 1.2
+"""A body whose top 8 % (the head) is this many times wider than its bottom 8 % (the feet) is upside down."""
+
+_UNITS = (("millimetres", 1000.0), ("centimetres", 100.0), ("inches", 1.0 / 0.0254), ("feet", 1.0 / 0.3048))
 
 
 class BodyMeshWarning(UserWarning):
@@ -118,7 +128,8 @@ def load_body_spec(spec: str, flag: str) -> tuple[Body, str]:
         ``(body, name)``: the body and a short name for outputs (``"size 12"`` or the file's stem).
 
     Raises:
-        InputError: neither a chart size nor an existing file (one line naming the sizes).
+        InputError: neither a chart size nor an existing file (one line naming the sizes); a mesh that
+            cannot be a standing human body in metres (:func:`check_human_body`).
     """
     from pathlib import Path
 
@@ -130,4 +141,50 @@ def load_body_spec(spec: str, flag: str) -> tuple[Body, str]:
     if not path.is_file():
         raise InputError(f"--{flag} {spec}: neither a chart size ({', '.join(list_sizes())}) nor an existing "
                          "mesh file")
-    return load_body(path), path.stem
+    body = load_body(path)
+    check_human_body(body.vertices, body.faces, f"--{flag} {spec}")
+    return body, path.stem
+
+
+def check_human_body(vertices: torch.Tensor, faces: torch.Tensor, name: str = "the body") -> None:
+    """Refuse, in one line, a mesh that cannot be a standing human body in metres with +Y up (issue 17).
+
+    A body in millimetres or centimetres made the SDF build allocate terabytes or swap the machine, and one
+    upside down "converged". Checked: the height (extent along Y) within :data:`HUMAN_HEIGHT_RANGE`, naming
+    the unit and factor that would bring it there; the longest side along Y (not lying or Z-up); the top 8 %
+    of the height (the head) not wider than :data:`UPSIDE_DOWN_RATIO` times the bottom 8 % (the feet).
+
+    Args:
+        vertices: (V, 3) positions. faces: (F, 3) vertex indices (only the vertices faces use count).
+        name: the body's name in the message (a file path or option).
+
+    Raises:
+        InputError: one of the checks fails.
+    """
+    v = vertices.detach().to(device="cpu", dtype=torch.float64)
+    used = torch.unique(faces.detach().cpu().long().reshape(-1))
+    v = v[used[(used >= 0) & (used < v.shape[0])]]
+    if v.shape[0] < 3 or not bool(torch.isfinite(v).all()):
+        raise InputError(f"{name}: not a body (fewer than 3 used vertices or non-finite coordinates)")
+    extent = v.max(dim=0).values - v.min(dim=0).values  # (3,) metres
+    height = float(extent[1])
+    lo, hi = HUMAN_HEIGHT_RANGE
+    longest = int(torch.argmax(extent))
+    if longest != 1 and float(extent[longest]) > 1.2 * height:
+        raise InputError(f"{name}: its longest side is along {'XYZ'[longest]} ({float(extent[longest]):.4g} "
+                         f"against {height:.4g} along Y): a body must stand with +Y up (rotate it)")
+    if not lo <= height <= hi:
+        fits = [f"{unit}: scale it by {1.0 / f:g}" for unit, f in _UNITS if lo <= height / f <= hi]
+        hint = ("; if it is in " + ", or in ".join(fits)) if fits else ""
+        raise InputError(f"{name}: {height:.4g} tall along Y, outside {lo:g}-{hi:g} m for a human body in "
+                         f"metres{hint}")
+    y = v[:, 1]
+    ymin, ymax = float(y.min()), float(y.max())
+    bottom = v[y <= ymin + 0.08 * height][:, [0, 2]]
+    top = v[y >= ymax - 0.08 * height][:, [0, 2]]
+    width_bottom = float((bottom.max(dim=0).values - bottom.min(dim=0).values).norm())
+    width_top = float((top.max(dim=0).values - top.min(dim=0).values).norm())
+    if width_top > UPSIDE_DOWN_RATIO * width_bottom:
+        raise InputError(f"{name}: looks upside down (its top is {width_top / max(width_bottom, 1e-12):.2g} "
+                         "times as wide as its bottom, where the feet should be): +Y must point from the "
+                         "feet to the head")

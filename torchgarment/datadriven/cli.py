@@ -223,7 +223,7 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
     """Run ``torchgarment pca fit``; returns the exit code."""
     import torch
 
-    from torchgarment.body.load import load_body
+    from torchgarment.body.load import check_human_body, load_body
     from torchgarment.datadriven.online import OnlineFitter, push_out
     from torchgarment.io.mesh import save_obj
     from torchgarment.io.staging import staged_output
@@ -242,6 +242,7 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
                          f"but the model's bodies have {pca.num_vertices} / {pca.faces.shape[0]} of topology "
                          f"{pca.topology or '(unnamed)'}: the body must have the model's topology (same "
                          f"vertices and faces in the same order)")
+    check_human_body(body.vertices, body.faces, f"--body {args.body}")
     name = basis.name or "garment"
     fitter = OnlineFitter(pca, {name: basis}, k=args.k, interpolation=args.interpolation)
     t_load = time.perf_counter()

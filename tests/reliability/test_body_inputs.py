@@ -1,0 +1,79 @@
+"""Issue 17: bodies that cannot be a standing human in metres (millimetres, centimetres, upside down, lying, a
+single triangle) are refused in one line with exit code 2 before any heavy work (the SDF of a body in
+centimetres took 22 GB; one upside down "converged"), naming the factor that would fix the units; nothing is
+written."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchgarment.body.load import check_human_body
+from torchgarment.errors import InputError
+from torchgarment.io.mesh import save_obj
+
+
+@pytest.fixture(scope="module")
+def body_files(tmp_path_factory) -> dict[str, Path]:
+    from torchgarment.body import Body
+
+    body = Body.from_size("12")
+    d = tmp_path_factory.mktemp("bodies")
+    v, f = body.vertices, body.faces
+    flipped = v.clone()
+    flipped[:, 1] = -flipped[:, 1]
+    lying = v[:, [0, 2, 1]].clone()
+    files = {"metres": (v, f), "mm": (1000.0 * v, f), "cm": (100.0 * v, f), "upside_down": (flipped, f),
+             "lying": (lying, f),
+             "triangle": (torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]]),
+                          torch.tensor([[0, 1, 2]]))}
+    out = {}
+    for name, (vv, ff) in files.items():
+        out[name] = d / f"{name}.obj"
+        save_obj(out[name], vv, ff)
+    return out
+
+
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "torchgarment", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=300)
+
+
+def _one_line(proc: subprocess.CompletedProcess, needle: str) -> None:
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert needle in lines[0], lines[0]
+
+
+def test_check_human_body(body_files):
+    from torchgarment.io.mesh import load_mesh
+
+    check_human_body(*load_mesh(body_files["metres"]))
+    for name, needle in (("mm", "if it is in millimetres: scale it by 0.001"),
+                         ("cm", "if it is in centimetres: scale it by 0.01"), ("upside_down", "upside down"),
+                         ("lying", "+Y up"), ("triangle", "outside 0.4-2.8 m")):
+        with pytest.raises(InputError, match=needle.replace("+", r"\+")):
+            check_human_body(*load_mesh(body_files[name]), name=name)
+    v, f = load_mesh(body_files["metres"])
+    with pytest.raises(InputError, match="non-finite"):
+        check_human_body(torch.where(torch.arange(v.shape[0])[:, None] == 0, float("nan"), v), f)
+
+
+def test_measure_refuses_a_body_in_millimetres(body_files, tmp_path):
+    proc = _run("measure", str(body_files["mm"]), "--out", "m.json", cwd=tmp_path)
+    _one_line(proc, "scale it by 0.001")
+    assert not (tmp_path / "m.json").exists()
+
+
+@pytest.mark.parametrize("name, needle", [("cm", "scale it by 0.01"), ("upside_down", "upside down"),
+                                          ("triangle", "human body")])
+def test_drape_refuses_before_any_heavy_work(body_files, tmp_path, name, needle):
+    proc = _run("drape", "--pattern", "straight_skirt", "--size", "12", "--body", str(body_files[name]),
+                "--out", "o", "--no-progress", cwd=tmp_path)
+    _one_line(proc, needle)
+    assert not (tmp_path / "o").exists()
