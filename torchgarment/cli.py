@@ -1,8 +1,9 @@
 """The ``torchgarment`` command line.
 
 Subcommands: ``body``, ``pattern``, ``measure``, ``drape``, ``adjust``, ``grade``, ``retarget``, ``pca``,
-``demo``. Every subcommand has ``--help``. Bad input ends with one readable line on stderr and exit code 2;
-outputs are staged and published only on success.
+``demo``. Every subcommand has ``--help``. Bad input ends with one readable line on stderr and exit code 2, a
+result nobody can use (:class:`~torchgarment.errors.UnusableResultError`: a drape far from equilibrium or
+from the body) with one line and exit code 3; outputs are staged and published only on success.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
 
-from torchgarment.errors import TorchGarmentError
+from torchgarment.errors import TorchGarmentError, UnusableResultError
 
 if TYPE_CHECKING:
     from torchgarment.body import Body
@@ -22,6 +23,7 @@ if TYPE_CHECKING:
     from torchgarment.render import MeshLayer
 
 EXIT_BAD_INPUT = 2
+EXIT_UNUSABLE_RESULT = 3
 EXIT_INTERRUPTED = 130
 
 
@@ -297,6 +299,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return func(args)
     except _UsageError as e:
         parser.exit(EXIT_BAD_INPUT, f"torchgarment: error: {e}\n")
+    except UnusableResultError as e:
+        print(f"torchgarment: error: {e}", file=sys.stderr)
+        return EXIT_UNUSABLE_RESULT
     except TorchGarmentError as e:
         print(f"torchgarment: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -28,3 +28,8 @@ class NonConvergenceError(TorchGarmentError, RuntimeError):
 
 class SingularMatrixError(NonConvergenceError):
     """A sparse factorization failed: the matrix is singular, or its solve returned non-finite values."""
+
+
+class UnusableResultError(NonConvergenceError):
+    """A run ended with a result nobody can use (far from equilibrium, far from the body, exploded): the
+    command line exits with code 3 and writes nothing unless told to keep it (``--allow-unconverged``)."""

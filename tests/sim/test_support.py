@@ -163,7 +163,8 @@ def test_drape_cli_proposes_a_support_for_a_file_without_one(tmp_path, capsys):
     save_pattern(tmp_path / "skirt.json", skirt)
     args = _drape_parser().parse_args(["drape", "--pattern", str(tmp_path / "skirt.json"), "--body", "12",
                                        "--out", str(tmp_path / "o"), "--edge-length", "0.08", "--voxel",
-                                       "0.01", "--max-iterations", "3", "--no-progress"])
+                                       "0.01", "--max-iterations", "3", "--no-progress",
+                                       "--allow-unconverged"])
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

@@ -442,3 +442,37 @@ def _support_pins(pattern_or_mesh: SewingPattern | GarmentMesh, mesh: GarmentMes
     idx, s, length = support_vertices(pattern_or_mesh, mesh)
     targets, info = waist_band_targets(verts, faces, x[idx], s, length)
     return idx, targets, support_stiffness(weight, int(idx.numel()), settings.support_sag), info
+
+
+def unusable_reason(result: DrapeResult, body_vertices: torch.Tensor) -> str | None:
+    """Why a drape's result cannot be used, or None when it can (issue 17; the command line then exits 3).
+
+    Unusable: non-finite positions; a garment vertex farther outside the body's bounding box than half the
+    body's largest extent (a garment that fell or exploded: a single unstitched panel ended at 2e12 m, a
+    tiny pattern 9.3 m below the body); or a residual force larger than the garment's weight (far from
+    equilibrium: 550 N against a 0.3 N garment). A drape that stopped at its iteration budget with neither is
+    usable, converged or not.
+
+    Args:
+        result: the drape. body_vertices: (B, 3) the body's vertices in metres.
+
+    Returns:
+        One line naming the reason and the figures, or None.
+    """
+    x = result.x.detach()
+    if not bool(torch.isfinite(x).all()):
+        return "the garment has non-finite coordinates"
+    b = body_vertices.detach().to(x)
+    lo, hi = b.min(dim=0).values, b.max(dim=0).values
+    margin = 0.5 * float((hi - lo).max())
+    outside = torch.maximum(lo - x, x - hi).clamp(min=0.0).norm(dim=1)
+    far = float(outside.max())
+    if far > margin:
+        return (f"a garment vertex ended {far:.3g} m outside the body's bounding box (limit {margin:.3g} m, "
+                "half the body's size): it fell or exploded")
+    m = result.metrics
+    residual, weight = float(m.get("residual", math.nan)), float(m.get("weight_n", math.nan))
+    if not m.get("converged", False) and not residual <= weight:
+        return (f"far from equilibrium: a residual force of {residual:.3g} N, more than the garment's weight "
+                f"({weight:.3g} N; tolerance {float(m.get('tolerance', math.nan)):.3g} N)")
+    return None

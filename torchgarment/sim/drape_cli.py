@@ -54,6 +54,9 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                         "garment, named on stderr)")
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    p.add_argument("--allow-unconverged", action="store_true",
+                   help="write the result even when it is unusable (far from equilibrium, far from the body) "
+                        "and exit 0, for studies; without it such a drape exits 3 and writes nothing")
     p.set_defaults(func=cmd_drape)
     return p
 
@@ -106,12 +109,14 @@ class _Progress:
 
 
 def cmd_drape(args: argparse.Namespace) -> int:
-    """Run ``torchgarment drape``; returns the exit code (0 also when the drape did not converge: see
-    metrics)."""
+    """Run ``torchgarment drape``; returns the exit code: 0 also when the drape stopped at its iteration
+    budget with a usable result (one line on stderr says so); an unusable one (:func:`unusable_reason`)
+    raises :class:`~torchgarment.errors.UnusableResultError` (exit 3) unless ``--allow-unconverged``."""
+    from torchgarment.errors import UnusableResultError
     from torchgarment.io.mesh import save_obj
     from torchgarment.io.staging import staged_output
     from torchgarment.render import MeshLayer, render_views
-    from torchgarment.sim.drape import DrapeSettings, drape, vertex_stretch_ratio
+    from torchgarment.sim.drape import DrapeSettings, drape, unusable_reason, vertex_stretch_ratio
 
     if args.max_iterations < 0:
         raise InputError(f"--max-iterations must be >= 0, got {args.max_iterations}")
@@ -137,7 +142,11 @@ def cmd_drape(args: argparse.Namespace) -> int:
                        device=body.device)
     finally:
         progress.close()
-    metrics = {"pattern": args.pattern, "body": args.body, **result.metrics}
+    reason = unusable_reason(result, body.vertices)
+    if reason is not None and not args.allow_unconverged:
+        raise UnusableResultError(f"drape of {pattern.name} on {body_name} is unusable: {reason}; nothing "
+                                  "written (--allow-unconverged writes it anyway)")
+    metrics = {"pattern": args.pattern, "body": args.body, **result.metrics, "unusable": reason}
     metrics["seconds"] = time.perf_counter() - t0
     with staged_output(args.out) as stage:
         welded, _ = result.mesh.welded()
@@ -157,4 +166,10 @@ def cmd_drape(args: argparse.Namespace) -> int:
           f"{metrics['seconds']:.1f} s, residual {m['residual']:.3g} N, min sdf {m['min_sdf_mm']:.2f} mm, "
           f"max seam gap {m['max_seam_gap_mm']:.3f} mm, {'converged' if m['converged'] else 'NOT converged'} "
           f"-> {args.out}")
+    if not m["converged"] and reason is None:
+        print(f"drape: stopped at its iteration budget with a usable result: residual {m['residual']:.3g} N "
+              f"against a tolerance of {m['tolerance']:.3g} N (the garment weighs {m['weight_n']:.3g} N)",
+              file=sys.stderr)
+    elif reason is not None:
+        print(f"drape: written although unusable (--allow-unconverged): {reason}", file=sys.stderr)
     return 0

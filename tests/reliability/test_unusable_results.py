@@ -1,0 +1,56 @@
+"""Issue 17: a drape whose result nobody can use (far from equilibrium: ``--max-iterations 0`` left 954 N of
+residual force on a 0.85 N skirt) exits 3 with one line and writes nothing; ``--allow-unconverged`` keeps it
+for studies and says so on stderr; the reasons are computed by ``sim.drape.unusable_reason``."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from torchgarment.sim.drape import unusable_reason
+
+COARSE = ("--edge-length", "0.08", "--voxel", "0.01", "--no-progress")
+
+
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "torchgarment", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=300)
+
+
+def test_unconverged_drape_exits_3_and_writes_nothing(tmp_path):
+    args = ("drape", "--pattern", "straight_skirt", "--size", "12", "--body", "12", *COARSE,
+            "--max-iterations", "0")
+    proc = _run(*args, "--out", "o", cwd=tmp_path)
+    assert proc.returncode == 3, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "unusable: far from equilibrium" in lines[0] and "--allow-unconverged" in lines[0]
+    assert not (tmp_path / "o").exists()
+    kept = _run(*args, "--out", "k", "--allow-unconverged", cwd=tmp_path)
+    assert kept.returncode == 0, kept.stderr
+    assert "written although unusable" in kept.stderr
+    assert (tmp_path / "k" / "metrics.json").is_file()
+
+
+def test_unusable_reason():
+    from torchgarment.body import Body
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+    from torchgarment.sim.drape import DrapeSettings, drape
+
+    body = Body.from_size("12")
+    r = drape(draft("straight_skirt", chart_row("12")), body,
+              settings=DrapeSettings(edge_length=0.08, voxel_size=0.01))
+    assert r.metrics["converged"] and unusable_reason(r, body.vertices) is None
+    fell = replace(r, x=r.x - torch.tensor([0.0, 9.3, 0.0], dtype=r.x.dtype))
+    assert "outside the body's bounding box" in unusable_reason(fell, body.vertices)
+    nan = replace(r, x=torch.full_like(r.x, float("nan")))
+    assert "non-finite" in unusable_reason(nan, body.vertices)
+    heavy = replace(r, metrics={**r.metrics, "converged": False, "residual": 10 * r.metrics["weight_n"]})
+    assert "far from equilibrium" in unusable_reason(heavy, body.vertices)
+    budget = replace(r, metrics={**r.metrics, "converged": False, "residual": 0.5 * r.metrics["weight_n"]})
+    assert unusable_reason(budget, body.vertices) is None
