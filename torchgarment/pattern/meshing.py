@@ -19,6 +19,7 @@ each panel's vertices are contiguous, in the pattern's panel order, its outline 
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import torch
@@ -32,6 +33,40 @@ MAX_STITCH_LENGTH_RATIO = 1.5
 
 # Triangle's quality refinement is only guaranteed to terminate up to about 33.8 degrees
 _MAX_MIN_ANGLE = 34.0
+
+DEFAULT_MAX_VERTICES = 500_000
+"""Largest garment mesh :func:`mesh_pattern` builds by default, in vertices (estimated before meshing from the
+panels' areas and edge lengths): about 15 times the paper's 34K-vertex dress, and about 25 GB in a drape
+(50 kB per vertex). The environment variable ``TORCHGARMENT_MAX_VERTICES`` raises or lowers it."""
+
+
+def max_vertices() -> int:
+    """The vertex limit in force: ``TORCHGARMENT_MAX_VERTICES`` when set, else :data:`DEFAULT_MAX_VERTICES`.
+
+    Raises:
+        InputError: the variable is not a positive integer.
+    """
+    raw = os.environ.get("TORCHGARMENT_MAX_VERTICES")
+    if raw is None:
+        return DEFAULT_MAX_VERTICES
+    try:
+        value = int(raw)
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise InputError(f"TORCHGARMENT_MAX_VERTICES must be a positive integer, got {raw!r}")
+    return value
+
+
+def estimate_vertices(pattern: SewingPattern, edge_length: float) -> float:
+    """Vertices :func:`mesh_pattern` would make at ``edge_length`` (metres), estimated before meshing: per
+    panel its area over ``0.866 e^2`` (two triangles of mean area ``sqrt(3)/4 e^2`` per vertex) plus half its
+    outline's segments."""
+    total = 0.0
+    for panel in pattern.panels.values():
+        perimeter = sum(panel.edge_length(i) for i in range(len(panel.edges)))
+        total += abs(panel.area()) / (0.866 * edge_length**2) + 0.5 * perimeter / edge_length
+    return total
 
 
 def edge_segment_counts(pattern: SewingPattern, edge_length: float) -> dict[str, np.ndarray]:
@@ -86,7 +121,7 @@ def mesh_pattern(
         sampled along the edge.
 
     Raises:
-        InputError: bad ``edge_length`` or ``min_angle``.
+        InputError: bad ``edge_length`` or ``min_angle``; more vertices estimated than :func:`max_vertices`.
         PatternError: the pattern is invalid.
         MeshError: Triangle failed on a panel.
     """
@@ -97,6 +132,11 @@ def mesh_pattern(
     if not (isinstance(min_angle, (int, float)) and 0.0 < min_angle <= _MAX_MIN_ANGLE):
         raise InputError(f"min_angle must be in (0, {_MAX_MIN_ANGLE}] degrees, got {min_angle!r}")
     pattern.validate(max_stitch_length_ratio=max_stitch_length_ratio)
+    estimate, limit = estimate_vertices(pattern, edge_length), max_vertices()
+    if estimate > limit:
+        raise InputError(f"meshing {pattern.name!r} at {edge_length:g} m edges would make about "
+                         f"{estimate:.3g} vertices (limit {limit}): use a larger edge length, or raise the "
+                         "limit with TORCHGARMENT_MAX_VERTICES")
 
     counts = edge_segment_counts(pattern, edge_length)
     # Triangle keeps areas well below the bound; 1.44 x the equilateral area gives a mean edge close to

@@ -1,0 +1,42 @@
+"""Issue 17: a mesh that would not fit in memory (``--edge-length 1e-5``: billions of vertices, memory growing
+by 110 MB/s) is refused before meshing, in one line, with exit code 2 and nothing left behind; the limit is
+documented and set by ``TORCHGARMENT_MAX_VERTICES``."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from torchgarment.body.size_chart import chart_row
+from torchgarment.errors import InputError
+from torchgarment.pattern.library import draft, list_garments
+from torchgarment.pattern.meshing import DEFAULT_MAX_VERTICES, estimate_vertices, max_vertices, mesh_pattern
+
+
+def test_tiny_edge_length_is_refused_before_meshing(tmp_path):
+    for cmd in (["pattern", "--garment", "straight_skirt", "--size", "12"],
+                ["drape", "--pattern", "straight_skirt", "--size", "12", "--body", "12", "--no-progress"]):
+        proc = subprocess.run([sys.executable, "-m", "torchgarment", *cmd, "--edge-length", "1e-5", "--out",
+                               "o"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+        assert proc.returncode == 2, proc.stderr
+        lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+        assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert "would make about 6.68e+09 vertices (limit 500000)" in lines[0]
+        assert list(tmp_path.iterdir()) == []  # no output, no hidden staging folder
+
+
+def test_vertex_estimate_and_limit(monkeypatch):
+    for g in list_garments():
+        p = draft(g, chart_row("12"))
+        assert estimate_vertices(p, 0.03) == pytest.approx(mesh_pattern(p, 0.03).num_vertices, rel=0.15)
+    monkeypatch.delenv("TORCHGARMENT_MAX_VERTICES", raising=False)
+    assert max_vertices() == DEFAULT_MAX_VERTICES
+    skirt = draft("straight_skirt", chart_row("12"))
+    monkeypatch.setenv("TORCHGARMENT_MAX_VERTICES", "100")
+    with pytest.raises(InputError, match=r"limit 100\)"):
+        mesh_pattern(skirt, 0.03)
+    monkeypatch.setenv("TORCHGARMENT_MAX_VERTICES", "lots")
+    with pytest.raises(InputError, match="positive integer"):
+        max_vertices()
