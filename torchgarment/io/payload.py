@@ -27,7 +27,10 @@ def load_payload(path: str | os.PathLike, fmt: str, what: str) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unreadable file is bad input
-        raise InputError(f"{path} is not a readable {what}: {exc}") from None
+        # torch's own message is several lines and suggests weights_only=False, which would run code from
+        # the file: never pass it on
+        raise InputError(f"{path} is not a readable {what}: corrupt, truncated or not written by "
+                         f"torchgarment ({type(exc).__name__}); write it again") from None
     if not isinstance(payload, dict) or payload.get("format") != fmt:
         raise InputError(f"{path} is not a torchgarment {what} (format {fmt})")
     return payload
