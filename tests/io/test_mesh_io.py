@@ -93,7 +93,7 @@ def test_missing_file_and_directory(tmp_path):
     with pytest.raises(InputError, match="not found"):
         load_mesh(tmp_path / "nope.obj")
     (tmp_path / "d.obj").mkdir()
-    with pytest.raises(InputError, match="not a file"):
+    with pytest.raises(InputError, match="is a folder or a special file, not a mesh file"):
         load_mesh(tmp_path / "d.obj")
     (tmp_path / "bin.obj").write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(InputError, match="cannot read OBJ"):

@@ -1,5 +1,6 @@
 """Issue 17: a corrupt model file (``pca.pt``, a data set) is refused in one line that never suggests
-``weights_only=False`` (torch's own multi-line message does: loading that way would run code from the file)."""
+``weights_only=False`` (torch's own multi-line message does: loading that way would run code from the
+file)."""
 
 from __future__ import annotations
 

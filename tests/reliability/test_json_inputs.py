@@ -58,3 +58,17 @@ def test_read_json_refusals(tmp_path: Path, monkeypatch):
     monkeypatch.setattr(jsonfile, "MAX_JSON_BYTES", 8)
     with pytest.raises(InputError, match="too large for a measurements file"):
         read_json(good, "measurements file")
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["measure", "folder", "--out", "m.json"], "folder: is a folder or a special file, not a mesh file"),
+    (["pattern", "folder", "--out", "o"], "folder: is a folder, not a pattern file"),
+    (["body", "--measurements", "folder", "--out", "o"], "folder: is a folder, not a measurements file"),
+    (["drape", "--pattern", "straight_skirt", "--size", "12", "--body", "folder", "--out", "o"],
+     "--body folder: is a folder"),
+])
+def test_a_folder_given_as_a_file_is_named_as_such(tmp_path: Path, args, needle):
+    (tmp_path / "folder").mkdir()
+    proc = _run(*args, cwd=tmp_path)
+    _one_line(proc, needle)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder"]

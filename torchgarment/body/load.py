@@ -138,6 +138,9 @@ def load_body_spec(spec: str, flag: str) -> tuple[Body, str]:
     if spec in list_sizes():
         return Body.from_size(spec), f"size {spec}"
     path = Path(spec)
+    if path.is_dir():
+        raise InputError(f"--{flag} {spec}: is a folder, not a chart size ({', '.join(list_sizes())}) or a "
+                         "mesh file")
     if not path.is_file():
         raise InputError(f"--{flag} {spec}: neither a chart size ({', '.join(list_sizes())}) nor an existing "
                          "mesh file")

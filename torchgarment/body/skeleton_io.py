@@ -39,7 +39,7 @@ def read_text_file(path: Path, what: str) -> str:
     if not path.exists():
         raise InputError(f"{what} file not found: {path}")
     if not path.is_file():
-        raise InputError(f"{what} path is not a file: {path}")
+        raise InputError(f"{path}: is a folder or a special file, not a {what} file")
     try:
         return path.read_text(encoding="utf-8")
     except (UnicodeDecodeError, OSError) as e:

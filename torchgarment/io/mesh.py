@@ -47,7 +47,7 @@ def _check_file(path: Path, suffixes: tuple[str, ...], what: str) -> str:
     if not path.exists():
         raise InputError(f"{what} file not found: {path}")
     if not path.is_file():
-        raise InputError(f"{what} path is not a file: {path}")
+        raise InputError(f"{path}: is a folder or a special file, not a {what} file")
     suffix = path.suffix.lower()
     if suffix not in suffixes:
         raise InputError(

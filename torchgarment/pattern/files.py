@@ -19,6 +19,8 @@ def load_pattern_file(path: str | os.PathLike) -> SewingPattern:
         InputError: the file is missing or has another suffix; PatternError (an InputError) when malformed.
     """
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{path}: is a folder, not a pattern file ({' or '.join(PATTERN_SUFFIXES)})")
     if not p.is_file():
         raise InputError(f"{path}: no such file")
     suffix = p.suffix.lower()
