@@ -109,6 +109,16 @@ def test_cache_key_and_roundtrip(tmp_path, monkeypatch):
     assert torch.equal(back["v"], data["v"]) and back["params"] == {"x": 1.5}
     path.write_bytes(b"garbage")
     assert body_cache.load_entry(k1) is None and not path.exists()
+    # another body's entry copied over this one is not served (issue 17): dropped, so the caller regenerates
+    k2 = body_cache.cache_key({"a": 2.0})
+    other = body_cache.store_entry(k2, {"v": torch.zeros(1)})
+    body_cache.store_entry(k1, data)
+    path.write_bytes(other.read_bytes())
+    assert body_cache.load_entry(k1) is None and not path.exists()
+    assert torch.equal(body_cache.load_entry(k2)["v"], torch.zeros(1))
+    # an entry written before keys were stored is read as it is
+    torch.save(data, path)
+    assert torch.equal(body_cache.load_entry(k1)["v"], data["v"])
 
 
 def test_cache_hit_identical_and_fast(fitted, cache_root, monkeypatch):

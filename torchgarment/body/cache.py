@@ -3,7 +3,10 @@
 Entries live in ``$TORCHGARMENT_CACHE/bodies`` (default ``~/.cache/torchgarment/bodies``), one ``<key>.pt``
 file each, written atomically (:mod:`torchgarment.io.atomic`), so a crash never leaves a half-written entry.
 The key is a SHA-256 hash of a JSON description of everything the body depends on (the requested measurements,
-the generator's version, the fitting code's version); callers build that description.
+the generator's version, the fitting code's version); callers build that description. Every entry also stores
+its own key (``"_key"``), checked on load: a file copied or moved over another entry (another body's) is
+dropped and regenerated instead of served (issue 17). Entries written before the key was stored are read as
+they are.
 """
 
 from __future__ import annotations
@@ -64,7 +67,7 @@ def entry_path(key: str) -> Path:
 
 
 def load_entry(key: str) -> dict | None:
-    """Load a cached entry, or None when absent or unreadable (a corrupt entry is removed).
+    """Load a cached entry, or None when absent, unreadable or another key's (such an entry is removed).
 
     Args:
         key: from :func:`cache_key`.
@@ -80,7 +83,11 @@ def load_entry(key: str) -> dict | None:
     except Exception:  # a truncated or foreign file: drop it, the caller regenerates
         path.unlink(missing_ok=True)
         return None
-    return data if isinstance(data, dict) else None
+    if not isinstance(data, dict) or data.get("_key", key) != key:  # another entry's file: not this body
+        path.unlink(missing_ok=True)
+        return None
+    data.pop("_key", None)
+    return data
 
 
 def store_entry(key: str, data: dict) -> Path:
@@ -95,5 +102,5 @@ def store_entry(key: str, data: dict) -> Path:
     """
     path = entry_path(key)
     with atomic_path(path) as tmp:
-        torch.save(data, tmp)
+        torch.save({**data, "_key": key}, tmp)
     return path
