@@ -19,7 +19,7 @@ from typing import Any
 
 import torch
 
-from torchgarment.io.atomic import atomic_path
+from torchgarment.io.atomic import atomic_path, remove_orphan_temporaries
 
 ENV_VAR = "TORCHGARMENT_CACHE"
 """Environment variable naming the cache root (default ``~/.cache/torchgarment``)."""
@@ -101,6 +101,7 @@ def store_entry(key: str, data: dict) -> Path:
         The entry's path.
     """
     path = entry_path(key)
+    remove_orphan_temporaries(path.parent)
     with atomic_path(path) as tmp:
         torch.save({**data, "_key": key}, tmp)
     return path

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import IO, Iterator
 
@@ -40,6 +41,31 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+ORPHAN_AGE_S = 3600.0
+"""Age in seconds after which :func:`remove_orphan_temporaries` takes a temporary file for an orphan (a writer
+killed before its rename); younger ones may belong to a writer still at work."""
+
+
+def remove_orphan_temporaries(folder: str | os.PathLike, max_age_s: float = ORPHAN_AGE_S) -> int:
+    """Delete the temporaries :func:`atomic_path` left in ``folder`` (``.<stem>.*.tmp<suffix>``) that are
+    older than ``max_age_s`` seconds: a process killed while writing (``kill -9``) never renames or removes
+    its temporary. Caches call it when they store an entry.
+
+    Returns:
+        How many files were removed (files another process removes first are skipped).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    now, removed = time.time(), 0
+    for p in folder.glob(".*.tmp*"):
+        with contextlib.suppress(OSError):
+            if p.is_file() and now - p.stat().st_mtime > max_age_s:
+                p.unlink()
+                removed += 1
+    return removed
 
 
 @contextlib.contextmanager

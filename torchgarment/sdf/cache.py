@@ -18,6 +18,7 @@ import torch
 
 from torchgarment.body.cache import cache_root
 from torchgarment.errors import InputError
+from torchgarment.io.atomic import remove_orphan_temporaries
 from torchgarment.sdf.build import SDFSettings, build_sdf_grid, check_mesh
 from torchgarment.sdf.grid import BodySDF
 
@@ -98,5 +99,6 @@ def cached_sdf(
         except InputError:  # truncated or foreign file: drop it and rebuild
             path.unlink(missing_ok=True)
     sdf = BodySDF(build_sdf_grid(v, f, settings))  # float64 on the CPU: the stored values are exact
+    remove_orphan_temporaries(folder)  # a writer killed mid-save leaves its temporary (40 MB) behind
     sdf.save(path)
     return sdf.to(device=device, dtype=dtype)
