@@ -29,3 +29,43 @@ def test_corrupt_or_foreign_payloads_are_refused_in_one_line(tmp_path):
     ok = tmp_path / "ok.pt"
     torch.save({"format": "torchgarment.body_pca/1", "mean": torch.zeros(3)}, ok)
     assert load_payload(ok, "torchgarment.body_pca/1", "PCA body model")["mean"].shape == (3,)
+
+
+def test_a_publish_that_fails_half_way_leaves_the_whole_old_set(tmp_path, monkeypatch):
+    """Issue 17: when a move fails half-way, DIR used to end with the new pattern.json / pattern.dxf and the
+    old pattern.png / pattern.svg; now it keeps the whole old set (and the files the new set does not name),
+    and no hidden staging or backup folder is left."""
+    import os
+
+    from torchgarment.io import staging
+
+    out = tmp_path / "out"
+    out.mkdir()
+    names = ("pattern.dxf", "pattern.json", "pattern.png", "pattern.svg")
+    for n in names:
+        (out / n).write_text("old " + n)
+    (out / "notes.txt").write_text("mine")
+    real = os.replace
+    calls = {"n": 0}
+
+    def flaky(src, dst):
+        calls["n"] += 1
+        if calls["n"] == 5:  # the third file's move aside, after two files were replaced
+            raise OSError("simulated failure")
+        return real(src, dst)
+
+    monkeypatch.setattr(staging.os, "replace", flaky)
+    with pytest.raises(OSError, match="simulated"):
+        with staging.staged_output(out) as stage:
+            for n in names:
+                (stage / n).write_text("new " + n)
+    monkeypatch.setattr(staging.os, "replace", real)
+    assert {p.name: p.read_text() for p in out.iterdir()} == {**{n: "old " + n for n in names},
+                                                               "notes.txt": "mine"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    with staging.staged_output(out) as stage:  # and a publish that succeeds replaces the whole set
+        for n in names:
+            (stage / n).write_text("new " + n)
+    assert {p.name: p.read_text() for p in out.iterdir()} == {**{n: "new " + n for n in names},
+                                                               "notes.txt": "mine"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]

@@ -1,7 +1,8 @@
 """Staged output folders: a command writes into a hidden temporary folder and publishes on success.
 
-A command that fails half-way leaves nothing in its output folder; one that succeeds moves each file into
-place with an atomic rename.
+A command that fails half-way leaves nothing in its output folder; one that succeeds moves its files into
+place as one transaction of renames (:func:`_publish`): if a move fails half-way, the folder keeps its whole
+old set of files (issue 17: it used to end with two new files and two old ones).
 """
 
 from __future__ import annotations
@@ -59,9 +60,39 @@ def staged_output(out_dir: str | os.PathLike) -> Iterator[Path]:
         if clash:
             raise InputError(f"{clash[0]} is a folder where an output file goes: move it away and run again")
         out.mkdir(parents=True, exist_ok=True)
-        for src in files:
-            dst = out / src.relative_to(stage)
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(src, dst)
+        _publish(stage, files, out)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def _publish(stage: Path, files: list[Path], out: Path) -> None:
+    """Move the staged ``files`` into ``out`` as one transaction: every file the new set replaces is first
+    moved aside (into a hidden folder beside ``out``), then the new file moved in; if any move fails, the new
+    files already moved are removed and the old ones put back, so ``out`` holds the whole old set or the whole
+    new set (files of ``out`` that the new set does not name are left alone). Renames only, on one file
+    system."""
+    backup = Path(tempfile.mkdtemp(prefix=f".{out.name}.previous-", dir=out.parent))
+    moved: list[Path] = []
+    saved: list[tuple[Path, Path]] = []
+    try:
+        for src in files:
+            rel = src.relative_to(stage)
+            dst = out / rel
+            if dst.exists():
+                aside = backup / rel
+                aside.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(dst, aside)
+                saved.append((aside, dst))
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(src, dst)
+            moved.append(dst)
+    except BaseException:
+        for dst in moved:
+            with contextlib.suppress(OSError):
+                dst.unlink()
+        for aside, dst in reversed(saved):
+            with contextlib.suppress(OSError):
+                os.replace(aside, dst)
+        raise
+    finally:
+        shutil.rmtree(backup, ignore_errors=True)
