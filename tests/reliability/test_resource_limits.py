@@ -40,3 +40,16 @@ def test_vertex_estimate_and_limit(monkeypatch):
     monkeypatch.setenv("TORCHGARMENT_MAX_VERTICES", "lots")
     with pytest.raises(InputError, match="positive integer"):
         max_vertices()
+
+
+def test_pca_build_refuses_absurd_body_counts(tmp_path):
+    from torchgarment.datadriven.cli import DEFAULT_MAX_BODIES
+
+    for n in ("1000000000", "100000"):
+        cmd = ["pca", "build", "--garment", "straight_skirt", "--bodies", n, "--out", "m"]
+        proc = subprocess.run([sys.executable, "-m", "torchgarment", *cmd], capture_output=True, text=True,
+                              cwd=tmp_path, timeout=300)
+        assert proc.returncode == 2, proc.stderr
+        lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+        assert len(lines) == 1 and f"(limit {DEFAULT_MAX_BODIES} bodies)" in lines[0], proc.stderr
+        assert list(tmp_path.iterdir()) == []

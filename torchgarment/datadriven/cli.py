@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -106,12 +107,38 @@ def _write_json(path: Path, data: dict) -> None:
         fh.write("\n")
 
 
+DEFAULT_MAX_BODIES = 20_000
+"""Most bodies ``pca build --bodies`` samples by default (about 6 GiB of float64 vertices plus the PCA's
+copies); the environment variable ``TORCHGARMENT_MAX_BODIES`` raises or lowers it."""
+ANNY_BODY_BYTES = 13_348 * 3 * 8
+"""Bytes of one sampled anny body's vertices (13,348 x 3 float64)."""
+
+
+def _max_bodies() -> int:
+    raw = os.environ.get("TORCHGARMENT_MAX_BODIES")
+    if raw is None:
+        return DEFAULT_MAX_BODIES
+    try:
+        value = int(raw)
+    except ValueError:
+        value = 0
+    if value < 3:
+        raise InputError(f"TORCHGARMENT_MAX_BODIES must be an integer >= 3, got {raw!r}")
+    return value
+
+
 def _dataset(args: argparse.Namespace) -> BodyDataset:
     from torchgarment.datadriven.dataset import BodyDataset
 
     if args.bodies is not None:
         if args.bodies < 3:
             raise InputError(f"--bodies must be at least 3, got {args.bodies}")
+        limit = _max_bodies()
+        if args.bodies > limit:
+            gib = args.bodies * ANNY_BODY_BYTES / 2**30
+            raise InputError(f"--bodies {args.bodies}: about {gib:.3g} GiB of bodies to sample and hold "
+                             f"(limit {limit} bodies): sample fewer, or raise the limit with "
+                             "TORCHGARMENT_MAX_BODIES")
         from torchgarment.body.anny_phenotype import PhenotypeRanges
 
         ranges = PhenotypeRanges.for_population(args.population)
