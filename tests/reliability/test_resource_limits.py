@@ -53,3 +53,33 @@ def test_pca_build_refuses_absurd_body_counts(tmp_path):
         lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
         assert len(lines) == 1 and f"(limit {DEFAULT_MAX_BODIES} bodies)" in lines[0], proc.stderr
         assert list(tmp_path.iterdir()) == []
+
+
+def test_sdf_build_refuses_absurd_voxels(tmp_path, monkeypatch):
+    """``drape --voxel 1e-5`` made numpy ask for 11.6 TiB; the SDF's memory is estimated first."""
+    import numpy as np
+
+    from torchgarment.sdf.build import SDFSettings, build_sdf_grid, estimate_sdf_bytes, max_sdf_bytes
+
+    cmd = ["drape", "--pattern", "straight_skirt", "--size", "12", "--body", "12", "--voxel", "1e-5",
+           "--no-progress", "--out", "o"]
+    proc = subprocess.run([sys.executable, "-m", "torchgarment", *cmd], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "GiB (limit 16 GiB)" in lines[0], proc.stderr
+    assert list(tmp_path.iterdir()) == []
+    # a unit cube: a finer voxel costs more, and the limit is read from the environment
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]],
+                 dtype=float)
+    f = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7],
+                  [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]])
+    a, b = (estimate_sdf_bytes(v, f, SDFSettings(voxel_size=h)) for h in (0.02, 0.01))
+    assert b > 3 * a  # fine nodes grow as voxel^-3 in a shell that narrows with the voxel
+    monkeypatch.setenv("TORCHGARMENT_MAX_SDF_GB", "0.001")
+    assert max_sdf_bytes() == pytest.approx(0.001 * 2**30)
+    with pytest.raises(InputError, match="TORCHGARMENT_MAX_SDF_GB"):
+        build_sdf_grid(v, f, SDFSettings(voxel_size=0.01))
+    monkeypatch.setenv("TORCHGARMENT_MAX_SDF_GB", "-1")
+    with pytest.raises(InputError, match="positive number"):
+        max_sdf_bytes()

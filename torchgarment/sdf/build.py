@@ -327,6 +327,47 @@ def _node_offsets(n: int) -> np.ndarray:
     return np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
+DEFAULT_MAX_SDF_GB = 16.0
+"""Largest estimated memory (GiB) of an SDF build (:func:`estimate_sdf_bytes`) by default; the environment
+variable ``TORCHGARMENT_MAX_SDF_GB`` raises or lowers it."""
+
+
+def estimate_sdf_bytes(vertices: np.ndarray, faces: np.ndarray, settings: SDFSettings) -> float:
+    """Peak memory in bytes of :func:`build_sdf_grid`, estimated before building: about 100 bytes per node of
+    the coarse grid over the padded bounding box, and 150 per fine node of the bricks in a shell of width
+    ``2 (band + sqrt(3) brick voxel)`` around the surface. Measured against the real build (size-20 chart
+    body, 2.5 mm voxels, one worker): 2.55 GiB estimated, 1.8 GB peak resident size of the whole process."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    spacing = settings.coarse_spacing
+    pad = float(settings.band) + spacing
+    nodes_coarse = float(np.prod(np.ceil((v.max(axis=0) - v.min(axis=0) + 2 * pad) / spacing) + 1))
+    t = v[f]
+    area = 0.5 * float(np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
+    shell = area * 2.0 * (float(settings.band) + math.sqrt(3.0) * spacing)  # m^3 of bricks near the surface
+    nodes_fine = shell / settings.voxel_size**3 * ((settings.brick + 1) / settings.brick) ** 3
+    return 100.0 * nodes_coarse + 150.0 * nodes_fine
+
+
+def max_sdf_bytes() -> float:
+    """The SDF memory limit in force (bytes): ``TORCHGARMENT_MAX_SDF_GB`` GiB when set, else
+    :data:`DEFAULT_MAX_SDF_GB`.
+
+    Raises:
+        InputError: the variable is not a positive number.
+    """
+    raw = os.environ.get("TORCHGARMENT_MAX_SDF_GB")
+    if raw is None:
+        return DEFAULT_MAX_SDF_GB * 2**30
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(f"TORCHGARMENT_MAX_SDF_GB must be a positive number of GiB, got {raw!r}")
+    return value * 2**30
+
+
 def build_sdf_grid(vertices: np.ndarray, faces: np.ndarray,
                    settings: SDFSettings | None = None) -> SDFGridData:
     """Build a sparse narrow-band signed distance grid of a triangle mesh.
@@ -341,9 +382,15 @@ def build_sdf_grid(vertices: np.ndarray, faces: np.ndarray,
 
     Raises:
         MeshError: the mesh is empty or has non-finite vertices.
+        InputError: the estimated memory (:func:`estimate_sdf_bytes`) is above :func:`max_sdf_bytes`.
     """
     settings = settings or SDFSettings()
     v, f = check_mesh(vertices, faces)
+    need, limit = estimate_sdf_bytes(v, f, settings), max_sdf_bytes()
+    if need > limit:
+        raise InputError(f"the body's SDF at {settings.voxel_size:g} m voxels would need about "
+                         f"{need / 2**30:.3g} GiB (limit {limit / 2**30:g} GiB): use a larger voxel size, "
+                         "check the body's units, or raise the limit with TORCHGARMENT_MAX_SDF_GB")
     h = float(settings.voxel_size)
     B = int(settings.brick)
     s = B * h
