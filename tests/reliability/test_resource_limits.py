@@ -83,3 +83,36 @@ def test_sdf_build_refuses_absurd_voxels(tmp_path, monkeypatch):
     monkeypatch.setenv("TORCHGARMENT_MAX_SDF_GB", "-1")
     with pytest.raises(InputError, match="positive number"):
         max_sdf_bytes()
+
+
+def test_a_panel_with_absurdly_many_points_is_refused_quickly(tmp_path):
+    """A 200,000-vertex panel made ``pattern`` allocate a 37 GiB n x n array in the self-crossing test."""
+    import time
+
+    import numpy as np
+
+    from torchgarment.errors import PatternError
+    from torchgarment.pattern.garmentcode import save_pattern
+    from torchgarment.pattern.spec import Edge, Panel, SewingPattern, _first_self_crossing
+
+    def ring(n: int) -> Panel:
+        t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+        v = 0.3 * np.stack([np.cos(t), np.sin(t)], axis=1)
+        return Panel(name="ring", vertices=v, edges=[Edge(i, (i + 1) % n) for i in range(n)])
+
+    t0 = time.perf_counter()
+    with pytest.raises(PatternError, match="200000 edges, more than 5000"):
+        SewingPattern(name="big", panels={"ring": ring(200_000)}).validate()
+    assert time.perf_counter() - t0 < 30
+    SewingPattern(name="ok", panels={"ring": ring(2_000)}).validate()
+    # the blocked crossing test finds what the all-pairs one found
+    star = np.array([[0, 0], [2, 0], [0, 1], [2, 1]], dtype=float)  # a bow tie: segments 0 and 2 cross
+    assert np.allclose(_first_self_crossing(star, block_pairs=1), [1.0, 0.5])
+    path = tmp_path / "big.json"
+    save_pattern(path, SewingPattern(name="big", panels={"ring": ring(20_000)}))
+    proc = subprocess.run([sys.executable, "-m", "torchgarment", "pattern", str(path), "--out", "o"],
+                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "more than 5000" in lines[0], proc.stderr
+    assert not (tmp_path / "o").exists()

@@ -389,7 +389,13 @@ def _validate_panel(name: str, panel: Panel) -> None:
     starts = [e.start for e in panel.edges]
     if len(set(starts)) != len(starts):
         raise PatternError(f"panel '{name}' outline visits a vertex twice")
+    if len(panel.edges) > MAX_PANEL_EDGES:
+        raise PatternError(f"panel '{name}' has {len(panel.edges)} edges, more than {MAX_PANEL_EDGES}: "
+                           "simplify its outline (a pattern piece has tens to a few thousand points)")
     outline = panel.outline(resolution=16)
+    if outline.shape[0] > MAX_OUTLINE_POINTS:
+        raise PatternError(f"panel '{name}' outline has {outline.shape[0]} points when its curves are "
+                           f"sampled, more than {MAX_OUTLINE_POINTS}: simplify it (fewer curved edges)")
     if abs(panel.area()) < 1e-8:
         raise PatternError(f"panel '{name}' has zero area")
     crossing = _first_self_crossing(outline)
@@ -398,12 +404,39 @@ def _validate_panel(name: str, panel: Panel) -> None:
                            f"{crossing[1]:.4f}) m")
 
 
-def _first_self_crossing(poly: np.ndarray) -> np.ndarray | None:
-    """First proper intersection point of two non-adjacent segments of a closed polyline (M, 2), or None."""
+MAX_PANEL_EDGES = 5_000
+"""Most edges a panel may have (:meth:`SewingPattern.validate`): a 200,000-vertex panel made the self-crossing
+test allocate 37 GiB (issue 17); real pattern pieces have tens to a few thousand points."""
+MAX_OUTLINE_POINTS = 10_000
+"""Most points of a panel's sampled outline (16 per curved edge) in the self-crossing test, whose time grows
+as the square of it (about 5 s at 10,000 points on this machine)."""
+
+
+def _first_self_crossing(poly: np.ndarray, block_pairs: int = 2_000_000) -> np.ndarray | None:
+    """First proper intersection point of two non-adjacent segments of a closed polyline (M, 2), or None.
+
+    Segment pairs are tested in blocks of rows (about ``block_pairs`` pairs each), so memory stays bounded
+    (about 150 bytes per pair of a block) whatever ``M``."""
+    m = poly.shape[0]
+    rows = max(1, block_pairs // max(m, 1))
+    for start in range(0, m, rows):
+        hit = _crossing_in_rows(poly, start, min(m, start + rows))
+        if hit is not None:
+            return hit
+    return None
+
+
+def _crossing_in_rows(poly: np.ndarray, lo: int, hi: int) -> np.ndarray | None:
+    """:func:`_first_self_crossing` over the segment pairs ``(i, j)``, ``lo <= i < hi``, ``j >= i + 2``."""
     a = poly
     b = np.roll(poly, -1, axis=0)
     m = a.shape[0]
-    i, j = np.triu_indices(m, k=2)
+    ii = np.arange(lo, hi)
+    counts = np.maximum(m - (ii + 2), 0)
+    i = np.repeat(ii, counts)
+    if i.size == 0:
+        return None
+    j = np.arange(i.size) - np.repeat(np.cumsum(counts) - counts, counts) + i + 2
     keep = ~((i == 0) & (j == m - 1))  # first and last segments are adjacent
     i, j = i[keep], j[keep]
     p, r = a[i], b[i] - a[i]
