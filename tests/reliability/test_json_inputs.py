@@ -72,3 +72,15 @@ def test_a_folder_given_as_a_file_is_named_as_such(tmp_path: Path, args, needle)
     proc = _run(*args, cwd=tmp_path)
     _one_line(proc, needle)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["folder"]
+
+
+def test_oversized_dxf_is_refused_before_parsing(tmp_path: Path, monkeypatch):
+    from torchgarment.pattern import dxf
+
+    big = tmp_path / "big.dxf"
+    big.write_text("0\nSECTION\n" * 100)
+    monkeypatch.setattr(dxf, "MAX_DXF_BYTES", 100)
+    with pytest.raises(PatternError, match="too large for a pattern DXF"):
+        dxf.load_dxf(big)
+    with pytest.raises(PatternError, match="is a folder"):
+        dxf.load_dxf(tmp_path)

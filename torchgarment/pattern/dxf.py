@@ -487,9 +487,19 @@ class _Piece:
     data: list[str]
 
 
+MAX_DXF_BYTES = 256 * 2**20
+"""Largest DXF file read (256 MiB; a graded set of a garment is a few hundred kB)."""
+
+
 def _read_doc(path: str | os.PathLike) -> Drawing:
+    if os.path.isdir(path):
+        raise PatternError(f"'{path}' is a folder, not a DXF file")
     if not os.path.isfile(path):
         raise PatternError(f"DXF file '{path}' does not exist")
+    size = os.path.getsize(path)
+    if size > MAX_DXF_BYTES:
+        raise PatternError(f"'{path}': {size / 2**20:.1f} MiB is too large for a pattern DXF (limit "
+                           f"{MAX_DXF_BYTES // 2**20} MiB)")
     try:
         return ezdxf.readfile(path)
     except Exception as exc:  # ezdxf raises many types on garbage; all mean "not a readable DXF"
