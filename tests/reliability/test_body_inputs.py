@@ -77,3 +77,14 @@ def test_drape_refuses_before_any_heavy_work(body_files, tmp_path, name, needle)
                 "--out", "o", "--no-progress", cwd=tmp_path)
     _one_line(proc, needle)
     assert not (tmp_path / "o").exists()
+
+
+def test_anny_commands_print_no_warp_cuda_warning(tmp_path):
+    """Every anny-loading command printed "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
+    on a machine without a GPU; warp is now initialized while stderr is muted."""
+    code = ("from torchgarment.body.anny_phenotype import body_from_phenotype, sample_phenotypes\n"
+            "body_from_phenotype(sample_phenotypes(1, seed=1)[0])\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "Warp" not in proc.stderr and "CUDA" not in proc.stderr, proc.stderr

@@ -228,6 +228,9 @@ def _import_anny_quietly() -> ModuleType:
     try:
         with open(os.devnull, "w") as null:
             os.dup2(null.fileno(), 2)
+            # warp prints "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver" from its lazy
+            # init on a machine without a GPU: initialize it here, where stderr is muted (issue 17)
+            warp.init()
             import anny
     finally:
         os.dup2(saved, 2)
