@@ -27,8 +27,9 @@ def body_files(tmp_path_factory) -> dict[str, Path]:
     flipped = v.clone()
     flipped[:, 1] = -flipped[:, 1]
     lying = v[:, [0, 2, 1]].clone()
+    stray = torch.cat([v, torch.tensor([[0.0, 5.0, 0.0]], dtype=v.dtype)])
     files = {"metres": (v, f), "mm": (1000.0 * v, f), "cm": (100.0 * v, f), "upside_down": (flipped, f),
-             "lying": (lying, f),
+             "lying": (lying, f), "stray": (stray, f),
              "triangle": (torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]]),
                           torch.tensor([[0, 1, 2]]))}
     out = {}
@@ -56,7 +57,8 @@ def test_check_human_body(body_files):
     check_human_body(*load_mesh(body_files["metres"]))
     for name, needle in (("mm", "if it is in millimetres: scale it by 0.001"),
                          ("cm", "if it is in centimetres: scale it by 0.01"), ("upside_down", "upside down"),
-                         ("lying", "+Y up"), ("triangle", "outside 0.4-2.8 m")):
+                         ("lying", "+Y up"), ("triangle", "outside 0.4-2.8 m"),
+                         ("stray", "1 vertices are used by no face")):
         with pytest.raises(InputError, match=needle.replace("+", r"\+")):
             check_human_body(*load_mesh(body_files[name]), name=name)
     v, f = load_mesh(body_files["metres"])
@@ -67,6 +69,10 @@ def test_check_human_body(body_files):
 def test_measure_refuses_a_body_in_millimetres(body_files, tmp_path):
     proc = _run("measure", str(body_files["mm"]), "--out", "m.json", cwd=tmp_path)
     _one_line(proc, "scale it by 0.001")
+    assert not (tmp_path / "m.json").exists()
+    # stray points were reported as "not a standing human body"
+    proc = _run("measure", str(body_files["stray"]), "--out", "m.json", cwd=tmp_path)
+    _one_line(proc, "used by no face (stray points, the first at [0.0, 5.0, 0.0])")
     assert not (tmp_path / "m.json").exists()
 
 

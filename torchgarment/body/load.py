@@ -155,7 +155,9 @@ def check_human_body(vertices: torch.Tensor, faces: torch.Tensor, name: str = "t
     A body in millimetres or centimetres made the SDF build allocate terabytes or swap the machine, and one
     upside down "converged". Checked: the height (extent along Y) within :data:`HUMAN_HEIGHT_RANGE`, naming
     the unit and factor that would bring it there; the longest side along Y (not lying or Z-up); the top 8 %
-    of the height (the head) not wider than :data:`UPSIDE_DOWN_RATIO` times the bottom 8 % (the feet).
+    of the height (the head) not wider than :data:`UPSIDE_DOWN_RATIO` times the bottom 8 % (the feet); no
+    vertex that no face uses (stray points, which corrupted the height and were reported as "not a standing
+    human body").
 
     Args:
         vertices: (V, 3) positions. faces: (F, 3) vertex indices (only the vertices faces use count).
@@ -166,7 +168,14 @@ def check_human_body(vertices: torch.Tensor, faces: torch.Tensor, name: str = "t
     """
     v = vertices.detach().to(device="cpu", dtype=torch.float64)
     used = torch.unique(faces.detach().cpu().long().reshape(-1))
-    v = v[used[(used >= 0) & (used < v.shape[0])]]
+    used = used[(used >= 0) & (used < v.shape[0])]
+    if 0 < used.numel() < v.shape[0]:
+        stray = torch.ones(v.shape[0], dtype=torch.bool)
+        stray[used] = False
+        first = [round(float(c), 3) for c in v[int(torch.nonzero(stray)[0])]]
+        raise InputError(f"{name}: {int(stray.sum())} vertices are used by no face (stray points, the first "
+                         f"at {first}): remove the unreferenced vertices")
+    v = v[used]
     if v.shape[0] < 3 or not bool(torch.isfinite(v).all()):
         raise InputError(f"{name}: not a body (fewer than 3 used vertices or non-finite coordinates)")
     extent = v.max(dim=0).values - v.min(dim=0).values  # (3,) metres
