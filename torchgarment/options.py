@@ -1,7 +1,10 @@
-"""String options as enums, resolved from names (the theseus pattern)."""
+"""String options as enums, resolved from names (the theseus pattern); resource limits read from the
+environment (:func:`env_limit`)."""
 
 from __future__ import annotations
 
+import math
+import os
 import re
 from enum import Enum
 from typing import TypeVar
@@ -37,3 +40,26 @@ class OptionEnum(str, Enum):
             known = ", ".join(m.value for m in cls)
             synonyms = "".join(f", {a} (= {v})" for a, v in cls.aliases().items())
             raise InputError(f"unknown {label} {value!r}; expected one of: {known}{synonyms}") from None
+
+
+def env_limit(name: str, default: float, minimum: float) -> float:
+    """A resource limit: the environment variable ``name`` when set, else ``default``.
+
+    Args:
+        name: the variable (e.g. ``"TORCHGARMENT_MAX_VERTICES"``).
+        default: the documented default.
+        minimum: the smallest accepted value.
+
+    Raises:
+        InputError: the variable is set to something that is not a finite number >= ``minimum``.
+    """
+    raw = os.environ.get(name)
+    if raw is None:
+        return default
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= minimum):
+        raise InputError(f"{name} must be a number >= {minimum:g}, got {raw!r}")
+    return value

@@ -39,16 +39,6 @@ def body_files(tmp_path_factory) -> dict[str, Path]:
     return out
 
 
-def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "torchgarment", *args], capture_output=True, text=True,
-                          cwd=cwd, timeout=300)
-
-
-def _one_line(proc: subprocess.CompletedProcess, needle: str) -> None:
-    assert proc.returncode == 2, proc.stderr
-    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    assert needle in lines[0], lines[0]
 
 
 def test_check_human_body(body_files):
@@ -66,22 +56,22 @@ def test_check_human_body(body_files):
         check_human_body(torch.where(torch.arange(v.shape[0])[:, None] == 0, float("nan"), v), f)
 
 
-def test_measure_refuses_a_body_in_millimetres(body_files, tmp_path):
-    proc = _run("measure", str(body_files["mm"]), "--out", "m.json", cwd=tmp_path)
-    _one_line(proc, "scale it by 0.001")
+def test_measure_refuses_a_body_in_millimetres(body_files, tmp_path, cli, one_line):
+    proc = cli("measure", str(body_files["mm"]), "--out", "m.json", cwd=tmp_path)
+    one_line(proc, "scale it by 0.001")
     assert not (tmp_path / "m.json").exists()
     # stray points were reported as "not a standing human body"
-    proc = _run("measure", str(body_files["stray"]), "--out", "m.json", cwd=tmp_path)
-    _one_line(proc, "used by no face (stray points, the first at [0.0, 5.0, 0.0])")
+    proc = cli("measure", str(body_files["stray"]), "--out", "m.json", cwd=tmp_path)
+    one_line(proc, "used by no face (stray points, the first at [0.0, 5.0, 0.0])")
     assert not (tmp_path / "m.json").exists()
 
 
 @pytest.mark.parametrize("name, needle", [("cm", "scale it by 0.01"), ("upside_down", "upside down"),
                                           ("triangle", "human body")])
-def test_drape_refuses_before_any_heavy_work(body_files, tmp_path, name, needle):
-    proc = _run("drape", "--pattern", "straight_skirt", "--size", "12", "--body", str(body_files[name]),
+def test_drape_refuses_before_any_heavy_work(body_files, tmp_path, name, needle, cli, one_line):
+    proc = cli("drape", "--pattern", "straight_skirt", "--size", "12", "--body", str(body_files[name]),
                 "--out", "o", "--no-progress", cwd=tmp_path)
-    _one_line(proc, needle)
+    one_line(proc, needle)
     assert not (tmp_path / "o").exists()
 
 

@@ -3,8 +3,6 @@ they claim (a folder, a huge file) end in one line and exit code 2, with nothing
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -14,24 +12,12 @@ from torchgarment.io import jsonfile
 from torchgarment.io.jsonfile import read_json
 
 
-def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "torchgarment", *args], capture_output=True, text=True,
-                          cwd=cwd, timeout=300)
-
-
-def _one_line(proc: subprocess.CompletedProcess, needle: str) -> None:
-    assert proc.returncode == 2, proc.stderr
-    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    assert needle in lines[0], lines[0]
-
-
 @pytest.mark.parametrize("command", [["body", "--measurements"], ["pattern"]])
-def test_deeply_nested_json_is_refused_in_one_line(tmp_path: Path, command: list[str]):
+def test_deeply_nested_json_is_refused_in_one_line(tmp_path: Path, command: list[str], cli, one_line):
     deep = tmp_path / "deep.json"
     deep.write_text("[" * 100_000)
-    proc = _run(*command, str(deep), "--out", "o", cwd=tmp_path)
-    _one_line(proc, "nested too deeply")
+    proc = cli(*command, str(deep), "--out", "o", cwd=tmp_path)
+    one_line(proc, "nested too deeply")
     assert not (tmp_path / "o").exists()
 
 
@@ -67,10 +53,10 @@ def test_read_json_refusals(tmp_path: Path, monkeypatch):
     (["drape", "--pattern", "straight_skirt", "--size", "12", "--body", "folder", "--out", "o"],
      "--body folder: is a folder"),
 ])
-def test_a_folder_given_as_a_file_is_named_as_such(tmp_path: Path, args, needle):
+def test_a_folder_given_as_a_file_is_named_as_such(tmp_path: Path, args, needle, cli, one_line):
     (tmp_path / "folder").mkdir()
-    proc = _run(*args, cwd=tmp_path)
-    _one_line(proc, needle)
+    proc = cli(*args, cwd=tmp_path)
+    one_line(proc, needle)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["folder"]
 
 

@@ -4,9 +4,6 @@ documented and set by ``TORCHGARMENT_MAX_VERTICES``."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import pytest
 
 from torchgarment.body.size_chart import chart_row
@@ -15,15 +12,11 @@ from torchgarment.pattern.library import draft, list_garments
 from torchgarment.pattern.meshing import DEFAULT_MAX_VERTICES, estimate_vertices, max_vertices, mesh_pattern
 
 
-def test_tiny_edge_length_is_refused_before_meshing(tmp_path):
+def test_tiny_edge_length_is_refused_before_meshing(tmp_path, cli, one_line):
     for cmd in (["pattern", "--garment", "straight_skirt", "--size", "12"],
                 ["drape", "--pattern", "straight_skirt", "--size", "12", "--body", "12", "--no-progress"]):
-        proc = subprocess.run([sys.executable, "-m", "torchgarment", *cmd, "--edge-length", "1e-5", "--out",
-                               "o"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
-        assert proc.returncode == 2, proc.stderr
-        lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
-        assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-        assert "would make about 6.68e+09 vertices (limit 500000)" in lines[0]
+        proc = cli(*cmd, "--edge-length", "1e-5", "--out", "o", cwd=tmp_path)
+        one_line(proc, "would make about 6.68e+09 vertices (limit 500000)")
         assert list(tmp_path.iterdir()) == []  # no output, no hidden staging folder
 
 
@@ -38,36 +31,28 @@ def test_vertex_estimate_and_limit(monkeypatch):
     with pytest.raises(InputError, match=r"limit 100\)"):
         mesh_pattern(skirt, 0.03)
     monkeypatch.setenv("TORCHGARMENT_MAX_VERTICES", "lots")
-    with pytest.raises(InputError, match="positive integer"):
+    with pytest.raises(InputError, match="TORCHGARMENT_MAX_VERTICES must be a number >= 1"):
         max_vertices()
 
 
-def test_pca_build_refuses_absurd_body_counts(tmp_path):
+def test_pca_build_refuses_absurd_body_counts(tmp_path, cli, one_line):
     from torchgarment.datadriven.cli import DEFAULT_MAX_BODIES
 
     for n in ("1000000000", "100000"):
-        cmd = ["pca", "build", "--garment", "straight_skirt", "--bodies", n, "--out", "m"]
-        proc = subprocess.run([sys.executable, "-m", "torchgarment", *cmd], capture_output=True, text=True,
-                              cwd=tmp_path, timeout=300)
-        assert proc.returncode == 2, proc.stderr
-        lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
-        assert len(lines) == 1 and f"(limit {DEFAULT_MAX_BODIES} bodies)" in lines[0], proc.stderr
+        proc = cli("pca", "build", "--garment", "straight_skirt", "--bodies", n, "--out", "m", cwd=tmp_path)
+        one_line(proc, f"(limit {DEFAULT_MAX_BODIES} bodies)")
         assert list(tmp_path.iterdir()) == []
 
 
-def test_sdf_build_refuses_absurd_voxels(tmp_path, monkeypatch):
+def test_sdf_build_refuses_absurd_voxels(tmp_path, monkeypatch, cli, one_line):
     """``drape --voxel 1e-5`` made numpy ask for 11.6 TiB; the SDF's memory is estimated first."""
     import numpy as np
 
     from torchgarment.sdf.build import SDFSettings, build_sdf_grid, estimate_sdf_bytes, max_sdf_bytes
 
-    cmd = ["drape", "--pattern", "straight_skirt", "--size", "12", "--body", "12", "--voxel", "1e-5",
-           "--no-progress", "--out", "o"]
-    proc = subprocess.run([sys.executable, "-m", "torchgarment", *cmd], capture_output=True, text=True,
-                          cwd=tmp_path, timeout=300)
-    assert proc.returncode == 2, proc.stderr
-    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1 and "GiB (limit 16 GiB)" in lines[0], proc.stderr
+    proc = cli("drape", "--pattern", "straight_skirt", "--size", "12", "--body", "12", "--voxel", "1e-5",
+               "--no-progress", "--out", "o", cwd=tmp_path)
+    one_line(proc, "GiB (limit 16 GiB)")
     assert list(tmp_path.iterdir()) == []
     # a unit cube: a finer voxel costs more, and the limit is read from the environment
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]],
@@ -81,14 +66,12 @@ def test_sdf_build_refuses_absurd_voxels(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="TORCHGARMENT_MAX_SDF_GB"):
         build_sdf_grid(v, f, SDFSettings(voxel_size=0.01))
     monkeypatch.setenv("TORCHGARMENT_MAX_SDF_GB", "-1")
-    with pytest.raises(InputError, match="positive number"):
+    with pytest.raises(InputError, match="TORCHGARMENT_MAX_SDF_GB must be a number"):
         max_sdf_bytes()
 
 
-def test_a_panel_with_absurdly_many_points_is_refused_quickly(tmp_path):
+def test_a_panel_with_absurdly_many_points_is_refused(tmp_path, cli, one_line):
     """A 200,000-vertex panel made ``pattern`` allocate a 37 GiB n x n array in the self-crossing test."""
-    import time
-
     import numpy as np
 
     from torchgarment.errors import PatternError
@@ -100,19 +83,13 @@ def test_a_panel_with_absurdly_many_points_is_refused_quickly(tmp_path):
         v = 0.3 * np.stack([np.cos(t), np.sin(t)], axis=1)
         return Panel(name="ring", vertices=v, edges=[Edge(i, (i + 1) % n) for i in range(n)])
 
-    t0 = time.perf_counter()
     with pytest.raises(PatternError, match="200000 edges, more than 5000"):
         SewingPattern(name="big", panels={"ring": ring(200_000)}).validate()
-    assert time.perf_counter() - t0 < 30
     SewingPattern(name="ok", panels={"ring": ring(2_000)}).validate()
     # the blocked crossing test finds what the all-pairs one found
     star = np.array([[0, 0], [2, 0], [0, 1], [2, 1]], dtype=float)  # a bow tie: segments 0 and 2 cross
     assert np.allclose(_first_self_crossing(star, block_pairs=1), [1.0, 0.5])
     path = tmp_path / "big.json"
     save_pattern(path, SewingPattern(name="big", panels={"ring": ring(20_000)}))
-    proc = subprocess.run([sys.executable, "-m", "torchgarment", "pattern", str(path), "--out", "o"],
-                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
-    assert proc.returncode == 2, proc.stderr
-    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1 and "more than 5000" in lines[0], proc.stderr
+    one_line(cli("pattern", str(path), "--out", "o", cwd=tmp_path), "more than 5000")
     assert not (tmp_path / "o").exists()

@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from torchgarment.errors import InputError
+from torchgarment.options import env_limit
 
 if TYPE_CHECKING:
     from torchgarment.datadriven.basis import ClothingBasis
@@ -115,16 +115,7 @@ ANNY_BODY_BYTES = 13_348 * 3 * 8
 
 
 def _max_bodies() -> int:
-    raw = os.environ.get("TORCHGARMENT_MAX_BODIES")
-    if raw is None:
-        return DEFAULT_MAX_BODIES
-    try:
-        value = int(raw)
-    except ValueError:
-        value = 0
-    if value < 3:
-        raise InputError(f"TORCHGARMENT_MAX_BODIES must be an integer >= 3, got {raw!r}")
-    return value
+    return int(env_limit("TORCHGARMENT_MAX_BODIES", DEFAULT_MAX_BODIES, 3))
 
 
 def _dataset(args: argparse.Namespace) -> BodyDataset:

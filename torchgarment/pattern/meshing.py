@@ -19,12 +19,12 @@ each panel's vertices are contiguous, in the pattern's panel order, its outline 
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 import torch
 
 from torchgarment.errors import InputError, MeshError, PatternError
+from torchgarment.options import env_limit
 from torchgarment.pattern.spec import SewingPattern, Stitch, StitchOrientation
 from torchgarment.structures.garment_mesh import GarmentMesh, MeshLayout
 
@@ -44,18 +44,9 @@ def max_vertices() -> int:
     """The vertex limit in force: ``TORCHGARMENT_MAX_VERTICES`` when set, else :data:`DEFAULT_MAX_VERTICES`.
 
     Raises:
-        InputError: the variable is not a positive integer.
+        InputError: the variable is not a number >= 1.
     """
-    raw = os.environ.get("TORCHGARMENT_MAX_VERTICES")
-    if raw is None:
-        return DEFAULT_MAX_VERTICES
-    try:
-        value = int(raw)
-    except ValueError:
-        value = 0
-    if value <= 0:
-        raise InputError(f"TORCHGARMENT_MAX_VERTICES must be a positive integer, got {raw!r}")
-    return value
+    return int(env_limit("TORCHGARMENT_MAX_VERTICES", DEFAULT_MAX_VERTICES, 1))
 
 
 def estimate_vertices(pattern: SewingPattern, edge_length: float) -> float:

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from torchgarment.errors import InputError, MeshError
-from torchgarment.options import OptionEnum
+from torchgarment.options import OptionEnum, env_limit
 
 DEFAULT_BAND = 0.02
 """Default narrow-band half-width in metres (raised to the far-field minimum for coarse voxels)."""
@@ -356,16 +356,7 @@ def max_sdf_bytes() -> float:
     Raises:
         InputError: the variable is not a positive number.
     """
-    raw = os.environ.get("TORCHGARMENT_MAX_SDF_GB")
-    if raw is None:
-        return DEFAULT_MAX_SDF_GB * 2**30
-    try:
-        value = float(raw)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise InputError(f"TORCHGARMENT_MAX_SDF_GB must be a positive number of GiB, got {raw!r}")
-    return value * 2**30
+    return env_limit("TORCHGARMENT_MAX_SDF_GB", DEFAULT_MAX_SDF_GB, 1e-9) * 2**30
 
 
 def build_sdf_grid(vertices: np.ndarray, faces: np.ndarray,
