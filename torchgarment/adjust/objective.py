@@ -298,6 +298,9 @@ class AdjustObjective(torch.nn.Module):
         self.resolution_factors = resolution_factors(self.edge_length, w.reference_edge_length)
         rf = self.resolution_factors
         regs: dict[str, torch.nn.Module] = {}
+        # row of each mesh vertex in q (-1 off the boundary)
+        pos = torch.full((V,), -1, dtype=torch.long)
+        pos[parametrization.boundary_index.cpu()] = torch.arange(parametrization.num_boundary)
         if w.fixing > 0:
             regs["fixing"] = FixingRegularizer(q0, w.fixing * rf["fixing"])
         if w.curvature > 0:
@@ -306,8 +309,6 @@ class AdjustObjective(torch.nn.Module):
         if w.seam > 0 and parametrization.seam_edge_pairs.shape[0]:
             regs["seam"] = SeamLengthRegularizer(parametrization, w.seam * rf["seam"], q_base=q0)
         if lines is not None and len(lines.lines) > 0:
-            pos = torch.full((V,), -1, dtype=torch.long)
-            pos[parametrization.boundary_index.cpu()] = torch.arange(parametrization.num_boundary)
             for kind, prefix, scale in (("construction", "", 1.0), ("guide", "guide_", w.guide)):
                 part = lines.of_kind(kind)
                 if not part.lines or scale == 0:
@@ -339,17 +340,15 @@ class AdjustObjective(torch.nn.Module):
                         scale * w.placement * rf["lines"],
                         line_weight=1.0 + w.ease / w.placement * slope ** 2)
         if support is not None and w.support_shape > 0 and w.placement > 0:
-            pos = torch.full((V,), -1, dtype=torch.long)
-            pos[parametrization.boundary_index.cpu()] = torch.arange(parametrization.num_boundary)
-            rows = pos[torch.as_tensor(support, dtype=torch.long).cpu()]
+            held = torch.unique(torch.as_tensor(support, dtype=torch.long).cpu())
+            rows = pos[held]
             if bool((rows < 0).any()):
                 raise InputError("a support vertex is not a boundary vertex of the parametrization")
-            panel_of = base_mesh.vertex_panel_ids.cpu()[torch.as_tensor(support, dtype=torch.long).cpu()]
-            reg = SupportShapeRegularizer(rows.to(device), panel_of.to(device), q0)
-            n_panels = int(torch.unique(panel_of).numel())
-            reg.weight = (w.support_shape * w.placement * rf["lines"] * 2 * n_panels
-                          / max(int(reg.rows.numel()), 1))
-            regs["support_shape"] = reg
+            panel_of = base_mesh.vertex_panel_ids.cpu()[held]
+            # each panel's support counts as two corners, spread over its held vertices
+            weight = (w.support_shape * w.placement * rf["lines"] * 2 * int(torch.unique(panel_of).numel())
+                      / held.numel())
+            regs["support_shape"] = SupportShapeRegularizer(rows.to(device), panel_of.to(device), q0, weight)
         self.costs = torch.nn.ModuleDict(costs)
         self.regularizers = torch.nn.ModuleDict(regs)
         self.num_vertices = V

@@ -418,18 +418,18 @@ def _first_self_crossing(poly: np.ndarray, block_pairs: int = 2_000_000) -> np.n
     Segment pairs are tested in blocks of rows (about ``block_pairs`` pairs each), so memory stays bounded
     (about 150 bytes per pair of a block) whatever ``M``."""
     m = poly.shape[0]
+    b = np.roll(poly, -1, axis=0)  # each segment's end
     rows = max(1, block_pairs // max(m, 1))
     for start in range(0, m, rows):
-        hit = _crossing_in_rows(poly, start, min(m, start + rows))
+        hit = _crossing_in_rows(poly, b, start, min(m, start + rows))
         if hit is not None:
             return hit
     return None
 
 
-def _crossing_in_rows(poly: np.ndarray, lo: int, hi: int) -> np.ndarray | None:
-    """:func:`_first_self_crossing` over the segment pairs ``(i, j)``, ``lo <= i < hi``, ``j >= i + 2``."""
-    a = poly
-    b = np.roll(poly, -1, axis=0)
+def _crossing_in_rows(a: np.ndarray, b: np.ndarray, lo: int, hi: int) -> np.ndarray | None:
+    """:func:`_first_self_crossing` of the segments ``a -> b`` (M, 2) over the pairs ``(i, j)``, ``lo <= i <
+    hi``, ``j >= i + 2``."""
     m = a.shape[0]
     ii = np.arange(lo, hi)
     counts = np.maximum(m - (ii + 2), 0)
