@@ -63,8 +63,10 @@ def _write_body_outputs(body: Body, stage: Path, title: str) -> dict:
     if body.skeleton is not None:
         write_skeleton_obj(stage / "skeleton.obj", body.skeleton)
     measured = body.measurements().to_dict()
-    _write_json(stage / "measurements.json", {"units": "metres", "measured": measured,
-                                              "requested": body.params.get("requested", {})})
+    report = {"units": "metres", "measured": measured, "requested": body.params.get("requested", {})}
+    if "reach_errors" in body.params:
+        report["fit_errors_mm"] = body.params["reach_errors"]
+    _write_json(stage / "measurements.json", report)
     render_views([_body_layer(body)], stage / "body.png", title=title)
     return measured
 
@@ -115,8 +117,12 @@ def cmd_body(args: argparse.Namespace) -> int:
         body = Body.from_size(args.size, cache=not args.no_cache)
         title = f"size {args.size}"
     else:
-        body = Body.from_measurements(cache=not args.no_cache, **_read_json_object(args.measurements))
+        body = Body.from_measurements(cache=not args.no_cache, closest=args.closest,
+                                      **_read_json_object(args.measurements))
         title = Path(args.measurements).stem
+        if not body.params["reached"]:
+            print("warning: anny cannot reach these measurements; writing the closest body (errors in mm: "
+                  f"{body.params['reach_errors']})", file=sys.stderr)
     with staged_output(args.out) as stage:
         measured = _write_body_outputs(body, stage, title)
     print(f"body ({title}): {body.num_vertices} vertices, "
@@ -235,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", help="output folder")
     p.add_argument("--list-sizes", action="store_true", help="print the chart's size labels, smallest first")
     p.add_argument("--no-cache", action="store_true", help="fit again even if the body is in the disk cache")
+    p.add_argument("--closest", action="store_true",
+                   help="with --measurements: when anny cannot reach them within 3 mm, write the closest "
+                        "body with a warning and the per-measurement errors (measurements.json), not fail")
     p.set_defaults(func=cmd_body)
 
     p = sub.add_parser("pattern", help="draft a library pattern or convert a pattern file",

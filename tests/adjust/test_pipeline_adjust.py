@@ -236,5 +236,7 @@ def test_pipeline_gradient_is_loss_backward_through_the_solve_function(skirt_cas
         prob.reset_state(x_eq)
         return prob.evaluate(q, exact=True, need_grad=False).objective
 
-    for ad, fd in directional_derivatives(objective, q0, ev.grad, directions=2, h=1e-5, seed=3):
+    # h = 3e-6 m: with the size-20 body of FIT_VERSION 6, a step of 1e-5 m along the first direction crosses
+    # a non-smooth point of the objective (FD error 1.5e-4, 2.2e-4 at 3e-5); at 3e-6 both agree to 5e-7
+    for ad, fd in directional_derivatives(objective, q0, ev.grad, directions=2, h=3e-6, seed=3):
         assert abs(ad - fd) <= 1e-4 * abs(fd), (ad, fd)

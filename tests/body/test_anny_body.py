@@ -197,7 +197,9 @@ def _check_size(body: Body, size: str) -> None:
 
 def test_bust_landmarks_move_continuously_with_the_breast():
     """A heavy anny woman whose breasts grow (cupsize sweep): the bust and underbust tapes and girths move by
-    small, even amounts, never jumping (the cause of the fit failures for large sizes)."""
+    small, even amounts, never jumping (the cause of the fit failures for large sizes). Once the breast fold
+    comes within 0.03 h of her natural waist, the waist tape is carried down with it: its girth stays
+    continuous."""
     model = load_anny_model()
     names = ("bust", "underbust", "waist")
     shape = _Shape(model, dict(DEFAULT_PHENOTYPE, gender=1.0, weight=0.85), [])
@@ -212,7 +214,8 @@ def test_bust_landmarks_move_continuously_with_the_breast():
         ys.append([float(planes[n].point[1]) for n in names])
         gs.append([float(girths[n]) for n in names])
     dy, dg = np.abs(np.diff(ys, axis=0)), np.diff(gs, axis=0)
-    assert dy.max() < 0.012, dy  # metres per 0.05 cupsize
+    assert dy[:, :2].max() < 0.012, dy  # metres per 0.05 cupsize
+    assert dy[:, 2].max() < 0.015 and np.abs(dg[:, 2]).max() < 0.01, (dy, dg)  # the waist follows the fold
     assert np.all(dg[:, 0] > 0) and dg[:, 0].max() < 0.012  # the bust grows steadily
     assert np.abs(dg[:, 1]).max() < 0.015  # the underbust changes smoothly
     assert dy[:, 1].max() < 2.5 * np.median(dy[:, 1]) + 1e-3  # no step much larger than the others

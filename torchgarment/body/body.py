@@ -80,12 +80,13 @@ class Body:
     @classmethod
     def from_measurements(cls, *, dtype: torch.dtype = torch.float64,
                           device: torch.device | str | None = None, cache: bool = True,
-                          **measurements: float) -> "Body":
+                          closest: bool = False, **measurements: float) -> "Body":
         """Fit an anny body to measurements in metres; see
-        :func:`torchgarment.body.anny_body.body_from_measurements`."""
+        :func:`torchgarment.body.anny_body.body_from_measurements` (``closest``: keep the closest body when
+        the request is out of the model's reach)."""
         from torchgarment.body.anny_body import body_from_measurements
 
-        return body_from_measurements(measurements, dtype=dtype, device=device, cache=cache)
+        return body_from_measurements(measurements, dtype=dtype, device=device, cache=cache, closest=closest)
 
     @classmethod
     def from_size(cls, size: str, *, dtype: torch.dtype = torch.float64,

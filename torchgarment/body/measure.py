@@ -33,7 +33,10 @@ Landmark heuristics (all found from horizontal section loops, never from vertex 
   for a flat chest. Every step is continuous in the shape (no thresholds, no discrete picks among sections),
   so the underbust plane moves little when the body changes little, even for large, low-hanging breasts
   whose fold is a crease.
-* **waist**: horizontal plane of minimum torso girth between ``crotch + 0.1 h`` and ``underbust - 0.01 h``.
+* **waist**: horizontal plane of minimum torso girth between ``crotch + 0.1 h`` and ``underbust - 0.03 h``
+  (the natural waist of the GarmentCode mean bodies and of every chart body lies 0.031-0.065 ``h`` below the
+  underbust; a torso that keeps narrowing up to the breast fold, i.e. a waist larger than the underbust, is
+  measured 0.03 ``h`` under the fold, about where a tape goes round a belly, not just under the fold).
 * **hips**: the buttocks level is the most posterior point of the torso between crotch and waist; the hips are
   the maximum torso girth within +-0.01 ``h`` of it.
 * **thigh**: horizontal plane ``0.01 h`` below the crotch, the body's right leg (as GarmentCode's
@@ -87,6 +90,8 @@ GIRTH_NAMES = ("bust", "underbust", "waist", "hips", "thigh", "upper_arm", "neck
 
 _UP = np.array([0.0, 1.0, 0.0])
 
+_WAIST_BELOW_UNDERBUST = 0.03
+"""The waist search band ends this far below the underbust plane, in units of the body height."""
 _FOLD_SLOPE = 0.3
 """Slope (metres of front depth per metre of height) of the front profile below which the breast has ended."""
 
@@ -848,7 +853,7 @@ def find_section_planes(
     underbust = (1.0 - w) * (nipple - 0.035 * h) + w * (fold - 0.005 * h)
 
     # waist: minimum torso girth between crotch + 0.1 h and just below the underbust
-    wb = np.flatnonzero((ys >= crotch + 0.1 * h) & (ys <= underbust - 0.01 * h))
+    wb = np.flatnonzero((ys >= crotch + 0.1 * h) & (ys <= underbust - _WAIST_BELOW_UNDERBUST * h))
     if wb.size == 0:
         raise InputError("the torso is too short to find the waist")
     waist0 = float(ys[wb][int(np.nanargmin(prof["girth"][wb]))])
