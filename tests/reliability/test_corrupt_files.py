@@ -69,3 +69,26 @@ def test_a_publish_that_fails_half_way_leaves_the_whole_old_set(tmp_path, monkey
     assert {p.name: p.read_text() for p in out.iterdir()} == {**{n: "new " + n for n in names},
                                                                "notes.txt": "mine"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+@pytest.mark.parametrize("where", ["translation", "boundary"])
+def test_nan_in_a_dxf_is_named_as_such(tmp_path, where, cli, one_line):
+    """Issue 17: a NaN in a DXF was reported as a "bad TORCHGARMENT entry" (or, in a boundary vertex, as a
+    stitch to an unknown piece); it is now named as a non-finite number, in one line, exit 2."""
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.dxf import save_dxf
+    from torchgarment.pattern.library import draft
+
+    save_dxf(tmp_path / "p.dxf", draft("straight_skirt", chart_row("12")))
+    lines = (tmp_path / "p.dxf").read_text().split("\n")
+    if where == "translation":
+        i = next(i for i, ln in enumerate(lines) if ln.startswith("translation "))
+        lines[i] = "translation nan 0.0 0.1"
+    else:  # the first boundary vertex's x
+        v = lines.index("VERTEX")
+        x = next(j for j in range(v, v + 20) if lines[j].strip() == "10")
+        lines[x + 1] = "nan"
+    (tmp_path / "bad.dxf").write_text("\n".join(lines))
+    line = one_line(cli("pattern", "bad.dxf", "--out", "o", cwd=tmp_path), "non-finite")
+    assert "skirt_front" in line and "bad TORCHGARMENT entry" not in line
+    assert not (tmp_path / "o").exists()

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
+import torch
 
 from torchgarment.body.skeleton_io import write_skeleton_obj
 from torchgarment.errors import TorchGarmentError
@@ -103,7 +104,7 @@ def test_cli_end_to_end(files: tuple, tmp_path: Path, capsys: pytest.CaptureFixt
     assert "intersections 0" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_skeleton"])
+@pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_skeleton", "garment_in_mm"])
 def test_cli_bad_input_one_line(
     files: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
 ) -> None:
@@ -119,6 +120,10 @@ def test_cli_bad_input_one_line(
         args["--target-avatar"] = str(tmp_path / "nope.obj")
     elif case == "bad_weight":
         extra = ["--fit-weight", "-1"]
+    elif case == "garment_in_mm":  # issue 17: its solve ran for minutes at seconds per iteration
+        v, f = read_obj(d / "garment.obj")
+        save_obj(tmp_path / "garment_mm.obj", torch.as_tensor(1000.0 * v), torch.as_tensor(f))
+        args["--garment"] = str(tmp_path / "garment_mm.obj")
     else:
         bad = tmp_path / "bad_skeleton.obj"
         bad.write_text("v 0 0 0\nv 0 1 0\nl 1 2\n")  # one bone instead of four
@@ -137,3 +142,5 @@ def test_cli_bad_input_one_line(
     assert code == 2
     assert err.startswith("torchgarment: error:") and len(err.splitlines()) == 1
     assert not (tmp_path / "o").exists()
+    if case == "garment_in_mm":
+        assert "different units" in err and "scale the garment by 0.001" in err, err

@@ -142,6 +142,9 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     p.add_argument("--log-dir", metavar="DIR",
                    help="TensorBoard folder (default logs/adjust/<garment>-<base>-to-<target>-<time>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    p.add_argument("--allow-unconverged", action="store_true",
+                   help="go on and write the result even when the base drape or the adjusted garment is "
+                        "unusable (far from equilibrium, fallen or exploded; exit 3 otherwise)")
     p.set_defaults(func=cmd_adjust)
     return p
 
@@ -249,6 +252,19 @@ def write_outputs(result: AdjustResult, stage: Path, base_body: Body, target_bod
         f.write("\n")
 
 
+def _refuse_unusable(reason: str | None, what: str, allow: bool) -> None:
+    """Raise :class:`UnusableResultError` (exit 3) naming ``what`` and ``reason``; with ``allow`` say it on
+    stderr and go on."""
+    from torchgarment.errors import UnusableResultError
+
+    if reason is None:
+        return
+    if not allow:
+        raise UnusableResultError(f"{what} is unusable: {reason}; nothing written (--allow-unconverged "
+                                  "goes on)")
+    print(f"adjust: going on although {what} is unusable (--allow-unconverged): {reason}", file=sys.stderr)
+
+
 def cmd_adjust(args: argparse.Namespace) -> int:
     """Run ``torchgarment adjust``; returns the exit code."""
     import torch
@@ -279,9 +295,18 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     run = f"{pattern.name}-{base_name}-to-{target_name}-{time.strftime('%Y%m%d-%H%M%S')}"
     run = run.replace(" ", "_").replace("/", "_")
     log_dir = Path(args.log_dir) if args.log_dir else Path("logs") / "adjust" / run
+    from torchgarment.adjust.pipeline import base_drape_settings
+    from torchgarment.sim.drape import drape, unusable_positions, unusable_reason
+
+    # an unusable base drape (issue 17) is refused before the optimization, an unusable result after it
+    base = drape(pattern, base_body, settings=base_drape_settings(settings), device=device)
+    _refuse_unusable(unusable_reason(base, base_body.vertices), f"the base drape on {base_name}",
+                     args.allow_unconverged)
     result = adjust(pattern, base_body, target_body, settings, log_dir=log_dir,
                     checkpoint_dir=out / "checkpoint", progress=not args.no_progress, resume=args.resume,
-                    device=device)
+                    base=base, device=device)
+    _refuse_unusable(unusable_positions(result.mesh_target.x, target_body.vertices),
+                     f"the adjusted garment on {target_name}", args.allow_unconverged)
     title = f"{pattern.name}: {base_name} -> {target_name}"
     with staged_output(out) as stage:
         write_outputs(result, stage, base_body, target_body, title)

@@ -528,8 +528,12 @@ def _bulge_points(p0: np.ndarray, p1: np.ndarray, bulge: float, tol: float) -> n
     return pts
 
 
-def _boundary(entities: list, tol: float) -> np.ndarray | None:
-    """Largest closed boundary polyline on layer 1 (bulge arcs sampled), (M, 2) in file units, or None."""
+def _boundary(entities: list, tol: float, name: str) -> np.ndarray | None:
+    """Largest closed boundary polyline on layer 1 (bulge arcs sampled), (M, 2) in file units, or None.
+
+    Raises:
+        PatternError: a boundary vertex with a non-finite coordinate or bulge (piece ``name``).
+    """
     best, best_area = None, -1.0
     for e in entities:
         if (e.dxftype() == "POLYLINE" and e.dxf.layer == "1" and not e.is_3d_polyline
@@ -542,6 +546,8 @@ def _boundary(entities: list, tol: float) -> np.ndarray | None:
         if len(verts) < 3:
             continue
         v = np.array(verts, dtype=np.float64)
+        if not np.isfinite(v).all():
+            raise PatternError(f"DXF piece '{name}': its boundary has a non-finite coordinate (nan or inf)")
         if np.allclose(v[0, :2], v[-1, :2], atol=1e-9):
             v = v[:-1]
         nxt = np.roll(v[:, :2], -1, axis=0)
@@ -567,7 +573,7 @@ def _corner_indices(pts: np.ndarray, degrees: float = 20.0) -> np.ndarray:
 
 def _read_piece(block: BlockLayout, scale: float) -> _Piece | None:
     entities = list(block)
-    pts = _boundary(entities, 1e-3)  # file units: mm, or inches
+    pts = _boundary(entities, 1e-3, block.name)  # file units: mm, or inches
     if pts is None:
         return None
     name, data, turn_pts, notches, grain = block.name, [], [], [], None
@@ -587,6 +593,12 @@ def _read_piece(block: BlockLayout, scale: float) -> _Piece | None:
                 notches.append(seg)
             elif grain is None:
                 grain = seg
+    marks = [np.asarray(turn_pts, dtype=np.float64).reshape(-1)] + [seg.reshape(-1) for seg in notches]
+    if grain is not None:
+        marks.append(grain.reshape(-1))
+    if not np.isfinite(np.concatenate(marks)).all():
+        raise PatternError(f"DXF piece '{name}': a turn point, notch or grain line has a non-finite "
+                           "coordinate (nan or inf)")
     if turn_pts:
         dist, idx = cKDTree(pts).query(np.asarray(turn_pts), distance_upper_bound=1e-3)
         turn = np.unique(idx[np.isfinite(dist)])
@@ -661,7 +673,11 @@ def _build_panel(piece: _Piece, max_fit_error: float) -> tuple[Panel, list[list[
         key, _, rest = line.partition(" ")
         try:
             if key in ("translation", "rotation"):
-                setattr(panel, key, np.array([float(x) for x in rest.split()], dtype=np.float64).reshape(3))
+                value = np.array([float(x) for x in rest.split()], dtype=np.float64).reshape(3)
+                if not np.isfinite(value).all():
+                    raise PatternError(f"DXF piece '{piece.name}': non-finite number (nan or inf) in its "
+                                       f"{DATA_LAYER} entry '{line}'")
+                setattr(panel, key, value)
             elif key == "label":
                 panel.label = rest
             elif key == "edge_label":
@@ -670,6 +686,8 @@ def _build_panel(piece: _Piece, max_fit_error: float) -> tuple[Panel, list[list[
             elif key == "notch_name":
                 j, _, text = rest.partition(" ")
                 panel.notches[int(j)].name = text
+        except PatternError:
+            raise
         except (ValueError, IndexError) as exc:
             raise PatternError(f"DXF piece '{piece.name}': bad {DATA_LAYER} entry '{line}'") from exc
     return panel, seg_edges, max(f.error for f in fits)

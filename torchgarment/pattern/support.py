@@ -16,7 +16,9 @@ height of its placed 3D edges) is proposed when the pattern is a bottom garment,
 above that loop: the placed 3D midpoint of every edge of every seam between two *different* panels lies below
 the loop's lowest point (+1 mm; darts, stitched within one panel, are not seams that carry the garment). A
 shoulder seam joins a front and a back panel above the lowest point of the neck opening (the topmost loop of a
-top), so tops, dresses and bodysuits get no proposal (they hang from the shoulders).
+top), so tops, dresses and bodysuits get no proposal (they hang from the shoulders). The loop must also go
+round the body (one turn about the vertical axis ``x = z = 0``): the outline of a single unstitched
+panel is a closed free loop too, and sticking it held a flat panel in the air.
 """
 
 from __future__ import annotations
@@ -196,6 +198,16 @@ def _placed_points(pattern: SewingPattern, ref: EdgeRef, resolution: int = 16) -
     return panel.to_3d(panel.edges[ref.edge].polyline(*panel.edge_endpoints(ref.edge), resolution))
 
 
+def _turns_around_vertical(points: np.ndarray) -> float:
+    """Signed number of turns a closed polyline (P, 3) in placed 3D positions makes around the vertical axis
+    ``x = z = 0``, where placed patterns stand round the body: about +-1 for a waistband round the body, 0 for
+    the outline of a single panel on one side of it."""
+    xz = points[:, [0, 2]]
+    angle = np.arctan2(xz[:, 1], xz[:, 0])
+    step = np.diff(np.append(angle, angle[0]))
+    return float(((step + np.pi) % (2 * np.pi) - np.pi).sum() / (2 * np.pi))
+
+
 def propose_support(pattern: SewingPattern) -> tuple[tuple[str, str], ...]:
     """The support proposed for a pattern that declares none (see the module docstring for the rule).
 
@@ -208,6 +220,8 @@ def propose_support(pattern: SewingPattern) -> tuple[tuple[str, str], ...]:
         return ()
     pts = [np.concatenate([_placed_points(pattern, le.ref) for le in loop]) for loop in loops]
     top = int(np.argmax([p[:, 1].mean() for p in pts]))
+    if abs(_turns_around_vertical(pts[top])) < 0.5:
+        return ()  # the loop does not go round the body (e.g. the outline of one unstitched panel)
     lowest = float(pts[top][:, 1].min())
     for s in pattern.stitches:
         if s.a.panel == s.b.panel:

@@ -471,6 +471,30 @@ def _remap(indices: torch.Tensor, index_map: torch.Tensor | None, what: str) -> 
     return new
 
 
+GARMENT_SCALE_RANGE = (1.0 / 200.0, 20.0)
+"""Accepted ratio of the garment's size (its bounding box's largest side) to the source skeleton's: from an
+earring on a person (about 1/100) to a cape or a train several times a body's size. Outside it the garment and
+the skeleton are in different units (a garment in millimetres on a skeleton in metres is 1000 times too big,
+and its solve ran for minutes at seconds per iteration)."""
+
+
+def check_garment_scale(garment_vertices: torch.Tensor, skeleton_joints: torch.Tensor) -> None:
+    """Raise :class:`InputError` when the garment (V, 3) and the source skeleton's joints (J, 3) look like
+    different units (:data:`GARMENT_SCALE_RANGE`), naming the power of ten that would reconcile them. A
+    skeleton of zero extent (one joint) is not checked."""
+    g = float((garment_vertices.amax(dim=0) - garment_vertices.amin(dim=0)).max())
+    s = float((skeleton_joints.amax(dim=0) - skeleton_joints.amin(dim=0)).max())
+    if not s > 0:
+        return
+    ratio = g / s
+    lo, hi = GARMENT_SCALE_RANGE
+    if not lo <= ratio <= hi:
+        factor = 10.0 ** -round(math.log10(ratio)) if ratio > 0 else math.nan
+        raise InputError(f"the garment ({g:.4g} across) is {ratio:.3g} times the size of the source skeleton "
+                         f"({s:.4g} across), outside {lo:g}-{hi:g}: they look like different units (scale "
+                         f"the garment by {factor:g})")
+
+
 def problem_from_arrays(
     garment_vertices: torch.Tensor | np.ndarray,
     garment_faces: torch.Tensor | np.ndarray,
@@ -525,6 +549,7 @@ def problem_from_arrays(
     length_scale = float(extent.max())
     if not length_scale > 0:
         raise InputError("the garment and source skeleton have zero size")
+    check_garment_scale(gv, sj)
 
     welded, wfaces, index_map = weld_garment(gv, gf, WELD_TOLERANCE * length_scale)
     if check_garment:
