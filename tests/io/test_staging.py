@@ -99,3 +99,28 @@ def test_cli_refuses_an_empty_out_before_any_work(tmp_path: Path, monkeypatch, c
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "--out is empty" in err[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_orphan_stages_of_killed_runs_are_removed_by_the_next_run(tmp_path):
+    """Issue 17: a ``pattern`` killed while writing left its hidden staging folder for ever."""
+    import os
+    import time
+
+    from torchgarment.io.staging import remove_orphan_stages
+
+    out = tmp_path / "o"
+    old = tmp_path / ".o.staging-dead"
+    old.mkdir()
+    (old / "pattern.json").write_text("{}")
+    young = tmp_path / ".o.staging-busy"  # a writer may still be at work
+    young.mkdir()
+    other = tmp_path / ".p.staging-dead"  # another output's stage: not ours to judge
+    other.mkdir()
+    hour_ago = time.time() - 7200
+    for d in (old, other):
+        os.utime(d, (hour_ago, hour_ago))
+    with staged_output(out) as stage:
+        (stage / "a.txt").write_text("a")
+    assert not old.exists() and young.is_dir() and other.is_dir()
+    assert (out / "a.txt").read_text() == "a"
+    assert remove_orphan_stages(tmp_path / "p") == 1 and not other.exists()

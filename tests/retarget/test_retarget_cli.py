@@ -104,6 +104,24 @@ def test_cli_end_to_end(files: tuple, tmp_path: Path, capsys: pytest.CaptureFixt
     assert "intersections 0" in capsys.readouterr().out
 
 
+def test_cli_budget_stop_keeps_a_usable_result_and_says_so(
+    files: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 17: a retarget stopped by its iteration budget with an intersection-free result exits 0 and says
+    so in one line on stderr, with the gradient norm (it used to be only in metrics.json)."""
+    d, _ = files
+    out = tmp_path / "out"
+    code = _run(["retarget", "--garment", str(d / "garment.obj"), "--source-skeleton",
+                 str(d / "source_skeleton.obj"), "--target-avatar", str(d / "avatar.obj"),
+                 "--target-skeleton", str(d / "target_skeleton.obj"), "--fit-iterations", "1",
+                 "--out", str(out), "--no-log", "--no-progress", "--no-render"])
+    assert code == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert not m["converged"] and m["intersections"] == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "iteration budget" in err[0] and f"{m['grad_norm']:.3g}" in err[0], err
+
+
 @pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_skeleton", "garment_in_mm"])
 def test_cli_bad_input_one_line(
     files: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str

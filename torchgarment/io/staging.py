@@ -8,13 +8,16 @@ old set of files (issue 17: it used to end with two new files and two old ones).
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Iterator
 
 from torchgarment.errors import InputError
+from torchgarment.io.atomic import ORPHAN_AGE_S
 
 __all__ = ["check_output_folder", "staged_output"]
 
@@ -34,6 +37,27 @@ def check_output_folder(out_dir: str | os.PathLike) -> Path:
     return out
 
 
+def remove_orphan_stages(out_dir: str | os.PathLike, max_age_s: float = ORPHAN_AGE_S) -> int:
+    """Delete the staging folders of ``out_dir`` (``.<name>.staging-*`` beside it) older than ``max_age_s``
+    seconds: a command killed while writing (``kill -9``) never removes its stage, and a stage lives only
+    while the outputs are written (seconds), so an hour-old one has no writer. :func:`staged_output` calls
+    it.
+
+    Returns:
+        How many folders were removed.
+    """
+    out = Path(out_dir)
+    if not out.parent.is_dir():
+        return 0
+    now, removed = time.time(), 0
+    for stage in out.parent.glob(f".{glob.escape(out.name)}.staging-*"):
+        with contextlib.suppress(OSError):
+            if stage.is_dir() and now - stage.stat().st_mtime > max_age_s:
+                shutil.rmtree(stage)
+                removed += 1
+    return removed
+
+
 @contextlib.contextmanager
 def staged_output(out_dir: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary folder beside ``out_dir``; on success move its files into ``out_dir``.
@@ -51,6 +75,7 @@ def staged_output(out_dir: str | os.PathLike) -> Iterator[Path]:
     """
     out = check_output_folder(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
+    remove_orphan_stages(out)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
     try:
         yield stage

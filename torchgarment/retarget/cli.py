@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -93,6 +94,9 @@ def add_retarget_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
         choices=[k.value for k in StepBound],
         help="collision-free step size method",
     )
+    p.add_argument("--fit-iterations", type=int, default=d.fit_iterations, metavar="N",
+                   help=f"Newton iterations of the final fit at most (default {d.fit_iterations}); a result "
+                        "stopped by this budget is kept when it is intersection-free, with a line on stderr")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--log-dir", metavar="DIR", help="TensorBoard folder (default logs/retarget/<run>)")
     p.add_argument("--no-log", action="store_true", help="no TensorBoard scalars")
@@ -168,7 +172,8 @@ def cmd_retarget(args: argparse.Namespace) -> int:
         no_fit=args.no_fit,
         curves=args.curves,
     )
-    settings = RetargetSettings(w_fit=args.fit_weight, w_pos=args.pos_weight, step_bound=args.step_bound)
+    settings = RetargetSettings(w_fit=args.fit_weight, w_pos=args.pos_weight, step_bound=args.step_bound,
+                                fit_iterations=args.fit_iterations)
     log_dir = None
     if not args.no_log:
         run = f"{Path(args.garment).stem}-on-{Path(args.target_avatar).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -198,4 +203,7 @@ def cmd_retarget(args: argparse.Namespace) -> int:
         f"intersections {m['intersections']}, min distance {m['min_distance_mm']:.3f} mm, distortion mean "
         f"{m['distortion_mean']:.3g} max {m['distortion_max']:.3g} -> {args.out}"
     )
+    if not m["converged"]:  # usable (intersection-free, checked) but stopped by the iteration budget
+        print(f"retarget: stopped at the iteration budget before the gradient tolerance (gradient norm "
+              f"{m['grad_norm']:.3g}); the result is intersection-free", file=sys.stderr)
     return 0
