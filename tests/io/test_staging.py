@@ -124,3 +124,21 @@ def test_orphan_stages_of_killed_runs_are_removed_by_the_next_run(tmp_path):
     assert not old.exists() and young.is_dir() and other.is_dir()
     assert (out / "a.txt").read_text() == "a"
     assert remove_orphan_stages(tmp_path / "p") == 1 and not other.exists()
+
+
+def test_orphan_temporaries_of_killed_writers_are_removed(tmp_path):
+    """Issue 17: a ``kill -9`` while the SDF cache was written left a 40 MB ``.tmp.npz`` for ever; caches
+    remove such temporaries older than an hour when they store an entry."""
+    import os
+    import time
+
+    from torchgarment.io.atomic import remove_orphan_temporaries
+
+    old, young = tmp_path / ".sdf_ab.1234.tmp.npz", tmp_path / ".sdf_cd.5678.tmp.npz"
+    entry = tmp_path / "sdf_ab.npz"
+    for f in (old, young, entry):
+        f.write_bytes(b"x")
+    os.utime(old, (time.time() - 7200, time.time() - 7200))
+    os.utime(entry, (time.time() - 7200, time.time() - 7200))
+    assert remove_orphan_temporaries(tmp_path) == 1
+    assert not old.exists() and young.exists() and entry.exists()

@@ -60,6 +60,8 @@ def test_measure_refuses_a_body_in_millimetres(body_files, tmp_path, cli, one_li
     proc = cli("measure", str(body_files["mm"]), "--out", "m.json", cwd=tmp_path)
     one_line(proc, "scale it by 0.001")
     assert not (tmp_path / "m.json").exists()
+    one_line(cli("measure", str(body_files["cm"]), "--out", "m.json", cwd=tmp_path), "scale it by 0.01")
+    assert not (tmp_path / "m.json").exists()
     # stray points were reported as "not a standing human body"
     proc = cli("measure", str(body_files["stray"]), "--out", "m.json", cwd=tmp_path)
     one_line(proc, "used by no face (stray points, the first at [0.0, 5.0, 0.0])")

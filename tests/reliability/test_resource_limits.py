@@ -93,3 +93,23 @@ def test_a_panel_with_absurdly_many_points_is_refused(tmp_path, cli, one_line):
     save_pattern(path, SewingPattern(name="big", panels={"ring": ring(20_000)}))
     one_line(cli("pattern", str(path), "--out", "o", cwd=tmp_path), "more than 5000")
     assert not (tmp_path / "o").exists()
+
+
+def test_a_pattern_in_the_wrong_units_is_refused_before_meshing(tmp_path, cli, one_line):
+    """Every panel x1000 (millimetres read as centimetres) had no size check; ``--edge-length 10`` (10 mm
+    meant) wrote a 16-vertex garment."""
+    import json
+
+    from torchgarment.pattern.garmentcode import save_pattern
+
+    save_pattern(tmp_path / "p.json", draft("straight_skirt", chart_row("12")))
+    data = json.loads((tmp_path / "p.json").read_text())
+    for panel in data["pattern"]["panels"].values():
+        panel["vertices"] = [[1000.0 * c for c in v] for v in panel["vertices"]]
+    (tmp_path / "big.json").write_text(json.dumps(data))
+    one_line(cli("pattern", "big.json", "--edge-length", "0.03", "--out", "o", cwd=tmp_path),
+             "vertices (limit 500000)")
+    line = one_line(cli("pattern", "p.json", "--edge-length", "10", "--out", "o", cwd=tmp_path),
+                    "longer than the largest panel")
+    assert "edge lengths are in metres" in line
+    assert not (tmp_path / "o").exists()

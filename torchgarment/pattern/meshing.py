@@ -112,7 +112,8 @@ def mesh_pattern(
         sampled along the edge.
 
     Raises:
-        InputError: bad ``edge_length`` or ``min_angle``; more vertices estimated than :func:`max_vertices`.
+        InputError: bad ``edge_length`` (also: longer than half the largest panel's outline, a unit
+            mistake) or ``min_angle``; more vertices estimated than :func:`max_vertices`.
         PatternError: the pattern is invalid.
         MeshError: Triangle failed on a panel.
     """
@@ -123,6 +124,12 @@ def mesh_pattern(
     if not (isinstance(min_angle, (int, float)) and 0.0 < min_angle <= _MAX_MIN_ANGLE):
         raise InputError(f"min_angle must be in (0, {_MAX_MIN_ANGLE}] degrees, got {min_angle!r}")
     pattern.validate(max_stitch_length_ratio=max_stitch_length_ratio)
+    largest = max(0.5 * sum(panel.edge_length(i) for i in range(len(panel.edges)))
+                  for panel in pattern.panels.values())
+    if edge_length > largest:
+        raise InputError(f"an edge length of {edge_length:g} m is longer than the largest panel of "
+                         f"{pattern.name!r} ({largest:.3g} m, half its outline): edge lengths are in metres "
+                         "(e.g. 0.01 for 1 cm)")
     estimate, limit = estimate_vertices(pattern, edge_length), max_vertices()
     if estimate > limit:
         raise InputError(f"meshing {pattern.name!r} at {edge_length:g} m edges would make about "
