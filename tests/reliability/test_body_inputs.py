@@ -68,6 +68,14 @@ def test_measure_refuses_a_body_in_millimetres(body_files, tmp_path, cli, one_li
     assert not (tmp_path / "m.json").exists()
 
 
+def test_pca_fit_refuses_a_body_in_millimetres_first(body_files, tmp_path, cli, one_line):
+    """The body is checked before the model is loaded (a body in millimetres asked for 79 TiB in the SDF)."""
+    proc = cli("pca", "fit", "--model", "no_model", "--body", str(body_files["mm"]), "--out", "o",
+               cwd=tmp_path)
+    one_line(proc, "scale it by 0.001")
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("name, needle", [("cm", "scale it by 0.01"), ("upside_down", "upside down"),
                                           ("triangle", "human body")])
 def test_drape_refuses_before_any_heavy_work(body_files, tmp_path, name, needle, cli, one_line):

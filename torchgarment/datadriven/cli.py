@@ -250,17 +250,17 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
     if not args.margin >= 0:
         raise InputError(f"--margin must be >= 0, got {args.margin}")
     t0 = time.perf_counter()
-    pca, basis, info = load_model(args.model)
     if not Path(args.body).is_file():
         raise InputError(f"--body {args.body}: no such file")
     body = load_body(args.body)
+    check_human_body(body.vertices, body.faces, f"--body {args.body}")  # before loading the model: cheap
+    pca, basis, info = load_model(args.model)
     if body.num_vertices != pca.num_vertices or body.faces.shape != pca.faces.shape \
             or not torch.equal(body.faces.long(), pca.faces.long()):
         raise InputError(f"--body {args.body}: {body.num_vertices} vertices / {body.faces.shape[0]} faces, "
                          f"but the model's bodies have {pca.num_vertices} / {pca.faces.shape[0]} of topology "
                          f"{pca.topology or '(unnamed)'}: the body must have the model's topology (same "
                          f"vertices and faces in the same order)")
-    check_human_body(body.vertices, body.faces, f"--body {args.body}")
     name = basis.name or "garment"
     fitter = OnlineFitter(pca, {name: basis}, k=args.k, interpolation=args.interpolation)
     t_load = time.perf_counter()
