@@ -6,7 +6,12 @@ garment (random, the right sizes: the timing does not depend on the values) are 
 
 * ``fit_ms``: one customer's garment once the weights are known (target <= 2 ms);
 * ``weights_ms``: the projection of one body to weights (done once per customer);
-* ``bodies_per_s``: batch throughput of ``fit`` over B customers at once.
+* ``bodies_per_s``: batch throughput of ``fit`` over B customers at once;
+* ``push-out``: the collision push-out of one customer's garment on a real body (the size-12 chart body,
+  13,348 vertices): exact distances at the garment's vertices
+  (:func:`~torchgarment.datadriven.online.push_out`, the distance tree's build included), on a 30K-vertex
+  garment-like point set (body surface points offset along their normals by N(4 mm, 6 mm), so that about a
+  quarter start inside); ``online_ms`` = weights + fit + push-out (target <= 100 ms).
 
 Example::
 
@@ -38,6 +43,31 @@ def median_seconds(fn: Callable[[], object], repeats: int) -> float:
         fn()
         times.append(time.perf_counter() - t)
     return statistics.median(times)
+
+
+def bench_push_out(n: int, repeats: int) -> dict:
+    """Median push-out time of an ``n``-vertex garment-like point set on the size-12 chart body (see the
+    module docstring), float64 (the push-out computes in float64)."""
+    import numpy as np
+    import trimesh
+
+    from torchgarment.body import Body
+    from torchgarment.datadriven.online import push_out
+    from torchgarment.sdf import MeshProximity
+
+    body = Body.from_size("12")
+    v, f = body.vertices.numpy(), body.faces.numpy()
+    surface, tri = trimesh.sample.sample_surface(trimesh.Trimesh(v, f, process=False), n, seed=0)
+    normals = np.cross(v[f[tri, 1]] - v[f[tri, 0]], v[f[tri, 2]] - v[f[tri, 0]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    offset = np.random.default_rng(0).normal(0.004, 0.006, size=(n, 1))
+    x = torch.as_tensor(surface + offset * normals)
+    res = push_out(x, body.vertices, body.faces)
+    tree_s = median_seconds(lambda: MeshProximity(v, f), repeats)
+    push_s = median_seconds(lambda: push_out(x, body.vertices, body.faces), repeats)
+    return {"push_out_ms": 1e3 * push_s, "tree_ms": 1e3 * tree_s, "repeats": repeats,
+            "inside_before": res.inside_before, "moved": res.moved, "inside_after": res.inside_after,
+            "min_distance_after_mm": 1e3 * res.min_phi}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -90,15 +120,23 @@ def main(argv: list[str] | None = None) -> int:
             batch_s = median_seconds(lambda: fitter.fit_all(wb), max(5, args.repeats // 10))
         rows.append({"k": k, "fit_ms": 1e3 * fit_s, "weights_ms": 1e3 * weights_s,
                      "batch": args.batch, "batch_ms": 1e3 * batch_s, "bodies_per_s": args.batch / batch_s})
+    push = bench_push_out(ng, max(3, args.repeats // 10))
+    online_ms = {r["k"]: r["weights_ms"] + r["fit_ms"] + push["push_out_ms"] for r in rows}
     result = {"garment_vertices": ng, "body_vertices": nb, "dtype": args.dtype,
               "interpolation": args.interpolation,
-              "threads": torch.get_num_threads(), "torch": torch.__version__, "rows": rows}
+              "threads": torch.get_num_threads(), "torch": torch.__version__, "rows": rows,
+              "push_out": push, "online_ms": online_ms}
     print(f"online fit of a {ng}-vertex garment ({args.dtype}, {args.interpolation}, {result['threads']} "
           f"threads), medians of {args.repeats}:")
     print(f"{'k':>3} {'fit ms':>8} {'weights ms':>11} {'batch':>6} {'batch ms':>9} {'bodies/s':>10}")
     for r in rows:
         print(f"{r['k']:>3} {r['fit_ms']:>8.3f} {r['weights_ms']:>11.3f} {r['batch']:>6} "
               f"{r['batch_ms']:>9.2f} {r['bodies_per_s']:>10.0f}")
+    print(f"push-out on the size-12 body, {ng} vertices ({push['inside_before']} inside, {push['moved']} "
+          f"moved, {push['inside_after']} inside after): median {push['push_out_ms']:.1f} ms of "
+          f"{push['repeats']}, of which the tree {push['tree_ms']:.1f} ms; online cost per customer "
+          "(weights + fit + push-out): "
+          + ", ".join(f"k={k} {v:.1f} ms" for k, v in online_ms.items()))
     if args.json:
         from torchgarment.io.atomic import atomic_path
 

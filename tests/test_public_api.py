@@ -133,6 +133,7 @@ PUBLIC = {
     ],
     "torchgarment.sdf": [
         "BodySDF",
+        "MeshProximity",
         "SDFSampling",
         "SDFSettings",
         "SDFGridData",

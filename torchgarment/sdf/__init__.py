@@ -2,11 +2,13 @@
 
 Re-exports :class:`BodySDF` (the sampled field, ``BodySDF.from_body`` / ``BodySDF.cached``) with its
 :class:`SDFSettings` and :class:`SDFSampling`, the grid builder :func:`build_sdf_grid` (:class:`SDFGridData`,
-:class:`SignType`), the exact queries :func:`exact_signed_distance` and :func:`winding_number`, and the disk
-cache :func:`cached_sdf`, :func:`sdf_cache_dir`, :func:`sdf_cache_key`.
+:class:`SignType`), the exact queries :func:`exact_signed_distance`, :func:`winding_number` and
+:class:`MeshProximity` (closest points and signed distances, the tree built once), and the disk cache
+:func:`cached_sdf`, :func:`sdf_cache_dir`, :func:`sdf_cache_key`.
 """
 
 from torchgarment.sdf.build import (
+    MeshProximity,
     SDFGridData,
     SDFSettings,
     SignType,
@@ -19,6 +21,7 @@ from torchgarment.sdf.grid import BodySDF, SDFSampling
 
 __all__ = [
     "BodySDF",
+    "MeshProximity",
     "SDFGridData",
     "SDFSampling",
     "SDFSettings",
