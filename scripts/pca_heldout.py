@@ -43,6 +43,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--edge-length", type=float, default=0.05, help="garment edge length, m (default 0.05)")
     ap.add_argument("--voxel", type=float, default=0.01, help="SDF voxel size, m (default 0.01)")
     ap.add_argument("--cache", default=None, help="cache folder (default $TORCHGARMENT_CACHE/clothing_basis)")
+    ap.add_argument("--refine", type=int, nargs="*", default=[25, 100, 400], metavar="N",
+                    help="settle budgets of the warm-started refine from the k = kmax piecewise prediction "
+                         "(default 25 100 400; none: skip)")
+    ap.add_argument("--time-cold", type=int, default=5, metavar="H",
+                    help="cold drapes re-timed in this run, on the first H held-out bodies (default 5)")
     ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
     args = ap.parse_args(argv)
 
@@ -138,6 +143,39 @@ def main(argv: list[str] | None = None) -> int:
                 "fit_ms_per_body": 1e3 * (tend - tf) / len(held),
             })
     ref_inside = [measured(i, refs[i]).inside_before for i in range(len(held))]
+
+    # warm-started refine (issue 15): the k = kmax piecewise prediction settled for N iterations, against the
+    # cold drape; both timed here with the body's SDF built beforehand (its build is the same for both)
+    from torchgarment.body.body import Body
+    from torchgarment.datadriven.online import refine
+    from torchgarment.sdf import BodySDF, SDFSettings
+
+    refine_rows, cold_seconds = [], []
+    if args.refine:
+        fitter = OnlineFitter(pca, {args.garment: basis}, k=args.kmax, interpolation=Interpolation.PIECEWISE)
+        xs = fitter.fit(fitter.weights(held.vertices))[args.garment]
+        bodies = [Body(vertices=held.vertices[i].double(), faces=held.faces.long()) for i in range(len(held))]
+        sdfs = [BodySDF.cached(b.vertices, b.faces, SDFSettings(voxel_size=args.voxel)) for b in bodies]
+        for i in tqdm(range(min(args.time_cold, len(held))), desc="cold drapes (timed)"):
+            t = time.perf_counter()
+            drape_on_body(mesh, held.vertices[i], held.faces, reference, dsettings)
+            cold_seconds.append(time.perf_counter() - t)
+        for n in args.refine:
+            means, maxes, secs, conv = [], [], [], 0
+            for i in tqdm(range(len(held)), desc=f"refine {n}"):
+                t = time.perf_counter()
+                r = refine(mesh, xs[i], bodies[i], dsettings, iterations=n, sdf=sdfs[i])
+                secs.append(time.perf_counter() - t)
+                d = torch.linalg.vector_norm(r.x.detach().double() - refs[i], dim=1)
+                means.append(1e3 * float(d.mean()))
+                maxes.append(1e3 * float(d.max()))
+                conv += bool(r.metrics["converged"])
+            med = statistics.median(secs)
+            row = {"iterations": n, "mean_error_mm": statistics.mean(means), "max_error_mm": max(maxes)}
+            row["median_of_max_error_mm"] = statistics.median(maxes)
+            row.update(seconds_median=med, converged=conv,
+                       time_ratio_to_cold=med / statistics.median(cold_seconds) if cold_seconds else None)
+            refine_rows.append(row)
     result = {
         "train": args.train, "heldout": args.heldout, "garment": args.garment, "kmax": args.kmax, "c": args.c,
         "edge_length": args.edge_length, "voxel": args.voxel, "garment_vertices": basis.num_vertices,
@@ -148,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
         "seconds": {"dataset": t_data, "basis": t_basis,
                     "full_drape_median": statistics.median(drape_seconds)},
         "rows": rows,
+        "refine": refine_rows,
+        "cold_drape_seconds_this_run": cold_seconds,
     }
     print(f"{args.garment}: {basis.num_vertices} vertices, {args.train} training / {args.heldout} held-out "
           f"bodies, k95={result['k_for_95']} k99={result['k_for_99']}, full drape median "
@@ -162,6 +202,17 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['inside_vertices_mean']:>7.1f} {r['inside_vertices_max']:>6d} "
               f"{r['inside_after_push_out_max']:>5d} {r['body_reconstruction_mean_mm']:>8.2f} "
               f"{r['fit_ms_per_body']:>7.3f}")
+    if refine_rows:
+        cold = statistics.median(cold_seconds) if cold_seconds else float("nan")
+        print(f"warm-started refine from k={args.kmax} piecewise (cold drape median {cold:.2f} s over "
+              f"{len(cold_seconds)} bodies, this run, SDF prebuilt):")
+        print(f"{'iters':>6} {'mean mm':>8} {'max mm':>8} {'med max':>8} {'s med':>7} {'/cold':>6} "
+              f"{'conv':>5}")
+        for r in refine_rows:
+            ratio = r["time_ratio_to_cold"] if r["time_ratio_to_cold"] is not None else float("nan")
+            print(f"{r['iterations']:>6} {r['mean_error_mm']:>8.2f} {r['max_error_mm']:>8.2f} "
+                  f"{r['median_of_max_error_mm']:>8.2f} {r['seconds_median']:>7.2f} {ratio:>6.2f} "
+                  f"{r['converged']:>3d}/{len(held)}")
     if args.json:
         with atomic_path(args.json) as tmp:
             Path(tmp).write_text(json.dumps(result, indent=2) + "\n")

@@ -113,6 +113,7 @@ PUBLIC = {
         "OnlineFitter",
         "push_out",
         "PushOutResult",
+        "refine",
     ],
     "torchgarment.body": ["Body", "BodyMeasurements", "Skeleton", "measure_body", "chart_row", "list_sizes"],
     "torchgarment.pattern": [

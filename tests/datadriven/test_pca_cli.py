@@ -125,3 +125,24 @@ def test_build_from_a_folder_of_meshes(tmp_path, monkeypatch):
     assert info["bodies"] == 4 and info["source"] == "meshes" and info["seed"] is None
     pca, _, _ = load_model(out)
     assert torch.allclose(pca.mean, ds.vertices.mean(dim=0), atol=1e-9)
+
+
+def test_fit_refine_settles_the_prediction(model_dir, tmp_path):
+    """Issue 15: ``--refine N`` starts the quasistatic solve at the PCA prediction and runs at most N
+    iterations; the result is no farther from equilibrium than the prediction."""
+    from torchgarment.body.anny_phenotype import body_from_phenotype, sample_phenotypes
+
+    body = body_from_phenotype(sample_phenotypes(1, seed=78)[0])
+    save_obj(tmp_path / "b.obj", body.vertices, body.faces)
+    out = {}
+    for n in (0, 30):
+        rc = run(["pca", "fit", "--model", str(model_dir), "--body", str(tmp_path / "b.obj"), "--out",
+                  str(tmp_path / f"r{n}"), "--refine", str(n)])
+        assert rc == 0
+        out[n] = json.loads((tmp_path / f"r{n}" / "metrics.json").read_text())
+    assert out[0]["refine"]["iterations"] == 0 and 0 < out[30]["refine"]["iterations"] <= 30
+    assert out[30]["refine"]["residual_n"] < out[0]["refine"]["residual_n"]
+    assert out[30]["seconds"]["refine"] > 0 and out[30]["penetrations"]["inside_vertices"] == 0
+    with pytest.raises(InputError, match="--refine must be >= 0"):
+        run(["pca", "fit", "--model", str(model_dir), "--body", str(tmp_path / "b.obj"), "--out",
+             str(tmp_path / "bad"), "--refine", "-1"])

@@ -7,8 +7,9 @@ Re-exported here:
 * the clothing basis (:mod:`torchgarment.datadriven.basis`): :func:`build_basis` with :class:`BasisSettings`
   and :class:`Interpolation`, the resulting :class:`ClothingBasis`, :class:`BodyFrame` with
   :func:`place_for_body` (placing a garment for a body), :func:`drape_on_body` and :func:`basis_cache_dir`;
-* the online fit (:mod:`torchgarment.datadriven.online`): :class:`OnlineFitter`, and :func:`push_out` with its
-  :class:`PushOutResult` (vertices inside the body pushed out along the SDF).
+* the online fit (:mod:`torchgarment.datadriven.online`): :class:`OnlineFitter`, :func:`push_out` with its
+  :class:`PushOutResult` (vertices inside the body pushed out, exact distances) and :func:`refine` (the
+  prediction settled by the simulator for a few iterations).
 
 The command line (``torchgarment pca build`` / ``pca fit``) is :mod:`torchgarment.datadriven.cli`.
 """
@@ -24,7 +25,7 @@ from torchgarment.datadriven.basis import (
     place_for_body,
 )
 from torchgarment.datadriven.dataset import BodyDataset
-from torchgarment.datadriven.online import OnlineFitter, PushOutResult, push_out
+from torchgarment.datadriven.online import OnlineFitter, PushOutResult, push_out, refine
 from torchgarment.datadriven.pca import BodyPCA
 
 __all__ = [
@@ -41,4 +42,5 @@ __all__ = [
     "drape_on_body",
     "place_for_body",
     "push_out",
+    "refine",
 ]

@@ -94,6 +94,9 @@ def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentP
                         "surface (exact distances at the garment's vertices)")
     f.add_argument("--margin", type=float, default=1e-3, metavar="M",
                    help="push-out clearance (default 0.001 m)")
+    f.add_argument("--refine", type=int, default=None, metavar="N",
+                   help="settle the prediction on the body with the simulator for at most N iterations (the "
+                        "model's drape settings; builds the body's SDF), before any push-out")
     f.set_defaults(func=cmd_pca_fit)
     return p
 
@@ -266,6 +269,26 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
     x = fitter.fit(w)[name]
     t_fit = time.perf_counter()
     seconds = {"load": t_load - t0, "weights": t_w - t_load, "fit": t_fit - t_w}
+    refined = None
+    if args.refine is not None:
+        from torchgarment.datadriven.online import refine
+        from torchgarment.sdf import BodySDF, SDFSettings
+        from torchgarment.sim.drape import DrapeSettings
+
+        if args.refine < 0:
+            raise InputError(f"--refine must be >= 0 iterations, got {args.refine}")
+        if not all(isinstance(info.get(k), (int, float)) for k in ("edge_length", "voxel_size")):
+            raise InputError(f"--model {args.model}: model.json has no edge_length / voxel_size to refine "
+                             "with")
+        dset = DrapeSettings(edge_length=float(info["edge_length"]), voxel_size=float(info["voxel_size"]))
+        t = time.perf_counter()
+        sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=dset.voxel_size))
+        seconds["refine_sdf"] = time.perf_counter() - t
+        r = refine(basis.garment, x, body, dset, iterations=args.refine, sdf=sdf)
+        x = r.x.detach().to(x)
+        seconds["refine"] = r.metrics["seconds"]
+        refined = {"iterations": r.metrics["iterations"], "converged": r.metrics["converged"],
+                   "residual_n": r.metrics["residual"], "weight_n": r.metrics["weight_n"]}
     # exact signed distances at the garment's vertices (a zero-pass push-out only measures)
     res = push_out(x, body.vertices, body.faces, margin=args.margin, iterations=4 if args.push_out else 0)
     pen = {"inside_vertices": res.inside_before, "min_distance_mm": None}
@@ -283,7 +306,7 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
                "interpolation": fitter.interpolation.value, "seconds": seconds,
                "weights": [float(v) for v in w],
                "weights_in_sigmas": [float(v) for v in w / pca.sigmas[: fitter.k]],
-               "penetrations": pen, "garment_vertices": int(x.shape[0]),
+               "penetrations": pen, "refine": refined, "garment_vertices": int(x.shape[0]),
                "body_reconstruction_error_mm": {"mean": 1e3 * float(res_rec["mean"][0]),
                                                 "max": 1e3 * float(res_rec["max"][0])}}
     with staged_output(args.out) as stage:

@@ -5,7 +5,9 @@ components (:meth:`OnlineFitter.weights`, ``3 M N`` multiply-adds); every catalo
 ``g_0 + sum_i w_i G_i`` (:meth:`OnlineFitter.fit`), for many customers and many garments in one matrix
 product over the concatenated vertices of all garments. Garments may end slightly inside a body (the linear
 model is an approximation); :func:`push_out` moves such vertices out to a margin from the body's surface with
-exact point-mesh distances at the garment's vertices (no per-customer SDF), timed separately.
+exact point-mesh distances at the garment's vertices (no per-customer SDF), timed separately. :func:`refine`
+continues from the prediction with the simulator for a few iterations (the continuum between the guess and a
+full drape).
 """
 
 from __future__ import annotations
@@ -20,7 +22,11 @@ from torchgarment.datadriven.basis import ClothingBasis, Interpolation
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
+    from torchgarment.body import Body
     from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.sdf import BodySDF
+    from torchgarment.sim.drape import DrapeResult, DrapeSettings
+    from torchgarment.structures.garment_mesh import GarmentMesh
 
 
 class OnlineFitter:
@@ -207,3 +213,32 @@ def push_out(x: torch.Tensor, body_vertices: torch.Tensor, body_faces: torch.Ten
     result = torch.as_tensor(y, dtype=x.dtype, device=x.device)
     return PushOutResult(result, int(moved.sum()), int(inside_before or 0), int((phi < 0).sum()),
                          float(phi.min()) if phi.size else 0.0, time.perf_counter() - t0)
+
+
+def refine(mesh: GarmentMesh, x: torch.Tensor, body: Body, settings: DrapeSettings,
+           iterations: int | None = None, sdf: BodySDF | None = None) -> DrapeResult:
+    """Warm-started simulation: the PCA prediction ``x`` as the initial state of the quasistatic solve.
+
+    The garment (already sewn: the sewing stage is skipped) settles on ``body`` with the drape's physics and
+    tolerance for at most ``iterations`` solver iterations (None: the drape's own budget), a continuum between
+    the millisecond PCA guess (0 iterations) and a full drape.
+
+    Args:
+        mesh: the basis garment (:attr:`ClothingBasis.garment`: rest pattern ``p``, seams).
+        x: (V, 3) its predicted positions on ``body``, metres.
+        body: the customer's body (vertices and faces). settings: the basis's drape settings.
+        iterations: settle budget (>= 0). sdf: the body's SDF when already built (else built and cached).
+
+    Returns:
+        The :class:`~torchgarment.sim.drape.DrapeResult` (``metrics["converged"]`` tells whether the budget
+        was enough).
+    """
+    from dataclasses import replace
+
+    from torchgarment.sim.drape import drape
+
+    if iterations is not None and not (isinstance(iterations, int) and iterations >= 0):
+        raise InputError(f"refine iterations must be an integer >= 0, got {iterations!r}")
+    st = replace(settings, sew_max_iterations=0,
+                 max_iterations=settings.max_iterations if iterations is None else iterations)
+    return drape(mesh.with_positions(x.detach().to(mesh.x)), body, settings=st, sdf=sdf)
