@@ -48,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
                          "(default 25 100 400; none: skip)")
     ap.add_argument("--time-cold", type=int, default=5, metavar="H",
                     help="cold drapes re-timed in this run, on the first H held-out bodies (default 5)")
+    ap.add_argument("--no-continuation", action="store_true",
+                    help="basis drapes from the placed panels instead of continued from the mean drape")
     ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
     args = ap.parse_args(argv)
 
@@ -66,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchgarment.datadriven.dataset import BodyDataset
     from torchgarment.datadriven.online import OnlineFitter, PushOutResult, push_out
     from torchgarment.datadriven.pca import BodyPCA
+    from torchgarment.datadriven.relative import BasisFrame
     from torchgarment.io.atomic import atomic_path
     from torchgarment.pattern.library import draft
     from torchgarment.pattern.meshing import mesh_pattern
@@ -82,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     pattern = draft(args.garment, req, **ease)
     dsettings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel)
     mesh = mesh_pattern(pattern, args.edge_length)
-    settings = BasisSettings(k=args.kmax, c=args.c, drape=dsettings)
+    settings = BasisSettings(k=args.kmax, c=args.c, drape=dsettings, continuation=not args.no_continuation)
     t1 = time.perf_counter()
     basis = build_basis(pca, mesh, settings, name=args.garment, cache_dir=args.cache)
     t_basis = time.perf_counter() - t1
@@ -115,13 +118,15 @@ def main(argv: list[str] | None = None) -> int:
         return push_out(x, held.vertices[i], held.faces, iterations=0)
 
     rows = []
-    for interp in (Interpolation.LINEAR, Interpolation.PIECEWISE):
+    variants = [(f, i) for f in (BasisFrame.ABSOLUTE, BasisFrame.BODY)
+                for i in (Interpolation.LINEAR, Interpolation.PIECEWISE)]
+    for frame, interp in variants:
         for k in range(args.kmax + 1):
-            fitter = OnlineFitter(pca, {args.garment: basis}, k=k, interpolation=interp)
+            fitter = OnlineFitter(pca, {args.garment: basis}, k=k, interpolation=interp, frame=frame)
             tw = time.perf_counter()
             w = fitter.weights(held.vertices)
             tf = time.perf_counter()
-            xs = fitter.fit(w)[args.garment]
+            xs = fitter.fit(w, bodies=held.vertices)[args.garment]
             tend = time.perf_counter()
             body_err = pca.reconstruction_error(held.vertices, k)
             means, maxes, inside, inside_after = [], [], [], []
@@ -132,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
                 inside.append(measured(i, xs[i]).inside_before)
                 inside_after.append(push_out(xs[i], held.vertices[i], held.faces).inside_after)
             rows.append({
-                "interpolation": interp.value, "k": k,
+                "frame": frame.value, "interpolation": interp.value, "k": k,
                 "explained_variance": float(pca.explained_variance_ratio[:k].sum()),
                 "mean_error_mm": statistics.mean(means), "max_error_mm": max(maxes),
                 "median_of_max_error_mm": statistics.median(maxes),
@@ -193,11 +198,11 @@ def main(argv: list[str] | None = None) -> int:
           f"bodies, k95={result['k_for_95']} k99={result['k_for_99']}, full drape median "
           f"{result['seconds']['full_drape_median']:.1f} s, {result['heldout_drapes_ok']}/{args.heldout} "
           "references ok")
-    hdr = f"{'interp':>9} {'k':>2} {'var%':>6} {'mean mm':>8} {'max mm':>8} {'med max':>8} {'inside':>7} " \
-          f"{'in max':>6} {'push':>5} {'body mm':>8} {'fit ms':>7}"
+    hdr = f"{'frame':>8} {'interp':>9} {'k':>2} {'var%':>6} {'mean mm':>8} {'max mm':>8} {'med max':>8} " \
+          f"{'inside':>7} {'in max':>6} {'push':>5} {'body mm':>8} {'fit ms':>7}"
     print(hdr)
     for r in rows:
-        print(f"{r['interpolation']:>9} {r['k']:>2} {100 * r['explained_variance']:>6.2f} "
+        print(f"{r['frame']:>8} {r['interpolation']:>9} {r['k']:>2} {100 * r['explained_variance']:>6.2f} "
               f"{r['mean_error_mm']:>8.2f} {r['max_error_mm']:>8.2f} {r['median_of_max_error_mm']:>8.2f} "
               f"{r['inside_vertices_mean']:>7.1f} {r['inside_vertices_max']:>6d} "
               f"{r['inside_after_push_out_max']:>5d} {r['body_reconstruction_mean_mm']:>8.2f} "

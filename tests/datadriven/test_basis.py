@@ -117,8 +117,8 @@ def small_pca():
 def fake_drape_factory(calls: list):
     """A stand-in simulator whose result is affine in the body: x = placed x + 0.1 * body[:Vg]."""
 
-    def fake(mesh, vertices, faces, reference, settings, frame=None):
-        calls.append(1)
+    def fake(mesh, vertices, faces, reference, settings, frame=None, start=None):
+        calls.append(start is not None)
         x = mesh.x + 0.1 * vertices[: mesh.num_vertices].double()
         return SimpleNamespace(x=x,
                                metrics={"vertices": mesh.num_vertices, "iterations": 1, "converged": True,
@@ -135,6 +135,7 @@ def test_build_is_cached_resumable_and_exact_for_an_affine_simulator(small_pca, 
     settings = BasisSettings(k=2, c=1.5, drape=DrapeSettings(edge_length=0.05, voxel_size=0.01))
     b = build_basis(small_pca, mesh, settings, name="square", cache_dir=tmp_path, progress=False)
     assert len(calls) == 5 and b.k == 2
+    assert calls == [False, True, True, True, True]  # the example drapes continue from the mean drape
     assert torch.allclose(b.steps, 1.5 * small_pca.sigmas[:2])
     assert b.pca_fingerprint == small_pca.fingerprint()
     key = basis_key(small_pca, mesh, settings)
@@ -153,6 +154,11 @@ def test_build_is_cached_resumable_and_exact_for_an_affine_simulator(small_pca, 
                      progress=False)
     assert len(calls) == 6 and b1.k == 1 and torch.equal(b1.plus[0], b.plus[0])
     assert basis_key(small_pca, mesh, BasisSettings(k=2, c=1.0, drape=settings.drape)) != key
+    cold = BasisSettings(k=1, c=1.5, drape=settings.drape, continuation=False)
+    assert basis_key(small_pca, mesh, cold) != key
+    del calls[:]
+    build_basis(small_pca, mesh, cold, cache_dir=tmp_path, progress=False)
+    assert calls == [False, False, False]  # each drape from the placed panels
     # an affine simulator is reproduced exactly by both interpolations for a body in the span
     w = torch.tensor([0.7, -0.4], dtype=torch.float64) * small_pca.sigmas[:2]
     body = small_pca.reconstruct(w)

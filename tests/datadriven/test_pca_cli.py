@@ -22,7 +22,7 @@ def run(argv: list[str]) -> int:
     return args.func(args)
 
 
-def fake_drape(mesh, vertices, faces, reference, settings, frame=None):
+def fake_drape(mesh, vertices, faces, reference, settings, frame=None, start=None):
     """Affine stand-in for the simulator (fast): the garment moves with the body's first vertices."""
     body = vertices[: mesh.num_vertices].double()
     x = basis_mod.place_for_body(mesh.x, reference, reference) + 0.1 * (body - body.mean(0))

@@ -142,3 +142,19 @@ def test_orphan_temporaries_of_killed_writers_are_removed(tmp_path):
     os.utime(entry, (time.time() - 7200, time.time() - 7200))
     assert remove_orphan_temporaries(tmp_path) == 1
     assert not old.exists() and young.exists() and entry.exists()
+
+
+def test_a_failing_write_names_the_output_not_the_temporaries(tmp_path):
+    """Issue 17: temporary names (the hidden stage, ``.name.xxxx.tmp.png``) leaked into error messages."""
+    import errno
+
+    from torchgarment.io.atomic import atomic_path
+
+    out = tmp_path / "o"
+    with pytest.raises(OSError) as info:
+        with staged_output(out) as stage:
+            with atomic_path(stage / "pattern.png") as tmp:
+                raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
+    message = str(info.value)
+    assert str(out / "pattern.png") in message and ".staging-" not in message and ".tmp" not in message
+    assert not out.exists() and list(tmp_path.iterdir()) == []

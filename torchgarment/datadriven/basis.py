@@ -47,8 +47,10 @@ from torchgarment.sim.drape import DrapeSettings
 from torchgarment.structures.garment_mesh import GarmentMesh
 
 if TYPE_CHECKING:
+    from torchgarment.body import Body
     from torchgarment.datadriven.pca import BodyPCA
     from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.sdf import BodySDF
     from torchgarment.sim.drape import DrapeResult
 
 FORMAT = "torchgarment.clothing_basis/1"
@@ -72,12 +74,17 @@ class BasisSettings:
         variance: variance target used when ``k`` is None (e.g. 0.95, 0.99).
         c: the example bodies sit at ``+-c`` standard deviations along each component.
         drape: simulator settings of every basis drape (``edge_length`` meshes a pattern).
+        continuation: drape each example body from the mean body's drape carried onto it in body-relative
+            coordinates (:mod:`torchgarment.datadriven.relative`; sewing skipped), so that every basis drape
+            sits on the mean drape's equilibrium branch (a hem has several); False: each drape starts from
+            the placed panels, as Gillies et al.
     """
 
     k: int | None = None
     variance: float = 0.95
     c: float = 1.0
     drape: DrapeSettings = field(default_factory=DrapeSettings)
+    continuation: bool = True
 
     def __post_init__(self) -> None:
         """Validate at construction (and on ``dataclasses.replace``)."""
@@ -257,6 +264,8 @@ def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings) -> str:
     """
     desc = {"format": FORMAT, "pca": pca.fingerprint(), "garment": mesh_hash(mesh), "c": float(settings.c),
             "drape": _settings_description(settings.drape), "placement": PLACEMENT_VERSION}
+    if settings.continuation:  # (absent from the key of the cold bases built before it existed)
+        desc["continuation"] = True
     return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:24]
 
 
@@ -266,14 +275,18 @@ def sample_names(k: int) -> list[str]:
 
 
 def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor, reference: BodyFrame,
-                  settings: DrapeSettings, frame: BodyFrame | None = None) -> DrapeResult:
-    """Drape the garment (placed for ``reference``) on one body after re-placing it (:func:`place_for_body`).
+                  settings: DrapeSettings, frame: BodyFrame | None = None,
+                  start: torch.Tensor | None = None) -> DrapeResult:
+    """Drape the garment (placed for ``reference``) on one body after re-placing it (:func:`place_for_body`),
+    or, with ``start``, settle it from those positions (:func:`refine`: sewing skipped). Every drape of a
+    clothing basis goes through here.
 
     Args:
         mesh: garment mesh, positions placed for the reference body.
         vertices: (V, 3) body vertices, metres. faces: (F, 3) body faces.
         reference: frame of the body the garment is placed for.
         settings: drape settings. frame: the body's frame if already measured.
+        start: (Vg, 3) sewn garment positions to start from (a continuation), or None.
 
     Returns:
         the :class:`~torchgarment.sim.drape.DrapeResult`.
@@ -281,10 +294,39 @@ def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor
     from torchgarment.body.body import Body
     from torchgarment.sim.drape import drape
 
+    body = Body(vertices=vertices.detach().cpu().double(), faces=faces.cpu().long())
+    if start is not None:
+        return refine(mesh, start, body, settings)
     frame = frame if frame is not None else BodyFrame.of(vertices, faces)
     placed = mesh.with_positions(place_for_body(mesh.x, reference, frame))
-    body = Body(vertices=vertices.detach().cpu().double(), faces=faces.cpu().long())
     return drape(placed, body, settings=settings)
+
+
+def refine(mesh: GarmentMesh, x: torch.Tensor, body: Body, settings: DrapeSettings,
+           iterations: int | None = None, sdf: BodySDF | None = None) -> DrapeResult:
+    """Warm-started simulation: the PCA prediction ``x`` as the initial state of the quasistatic solve.
+
+    The garment (already sewn: the sewing stage is skipped) settles on ``body`` with the drape's physics and
+    tolerance for at most ``iterations`` solver iterations (None: the drape's own budget), a continuum between
+    the millisecond PCA guess (0 iterations) and a full drape.
+
+    Args:
+        mesh: the basis garment (:attr:`ClothingBasis.garment`: rest pattern ``p``, seams).
+        x: (V, 3) its predicted positions on ``body``, metres.
+        body: the customer's body (vertices and faces). settings: the basis's drape settings.
+        iterations: settle budget (>= 0). sdf: the body's SDF when already built (else built and cached).
+
+    Returns:
+        The :class:`~torchgarment.sim.drape.DrapeResult` (``metrics["converged"]`` tells whether the budget
+        was enough).
+    """
+    from torchgarment.sim.drape import drape
+
+    if iterations is not None and not (isinstance(iterations, int) and iterations >= 0):
+        raise InputError(f"refine iterations must be an integer >= 0, got {iterations!r}")
+    st = replace(settings, sew_max_iterations=0,
+                 max_iterations=settings.max_iterations if iterations is None else iterations)
+    return drape(mesh.with_positions(x.detach().to(mesh.x)), body, settings=st, sdf=sdf)
 
 
 def build_basis(
@@ -315,6 +357,8 @@ def build_basis(
     """
     from tqdm import tqdm
 
+    from torchgarment.datadriven.relative import attach, decode, encode
+
     settings = replace(settings) if settings is not None else BasisSettings()
     settings.validate()
     mesh = _as_garment_mesh(garment, settings.drape)
@@ -334,6 +378,7 @@ def build_basis(
     results: dict[str, torch.Tensor] = {}
     metrics: dict[str, dict] = {}
     bar = tqdm(names, desc=f"clothing basis {name or 'garment'} (k={k})", disable=not progress)
+    tri = None  # attachment triangles of the continuation
     for sample in bar:
         path = folder / f"{sample}.pt"
         if path.is_file():
@@ -346,7 +391,12 @@ def build_basis(
             sign, i = sample.split("_")
             verts = pca64.sample_body(int(i), settings.c if sign == "plus" else -settings.c)
         t0 = time.perf_counter()
-        result = drape_on_body(mesh, verts, faces, reference, settings.drape)
+        start = None
+        if sample != "mean" and settings.continuation:  # the mean drape carried onto this body
+            if tri is None:
+                tri = attach(results["mean"], pca64.mean, faces.long())
+            start = decode(encode(results["mean"], pca64.mean, faces.long(), tri), verts, faces.long(), tri)
+        result = drape_on_body(mesh, verts, faces, reference, settings.drape, start=start)
         m = {key_: result.metrics[key_]
              for key_ in ("vertices", "iterations", "converged", "ok", "min_sdf_mm",
                                                     "inside_vertices", "max_seam_gap_mm", "residual")}

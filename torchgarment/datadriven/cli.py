@@ -35,6 +35,7 @@ MODEL_FORMAT = "torchgarment.pca_garment_model/1"
 def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``pca`` subcommand (with ``build`` and ``fit``) to ``subparsers``."""
     from torchgarment.datadriven.basis import Interpolation
+    from torchgarment.datadriven.relative import BasisFrame
     from torchgarment.sim.drape import DrapeSettings
 
     d = DrapeSettings()
@@ -75,6 +76,9 @@ def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentP
                                                   "clothing_basis)")
     b.add_argument("--out", required=True, metavar="MODEL_DIR", help="output model folder")
     b.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
+    b.add_argument("--no-continuation", action="store_true",
+                   help="drape every example body from the placed panels (Gillies et al.) instead of from "
+                        "the mean body's drape carried onto it")
     b.set_defaults(func=cmd_pca_build)
 
     f = sub.add_parser(
@@ -89,6 +93,9 @@ def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentP
     f.add_argument("--k", type=int, default=None, help="components to use (default: all of the basis)")
     f.add_argument("--interpolation", default=Interpolation.PIECEWISE.value,
                    choices=[m.value for m in Interpolation], help="basis interpolation (default piecewise)")
+    f.add_argument("--frame", default=BasisFrame.BODY.value, choices=[m.value for m in BasisFrame],
+                   help="blend the basis in body-relative coordinates (default body: the garment follows the "
+                        "customer's surface) or in absolute positions (Gillies et al.)")
     f.add_argument("--push-out", action="store_true",
                    help="move vertices inside the body (or closer than --margin) out to --margin from its "
                         "surface (exact distances at the garment's vertices)")
@@ -172,7 +179,8 @@ def cmd_pca_build(args: argparse.Namespace) -> int:
     from torchgarment.sim.drape import DrapeSettings
 
     settings = BasisSettings(k=args.k, variance=args.variance, c=args.c,
-                             drape=DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel))
+                             drape=DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel),
+                             continuation=not args.no_continuation)
     settings.validate()
     t0 = time.perf_counter()
     dataset = _dataset(args)
@@ -262,11 +270,11 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
                          f"{pca.topology or '(unnamed)'}: the body must have the model's topology (same "
                          f"vertices and faces in the same order)")
     name = basis.name or "garment"
-    fitter = OnlineFitter(pca, {name: basis}, k=args.k, interpolation=args.interpolation)
+    fitter = OnlineFitter(pca, {name: basis}, k=args.k, interpolation=args.interpolation, frame=args.frame)
     t_load = time.perf_counter()
     w = fitter.weights(body.vertices)
     t_w = time.perf_counter()
-    x = fitter.fit(w)[name]
+    x = fitter.fit(w, bodies=body.vertices)[name]
     t_fit = time.perf_counter()
     seconds = {"load": t_load - t0, "weights": t_w - t_load, "fit": t_fit - t_w}
     refined = None
@@ -303,7 +311,7 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
     seconds["total"] = time.perf_counter() - t0
     res_rec = pca.reconstruction_error(body.vertices, fitter.k)
     metrics = {"model": str(args.model), "body": str(args.body), "garment": name, "k": fitter.k,
-               "interpolation": fitter.interpolation.value, "seconds": seconds,
+               "interpolation": fitter.interpolation.value, "frame": fitter.frame.value, "seconds": seconds,
                "weights": [float(v) for v in w],
                "weights_in_sigmas": [float(v) for v in w / pca.sigmas[: fitter.k]],
                "penetrations": pen, "refine": refined, "garment_vertices": int(x.shape[0]),

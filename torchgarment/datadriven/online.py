@@ -5,9 +5,9 @@ components (:meth:`OnlineFitter.weights`, ``3 M N`` multiply-adds); every catalo
 ``g_0 + sum_i w_i G_i`` (:meth:`OnlineFitter.fit`), for many customers and many garments in one matrix
 product over the concatenated vertices of all garments. Garments may end slightly inside a body (the linear
 model is an approximation); :func:`push_out` moves such vertices out to a margin from the body's surface with
-exact point-mesh distances at the garment's vertices (no per-customer SDF), timed separately. :func:`refine`
-continues from the prediction with the simulator for a few iterations (the continuum between the guess and a
-full drape).
+exact point-mesh distances at the garment's vertices (no per-customer SDF), timed separately.
+:func:`~torchgarment.datadriven.basis.refine` (re-exported here) continues from the prediction with the
+simulator for a few iterations (the continuum between the guess and a full drape).
 """
 
 from __future__ import annotations
@@ -18,15 +18,28 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from torchgarment.datadriven.basis import ClothingBasis, Interpolation
+from torchgarment.datadriven.basis import ClothingBasis, Interpolation, refine
+from torchgarment.datadriven.relative import BasisFrame, attach, decode, encode
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
-    from torchgarment.body import Body
     from torchgarment.datadriven.pca import BodyPCA
-    from torchgarment.sdf import BodySDF
-    from torchgarment.sim.drape import DrapeResult, DrapeSettings
-    from torchgarment.structures.garment_mesh import GarmentMesh
+
+
+def _relative_basis(basis: ClothingBasis, pca: BodyPCA) -> tuple[ClothingBasis, torch.Tensor]:
+    """``basis`` with every drape in body-relative coordinates on its own example body (float64, CPU), and the
+    (Vg,) attachment triangles (closest to the mean drape on the mean body)."""
+    from dataclasses import replace
+
+    pca64 = pca.to(device="cpu", dtype=torch.float64)
+    faces = pca64.faces.long()
+    b = basis.to(device="cpu", dtype=torch.float64)
+    tri = attach(b.mean, pca64.mean, faces)
+    c = (b.steps / pca64.sigmas[: b.k]).tolist()
+    plus = torch.stack([pca64.sample_body(i, c[i]) for i in range(b.k)]) if b.k else b.plus
+    minus = torch.stack([pca64.sample_body(i, -c[i]) for i in range(b.k)]) if b.k else b.minus
+    return replace(b, mean=encode(b.mean, pca64.mean, faces, tri), plus=encode(b.plus, plus, faces, tri),
+                   minus=encode(b.minus, minus, faces, tri)), tri
 
 
 class OnlineFitter:
@@ -37,6 +50,9 @@ class OnlineFitter:
         bases: garment name -> :class:`ClothingBasis` (or a list, named by their ``name``).
         k: components to use (default: the smallest k of the bases).
         interpolation: ``"piecewise"`` (exact at every basis drape) or ``"linear"`` (central differences).
+        frame: ``"absolute"`` (Gillies: blend vertex positions) or ``"body"`` (blend body-relative
+            coordinates, :mod:`torchgarment.datadriven.relative`; :meth:`fit_all` then needs the customers'
+            bodies to decode on).
         device, dtype: where the stacked tensors live (default: the model's).
 
     Raises:
@@ -46,6 +62,7 @@ class OnlineFitter:
     def __init__(self, pca: BodyPCA,
                  bases: ClothingBasis | list[ClothingBasis] | dict[str, ClothingBasis], k: int | None = None,
                  interpolation: Interpolation | str = Interpolation.PIECEWISE,
+                 frame: BasisFrame | str = BasisFrame.ABSOLUTE,
                  device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> None:
         if isinstance(bases, ClothingBasis):
             bases = [bases]
@@ -65,7 +82,13 @@ class OnlineFitter:
         if not 0 <= self.k <= kmax:
             raise InputError(f"k must be in [0, {kmax}] (the smallest basis), got {k}")
         self.interpolation = Interpolation.resolve(interpolation)
+        self.frame = BasisFrame.resolve(frame)
         self.pca = pca.to(device=device, dtype=dtype)
+        self.tri: torch.Tensor | None = None  # (Vt,) attachment triangles in the body frame
+        if self.frame is BasisFrame.BODY:
+            relative = {n: _relative_basis(b, pca) for n, b in bases.items()}
+            bases = {n: r[0] for n, r in relative.items()}
+            self.tri = torch.cat([r[1] for r in relative.values()]).to(device=device)
         self.names = list(bases)
         self.sizes = [bases[n].num_vertices for n in self.names]
         self.offsets = [0]
@@ -96,9 +119,11 @@ class OnlineFitter:
         w = (v.reshape(v.shape[0], -1) - self._mean_body) @ self._components.T
         return w if vertices.ndim == 3 else w[0]
 
-    def fit_all(self, weights: torch.Tensor, chunk: int = 16) -> torch.Tensor:
+    def fit_all(self, weights: torch.Tensor, chunk: int = 16, bodies: torch.Tensor | None = None
+                ) -> torch.Tensor:
         """Every garment for every customer: (B, k) weights -> (B, Vt, 3), garments concatenated along the
-        vertex axis in :attr:`names` order (slice with :attr:`offsets`). (k,) -> (Vt, 3).
+        vertex axis in :attr:`names` order (slice with :attr:`offsets`). (k,) -> (Vt, 3). In the ``"body"``
+        frame the blend is decoded on ``bodies`` ((B, V, 3) or (V, 3), the customers the weights came from).
 
         One matrix product ``mean + W G`` (two for ``"piecewise"``: positive and negative weights) per chunk
         of ``chunk`` customers, written into one preallocated output: the chunks keep the written rows in
@@ -127,20 +152,29 @@ class OnlineFitter:
                 if not self.linear:
                     rows.addmm_(w2[i:i + c].clamp_max(0.0), self.delta_minus)
         out = out.reshape(w2.shape[0], self.total_vertices, 3)
+        if self.frame is BasisFrame.BODY:
+            if bodies is None:
+                raise InputError("a body-frame fit needs the customers' bodies to decode on (bodies=...)")
+            b = self.pca.check_vertices(torch.as_tensor(bodies), "customer body").to(out)
+            if b.shape[0] != out.shape[0]:
+                raise InputError(f"{b.shape[0]} bodies for {out.shape[0]} sets of weights")
+            out = decode(out, b, self.pca.faces.long().to(out.device), self.tri)
         return out if w.ndim == 2 else out[0]
 
-    def fit(self, weights: torch.Tensor, garments: list[str] | None = None) -> dict[str, torch.Tensor]:
+    def fit(self, weights: torch.Tensor, garments: list[str] | None = None,
+            bodies: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Garments for customers: name -> (B, Vg, 3) (or (Vg, 3) for (k,) weights).
 
         Args:
             weights: (k,) or (B, k) from :meth:`weights`.
             garments: names to return (default all); all are computed in one einsum anyway.
+            bodies: the customers' bodies, (B, V, 3) or (V, 3); needed in the ``"body"`` frame.
         """
         names = self.names if garments is None else list(garments)
         unknown = [n for n in names if n not in self.names]
         if unknown:
             raise InputError(f"unknown garment(s) {unknown}; this fitter has {', '.join(self.names)}")
-        x = self.fit_all(weights)
+        x = self.fit_all(weights, bodies=bodies)
         out = {}
         for n in names:
             i = self.names.index(n)
@@ -215,30 +249,4 @@ def push_out(x: torch.Tensor, body_vertices: torch.Tensor, body_faces: torch.Ten
                          float(phi.min()) if phi.size else 0.0, time.perf_counter() - t0)
 
 
-def refine(mesh: GarmentMesh, x: torch.Tensor, body: Body, settings: DrapeSettings,
-           iterations: int | None = None, sdf: BodySDF | None = None) -> DrapeResult:
-    """Warm-started simulation: the PCA prediction ``x`` as the initial state of the quasistatic solve.
-
-    The garment (already sewn: the sewing stage is skipped) settles on ``body`` with the drape's physics and
-    tolerance for at most ``iterations`` solver iterations (None: the drape's own budget), a continuum between
-    the millisecond PCA guess (0 iterations) and a full drape.
-
-    Args:
-        mesh: the basis garment (:attr:`ClothingBasis.garment`: rest pattern ``p``, seams).
-        x: (V, 3) its predicted positions on ``body``, metres.
-        body: the customer's body (vertices and faces). settings: the basis's drape settings.
-        iterations: settle budget (>= 0). sdf: the body's SDF when already built (else built and cached).
-
-    Returns:
-        The :class:`~torchgarment.sim.drape.DrapeResult` (``metrics["converged"]`` tells whether the budget
-        was enough).
-    """
-    from dataclasses import replace
-
-    from torchgarment.sim.drape import drape
-
-    if iterations is not None and not (isinstance(iterations, int) and iterations >= 0):
-        raise InputError(f"refine iterations must be an integer >= 0, got {iterations!r}")
-    st = replace(settings, sew_max_iterations=0,
-                 max_iterations=settings.max_iterations if iterations is None else iterations)
-    return drape(mesh.with_positions(x.detach().to(mesh.x)), body, settings=st, sdf=sdf)
+__all__ = ["OnlineFitter", "PushOutResult", "push_out", "refine"]

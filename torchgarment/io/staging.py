@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import glob
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -78,7 +79,10 @@ def staged_output(out_dir: str | os.PathLike) -> Iterator[Path]:
     remove_orphan_stages(out)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
     try:
-        yield stage
+        try:
+            yield stage
+        except OSError as exc:  # a write into the stage failed: name the output, not the hidden stage
+            raise OSError(_public(str(exc), stage, out)) from exc
         out = check_output_folder(out_dir)
         files = [src for src in sorted(stage.rglob("*")) if src.is_file()]
         clash = [out / f.relative_to(stage) for f in files if (out / f.relative_to(stage)).is_dir()]
@@ -88,6 +92,17 @@ def staged_output(out_dir: str | os.PathLike) -> Iterator[Path]:
         _publish(stage, files, out)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+_TEMPORARY_NAME = re.compile(r"\.([^/\\\s'\"]+?)\.[A-Za-z0-9_]+\.tmp(\.[A-Za-z0-9]+)?")
+"""An :func:`~torchgarment.io.atomic.atomic_path` temporary name: ``.<stem>.<random>.tmp<suffix>``."""
+
+
+def _public(message: str, stage: Path, out: Path) -> str:
+    """``message`` with the staging folder's path, and atomic writers' temporary names (``.<stem>.<random>
+    .tmp<suffix>``), replaced by the output paths a user knows."""
+    message = message.replace(str(stage), str(out))
+    return _TEMPORARY_NAME.sub(lambda m: m.group(1) + (m.group(2) or ""), message)
 
 
 def _publish(stage: Path, files: list[Path], out: Path) -> None:

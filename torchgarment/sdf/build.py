@@ -168,6 +168,11 @@ def _chunked(fn: Callable[[np.ndarray], np.ndarray], points: np.ndarray, workers
         return np.concatenate(list(ex.map(fn, parts)))
 
 
+def _scatter_rows(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
+    """(n, 3) sums of the (M, 3) ``rows`` by their (M,) ``index`` (``np.add.at``, but with bincount: fast)."""
+    return np.stack([np.bincount(index, weights=rows[:, c], minlength=n) for c in range(3)], axis=1)
+
+
 class MeshProximity:
     """Exact closest points on a closed triangle mesh and signed distances at arbitrary points: libigl's AABB
     tree (built once, queried many times) signed by angle-weighted pseudo-normals (Baerentzen and Aanaes
@@ -194,21 +199,25 @@ class MeshProximity:
         cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
         self.face_normals = cross / np.linalg.norm(cross, axis=1, keepdims=True).clip(1e-300)  # (F, 3)
         # vertex pseudo-normals: face normals weighted by the face's angle at the vertex
-        vn = np.zeros_like(v)
-        for k in range(3):
-            a = v[f[:, (k + 1) % 3]] - v[f[:, k]]
-            b = v[f[:, (k + 2) % 3]] - v[f[:, k]]
-            cos = (a * b).sum(1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)).clip(1e-300)
-            np.add.at(vn, f[:, k], np.arccos(cos.clip(-1.0, 1.0))[:, None] * self.face_normals)
-        self.vertex_normals = vn
+        a = v[np.roll(f, -1, axis=1)] - v[f]  # (F, 3 corners, 3)
+        b = v[np.roll(f, -2, axis=1)] - v[f]
+        cos = (a * b).sum(2) / (np.linalg.norm(a, axis=2) * np.linalg.norm(b, axis=2)).clip(1e-300)
+        weighted = np.arccos(cos.clip(-1.0, 1.0))[:, :, None] * self.face_normals[:, None, :]  # (F, 3, 3)
+        self.vertex_normals = _scatter_rows(f.reshape(-1), weighted.reshape(-1, 3), v.shape[0])
         # edge pseudo-normals: the sum of the two faces' normals; edge k of a face is opposite corner k
         e = np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1).reshape(-1, 2)  # (3F, 2)
         key = e.min(axis=1) * v.shape[0] + e.max(axis=1)
         _, self.face_edge = np.unique(key, return_inverse=True)
         self.face_edge = self.face_edge.reshape(-1, 3)  # (F, 3) unique edge opposite each corner
-        en = np.zeros((int(self.face_edge.max()) + 1, 3))
-        np.add.at(en, self.face_edge.reshape(-1), np.repeat(self.face_normals, 3, axis=0))
-        self.edge_normals = en
+        self.edge_normals = _scatter_rows(self.face_edge.reshape(-1), np.repeat(self.face_normals, 3, axis=0),
+                                          int(self.face_edge.max()) + 1)
+
+    def closest_triangles(self, points: np.ndarray) -> np.ndarray:
+        """(P,) int64 index of the triangle closest to each point (P, 3)."""
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        if p.shape[0] == 0:
+            return np.zeros(0, dtype=np.int64)
+        return np.asarray(self.tree.squared_distance(self.vertices, self.faces, p)[1], dtype=np.int64)
 
     def query(self, points: np.ndarray, feature_tol: float = 1e-9
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
