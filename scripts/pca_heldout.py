@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchgarment.datadriven.dataset import BodyDataset
     from torchgarment.datadriven.online import OnlineFitter, PushOutResult, push_out
     from torchgarment.datadriven.pca import BodyPCA
-    from torchgarment.datadriven.relative import BasisFrame
+    from torchgarment.datadriven.relative import BasisFrame, branch_deviation
     from torchgarment.io.atomic import atomic_path
     from torchgarment.pattern.library import draft
     from torchgarment.pattern.meshing import mesh_pattern
@@ -148,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
                 "fit_ms_per_body": 1e3 * (tend - tf) / len(held),
             })
     ref_inside = [measured(i, refs[i]).inside_before for i in range(len(held))]
+    branch = branch_deviation(basis, pca)  # each example drape against the mean drape carried onto its body
 
     # warm-started refine (issue 15): the k = kmax piecewise prediction settled for N iterations, against the
     # cold drape; both timed here with the body's SDF built beforehand (its build is the same for both)
@@ -191,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         "seconds": {"dataset": t_data, "basis": t_basis,
                     "full_drape_median": statistics.median(drape_seconds)},
         "rows": rows,
+        "basis_branch_deviation": branch,
         "refine": refine_rows,
         "cold_drape_seconds_this_run": cold_seconds,
     }
@@ -207,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['inside_vertices_mean']:>7.1f} {r['inside_vertices_max']:>6d} "
               f"{r['inside_after_push_out_max']:>5d} {r['body_reconstruction_mean_mm']:>8.2f} "
               f"{r['fit_ms_per_body']:>7.3f}")
+    kind = "continued from the mean drape" if settings.continuation else "cold"
+    print(f"basis drapes ({kind}) against the mean drape carried onto their bodies, mean / hem mean mm: "
+          + ", ".join(f"{n} {d['mean_mm']:.1f} / {d['hem_mean_mm']:.1f}" for n, d in branch.items()))
     if refine_rows:
         cold = statistics.median(cold_seconds) if cold_seconds else float("nan")
         print(f"warm-started refine from k={args.kmax} piecewise (cold drape median {cold:.2f} s over "

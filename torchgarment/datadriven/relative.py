@@ -18,9 +18,15 @@ Shapes: ``x`` (..., V, 3) garment positions and ``body`` (..., B, 3) body vertic
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
 from torchgarment.options import OptionEnum
+
+if TYPE_CHECKING:
+    from torchgarment.datadriven.basis import ClothingBasis
+    from torchgarment.datadriven.pca import BodyPCA
 
 
 class BasisFrame(OptionEnum):
@@ -68,3 +74,34 @@ def decode(local: torch.Tensor, body: torch.Tensor, faces: torch.Tensor, tri: to
     """(..., V, 3) positions of coordinates ``(a, b, h)`` in the frames of their triangles on ``body``."""
     v0, e1, e2, n = _frames(body, faces, tri)
     return v0 + local[..., 0:1] * e1 + local[..., 1:2] * e2 + local[..., 2:3] * n
+
+
+def branch_deviation(basis: ClothingBasis, pca: BodyPCA, hem_fraction: float = 0.1
+                     ) -> dict[str, dict[str, float]]:
+    """How far each example drape of a clothing basis is from the mean drape carried onto its body
+    (body-relative coordinates on the mean body, decoded on the example body): a drape on the mean drape's
+    equilibrium branch differs from it only by the body change's effect; a hem that swung onto another branch
+    differs by centimetres at the hem.
+
+    Args:
+        basis: the clothing basis. pca: its body model. hem_fraction: the lowest this fraction of the mean
+            drape's vertices is "the hem".
+
+    Returns:
+        Per drape (``plus_i``, ``minus_i``): ``mean_mm`` over all vertices and ``hem_mean_mm`` over the hem.
+    """
+    pca64 = pca.to(device="cpu", dtype=torch.float64)
+    faces = pca64.faces.long()
+    mean = basis.mean.detach().cpu().double()
+    tri = attach(mean, pca64.mean, faces)
+    local = encode(mean, pca64.mean, faces, tri)
+    hem = mean[:, 1] <= torch.quantile(mean[:, 1], hem_fraction)
+    c = (basis.steps.double() / pca64.sigmas[: basis.k]).tolist()
+    out = {}
+    for i in range(basis.k):
+        for sign, drapes in ((1.0, basis.plus), (-1.0, basis.minus)):
+            carried = decode(local, pca64.sample_body(i, sign * c[i]), faces, tri)
+            d = torch.linalg.vector_norm(drapes[i].detach().cpu().double() - carried, dim=1)
+            out[f"{'plus' if sign > 0 else 'minus'}_{i}"] = {"mean_mm": 1e3 * float(d.mean()),
+                                                              "hem_mean_mm": 1e3 * float(d[hem].mean())}
+    return out
