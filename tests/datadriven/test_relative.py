@@ -66,3 +66,21 @@ def test_body_frame_fit_follows_the_customer(pca):
     assert float((xa - truth).norm(dim=1).max()) > 0.02  # blending positions cannot follow a moved body
     with pytest.raises(InputError, match="bodies"):
         body_fit.fit(body_fit.weights(customer))
+
+
+def test_branch_deviation_is_zero_on_the_carried_branch_and_sees_a_moved_hem(pca):
+    from torchgarment.datadriven.relative import branch_deviation
+
+    faces = pca.faces.long()
+    x_mean = pca.mean[::30].clone()
+    tri = attach(x_mean, pca.mean, faces)
+    local = encode(x_mean, pca.mean, faces, tri)
+    plus = torch.stack([decode(local, pca.sample_body(0, 1.0), faces, tri)])
+    minus = torch.stack([decode(local, pca.sample_body(0, -1.0), faces, tri)])
+    hem = x_mean[:, 1] <= torch.quantile(x_mean[:, 1], 0.1)
+    minus[0, hem, 2] += 0.05  # the hem swung 5 cm forward
+    garment = GarmentMesh(x_mean, torch.tensor([[0, 1, 2]]))
+    basis = ClothingBasis(x_mean, plus, minus, pca.sigmas[:1].clone(), garment, pca.fingerprint(), "", "g")
+    dev = branch_deviation(basis, pca)
+    assert dev["plus_0"]["mean_mm"] < 1e-6 and dev["plus_0"]["hem_mean_mm"] < 1e-6
+    assert abs(dev["minus_0"]["hem_mean_mm"] - 50.0) < 1e-6 and dev["minus_0"]["mean_mm"] < 10.0
