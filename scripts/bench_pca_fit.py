@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append({"frame": frame, "k": k, "fit_ms": 1e3 * fit_s, "weights_ms": 1e3 * weights_s,
                          "batch": args.batch, "batch_ms": 1e3 * batch_s,
                          "bodies_per_s": args.batch / batch_s})
-    push = bench_push_out(ng, max(3, args.repeats // 10))
+    push = bench_push_out(ng, max(11, args.repeats // 5))
     online_ms = {f"{r['frame']} k={r['k']}": r["weights_ms"] + r["fit_ms"] + push["push_out_ms"]
                  for r in rows}
     result = {"garment_vertices": ng, "body_vertices": nb, "dtype": args.dtype,
