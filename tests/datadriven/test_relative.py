@@ -8,8 +8,9 @@ import math
 import pytest
 import torch
 
+from torchgarment.body.frames import attach, decode, encode
 from torchgarment.datadriven import BodyDataset, BodyPCA, ClothingBasis, OnlineFitter
-from torchgarment.datadriven.relative import BasisFrame, attach, decode, encode
+from torchgarment.datadriven.relative import BasisFrame
 from torchgarment.errors import InputError
 from torchgarment.structures.garment_mesh import GarmentMesh
 

@@ -180,6 +180,17 @@ class ClothingBasis:
     def num_vertices(self) -> int:
         return int(self.mean.shape[0])
 
+    def example_bodies(self, pca: BodyPCA) -> tuple[torch.Tensor, torch.Tensor]:
+        """(k, V, 3) bodies of :attr:`plus` and of :attr:`minus` (``pca.sample_body(i, +-c)`` with ``c`` from
+        :attr:`steps`), float64 CPU."""
+        pca64 = pca.to(device="cpu", dtype=torch.float64)
+        c = (self.steps.detach().cpu().double() / pca64.sigmas[: self.k]).tolist()
+        if not c:
+            empty = pca64.mean.new_zeros(0, *pca64.mean.shape)
+            return empty, empty
+        return (torch.stack([pca64.sample_body(i, c[i]) for i in range(self.k)]),
+                torch.stack([pca64.sample_body(i, -c[i]) for i in range(self.k)]))
+
     def deltas(self, interpolation: Interpolation | str = Interpolation.PIECEWISE,
                k: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Garment displacement per unit weight for positive and negative weights, each (k, Vg, 3).
@@ -357,7 +368,7 @@ def build_basis(
     """
     from tqdm import tqdm
 
-    from torchgarment.datadriven.relative import attach, decode, encode
+    from torchgarment.body.frames import attach, decode, encode
 
     settings = replace(settings) if settings is not None else BasisSettings()
     settings.validate()

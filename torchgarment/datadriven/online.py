@@ -18,8 +18,9 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from torchgarment.body.frames import attach, decode, encode
 from torchgarment.datadriven.basis import ClothingBasis, Interpolation, refine
-from torchgarment.datadriven.relative import BasisFrame, attach, decode, encode
+from torchgarment.datadriven.relative import BasisFrame
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
@@ -35,9 +36,7 @@ def _relative_basis(basis: ClothingBasis, pca: BodyPCA) -> tuple[ClothingBasis, 
     faces = pca64.faces.long()
     b = basis.to(device="cpu", dtype=torch.float64)
     tri = attach(b.mean, pca64.mean, faces)
-    c = (b.steps / pca64.sigmas[: b.k]).tolist()
-    plus = torch.stack([pca64.sample_body(i, c[i]) for i in range(b.k)]) if b.k else b.plus
-    minus = torch.stack([pca64.sample_body(i, -c[i]) for i in range(b.k)]) if b.k else b.minus
+    plus, minus = b.example_bodies(pca64)
     return replace(b, mean=encode(b.mean, pca64.mean, faces, tri), plus=encode(b.plus, plus, faces, tri),
                    minus=encode(b.minus, minus, faces, tri)), tri
 
