@@ -30,7 +30,7 @@ without progress; a run that misses the tolerance is repeated by continuation (t
 last, which keeps the tape planes on one branch when the shape changes a lot, e.g. a bust graded without its
 underbust). The best body found is kept, so a fit never ends farther from the request than its start. A final
 :func:`measure_body` check within ``FitSettings.accept`` decides whether the request was reached
-(:func:`check_reach`); ``body --closest`` keeps the closest body otherwise.
+(:func:`body_from_measurements`); ``body --closest`` keeps the closest body otherwise.
 
 Reach, measured (``python scripts/body_fit_acceptance.py``): the three GarmentCode mean bodies' YAML
 measurements, each with bust, underbust, waist and hips moved by +-5.08 and +-10.16 cm, and with bust, waist
@@ -544,7 +544,7 @@ def fit_anny(measurements: dict[str, float],
 
     Returns:
         The fit (the closest body found, whether or not within ``settings.accept``: see
-        :func:`check_reach`) and the fitted Y-up rest vertices (V, 3), float64, not yet recentred.
+        :func:`body_from_measurements`) and the fitted Y-up rest vertices (V, 3), float64, not yet recentred.
     """
     t_start = time.perf_counter()
     model = load_anny_model()
@@ -598,18 +598,6 @@ def fit_anny(measurements: dict[str, float],
 def reach_errors(requested: dict[str, float], measured: dict[str, float]) -> dict[str, float]:
     """Per-measurement error of a fitted body, measured minus requested, millimetres (rounded to 0.1)."""
     return {k: round(1000.0 * (measured[k] - val), 1) for k, val in requested.items()}
-
-
-def check_reach(requested: dict[str, float], measured: dict[str, float], accept: float) -> None:
-    """Raise :class:`InputError` when a fitted body misses any requested measurement by more than ``accept``
-    metres; the message gives every error in mm and the way out (``--closest``)."""
-    errors = reach_errors(requested, measured)
-    worst = max(abs(e) for e in errors.values())
-    if worst > 1000.0 * accept:
-        raise InputError(
-            f"anny cannot reach these measurements within {1000 * accept:.0f} mm (errors in mm: {errors}); "
-            "they may be an unusual combination: check them, or pass --closest for the closest body"
-        )
 
 
 def _rig(model: anny.Anny, x_coeffs: torch.Tensor, offset: torch.Tensor) -> tuple[Skeleton, torch.Tensor]:
@@ -738,10 +726,15 @@ def body_from_measurements(
             body_cache.store_entry(key, payload)
     params = dict(payload["params"])
     # the cache holds the closest body found; whether it is close enough is decided on every load
-    if not closest:
-        check_reach(request, params["measured"], settings.accept)
-    params["reach_errors"] = reach_errors(request, params["measured"])
-    params["reached"] = max(abs(e) for e in params["reach_errors"].values()) <= 1000.0 * settings.accept
+    errors = reach_errors(request, params["measured"])
+    reached = max(abs(e) for e in errors.values()) <= 1000.0 * settings.accept
+    if not (reached or closest):
+        raise InputError(
+            f"anny cannot reach these measurements within {1000 * settings.accept:.0f} mm (errors in mm: "
+            f"{errors}); they may be an unusual combination: check them, or pass --closest for the closest "
+            "body"
+        )
+    params["reach_errors"], params["reached"] = errors, reached
     params["cache_hit"] = hit
     params["cache_key"] = key
     body = Body(
