@@ -11,12 +11,11 @@ with ``d`` the point-triangle distances and ``B`` the transition bandwidth. (The
 flipped here so that ``w = 1`` when the second minimum is at least ``2B`` farther and ``w = 1/2`` at a tie,
 which is what makes the transfer continuous.)
 
-Per triangle, a vertex is stored in the triangle's affine frame (:mod:`torchgarment.body.frames`):
-``x̄ = v0 + a e1 + b e2 + h n`` (``e1``, ``e2`` edges, ``n`` unit normal, ``a``, ``b`` unclamped
-barycentric coordinates, ``h`` the height over the plane) and transferred as
-``x̃ = v0' + a e1' + b e2' + h s n'``, where ``s`` is 1 (:class:`OffsetScaling` ``distance``: the paper's
-"vertex-triangle distance" is kept) or ``sqrt(area'/area)`` (``scaled``, default: the offset grows with the
-triangle, so that a body scaled by ``s`` carries the garment scaled by ``s``
+Per triangle, a vertex is stored in the triangle's affine frame: ``x̄ = v0 + a e1 + b e2 + h n`` (``e1``,
+``e2`` edges, ``n`` unit normal, ``a``, ``b`` unclamped barycentric coordinates, ``h`` the height over the
+plane) and transferred as ``x̃ = v0' + a e1' + b e2' + h s n'``, where ``s`` is 1 (:class:`OffsetScaling`
+``distance``: the paper's "vertex-triangle distance" is kept) or ``sqrt(area'/area)`` (``scaled``, default:
+the offset grows with the triangle, so that a body scaled by ``s`` carries the garment scaled by ``s``
 exactly, and the ease of a graded garment scales with the body).
 
 ``t0`` is exact (libigl's AABB tree). The second minimum is searched among the ``candidates`` nearest
@@ -37,7 +36,6 @@ import torch
 from scipy.spatial import cKDTree
 
 from torchgarment.body.body import Body
-from torchgarment.body.frames import decode, encode
 from torchgarment.errors import InputError
 from torchgarment.options import OptionEnum
 
@@ -103,9 +101,30 @@ def point_triangle_closest(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nd
     return out
 
 
-def _areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """(F,) triangle areas (square metres)."""
-    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+def _frames(v: np.ndarray,
+            f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-triangle frame: v0, e1, e2, unit normal n, area."""
+    v0 = v[f[:, 0]]
+    e1 = v[f[:, 1]] - v0
+    e2 = v[f[:, 2]] - v0
+    cr = np.cross(e1, e2)
+    dbl = np.linalg.norm(cr, axis=1)
+    n = cr / np.maximum(dbl, 1e-300)[:, None]
+    return v0, e1, e2, n, 0.5 * dbl
+
+
+def _local_coordinates(x: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray,
+                       n: np.ndarray) -> np.ndarray:
+    """(N, 3) ``(a, b, h)`` with ``x = v0 + a e1 + b e2 + h n`` (rows matched)."""
+    r = x - v0
+    h = (r * n).sum(1)
+    r = r - h[:, None] * n
+    g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    r1, r2 = (r * e1).sum(1), (r * e2).sum(1)
+    det = g11 * g22 - g12 * g12
+    a = (g22 * r1 - g12 * r2) / det
+    b = (g11 * r2 - g12 * r1) / det
+    return np.stack([a, b, h], 1)
 
 
 def _vertex_adjacency(f: np.ndarray, num_vertices: int) -> scipy.sparse.csr_matrix:
@@ -224,15 +243,14 @@ def transfer_deformation(x_base: torch.Tensor, base_body: Body, target_body: Bod
                          "different faces)")
     x = x_base.detach().cpu().double().numpy()
     t0, d0, t1, d1 = two_minimum_triangles(x, vb, fb, band)
-    scale = (np.sqrt(_areas(vt, fb) / np.maximum(_areas(vb, fb), 1e-300)) if mode is OffsetScaling.SCALED
-             else np.ones(len(fb)))
-    xt, vbt, vtt, ftt = (torch.as_tensor(a) for a in (x, vb, vt, fb))
+    F0 = _frames(vb, fb)
+    F1 = _frames(vt, fb)
+    scale = np.sqrt(F1[4] / np.maximum(F0[4], 1e-300)) if mode is OffsetScaling.SCALED else np.ones(len(fb))
 
     def place(t: np.ndarray) -> np.ndarray:
-        tt = torch.as_tensor(t)
-        abh = encode(xt, vbt, ftt, tt)
-        abh[:, 2] *= torch.as_tensor(scale[t])
-        return decode(abh, vtt, ftt, tt).numpy()
+        abh = _local_coordinates(x, F0[0][t], F0[1][t], F0[2][t], F0[3][t])
+        return (F1[0][t] + abh[:, :1] * F1[1][t] + abh[:, 1:2] * F1[2][t]
+                + (abh[:, 2] * scale[t])[:, None] * F1[3][t])
 
     x0 = place(t0)
     has1 = t1 >= 0

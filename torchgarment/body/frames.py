@@ -1,6 +1,10 @@
-"""Garment points in the affine frames of body triangles: the one implementation shared by the deformation
-transfer of pattern adjustment (:mod:`torchgarment.adjust.transfer`, Wang 2018 Eq. 15) and the body-relative
+"""Garment points in the affine frames of body triangles, in torch and batched, for the body-relative
 clothing basis (:mod:`torchgarment.datadriven.relative`).
+
+The deformation transfer of pattern adjustment (:mod:`torchgarment.adjust.transfer`, Wang 2018 Eq. 15)
+computes the same frame in numpy. Moving it onto these functions changes its result by 2e-16 m. That was
+enough to move the adjustment test fixture's 16-iteration optimum onto a state where the iterative adjoint
+meets negative curvature. So the merge waits for an adjoint test that does not depend on such luck.
 
 A point attached to triangle ``(v0, v1, v2)`` of a body is written as::
 
