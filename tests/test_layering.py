@@ -11,7 +11,7 @@ Layers, lowest first (a module may import from its own layer and the layers belo
 | 4 simulation | sim, testing | energies, scenes, solvers, differentiable solve, draping; FD checks |
 | 5 rendering | render | PNG renders (used by the command-line modules only) |
 | 6 methods | adjust, retarget, datadriven, studies | the three fitting methods, study metrics |
-| 7 commands | cli, __main__, adjust.cli, adjust.demo, retarget.cli, datadriven.cli, sim.drape_cli | CLI |
+| 7 commands | cli, __main__, batch, adjust.cli, adjust.demo, retarget.cli, datadriven.cli, ... | CLI |
 
 The package root ``torchgarment/__init__.py`` re-exports the errors only. Imports under
 ``if TYPE_CHECKING:`` and inside functions (lazy imports, for import speed) are held to the same rule.
@@ -45,6 +45,7 @@ LAYERS: dict[str, int] = {
     "studies": 6,
     "cli": 7,
     "__main__": 7,
+    "batch": 7,
 }
 """Layer of every top-level module or subpackage of torchgarment."""
 

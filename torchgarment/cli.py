@@ -1,9 +1,10 @@
 """The ``torchgarment`` command line.
 
-Subcommands: ``body``, ``pattern``, ``measure``, ``drape``, ``adjust``, ``grade``, ``retarget``, ``pca``,
-``demo``. Every subcommand has ``--help``. Bad input ends with one readable line on stderr and exit code 2, a
-result nobody can use (:class:`~torchgarment.errors.UnusableResultError`: a drape far from equilibrium or
-from the body) with one line and exit code 3; outputs are staged and published only on success.
+Subcommands: ``body``, ``pattern``, ``measure``, ``drape``, ``adjust``, ``grade``, ``retarget``,
+``pca``, ``batch``, ``demo``. Every subcommand has ``--help``. Bad input ends with one readable line on
+stderr and exit code 2, a result nobody can use (:class:`~torchgarment.errors.UnusableResultError`: a drape
+far from equilibrium or from the body) with one line and exit code 3; outputs are staged and published only
+on success.
 """
 
 from __future__ import annotations
@@ -281,6 +282,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_grade_parser(sub)
     add_retarget_parser(sub)
     add_pca_parser(sub)
+
+    from torchgarment.batch.cli import add_batch_parser
+
+    add_batch_parser(sub)
 
     p = sub.add_parser("demo", help="run the main job on built-in defaults",
                        description="Make bodies of two chart sizes, draft a garment for each, mesh it, place "

@@ -1,4 +1,5 @@
-"""Headless PNG renders of bodies and garments with a numpy software rasterizer (no OpenGL, no display).
+"""Headless PNG renders of bodies and garments with a numpy software rasterizer (no OpenGL, no display), and
+:func:`contact_sheet` (many results' pictures as labelled thumbnails on one PNG).
 
 Example::
 
@@ -16,6 +17,7 @@ from torchgarment.render.figure import FigureLayout, render_views
 from torchgarment.render.image import RenderStyle, render_image
 from torchgarment.render.layers import DEFAULT_COLOR, MeshLayer, ScalarLocation
 from torchgarment.render.raster import Fragments, rasterize
+from torchgarment.render.sheet import contact_sheet
 from torchgarment.render.views import OrthoCamera, View, fit_camera
 
 __all__ = [
@@ -28,6 +30,7 @@ __all__ = [
     "ScalarColors",
     "ScalarLocation",
     "View",
+    "contact_sheet",
     "fit_camera",
     "rasterize",
     "render_image",

@@ -4,7 +4,7 @@ Re-exports :class:`BodySDF` (the sampled field, ``BodySDF.from_body`` / ``BodySD
 :class:`SDFSettings` and :class:`SDFSampling`, the grid builder :func:`build_sdf_grid` (:class:`SDFGridData`,
 :class:`SignType`), the exact queries :func:`exact_signed_distance`, :func:`winding_number` and
 :class:`MeshProximity` (closest points and signed distances, the tree built once), and the disk cache
-:func:`cached_sdf`, :func:`sdf_cache_dir`, :func:`sdf_cache_key`.
+:func:`cached_sdf`, :func:`sdf_cache_dir`, :func:`sdf_cache_key`, :func:`sdf_cache_path`.
 """
 
 from torchgarment.sdf.build import (
@@ -16,7 +16,7 @@ from torchgarment.sdf.build import (
     exact_signed_distance,
     winding_number,
 )
-from torchgarment.sdf.cache import cached_sdf, sdf_cache_dir, sdf_cache_key
+from torchgarment.sdf.cache import cached_sdf, sdf_cache_dir, sdf_cache_key, sdf_cache_path
 from torchgarment.sdf.grid import BodySDF, SDFSampling
 
 __all__ = [
@@ -31,5 +31,6 @@ __all__ = [
     "exact_signed_distance",
     "sdf_cache_dir",
     "sdf_cache_key",
+    "sdf_cache_path",
     "winding_number",
 ]

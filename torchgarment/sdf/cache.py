@@ -63,6 +63,20 @@ def sdf_cache_key(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | np.
     return hsh.hexdigest()[:32]
 
 
+def sdf_cache_path(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | np.ndarray,
+                   settings: SDFSettings | None = None, *,
+                   cache_dir: str | os.PathLike | None = None) -> Path:
+    """Path of the cache entry of a mesh's SDF (:func:`cached_sdf` reads and writes it; the batch runner
+    ships it to other machines).
+
+    Args:
+        vertices: (V, 3) positions in metres. faces: (F, 3) vertex indices. settings: grid settings; default
+            :class:`SDFSettings()`. cache_dir: folder of the entries; default :func:`sdf_cache_dir`.
+    """
+    folder = Path(cache_dir).expanduser() if cache_dir is not None else sdf_cache_dir()
+    return folder / f"{sdf_cache_key(_as_numpy(vertices), _as_numpy(faces), settings or SDFSettings())}.npz"
+
+
 def cached_sdf(
     vertices: torch.Tensor | np.ndarray,
     faces: torch.Tensor | np.ndarray,
@@ -91,8 +105,8 @@ def cached_sdf(
     """
     settings = settings or SDFSettings()
     v, f = check_mesh(_as_numpy(vertices), _as_numpy(faces))
-    folder = Path(cache_dir).expanduser() if cache_dir is not None else sdf_cache_dir()
-    path = folder / f"{sdf_cache_key(v, f, settings)}.npz"
+    path = sdf_cache_path(v, f, settings, cache_dir=cache_dir)
+    folder = path.parent
     if path.is_file():
         try:
             return BodySDF.load(path, device=device, dtype=dtype)

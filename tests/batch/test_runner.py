@@ -1,0 +1,162 @@
+"""The batch runner on a local (embedded) Ray: small drape jobs run to completion, a malformed input fails
+alone, a worker killed mid-job is retried with the same result as a single command, and ``--resume`` after an
+interrupted batch runs only the missing jobs."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+import ray  # noqa: F401 - the README's test command installs the [batch] extra; these tests need Ray
+
+from torchgarment.batch import BatchSettings, load_manifest, run_batch
+from torchgarment.cli import main
+
+EDGE = 0.05  # coarse garments: about 300 vertices, a second per drape
+
+
+def _manifest(folder: Path, data: dict) -> Path:
+    path = folder / "manifest.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def _summary(out: Path) -> list[dict]:
+    with open(out / "summary.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _records(out: Path) -> dict[str, dict]:
+    return {p.stem: json.loads(p.read_text()) for p in (out / "records").glob("*.json")}
+
+
+def _single_command(record: dict, out: Path) -> Path:
+    """Run the record's command as a user would (in this process) into ``out``."""
+    assert main([*record["command"][1:], "--out", str(out)]) == 0
+    return out
+
+
+def test_six_drape_jobs_run_to_completion(tmp_path):
+    manifest = _manifest(tmp_path, {"cross": [{"method": "drape",
+                                               "garments": ["straight_skirt", "aline_skirt"],
+                                               "sizes": ["6", "10", "12"],
+                                               "settings": {"edge_length": EDGE}}]})
+    out = tmp_path / "out"
+    assert main(["batch", str(manifest), "--out", str(out), "--workers", "2", "--no-progress"]) == 0
+    rows = _summary(out)
+    assert len(rows) == 6 and {r["status"] for r in rows} == {"ok"}
+    assert {"job", "method", "garment", "body", "status", "seconds", "error"} <= set(rows[0])
+    assert {(r["garment"], r["body"]) for r in rows} == {(g, s) for g in ("straight_skirt", "aline_skirt")
+                                                        for s in ("6", "10", "12")}
+    for r in rows:
+        folder = out / r["folder"]
+        assert {"garment.obj", "drape.png", "metrics.json", "job.log"} <= {p.name for p in folder.iterdir()}
+        assert r["converged"] == "True" and float(r["min_sdf_mm"]) > 0  # key metrics in the summary
+    assert (out / "contact_sheet.png").stat().st_size > 10_000
+    report = json.loads((out / "batch.json").read_text())
+    assert (report["ok"], report["failed"], report["workers"]) == (6, 0, 2)
+    assert not list((out / "jobs").glob(".*"))  # no staging leftovers
+
+
+def test_a_malformed_input_fails_alone(tmp_path):
+    bad = tmp_path / "broken.json"
+    bad.write_text('{"pattern": {"panels": ')
+    manifest = _manifest(tmp_path, {"jobs": [
+        {"method": "drape", "garment": "straight_skirt", "size": "6", "settings": {"edge_length": EDGE}},
+        {"method": "drape", "pattern": "broken.json", "body": "6", "settings": {"edge_length": EDGE}}]})
+    out = tmp_path / "out"
+    # the exit code says that a job failed; the others' results are written
+    assert main(["batch", str(manifest), "--out", str(out), "--workers", "2", "--retries", "1",
+                 "--no-progress"]) == 1
+    report = json.loads((out / "batch.json").read_text())
+    assert (report["ok"], report["failed"], report["retried"]) == (1, 1, 1)
+    rows = {r["garment"]: r for r in _summary(out)}
+    assert rows["straight_skirt"]["status"] == "ok"
+    failed = rows["broken"]
+    assert failed["status"] == "failed" and failed["attempts"] == "2" and failed["folder"] == ""
+    assert "broken.json" in failed["error"] and "\n" not in failed["error"]
+    assert not (out / "jobs" / failed["job"]).exists()  # no partial job folder
+
+
+def _batch_process(manifest: Path, out: Path, mark: str, *extra: str) -> subprocess.Popen:
+    env = {**os.environ, "TORCHGARMENT_BATCH_TEST_MARK": mark}
+    return subprocess.Popen([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out", str(out),
+                             "--no-progress", *extra], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _running_job_workers(mark: str) -> list[int]:
+    """Pids of this test's Ray workers that are running a job (Ray titles them ``ray::batch_job``)."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            if not (proc / "cmdline").read_bytes().startswith(b"ray::batch_job"):
+                continue
+            if f"TORCHGARMENT_BATCH_TEST_MARK={mark}".encode() in (proc / "environ").read_bytes():
+                pids.append(int(proc.name))
+        except OSError:
+            continue
+    return pids
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="needs /proc to find the Ray workers")
+def test_a_killed_worker_is_retried_and_the_result_is_the_single_commands(tmp_path):
+    manifest = _manifest(tmp_path, {"cross": [{"method": "drape", "garments": ["straight_skirt"],
+                                               "sizes": ["6", "10", "12"],
+                                               "settings": {"edge_length": EDGE}}]})
+    out, mark = tmp_path / "out", uuid.uuid4().hex
+    proc = _batch_process(manifest, out, mark, "--workers", "2", "--retries", "1")
+    killed, deadline = None, time.monotonic() + 120
+    while killed is None and proc.poll() is None and time.monotonic() < deadline:
+        pids = _running_job_workers(mark)
+        if pids:
+            os.kill(pids[0], signal.SIGKILL)
+            killed = pids[0]
+        time.sleep(0.02)
+    stdout, stderr = proc.communicate(timeout=300)
+    assert killed is not None, f"no running job worker seen: {stderr[-2000:]}"
+    assert proc.returncode == 0, stderr[-2000:]
+    records = _records(out)
+    assert len(records) == 3 and {r["status"] for r in records.values()} == {"ok"}
+    retried = [r for r in records.values() if r["attempts"] == 2]
+    assert len(retried) == 1, [r["attempts"] for r in records.values()]
+    assert "1 retried attempt" in stdout
+    single = _single_command(retried[0], tmp_path / "single")
+    assert (out / retried[0]["folder"] / "garment.obj").read_bytes() == (single / "garment.obj").read_bytes()
+    assert not list((out / "jobs").glob(".*"))
+
+
+def test_resume_after_an_interrupted_batch_runs_only_the_missing_jobs(tmp_path):
+    manifest = _manifest(tmp_path, {"cross": [{"method": "drape", "garments": ["straight_skirt"],
+                                               "sizes": ["6", "10", "12", "14"],
+                                               "settings": {"edge_length": EDGE}}]})
+    out, mark = tmp_path / "out", uuid.uuid4().hex
+    proc = _batch_process(manifest, out, mark, "--workers", "1")
+    deadline = time.monotonic() + 120
+    while proc.poll() is None and time.monotonic() < deadline:
+        if any(r["status"] == "ok" for r in _records(out).values() if out.exists()):
+            proc.send_signal(signal.SIGINT)
+            break
+        time.sleep(0.05)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr[-2000:]
+    finished = {k: r for k, r in _records(out).items() if r["status"] == "ok"}
+    assert 1 <= len(finished) < 4
+    assert {r["status"] for r in _summary(out)} <= {"ok", "not run"}  # the summary of the jobs done
+    stamps = {k: (out / r["folder"] / "garment.obj").stat().st_mtime_ns for k, r in finished.items()}
+    report = run_batch(load_manifest(manifest),
+                       BatchSettings(out=out, workers=2, resume=True, progress=False))
+    assert (report.skipped, report.ran, report.ok) == (len(finished), 4 - len(finished), 4)
+    for k, r in finished.items():  # the finished jobs were not run again
+        assert (out / r["folder"] / "garment.obj").stat().st_mtime_ns == stamps[k]
+    assert {r["status"] for r in _summary(out)} == {"ok"}

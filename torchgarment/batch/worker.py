@@ -1,0 +1,156 @@
+"""What a batch worker runs: the shared preparation of a body, and one job (the single command, in-process).
+
+Both are plain functions; :mod:`torchgarment.batch.runner` wraps them as Ray tasks. A job runs the very
+command a user would type (:func:`torchgarment.cli.main`) into a private temporary folder and returns the
+files it wrote, as bytes, with its exit code and output: the driver publishes them into the job's folder in
+one step (:func:`~torchgarment.io.staging.staged_output`), so a worker killed mid-job leaves no partial job
+folder, and the output folder need not be visible to the workers of a cluster.
+
+Shared work travels the same way: :func:`prepare_body` fits a body and builds its SDF once, and returns the
+two disk-cache entries (:mod:`torchgarment.body.cache`, :mod:`torchgarment.sdf.cache`); every job on that body
+installs them into its machine's cache (:func:`install_cache_files`, atomic, safe under concurrent writers)
+before it runs, so it finds the body and the SDF there.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import shutil
+import socket
+import tempfile
+import time
+from pathlib import Path
+
+__all__ = ["LOGS", "MODEL", "install_cache_files", "prepare_body", "run_command"]
+
+MODEL = "<model>"
+"""Placeholder of a ``pca_fit`` job's ``--model`` folder in its argv: the shared model, unpacked where the job
+runs."""
+
+LOGS = "<logs>"
+"""Placeholder of ``--log-dir`` in a job's argv: the job's own ``logs/`` (TensorBoard) folder."""
+
+_TEMP_PREFIX = "torchgarment-batch-"
+
+
+def prepare_body(spec: str, voxel: float | None) -> dict:
+    """Fit (or load) the body ``spec`` names and build its SDF at ``voxel`` through the disk caches.
+
+    Args:
+        spec: a chart size or a body mesh file (as ``--body`` takes it). voxel: SDF voxel size (m), or None
+            for no SDF.
+
+    Returns:
+        ``{"files": {path relative to the cache root: bytes}, "error": None | str}``. A body the command
+        would refuse gives no files and the error line: the job then fails with the command's own message.
+    """
+    from torchgarment.body.cache import cache_root, entry_path
+    from torchgarment.body.load import load_body_spec
+    from torchgarment.errors import TorchGarmentError
+
+    try:
+        body, _ = load_body_spec(spec, "body")
+        paths = []
+        if body.params.get("cache_key"):
+            paths.append(entry_path(body.params["cache_key"]))
+        if voxel is not None:
+            from torchgarment.sdf import SDFSettings, cached_sdf, sdf_cache_path
+
+            settings = SDFSettings(voxel_size=voxel)
+            cached_sdf(body.vertices, body.faces, settings)
+            paths.append(sdf_cache_path(body.vertices, body.faces, settings))
+    except (TorchGarmentError, OSError) as exc:
+        return {"files": {}, "error": str(exc).splitlines()[0]}
+    root = cache_root()
+    return {"files": {str(p.relative_to(root)): p.read_bytes() for p in paths if p.is_file()}, "error": None}
+
+
+def install_cache_files(files: dict[str, bytes]) -> int:
+    """Write the cache entries ``files`` (path relative to the cache root -> bytes) that this machine's cache
+    lacks; each is written atomically, so concurrent workers never see half a file.
+
+    Returns:
+        How many were written.
+    """
+    from torchgarment.body.cache import cache_root
+    from torchgarment.io.atomic import atomic_path
+
+    root, written = cache_root(), 0
+    for rel, data in files.items():
+        path = root / rel
+        if path.is_file():
+            continue
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(data)
+        written += 1
+    return written
+
+
+def _unpack(files: dict[str, bytes], folder: Path) -> None:
+    for rel, data in files.items():
+        path = folder / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+
+
+def _collect(folder: Path) -> dict[str, bytes]:
+    if not folder.is_dir():
+        return {}
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _remove_old_temporaries(max_age_s: float = 3600.0) -> None:
+    """A worker killed mid-job (``kill -9``) leaves its temporary folder: remove those older than an hour."""
+    now = time.time()
+    for old in Path(tempfile.gettempdir()).glob(f"{_TEMP_PREFIX}*"):
+        with contextlib.suppress(OSError):
+            if now - old.stat().st_mtime > max_age_s:
+                shutil.rmtree(old)
+
+
+def run_command(argv: list[str], threads: int, cache_files: list[dict[str, bytes]],
+                model_files: dict[str, bytes] | None = None) -> dict:
+    """Run one job: the single command ``torchgarment ARGV --out TMP`` in this process.
+
+    Args:
+        argv: the command's arguments without ``--out`` (:attr:`~torchgarment.batch.manifest.Job.argv`), with
+            :data:`MODEL` and :data:`LOGS` placeholders. threads: torch threads for this job (the batch gives
+            each job as many CPUs in Ray, so that workers do not oversubscribe the cores). cache_files: the
+            shared preparations' cache entries (:func:`prepare_body`'s ``files``), installed first.
+            model_files: the shared ``pca build`` model's files, for a :data:`MODEL` placeholder.
+
+    Returns:
+        ``{"code", "files", "stdout", "stderr", "seconds", "host", "pid"}``: the exit code (0 success, 2 bad
+        input, 3 unusable result, ...), the files written under ``--out`` (relative path -> bytes; empty
+        unless the command succeeded), its output, its wall time.
+    """
+    import torch
+
+    from torchgarment.cli import main
+
+    torch.set_num_threads(max(1, int(threads)))
+    for files in cache_files:
+        install_cache_files(files)
+    _remove_old_temporaries()
+    tmp = Path(tempfile.mkdtemp(prefix=_TEMP_PREFIX))
+    out, stdout, stderr = tmp / "out", io.StringIO(), io.StringIO()
+    argv = [str(out / "logs") if a == LOGS else a for a in argv]
+    if MODEL in argv:
+        _unpack(model_files or {}, tmp / "model")
+        argv = [str(tmp / "model") if a == MODEL else a for a in argv]
+    t0 = time.perf_counter()
+    try:
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            try:
+                code = main([*argv, "--out", str(out)])
+            except SystemExit as exc:  # argparse's usage errors
+                code = exc.code if isinstance(exc.code, int) else 2
+        seconds = time.perf_counter() - t0
+        files = _collect(out) if code == 0 else {}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {"code": int(code or 0), "files": files, "stdout": stdout.getvalue(), "stderr": stderr.getvalue(),
+            "seconds": seconds, "host": socket.gethostname(), "pid": os.getpid()}
