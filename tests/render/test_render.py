@@ -279,3 +279,20 @@ def test_rasterize_is_independent_of_chunking():
     np.testing.assert_array_equal(one.face, many.face)
     np.testing.assert_allclose(one.bary, many.bary, atol=1e-12)
     np.testing.assert_allclose(one.depth[one.mask], many.depth[one.mask], atol=1e-12)
+
+
+def test_contact_sheet_tiles_pictures_and_marks_missing_ones(tmp_path):
+    from torchgarment.render import contact_sheet
+
+    for i, colour in enumerate([(255, 0, 0), (0, 0, 255)]):
+        Image.new("RGB", (900, 300), colour).save(tmp_path / f"r{i}.png")
+    tiles = [(tmp_path / "r0.png", "red job"), (None, "failed job"), (tmp_path / "r1.png", "blue job")]
+    out = contact_sheet(tiles, tmp_path / "sheet.png", columns=2, tile_size=(300, 100), title="three jobs")
+    img = np.asarray(Image.open(out).convert("RGB")).astype(int)
+    assert img.shape[1] == 2 * 306 + 6 and img.shape[0] > 2 * 100
+    h = img.shape[0]
+    # a thumbnail is the picture scaled into its cell (aspect kept), a missing picture a grey cell
+    assert (img[: h // 2, :306] == [255, 0, 0]).all(axis=2).sum() > 0.8 * 300 * 100
+    assert (img[: h // 2, 306:] == [215, 215, 215]).all(axis=2).sum() > 0.8 * 300 * 100
+    assert (img[h // 2:, :306] == [0, 0, 255]).all(axis=2).sum() > 0.8 * 300 * 100
+    assert not list(tmp_path.glob(".*"))  # written atomically

@@ -391,6 +391,9 @@ def test_sdf_cache(sphere, tmp_path, monkeypatch):
     a = BodySDF.cached(v, f, SMALL, cache_dir=tmp_path)
     b = BodySDF.cached(torch.as_tensor(v), torch.as_tensor(f), SMALL, cache_dir=tmp_path)
     assert len(calls) == 1 and len(list(tmp_path.glob("*.npz"))) == 1
+    # the entry's path, as the batch runner ships it to other machines
+    entry = sdf_cache.sdf_cache_path(v, torch.as_tensor(f), SMALL, cache_dir=tmp_path)
+    assert [entry] == list(tmp_path.glob("*.npz"))
     x = _mixed_points(a, 500, 10)
     x = torch.as_tensor(x)
     assert torch.equal(a(x), b(x)) and torch.equal(a.value_and_gradient(x)[1], b.value_and_gradient(x)[1])

@@ -86,7 +86,9 @@ fit``)."""
 
 _INPUTS = ("garment", "pattern", "size", "body", "model")
 _PLURAL = {"garments": "garment", "patterns": "pattern", "sizes": "size", "bodies": "body", "models": "model"}
-_PATH_INPUTS = {"pattern", "body", "model"}
+_PATH_INPUTS = {"garment", "pattern", "body", "model"}
+"""Inputs resolved against the manifest's folder when they look like paths (a library garment's name or a
+chart size has no slash and no suffix and is kept as it is; a retarget garment is a file)."""
 _ENTRY_KEYS = {"method", "name", "settings", "build", *_INPUTS}
 _RESERVED = {"out", "resume", "no_progress", "log_dir", "help"}
 """Settings the batch runner sets itself (``--out`` is the job's folder, progress goes to the batch's bar)."""
@@ -312,12 +314,20 @@ def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespa
         raise ManifestError(re.sub(r"^torchgarment(?: \w+)*: error: ", "", message)) from None
 
 
-def _stem(value: str) -> str:
-    return Path(value).stem if ("/" in value or "." in value) else value
+def _label(value: str, base_dir: Path) -> str:
+    """A short name of an input for the summary: a library name or chart size as it is, a file as its path
+    relative to the manifest's folder without the suffix (``customers/ann``), or its stem."""
+    if not ("/" in value or "." in value):
+        return value
+    p = Path(value)
+    try:
+        return str(p.relative_to(base_dir).with_suffix(""))
+    except ValueError:
+        return p.stem
 
 
 def _slug(*parts: str) -> str:
-    text = "-".join(p for p in parts if p)
+    text = "-".join(p for p in parts if p).replace("->", "-to-")
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_")[:80]
 
 
@@ -364,8 +374,8 @@ def _make_job(entry: dict, base_dir: Path, parser: argparse.ArgumentParser, wher
         argv.append("--no-progress")
     if "log_dir" in options:
         argv += ["--log-dir", LOGS]  # TensorBoard scalars into the job's own folder
-    garment = inputs.get("garment") or _stem(inputs.get("pattern", "") or inputs.get("model", ""))
-    body = _body_label(method_name, inputs, args)
+    garment = inputs.get("garment") or _label(inputs.get("pattern", "") or inputs.get("model", ""), base_dir)
+    body = _body_label(method_name, inputs, args, base_dir)
     ident = hashlib.sha256(json.dumps([argv, build]).encode()).hexdigest()[:8]
     name = entry.get("name")
     if name is not None and not isinstance(name, str):
@@ -375,7 +385,10 @@ def _make_job(entry: dict, base_dir: Path, parser: argparse.ArgumentParser, wher
                bodies=_job_bodies(method_name, args), build=build, entry=where, render=method.render)
 
 
-def _body_label(method: str, inputs: dict, args: argparse.Namespace) -> str:
+def _body_label(method: str, inputs: dict, args: argparse.Namespace, base_dir: Path) -> str:
+    def _stem(value: str) -> str:
+        return _label(value, base_dir)
+
     if method == "grade":
         base = inputs.get("size") or _stem(inputs.get("body", ""))
         targets = args.sizes or [_stem(t) for t in args.target_body or []]
