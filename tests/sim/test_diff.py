@@ -346,3 +346,25 @@ def test_small_case_is_fast():
     t = time.perf_counter()
     layer(p=p).sum().backward()
     assert time.perf_counter() - t < 2.0
+
+
+def test_inexact_cg_adjoint_at_negative_curvature_falls_back_to_the_direct_solve():
+    """At a compressed state the exact Hessian is indefinite: CG stops at non-positive curvature with an
+    iterate that approximates nothing (relative residual about 4, 2x off); the solver replaces it with the
+    sparse direct adjoint and counts it, instead of returning it as an inexact gradient."""
+    model, x0 = build("stretch")
+    layer = DifferentiableSolver(model, x0, TIGHT, linear_solver="cg", cg_require_convergence=False)
+    x = layer().detach()
+    compressed = x.mean(0) + 0.8 * (x - x.mean(0))
+    rhs = torch.randn(x.shape, generator=torch.Generator().manual_seed(0), dtype=x.dtype)
+    lam_cg, info = solve_adjoint(model, compressed, rhs, "cg", require_convergence=False)
+    lam_direct, _ = solve_adjoint(model, compressed, rhs, "sparse")
+    assert info.negative_curvature and info.relative_residual > 1.0
+    assert float((lam_cg - lam_direct).norm()) > 0.5 * float(lam_direct.norm())
+    lam = layer.adjoint(compressed, rhs)
+    assert layer.adjoint_fallbacks == 1 and layer.last_adjoint_info.solver == "sparse"
+    assert torch.allclose(lam, lam_direct, rtol=0, atol=1e-12 * float(lam_direct.abs().max()))
+    # at the equilibrium (positive definite) the inexact CG adjoint is kept as it is
+    lam_eq = layer.adjoint(x, rhs)
+    assert layer.adjoint_fallbacks == 1 and layer.last_adjoint_info.solver == "cg"
+    assert not layer.last_adjoint_info.negative_curvature and torch.isfinite(lam_eq).all()

@@ -193,6 +193,11 @@ class AdjustProblem:
         return self.solver.adjoint_iterations
 
     @property
+    def adjoint_fallbacks(self) -> int:
+        """Iterative adjoints replaced by the sparse direct one because CG met non-positive curvature."""
+        return self.solver.adjoint_fallbacks
+
+    @property
     def last_adjoint_residual(self) -> float:
         """Relative residual of the last adjoint solve (nan before the first)."""
         info = self.solver.last_adjoint_info

@@ -692,6 +692,7 @@ def optimize(
         "factorizations": problem.factorizations,
         "adjoint": problem.adjoint.value,
         "adjoint_iterations": problem.adjoint_iterations,
+        "adjoint_fallbacks": problem.adjoint_fallbacks,
         "exact_evaluations": problem.exact_evaluations,
         "backtracks": run.backtracks,
         "stopped": run.stopped,
