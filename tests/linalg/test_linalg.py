@@ -20,6 +20,7 @@ from torchgarment.linalg import (
     SparseBackend,
     armijo_backtracking,
     factorize,
+    minres,
     pcg,
 )
 
@@ -132,6 +133,42 @@ def test_pcg_matches_a_dense_solve_and_raises_at_negative_curvature() -> None:
     assert k3 == 0 and res3 == 1.0
     z, k0, r0 = pcg(lambda v: a @ v, torch.zeros(40, dtype=torch.float64), None, 1e-10, 10)
     assert k0 == 0 and r0 == 0.0 and not bool(z.any())
+
+
+def _indefinite(n: int = 60, seed: int = 7) -> np.ndarray:
+    """A symmetric indefinite matrix: the SPD one shifted by its median eigenvalue."""
+    a = _spd(n, seed).toarray()
+    return a - np.median(np.linalg.eigvalsh(a)) * np.eye(n) - 0.01 * np.eye(n)
+
+
+def test_minres_solves_indefinite_systems_where_cg_meets_negative_curvature() -> None:
+    a = _indefinite()
+    assert np.linalg.eigvalsh(a).min() < 0 < np.linalg.eigvalsh(a).max()
+    b = np.random.default_rng(2).standard_normal(a.shape[0])
+    exact = np.linalg.solve(a, b)
+    _, _, res_cg = pcg(lambda v: a @ v, b, None, 1e-12, 500, stop_at_negative_curvature=True)
+    assert res_cg > 0.1  # CG stops at the first direction of negative curvature
+    inv_absdiag = 1.0 / np.abs(np.diag(a))  # an SPD preconditioner
+    for array in (np.asarray, torch.from_numpy):
+        mat, rhs = array(a), array(b)
+        y, k, res = minres(lambda v: mat @ v, rhs, lambda r: array(inv_absdiag) * r, 1e-12, 500)
+        assert res <= 1e-9 and 0 < k <= 500
+        np.testing.assert_allclose(np.asarray(y), exact, rtol=1e-7, atol=1e-9 * np.abs(exact).max())
+    # against scipy's MINRES (same recurrences), unpreconditioned, on a budget: the residual never grows
+    residuals = []
+    for budget in (5, 10, 20, 40):
+        y, k, res = minres(lambda v: a @ v, b, None, 1e-14, budget)
+        ref, _ = scipy.sparse.linalg.minres(a, b, rtol=1e-14, maxiter=budget)
+        np.testing.assert_allclose(y, ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
+        residuals.append(res)
+    assert residuals == sorted(residuals, reverse=True) and residuals[-1] < residuals[0]
+    # warm start at the answer: nothing to do; zero right-hand side: zero
+    y, k, res = minres(lambda v: a @ v, b, None, 1e-10, 100, x0=exact)
+    assert k <= 1 and res <= 1e-9
+    z, k0, r0 = minres(lambda v: a @ v, np.zeros_like(b), None, 1e-10, 10)
+    assert k0 == 0 and r0 == 0.0 and not z.any()
+    with pytest.raises(NonConvergenceError, match="positive definite preconditioner"):
+        minres(lambda v: a @ v, b, lambda r: -r, 1e-10, 10)
 
 
 def test_armijo_accepts_and_shrinks() -> None:

@@ -6,7 +6,8 @@ every solver and optimizer of the package builds on it.
 * :func:`factorize` -> :class:`Factorization` (``solve(b)``), backends :class:`SparseBackend` (SuperLU by
   default); :class:`FactorizationCache` keeps one factorization per key (a state); :class:`FactorCache` keeps
   the last one as the preconditioner of :func:`pcg` for nearby systems (inexact Newton).
-* :func:`pcg`: preconditioned conjugate gradients on torch tensors.
+* :func:`pcg`: preconditioned conjugate gradients on torch tensors (or numpy arrays); :func:`minres`:
+  preconditioned MINRES for symmetric indefinite systems.
 * :func:`armijo_backtracking`: the sufficient-decrease line search.
 * :class:`CSRAssembler`: 3x3 vertex blocks -> scipy CSR.
 
@@ -15,7 +16,7 @@ Example:
     >>> dx = fact.solve(-g)
 """
 
-from torchgarment.linalg.iterative import pcg
+from torchgarment.linalg.iterative import minres, pcg
 from torchgarment.linalg.line_search import armijo_backtracking
 from torchgarment.linalg.sparse import (
     CSRAssembler,
@@ -34,5 +35,6 @@ __all__ = [
     "SparseBackend",
     "armijo_backtracking",
     "factorize",
+    "minres",
     "pcg",
 ]

@@ -1,4 +1,6 @@
-"""Preconditioned conjugate gradients on torch tensors or numpy arrays (one algorithm, both array types)."""
+"""Krylov solvers on torch tensors or numpy arrays (each algorithm once, both array types): preconditioned
+conjugate gradients (:func:`pcg`, symmetric positive definite systems) and preconditioned MINRES
+(:func:`minres`, symmetric indefinite systems)."""
 
 from __future__ import annotations
 
@@ -80,6 +82,92 @@ def pcg(
     return y, k, rn / bn
 
 
+def minres(
+    matvec: MatVec, b: Array, preconditioner: Preconditioner | None, rtol: float, max_iterations: int,
+    *, x0: Array | None = None,
+) -> tuple[Array, int, float]:
+    """Preconditioned MINRES (Paige and Saunders 1975) for ``K y = b`` with ``K`` symmetric, possibly
+    indefinite (a saddle or an unconverged state, where :func:`pcg` meets non-positive curvature).
+
+    Each iterate minimizes the residual's ``M^-1``-norm over the Krylov space, so the residual never grows and
+    an iterate stopped by the budget is a usable approximation; the recurrences are those of
+    ``scipy.sparse.linalg.minres``.
+
+    Args:
+        matvec: ``v -> K v`` for ``v`` of ``b``'s shape and type.
+        b: the right-hand side, any shape.
+        preconditioner: ``r -> M^-1 r`` with ``M`` symmetric positive definite (e.g. block Jacobi with
+            non-definite blocks replaced by their clamped diagonal); None: no preconditioning.
+        rtol: stop when the preconditioned residual ``|r|_{M^-1}`` falls to ``rtol |b|_{M^-1}``.
+        max_iterations: iteration budget.
+        x0: warm start of ``b``'s shape and type (default zero).
+
+    Returns:
+        ``(y, iterations, |K y - b| / |b|)``: the true relative residual (one more product).
+
+    Raises:
+        NonConvergenceError: the preconditioner is not positive definite (``r^T M^-1 r < 0``).
+    """
+    ops = _NUMPY if isinstance(b, np.ndarray) else _TORCH
+
+    def apply(r: Array) -> Array:
+        return ops.copy(r) if preconditioner is None else preconditioner(r)
+
+    x = ops.zeros_like(b) if x0 is None else ops.start(x0, b)
+    bn = ops.norm(b)
+    if bn == 0.0:
+        return ops.zeros_like(b), 0, 0.0
+    r1 = ops.copy(b)
+    if x0 is not None:
+        ops.axpy_(r1, -1.0, matvec(x))
+    y = apply(r1)
+    beta1 = ops.dot(r1, y)
+    if beta1 < 0.0:
+        raise NonConvergenceError("MINRES needs a positive definite preconditioner")
+    beta1 = beta1 ** 0.5
+    target = rtol * (beta1 if x0 is None else ops.dot(b, apply(b)) ** 0.5)
+    k = 0
+    if beta1 > 0.0:
+        r2 = ops.copy(r1)
+        old_b, beta, dbar, epsln, phibar = 0.0, beta1, 0.0, 0.0, beta1
+        cs, sn = -1.0, 0.0
+        w, w2 = ops.zeros_like(b), ops.zeros_like(b)
+        tiny = float(np.finfo(np.float64).eps)
+        while k < max_iterations and phibar > target:
+            k += 1
+            v = ops.copy(y)
+            ops.scale_(v, 1.0 / beta)
+            y = matvec(v)
+            if k >= 2:
+                ops.axpy_(y, -beta / old_b, r1)
+            alfa = ops.dot(v, y)
+            ops.axpy_(y, -alfa / beta, r2)
+            r1, r2 = r2, y
+            y = apply(r2)
+            old_b, beta = beta, ops.dot(r2, y)
+            if beta < 0.0:
+                raise NonConvergenceError("MINRES needs a positive definite preconditioner")
+            beta = beta ** 0.5
+            old_eps = epsln
+            delta = cs * dbar + sn * alfa
+            gbar = sn * dbar - cs * alfa
+            epsln = sn * beta
+            dbar = -cs * beta
+            gamma = max(float(np.hypot(gbar, beta)), tiny)
+            cs, sn = gbar / gamma, beta / gamma
+            phi = cs * phibar
+            phibar = sn * phibar
+            w1, w2 = w2, w
+            w = ops.copy(v)
+            ops.axpy_(w, -old_eps, w1)
+            ops.axpy_(w, -delta, w2)
+            ops.scale_(w, 1.0 / gamma)
+            ops.axpy_(x, phi, w)
+    r = ops.copy(b)
+    ops.axpy_(r, -1.0, matvec(x))
+    return x, k, ops.norm(r) / bn
+
+
 class _TorchOps:
     """Array operations of :func:`pcg` on torch tensors."""
 
@@ -110,6 +198,10 @@ class _TorchOps:
     @staticmethod
     def scale_add_(p: torch.Tensor, beta: float, z: torch.Tensor) -> None:
         p.mul_(beta).add_(z)
+
+    @staticmethod
+    def scale_(v: torch.Tensor, a: float) -> None:
+        v.mul_(a)
 
 
 class _NumpyOps:
@@ -143,6 +235,10 @@ class _NumpyOps:
     def scale_add_(p: np.ndarray, beta: float, z: np.ndarray) -> None:
         p *= beta
         p += z
+
+    @staticmethod
+    def scale_(v: np.ndarray, a: float) -> None:
+        v *= a
 
 
 _TORCH, _NUMPY = _TorchOps(), _NumpyOps()

@@ -80,7 +80,7 @@ from torch.func import grad as func_grad
 from torch.func import jvp as func_jvp
 
 from torchgarment.errors import InputError, NonConvergenceError
-from torchgarment.linalg import CSRAssembler, FactorizationCache, armijo_backtracking, pcg
+from torchgarment.linalg import CSRAssembler, FactorizationCache, armijo_backtracking, minres, pcg
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.barrier import BodyBarrier
 from torchgarment.sim.energies.base import HessianBlocks
@@ -284,8 +284,10 @@ def solve_adjoint(
         rtol: CG tolerance ``|r| <= rtol |rhs|``; also the accepted residual of SPARSE (times 1e3).
         max_iterations: CG budget; None = ``max(200, 3V)``.
         x0: (V, 3) CG warm start, e.g. the previous adjoint of a sequence of nearby solves (default zero).
-        require_convergence: False accepts CG's iterate when the budget runs out or at a direction of
-            non-positive curvature (an inexact adjoint; ``info.relative_residual`` says how inexact).
+        require_convergence: False accepts CG's iterate when the budget runs out (an inexact adjoint;
+            ``info.relative_residual`` says how inexact); at a direction of non-positive curvature (``K``
+            indefinite) the system is solved by preconditioned MINRES instead, to the same tolerance and
+            budget (``info.solver == "minres"``).
         assembler: a :class:`CSRAssembler` reused across calls (it caches the COO -> CSR permutation).
         cache: a :class:`FactorizationCache` keyed on ``x``: SPARSE solves at the same ``x`` (an adjoint and
             the tangent solves of Gauss-Newton products) share one factorization.
@@ -351,9 +353,14 @@ def solve_adjoint(
     if require_convergence and not res <= rtol:
         raise NonConvergenceError(f"adjoint CG did not converge: relative residual {res:.3g} > {rtol:g} "
                                   f"after {k} iterations; raise cg_max_iterations or use the 'sparse' solver")
-    # pcg's other exits are the tolerance and the budget: stopping earlier means non-positive curvature
-    curvature = not res <= rtol and k < n_max
-    return lam, AdjointInfo(kind.value, k, res, time.perf_counter() - t0, negative_curvature=curvature)
+    # pcg's other exits are the tolerance and the budget: stopping earlier means non-positive curvature, where
+    # CG's iterate approximates nothing; MINRES (the same SPD preconditioner) handles the indefinite system
+    if not res <= rtol and k < n_max:
+        lam, k2, res = minres(matvec, rhs, lambda r: apply_inverse(pre.inverse, r), rtol, n_max, x0=x0)
+        if not bool(torch.isfinite(lam).all()):
+            raise NonConvergenceError("adjoint MINRES returned non-finite values")
+        return lam, AdjointInfo("minres", k + k2, res, time.perf_counter() - t0, negative_curvature=True)
+    return lam, AdjointInfo(kind.value, k, res, time.perf_counter() - t0)
 
 
 def _autograd_hvp(model: torch.nn.Module, x: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -500,10 +507,11 @@ class DifferentiableSolver(torch.nn.Module):
         cg_max_iterations: CG budget (None = ``max(200, 3V)``).
         cg_warm_start: start each adjoint CG from the previous adjoint (a sequence of nearby solves).
         cg_require_convergence: False accepts CG's iterate at the budget (an inexact adjoint, Wang 2018
-            section 7; ``last_adjoint_info.relative_residual`` says how inexact). CG that meets non-positive
-            curvature (the Hessian is indefinite at ``x``: its iterate approximates nothing, measured 5.3x off
-            the exact gradient with a relative residual of 15.9 on the real skirt) falls back to the sparse
-            direct adjoint at that state, counted in ``adjoint_fallbacks``.
+            section 7; ``last_adjoint_info.relative_residual`` says how inexact). Where CG meets
+            non-positive curvature (the Hessian is indefinite at ``x``: CG's iterate approximates nothing,
+            measured 5.3x off the exact gradient with a relative residual of 15.9 on the real skirt) MINRES
+            solves instead (:func:`solve_adjoint`); a MINRES answer no better than zero (relative residual
+            >= 1) is replaced by the sparse direct adjoint at that state, counted in ``adjoint_fallbacks``.
         truncated_steps: Newton steps unrolled in TRUNCATED mode (>= 1).
         unroll_iterations: Newton iteration budget of UNROLL mode.
         warm_start: start each solve from the last solution.
@@ -727,8 +735,8 @@ class DifferentiableSolver(torch.nn.Module):
         """``lambda = K^-1 rhs`` (V, 3) at ``x`` with the layer's adjoint solver: the backward of
         :class:`QuasistaticSolve`. SPARSE factorizations are cached on ``x`` (shared with :meth:`tangent`); CG
         starts from the previous adjoint with ``cg_warm_start`` and accepts an unconverged iterate unless
-        ``cg_require_convergence``; CG stopped by non-positive curvature is replaced by the SPARSE solve
-        (``adjoint_fallbacks`` counts them).
+        ``cg_require_convergence`` (MINRES where ``K`` is indefinite); a MINRES answer no better than zero
+        is replaced by the SPARSE solve (``adjoint_fallbacks`` counts them).
 
         Args:
             x: (V, 3) state in metres (an equilibrium for an exact gradient).
@@ -742,7 +750,7 @@ class DifferentiableSolver(torch.nn.Module):
                                   require_convergence=self.cg_require_convergence, assembler=self._assembler,
                                   cache=self._factorizations)
         self.adjoint_iterations += info.iterations
-        if info.negative_curvature:
+        if info.negative_curvature and not info.relative_residual < 1.0:
             lam, info = solve_adjoint(self.model, x, rhs, AdjointLinearSolver.SPARSE,
                                       assembler=self._assembler, cache=self._factorizations)
             self.adjoint_fallbacks += 1
