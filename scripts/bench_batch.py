@@ -10,7 +10,10 @@ Measured:
   included), jobs per minute, and the median of the jobs' own times (the command inside the worker);
   the speed-up against W = 1 in the same run;
 * the one-off costs per new customer: fitting a body to measurements (no cache) and building its SDF;
-* one job at the library's default drape settings (the realistic per-job cost of a catalogue), in-process.
+* one job at the library's default drape settings (the realistic per-job cost of a catalogue), in-process;
+* with ``--pca-customers N``: N ``pca_fit`` jobs (random anny customers, push-out on) on one model built
+  first (untimed), with 2 workers, one task per fit (``--chunk 1``) against the fits of a model grouped into
+  one batched call per 32 bodies (the default), in customers per minute.
 
 Estimate (a table, not a promise): ``--customers`` x ``--garments`` drape jobs at the default settings plus
 one body fit and SDF per customer, on K nodes of C cores each with one job per core, at the parallel
@@ -50,19 +53,43 @@ def drape_manifest(n: int, edge_length: float) -> dict:
                      for g, s in pairs]}
 
 
-def run(manifest: dict, workers: int, folder: Path) -> dict:
+def run(manifest: dict, workers: int, folder: Path, chunk: int = 32) -> dict:
     from torchgarment.batch import BatchSettings, parse_manifest, run_batch
 
     jobs = parse_manifest(manifest, base_dir=folder)
     t0 = time.perf_counter()
     report = run_batch(jobs, BatchSettings(out=folder / f"out_w{workers}_{time.time_ns()}", workers=workers,
-                                           progress=False, sheet=False))
+                                           chunk=chunk, progress=False, sheet=False))
     wall = time.perf_counter() - t0
     if report.failed:
         raise SystemExit(f"{report.failed} job(s) failed: {[r['error'] for r in report.rows if r['error']]}")
     job_seconds = [float(r["seconds"]) for r in report.rows]
-    return {"workers": workers, "jobs": len(jobs), "wall_s": wall, "jobs_per_min": 60.0 * len(jobs) / wall,
-            "job_median_s": statistics.median(job_seconds), "job_sum_s": sum(job_seconds)}
+    return {"workers": workers, "chunk": chunk, "jobs": len(jobs), "wall_s": wall,
+            "jobs_per_min": 60.0 * len(jobs) / wall, "job_median_s": statistics.median(job_seconds),
+            "job_sum_s": sum(job_seconds)}
+
+
+def pca_runs(customers: int, folder: Path) -> list[dict]:
+    """``customers`` pca_fit jobs on one model (built by an untimed first batch), chunk 1 against 32."""
+    from torchgarment.body.anny_phenotype import body_from_phenotype, sample_phenotypes
+    from torchgarment.io.mesh import save_obj
+
+    names = []
+    for i, phenotype in enumerate(sample_phenotypes(customers, seed=123)):
+        body = body_from_phenotype(phenotype)
+        save_obj(folder / f"customer{i}.obj", body.vertices, body.faces)
+        names.append(f"customer{i}.obj")
+    build = {"method": "pca_fit", "garment": "straight_skirt", "build": {"bodies": 8, "k": 2},
+             "bodies": names[:1], "settings": {"push_out": True}}
+    from torchgarment.batch import BatchSettings, parse_manifest, run_batch
+
+    out = folder / "pca_build"
+    run_batch(parse_manifest({"cross": [build]}, base_dir=folder),
+              BatchSettings(out=out, progress=False, sheet=False))
+    (model,) = (out / "shared" / "pca").iterdir()
+    manifest = {"cross": [{"method": "pca_fit", "model": str(model), "bodies": names,
+                           "settings": {"push_out": True}}]}
+    return [run(manifest, 2, folder, chunk=c) for c in (1, 32)]
 
 
 def per_customer_costs() -> dict:
@@ -115,6 +142,7 @@ def main() -> None:
     ap.add_argument("--garments", type=int, default=20)
     ap.add_argument("--nodes", type=int, nargs="+", default=[1, 4, 16, 64])
     ap.add_argument("--cores", type=int, nargs="+", default=[2, 16])
+    ap.add_argument("--pca-customers", type=int, default=0)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
 
@@ -125,6 +153,7 @@ def main() -> None:
         run(manifest, max(args.workers), folder)  # warm-up: bodies and SDFs into the cache, Ray's files
         runs = [run(manifest, w, folder) for w in args.workers]
         t_default = default_job_seconds(folder)
+        pca = pca_runs(args.pca_customers, folder) if args.pca_customers else []
     costs = per_customer_costs()
     load_after = os.getloadavg()
     base = next((r for r in runs if r["workers"] == 1), runs[0])
@@ -145,6 +174,10 @@ def main() -> None:
     print(f"per customer: body fit {costs['body_fit_s']:.1f} s, SDF build {costs['sdf_build_s']:.1f} s; one "
           f"drape at default settings {t_default:.1f} s; parallel efficiency at {best['workers']} workers "
           f"{efficiency:.2f}")
+    for r in pca:
+        print(f"pca_fit, {r['jobs']} customers, 2 workers, chunk {r['chunk']:>2}: {r['wall_s']:.1f} s, "
+              f"{r['jobs_per_min']:.0f} customers/min, {r['job_median_s'] * 1e3:.0f} ms per customer in the "
+              "worker")
     print(f"estimate: {args.customers} customers x {args.garments} garments = {n_jobs} drapes")
     print(f"{'nodes':>5} {'cores/node':>10} {'wall h':>8}")
     for row in table:
@@ -152,7 +185,7 @@ def main() -> None:
     if args.json:
         args.json.write_text(json.dumps({
             "load_average": [load_before[0], load_after[0]], "edge_length": args.edge_length, "runs": runs,
-            "per_customer": costs, "default_job_s": t_default, "efficiency": efficiency,
+            "per_customer": costs, "default_job_s": t_default, "efficiency": efficiency, "pca_fit": pca,
             "estimate": {"customers": args.customers, "garments": args.garments, "rows": table}}, indent=2))
 
 

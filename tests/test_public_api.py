@@ -175,6 +175,7 @@ PUBLIC = {
         "prepare_body",
         "run_batch",
         "run_command",
+        "run_pca_fits",
     ],
     "torchgarment.structures": [
         "GarmentMesh",

@@ -301,6 +301,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def exit_code(exc: BaseException) -> int:
+    """The exit code of a command that failed with ``exc``: 3 for an unusable result, 2 for bad input
+    (:class:`~torchgarment.errors.TorchGarmentError`, a file that cannot be read or written)."""
+    return EXIT_UNUSABLE_RESULT if isinstance(exc, UnusableResultError) else EXIT_BAD_INPUT
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchgarment`` console script."""
     parser = build_parser()
@@ -313,15 +319,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return func(args)
     except _UsageError as e:
         parser.exit(EXIT_BAD_INPUT, f"torchgarment: error: {e}\n")
-    except UnusableResultError as e:
+    except (TorchGarmentError, OSError, json.JSONDecodeError) as e:
         print(f"torchgarment: error: {e}", file=sys.stderr)
-        return EXIT_UNUSABLE_RESULT
-    except TorchGarmentError as e:
-        print(f"torchgarment: error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except (OSError, json.JSONDecodeError) as e:
-        print(f"torchgarment: error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return exit_code(e)
     except KeyboardInterrupt:
         print("torchgarment: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -160,3 +160,38 @@ def test_resume_after_an_interrupted_batch_runs_only_the_missing_jobs(tmp_path):
     for k, r in finished.items():  # the finished jobs were not run again
         assert (out / r["folder"] / "garment.obj").stat().st_mtime_ns == stamps[k]
     assert {r["status"] for r in _summary(out)} == {"ok"}
+
+
+def test_pca_fits_share_one_build_and_are_fitted_in_one_batched_call(tmp_path):
+    """A cross of pca_fit jobs: the model is built once (published under shared/pca), the fits of one model
+    run as one task (one batched weights and fit call), each job folder holds what `pca fit` writes with that
+    model, and a missing body fails alone."""
+    from torchgarment.body.anny_phenotype import body_from_phenotype, sample_phenotypes
+    from torchgarment.io.mesh import load_mesh, save_obj
+
+    names = []
+    for i, phenotype in enumerate(sample_phenotypes(3, seed=11)):
+        body = body_from_phenotype(phenotype)
+        save_obj(tmp_path / f"c{i}.obj", body.vertices, body.faces)
+        names.append(f"c{i}.obj")
+    manifest = _manifest(tmp_path, {"cross": [{
+        "method": "pca_fit", "garment": "straight_skirt",
+        "build": {"bodies": 5, "k": 1, "edge_length": 0.08, "voxel": 0.02},
+        "bodies": [*names, "missing.obj"], "settings": {"push_out": True}}]})
+    out = tmp_path / "out"
+    assert main(["batch", str(manifest), "--out", str(out), "--retries", "0", "--no-progress"]) == 1
+    rows = {r["body"]: r for r in _summary(out)}
+    assert rows["missing"]["status"] == "failed" and "no such file" in rows["missing"]["error"]
+    models = list((out / "shared" / "pca").iterdir())
+    assert len(models) == 1 and {p.name for p in models[0].iterdir()} == {"pca.pt", "basis.pt", "model.json"}
+    for i in range(3):
+        row = rows[f"c{i}"]
+        assert row["status"] == "ok" and row["bodies_in_call"] == "3"  # one call for the three bodies
+        folder = out / row["folder"]
+        assert {p.name for p in folder.iterdir()} == {"garment.obj", "metrics.json", "job.log"}
+        single = tmp_path / f"single{i}"
+        assert main(["pca", "fit", "--model", str(models[0]), "--body", str(tmp_path / names[i]), "--out",
+                     str(single), "--push-out"]) == 0
+        a, _ = load_mesh(folder / "garment.obj")
+        b, _ = load_mesh(single / "garment.obj")
+        assert float((a - b).abs().max()) <= 1e-9

@@ -12,7 +12,7 @@ import torch
 import torchgarment.datadriven.basis as basis_mod
 from torchgarment.datadriven.cli import add_pca_parser, load_model
 from torchgarment.errors import InputError
-from torchgarment.io.mesh import save_obj
+from torchgarment.io.mesh import load_mesh, save_obj
 
 
 def run(argv: list[str]) -> int:
@@ -146,3 +146,36 @@ def test_fit_refine_settles_the_prediction(model_dir, tmp_path):
     with pytest.raises(InputError, match="--refine must be >= 0"):
         run(["pca", "fit", "--model", str(model_dir), "--body", str(tmp_path / "b.obj"), "--out",
              str(tmp_path / "bad"), "--refine", "-1"])
+
+
+def test_fit_bodies_batches_many_bodies_like_single_fits(model_dir, tmp_path):
+    """The batched path (one model load, one weights and fit call for all bodies) writes each body's folder
+    as ``pca fit`` does, with the same garment; a bad body fails alone."""
+    from torchgarment.body.anny_phenotype import body_from_phenotype, sample_phenotypes
+    from torchgarment.cli import build_parser
+    from torchgarment.datadriven.cli import fit_bodies
+
+    paths = []
+    for i, phenotype in enumerate(sample_phenotypes(3, seed=5)):
+        body = body_from_phenotype(phenotype)
+        paths.append(tmp_path / f"b{i}.obj")
+        save_obj(paths[-1], body.vertices, body.faces)
+    jobs = [(str(paths[0]), tmp_path / "m0"), (str(tmp_path / "missing.obj"), tmp_path / "mx"),
+            (str(paths[1]), tmp_path / "m1"), (str(paths[2]), tmp_path / "m2")]
+    args = build_parser().parse_args(["pca", "fit", "--model", str(model_dir), "--body", "-", "--out", "-",
+                                      "--push-out"])
+    outcomes = fit_bodies(args, jobs)
+    assert isinstance(outcomes[1], InputError) and "missing.obj" in str(outcomes[1])
+    assert not (tmp_path / "mx").exists()
+    for i, n in ((0, 0), (1, 2), (2, 3)):
+        assert isinstance(outcomes[n], str) and outcomes[n].startswith("pca fit ")
+        assert run(["pca", "fit", "--model", str(model_dir), "--body", str(paths[i]), "--out",
+                    str(tmp_path / f"s{i}"), "--push-out"]) == 0
+        batched = json.loads((tmp_path / f"m{i}" / "metrics.json").read_text())
+        single = json.loads((tmp_path / f"s{i}" / "metrics.json").read_text())
+        assert batched["bodies_in_call"] == 3 and single["bodies_in_call"] == 1
+        assert batched["weights"] == pytest.approx(single["weights"], rel=1e-12, abs=1e-12)
+        assert batched["penetrations"] == pytest.approx(single["penetrations"], rel=1e-12)
+        a, _ = load_mesh(tmp_path / f"m{i}" / "garment.obj")
+        b, _ = load_mesh(tmp_path / f"s{i}" / "garment.obj")
+        assert float((a - b).abs().max()) <= 1e-9

@@ -9,7 +9,8 @@ Re-exported here:
 * the runner (:mod:`torchgarment.batch.runner`): :func:`run_batch` with :class:`BatchSettings` returns a
   :class:`BatchReport`;
 * what workers run (:mod:`torchgarment.batch.worker`): :func:`run_command` (one job: the single command,
-  in-process) and :func:`prepare_body` (a body and its SDF, once per batch).
+  in-process), :func:`run_pca_fits` (many ``pca_fit`` jobs on one model in one batched call) and
+  :func:`prepare_body` (a body and its SDF, once per batch).
 
 Ray is an optional dependency (``pip install -e ".[batch]"``); it is imported only when a batch runs. The
 command line is ``torchgarment batch`` (:mod:`torchgarment.batch.cli`).
@@ -17,7 +18,7 @@ command line is ``torchgarment batch`` (:mod:`torchgarment.batch.cli`).
 
 from torchgarment.batch.manifest import METHODS, Job, ManifestError, Method, load_manifest, parse_manifest
 from torchgarment.batch.runner import BatchReport, BatchSettings, run_batch
-from torchgarment.batch.worker import prepare_body, run_command
+from torchgarment.batch.worker import prepare_body, run_command, run_pca_fits
 
 __all__ = [
     "METHODS",
@@ -31,4 +32,5 @@ __all__ = [
     "prepare_body",
     "run_batch",
     "run_command",
+    "run_pca_fits",
 ]

@@ -37,7 +37,11 @@ def add_batch_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                    help="torch threads (and Ray CPUs) per job (default 1: one job per core)")
     p.add_argument("--retries", type=int, default=2, metavar="K",
                    help="further attempts of a failed job before it is recorded as failed (default 2)")
-    p.add_argument("--resume", action="store_true", help="skip the jobs an earlier run into DIR finished")
+    p.add_argument("--resume", action="store_true",
+                   help="skip the jobs an earlier run into DIR finished")
+    p.add_argument("--chunk", type=int, default=32, metavar="B",
+                   help="pca_fit jobs on one model are fitted B bodies a task (model loaded once, one "
+                        "batched call; default 32, 1 = one task per fit)")
     p.add_argument("--no-sheet", action="store_true", help="no contact sheet")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_batch)
@@ -53,6 +57,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
     settings = BatchSettings(out=Path(args.out), address=args.address, workers=args.workers,
                              threads=args.threads, retries=args.retries, resume=args.resume,
+                             chunk=args.chunk,
                              progress=not args.no_progress, sheet=not args.no_sheet)
     settings.validate()
     jobs = load_manifest(args.manifest)

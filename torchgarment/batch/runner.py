@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from torchgarment.batch.manifest import Job
-from torchgarment.batch.worker import prepare_body, run_command
+from torchgarment.batch.worker import prepare_body, run_command, run_pca_fits
 from torchgarment.errors import InputError
 
 __all__ = ["SHEET_TILES", "SUMMARY_COLUMNS", "BatchReport", "BatchSettings", "run_batch"]
@@ -59,6 +59,8 @@ class BatchSettings:
         threads: torch threads (and Ray CPUs) per job.
         retries: further attempts of a failed job.
         resume: skip the jobs finished (``ok``) by an earlier run into ``out``.
+        chunk: ``pca_fit`` jobs on one model fitted together, at most this many bodies a task (the model
+            loaded once, one batched weights and fit call; 1: every fit a task of its own).
         progress: a tqdm bar on stderr.
         sheet: write the contact sheet.
     """
@@ -69,6 +71,7 @@ class BatchSettings:
     threads: int = 1
     retries: int = 2
     resume: bool = False
+    chunk: int = 32
     progress: bool = True
     sheet: bool = True
 
@@ -80,6 +83,8 @@ class BatchSettings:
             raise InputError(f"--threads must be >= 1, got {self.threads}")
         if self.retries < 0:
             raise InputError(f"--retries must be >= 0, got {self.retries}")
+        if self.chunk < 1:
+            raise InputError(f"--chunk must be >= 1, got {self.chunk}")
 
 
 @dataclass
@@ -200,7 +205,7 @@ def _ray_error_line(exc: BaseException) -> str:
 
 
 # --------------------------------------------------------------------------------------------- Ray
-def _ray_tasks() -> tuple[Any, Any]:
+def _ray_tasks() -> tuple[Any, Any, Any]:
     import ray
 
     def batch_prepare(spec: str, voxel: float | None, threads: int) -> dict:
@@ -209,15 +214,24 @@ def _ray_tasks() -> tuple[Any, Any]:
         torch.set_num_threads(threads)
         return prepare_body(spec, voxel)
 
+    def build_failed(model: dict) -> dict:
+        return {"code": model["code"], "files": {}, "stdout": "", "seconds": 0.0, "host": "", "pid": 0,
+                "stderr": f"torchgarment: error: the shared pca build failed: {_error_line(model)}"}
+
     def batch_job(argv: list[str], threads: int, model: dict | None, *preps: dict) -> dict:
         if model is not None and model["code"] != 0:
-            return {"code": model["code"], "files": {}, "stdout": "", "seconds": 0.0, "host": "", "pid": 0,
-                    "stderr": f"torchgarment: error: the shared pca build failed: {_error_line(model)}"}
+            return build_failed(model)
         return run_command(argv, threads, [p["files"] for p in preps],
                            None if model is None else model["files"])
 
+    def batch_pca_fits(argvs: list[list[str]], threads: int, model: dict | None) -> list[dict]:
+        if model is not None and model["code"] != 0:
+            return [build_failed(model)] * len(argvs)
+        return run_pca_fits(argvs, threads, None if model is None else model["files"])
+
     # Ray names a worker's process "ray::batch_job" while it runs a job (what `ps` shows)
-    return ray.remote(max_retries=3)(batch_prepare), ray.remote(max_retries=0)(batch_job)
+    return (ray.remote(max_retries=3)(batch_prepare), ray.remote(max_retries=0)(batch_job),
+            ray.remote(max_retries=0)(batch_pca_fits))
 
 
 def _start_ray(settings: BatchSettings) -> int:
@@ -239,6 +253,25 @@ def _start_ray(settings: BatchSettings) -> int:
     workers = settings.workers or max(1, cores // settings.threads)
     ray.init(num_cpus=workers * settings.threads, include_dashboard=False, **common)
     return workers
+
+
+def _units(jobs: list[Job], chunk: int) -> list[tuple[Job, ...]]:
+    """Tasks to submit: ``pca_fit`` jobs that differ only in the body are grouped, ``chunk`` bodies a task,
+    at the place of their first job; every other job is a task of its own."""
+    units: list[list[Job]] = []
+    open_units: dict[tuple, list[Job]] = {}
+    for job in jobs:
+        if job.method != "pca_fit" or chunk <= 1:
+            units.append([job])
+            continue
+        i = job.argv.index("--body")
+        key = (job.argv[:i] + job.argv[i + 2:], job.build_id)
+        unit = open_units.get(key)
+        if unit is None or len(unit) >= chunk:
+            unit = open_units[key] = []
+            units.append(unit)
+        unit.append(job)
+    return [tuple(u) for u in units]
 
 
 # --------------------------------------------------------------------------------------------- run
@@ -327,21 +360,25 @@ class _Run:
         import ray
         from tqdm import tqdm
 
-        prepare_task, job_task = _ray_tasks()
+        prepare_task, job_task, fits_task = _ray_tasks()
         preps: dict[tuple[str, float | None], Any] = {}
         threads = self.settings.threads
 
-        def submit(job: Job) -> Any:
+        def submit(unit: tuple[Job, ...]) -> Any:
+            job = unit[0]
+            model = self._model_ref(job, job_task)
+            if len(unit) > 1:  # pca_fit jobs on one model: one batched call
+                argvs = [list(j.argv) for j in unit]
+                return fits_task.options(num_cpus=threads).remote(argvs, threads, model)
             refs = []
             for spec, voxel in job.bodies:
                 if (spec, voxel) not in preps:
                     preps[(spec, voxel)] = prepare_task.options(num_cpus=threads).remote(spec, voxel, threads)
                 refs.append(preps[(spec, voxel)])
-            model = self._model_ref(job, job_task)
             return job_task.options(num_cpus=threads).remote(list(job.argv), threads, model, *refs)
 
-        pending = deque((job, 1) for job in todo)
-        running: dict[Any, tuple[Job, int, float]] = {}
+        pending = deque((unit, 1) for unit in _units(todo, self.settings.chunk))
+        running: dict[Any, tuple[tuple[Job, ...], int, float]] = {}
         counts = {"ok": 0, "failed": 0}
         bar = tqdm(total=len(todo), unit="job", desc="batch", file=sys.stderr,
                    disable=not self.settings.progress, dynamic_ncols=True)
@@ -349,25 +386,32 @@ class _Run:
         try:
             while pending or running:
                 while pending and len(running) < workers:
-                    job, attempt = pending.popleft()
-                    running[submit(job)] = (job, attempt, time.perf_counter())
+                    unit, attempt = pending.popleft()
+                    running[submit(unit)] = (unit, attempt, time.perf_counter())
                 ready, _ = ray.wait(list(running), num_returns=1, timeout=1.0)
                 for ref in ready:
-                    job, attempt, t_start = running.pop(ref)
+                    unit, attempt, t_start = running.pop(ref)
                     try:
-                        result = ray.get(ref)
+                        results = ray.get(ref)
+                        results = results if len(unit) > 1 else [results]
                     except Exception as exc:  # the worker died, or an exception escaped the command
-                        result = {"code": -1, "files": {}, "stdout": "",
-                                  "seconds": time.perf_counter() - t_start,
-                                  "stderr": f"torchgarment: error: {_ray_error_line(exc)}"}
-                    if result["code"] != 0 and attempt <= self.settings.retries:
-                        self.retried += 1
-                        pending.appendleft((job, attempt + 1))
-                        continue
-                    status = self._record(job, attempt, result)
-                    counts[status] += 1
-                    self.ran += 1
-                    bar.update(1)
+                        failure = {"code": -1, "files": {}, "stdout": "",
+                                   "seconds": (time.perf_counter() - t_start) / len(unit),
+                                   "stderr": f"torchgarment: error: {_ray_error_line(exc)}"}
+                        if attempt <= self.settings.retries:  # the whole unit again
+                            self.retried += len(unit)
+                            pending.appendleft((unit, attempt + 1))
+                            continue
+                        results = [failure] * len(unit)
+                    for job, result in zip(unit, results):
+                        if result["code"] != 0 and attempt <= self.settings.retries:
+                            self.retried += 1
+                            pending.appendleft(((job,), attempt + 1))  # a failed job of a unit runs alone
+                            continue
+                        status = self._record(job, attempt, result)
+                        counts[status] += 1
+                        self.ran += 1
+                        bar.update(1)
                 minutes = (time.perf_counter() - start) / 60.0
                 bar.set_postfix(ok=counts["ok"], failed=counts["failed"], running=len(running),
                                 per_min=f"{(counts['ok'] + counts['failed']) / max(minutes, 1e-9):.1f}",

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-__all__ = ["LOGS", "MODEL", "install_cache_files", "prepare_body", "run_command"]
+__all__ = ["LOGS", "MODEL", "install_cache_files", "prepare_body", "run_command", "run_pca_fits"]
 
 MODEL = "<model>"
 """Placeholder of a ``pca_fit`` job's ``--model`` folder in its argv: the shared model, unpacked where the job
@@ -154,3 +154,51 @@ def run_command(argv: list[str], threads: int, cache_files: list[dict[str, bytes
         shutil.rmtree(tmp, ignore_errors=True)
     return {"code": int(code or 0), "files": files, "stdout": stdout.getvalue(), "stderr": stderr.getvalue(),
             "seconds": seconds, "host": socket.gethostname(), "pid": os.getpid()}
+
+
+def run_pca_fits(argvs: list[list[str]], threads: int,
+                 model_files: dict[str, bytes] | None = None) -> list[dict]:
+    """Run several ``pca_fit`` jobs on one model in one call: the model is loaded once and the bodies are
+    fitted in one batched call (:func:`torchgarment.datadriven.cli.fit_bodies`); each job gets the files of
+    its single command.
+
+    Args:
+        argvs: the jobs' ``pca fit`` arguments without ``--out``; they differ only in ``--body``.
+        threads, model_files: as for :func:`run_command`.
+
+    Returns:
+        One :func:`run_command`-like result per job, in order; ``seconds`` is the call's wall time divided
+        among the jobs.
+    """
+    import torch
+
+    from torchgarment.cli import build_parser, exit_code
+    from torchgarment.datadriven.cli import fit_bodies
+    from torchgarment.errors import TorchGarmentError
+
+    torch.set_num_threads(max(1, int(threads)))
+    _remove_old_temporaries()
+    tmp = Path(tempfile.mkdtemp(prefix=_TEMP_PREFIX))
+    try:
+        _unpack(model_files or {}, tmp / "model")
+        parser = build_parser()
+        outs = [tmp / f"out{i}" for i in range(len(argvs))]
+        args = [parser.parse_args([str(tmp / "model") if a == MODEL else a for a in argv]
+                                  + ["--out", str(out)]) for argv, out in zip(argvs, outs)]
+        t0 = time.perf_counter()
+        try:
+            outcomes = fit_bodies(args[0], [(a.body, a.out) for a in args])
+        except (TorchGarmentError, OSError) as exc:  # the model or an option: every job fails alike
+            outcomes = [exc] * len(args)
+        share = (time.perf_counter() - t0) / len(args)
+        results = []
+        for outcome, out in zip(outcomes, outs):
+            failed = isinstance(outcome, BaseException)
+            results.append({"code": exit_code(outcome) if failed else 0,
+                            "files": {} if failed else _collect(out),
+                            "stdout": "" if failed else outcome + "\n",
+                            "stderr": f"torchgarment: error: {outcome}\n" if failed else "",
+                            "seconds": share, "host": socket.gethostname(), "pid": os.getpid()})
+        return results
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

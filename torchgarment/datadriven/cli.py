@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from torchgarment.errors import InputError
+from torchgarment.errors import InputError, TorchGarmentError
 from torchgarment.options import env_limit
 
 if TYPE_CHECKING:
@@ -249,42 +249,103 @@ def load_model(model_dir: str | Path) -> tuple[BodyPCA, ClothingBasis, dict]:
 
 def cmd_pca_fit(args: argparse.Namespace) -> int:
     """Run ``torchgarment pca fit``; returns the exit code."""
+    (outcome,) = fit_bodies(args, [(args.body, args.out)])
+    if isinstance(outcome, BaseException):
+        raise outcome
+    print(outcome)
+    return 0
+
+
+def fit_bodies(args: argparse.Namespace, jobs: list[tuple[str, str | Path]]) -> list[str | BaseException]:
+    """``pca fit`` for many bodies on one model: the model is loaded once, the bodies' weights and garments
+    are computed in one batched call (:meth:`OnlineFitter.weights`, :meth:`OnlineFitter.fit` on (B, V, 3)),
+    then each body is refined and pushed out and its folder written as the single command writes it. The
+    batch runner groups a catalogue's fits this way; ``pca fit`` is the case of one body.
+
+    Args:
+        args: the ``pca fit`` options (``model``, ``k``, ``interpolation``, ``frame``, ``push_out``,
+            ``margin``, ``refine``; ``body`` and ``out`` are ignored).
+        jobs: ``(body mesh file, output folder)`` per body.
+
+    Returns:
+        Per body, the command's summary line, or the exception that body failed with (a bad body fails alone;
+        a bad model or option fails them all).
+    """
     import torch
 
     from torchgarment.body.load import check_human_body, load_body
-    from torchgarment.datadriven.online import OnlineFitter, push_out
-    from torchgarment.io.mesh import save_obj
-    from torchgarment.io.staging import staged_output
+    from torchgarment.datadriven.online import OnlineFitter
+
     if not args.margin >= 0:
         raise InputError(f"--margin must be >= 0, got {args.margin}")
+    if args.refine is not None and args.refine < 0:
+        raise InputError(f"--refine must be >= 0 iterations, got {args.refine}")
     t0 = time.perf_counter()
-    if not Path(args.body).is_file():
-        raise InputError(f"--body {args.body}: no such file")
-    body = load_body(args.body)
-    check_human_body(body.vertices, body.faces, f"--body {args.body}")  # before loading the model: cheap
+    outcomes: list[str | BaseException] = []
+    bodies = []
+    for body_path, _ in jobs:
+        try:
+            if not Path(body_path).is_file():
+                raise InputError(f"--body {body_path}: no such file")
+            body = load_body(body_path)
+            check_human_body(body.vertices, body.faces, f"--body {body_path}")  # before the model: cheap
+            bodies.append(body)
+            outcomes.append("")
+        except (TorchGarmentError, OSError) as exc:
+            bodies.append(None)
+            outcomes.append(exc)
+    if all(b is None for b in bodies):
+        return outcomes
     pca, basis, info = load_model(args.model)
-    if body.num_vertices != pca.num_vertices or body.faces.shape != pca.faces.shape \
-            or not torch.equal(body.faces.long(), pca.faces.long()):
-        raise InputError(f"--body {args.body}: {body.num_vertices} vertices / {body.faces.shape[0]} faces, "
-                         f"but the model's bodies have {pca.num_vertices} / {pca.faces.shape[0]} of topology "
-                         f"{pca.topology or '(unnamed)'}: the body must have the model's topology (same "
-                         f"vertices and faces in the same order)")
+    for n, (body, (body_path, _)) in enumerate(zip(bodies, jobs)):
+        if body is not None and (body.num_vertices != pca.num_vertices
+                                 or body.faces.shape != pca.faces.shape
+                                 or not torch.equal(body.faces.long(), pca.faces.long())):
+            outcomes[n] = InputError(
+                f"--body {body_path}: {body.num_vertices} vertices / {body.faces.shape[0]} faces, but the "
+                f"model's bodies have {pca.num_vertices} / {pca.faces.shape[0]} of topology "
+                f"{pca.topology or '(unnamed)'}: the body must have the model's topology (same vertices and "
+                "faces in the same order)")
+            bodies[n] = None
+    ok = [n for n, b in enumerate(bodies) if b is not None]
+    if not ok:
+        return outcomes
     name = basis.name or "garment"
     fitter = OnlineFitter(pca, {name: basis}, k=args.k, interpolation=args.interpolation, frame=args.frame)
+    stack = torch.stack([bodies[n].vertices for n in ok])
     t_load = time.perf_counter()
-    w = fitter.weights(body.vertices)
+    w = fitter.weights(stack)
     t_w = time.perf_counter()
-    x = fitter.fit(w, bodies=body.vertices)[name]
+    x = fitter.fit(w, bodies=stack)[name]
     t_fit = time.perf_counter()
-    seconds = {"load": t_load - t0, "weights": t_w - t_load, "fit": t_fit - t_w}
+    share = 1.0 / len(ok)  # the batched steps' time, per body
+    seconds = {"load": t_load - t0, "weights": (t_w - t_load) * share, "fit": (t_fit - t_w) * share}
+    for row, n in enumerate(ok):
+        try:
+            outcomes[n] = _finish_fit(args, jobs[n], bodies[n], pca, basis, info, fitter, w[row], x[row],
+                                      dict(seconds), len(ok))
+        except (TorchGarmentError, OSError) as exc:  # one body's failure (e.g. its refine) leaves the others
+            outcomes[n] = exc
+    return outcomes
+
+
+def _finish_fit(args: argparse.Namespace, job: tuple[str, str | Path], body: object, pca: BodyPCA,
+                basis: ClothingBasis, info: dict, fitter: object, w: object, x: object, seconds: dict,
+                batch: int) -> str:
+    """Refine, push out, measure and write one body's fit; returns the command's summary line."""
+    t0 = time.perf_counter()
+    from torchgarment.datadriven.online import push_out
+    from torchgarment.io.mesh import save_obj
+    from torchgarment.io.staging import staged_output
+
+    body_path, out = job
+    name = basis.name or "garment"
     refined = None
     if args.refine is not None:
         from torchgarment.datadriven.online import refine
         from torchgarment.sdf import BodySDF, SDFSettings
         from torchgarment.sim.drape import DrapeSettings
 
-        if args.refine < 0:
-            raise InputError(f"--refine must be >= 0 iterations, got {args.refine}")
         if not all(isinstance(info.get(k), (int, float)) for k in ("edge_length", "voxel_size")):
             raise InputError(f"--model {args.model}: model.json has no edge_length / voxel_size to refine "
                              "with")
@@ -308,22 +369,20 @@ def cmd_pca_fit(args: argparse.Namespace) -> int:
     else:
         seconds["distances"] = res.seconds
         pen["min_distance_mm"] = 1e3 * res.min_phi
-    seconds["total"] = time.perf_counter() - t0
+    seconds["total"] = seconds["load"] + seconds["weights"] + seconds["fit"] + time.perf_counter() - t0
     res_rec = pca.reconstruction_error(body.vertices, fitter.k)
-    metrics = {"model": str(args.model), "body": str(args.body), "garment": name, "k": fitter.k,
+    metrics = {"model": str(args.model), "body": str(body_path), "garment": name, "k": fitter.k,
                "interpolation": fitter.interpolation.value, "frame": fitter.frame.value, "seconds": seconds,
+               "bodies_in_call": batch,
                "weights": [float(v) for v in w],
                "weights_in_sigmas": [float(v) for v in w / pca.sigmas[: fitter.k]],
                "penetrations": pen, "refine": refined, "garment_vertices": int(x.shape[0]),
                "body_reconstruction_error_mm": {"mean": 1e3 * float(res_rec["mean"][0]),
                                                 "max": 1e3 * float(res_rec["max"][0])}}
-    with staged_output(args.out) as stage:
+    with staged_output(out) as stage:
         welded, _ = basis.garment.with_positions(x.detach()).welded()
         save_obj(stage / "garment.obj", welded.x, welded.faces)
         _write_json(stage / "metrics.json", metrics)
-    print(f"pca fit {name}: k={fitter.k}, weights {seconds['weights'] * 1e3:.2f} ms, "
-          f"fit {seconds['fit'] * 1e3:.2f} ms, "
-          f"{pen['inside_vertices']} vertices inside the body"
-          + (f" ({pen['inside_after_push_out']} after push-out)" if args.push_out else "")
-          + f" -> {args.out}")
-    return 0
+    return (f"pca fit {name}: k={fitter.k}, weights {seconds['weights'] * 1e3:.2f} ms, "
+            f"fit {seconds['fit'] * 1e3:.2f} ms, {pen['inside_vertices']} vertices inside the body"
+            + (f" ({pen['inside_after_push_out']} after push-out)" if args.push_out else "") + f" -> {out}")
