@@ -18,6 +18,18 @@ MatVec = Callable[[Array], Array]
 Preconditioner = Callable[[Array], Array]
 
 
+def _start(b: Array, preconditioner: Preconditioner | None,
+           x0: Array | None) -> tuple["_TorchOps | _NumpyOps", Preconditioner, Array, float]:
+    """What both Krylov solvers start with: the array operations of ``b``'s type, ``r -> M^-1 r`` (the
+    identity without a preconditioner), the start iterate and ``|b|``."""
+    ops = _NUMPY if isinstance(b, np.ndarray) else _TORCH
+
+    def apply(r: Array) -> Array:
+        return ops.copy(r) if preconditioner is None else preconditioner(r)
+
+    return ops, apply, ops.zeros_like(b) if x0 is None else ops.start(x0, b), ops.norm(b)
+
+
 def pcg(
     matvec: MatVec, b: Array, preconditioner: Preconditioner | None, rtol: float, max_iterations: int,
     *, x0: Array | None = None, stop_at_negative_curvature: bool = False,
@@ -46,13 +58,7 @@ def pcg(
         NonConvergenceError: non-positive curvature ``p^T K p <= 0`` (``K`` is not positive definite), unless
             ``stop_at_negative_curvature``.
     """
-    ops = _NUMPY if isinstance(b, np.ndarray) else _TORCH
-
-    def apply(r: Array) -> Array:
-        return ops.copy(r) if preconditioner is None else preconditioner(r)
-
-    y = ops.zeros_like(b) if x0 is None else ops.start(x0, b)
-    bn = ops.norm(b)
+    ops, apply, y, bn = _start(b, preconditioner, x0)
     if bn == 0.0:
         return ops.zeros_like(b), 0, 0.0
     r = b - matvec(y) if x0 is not None and bool(y.any()) else ops.copy(b)
@@ -108,13 +114,7 @@ def minres(
     Raises:
         NonConvergenceError: the preconditioner is not positive definite (``r^T M^-1 r < 0``).
     """
-    ops = _NUMPY if isinstance(b, np.ndarray) else _TORCH
-
-    def apply(r: Array) -> Array:
-        return ops.copy(r) if preconditioner is None else preconditioner(r)
-
-    x = ops.zeros_like(b) if x0 is None else ops.start(x0, b)
-    bn = ops.norm(b)
+    ops, apply, x, bn = _start(b, preconditioner, x0)
     if bn == 0.0:
         return ops.zeros_like(b), 0, 0.0
     r1 = ops.copy(b)
