@@ -50,6 +50,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="cold drapes re-timed in this run, on the first H held-out bodies (default 5)")
     ap.add_argument("--no-continuation", action="store_true",
                     help="basis drapes from the placed panels instead of continued from the mean drape")
+    ap.add_argument("--no-support", action="store_true",
+                    help="drapes (basis, references, refines) without the skirt's support: it hangs by its "
+                         "waist tension, as before the basis kept the support")
     ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
     args = ap.parse_args(argv)
 
@@ -83,18 +86,20 @@ def main(argv: list[str] | None = None) -> int:
     req = {k: m[k] for k in ("height", "bust", "underbust", "waist", "hips")}
     ease = {"hip_ease": args.hip_ease} if "skirt" in args.garment else {}
     pattern = draft(args.garment, req, **ease)
-    dsettings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel)
+    dsettings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel,
+                              support=not args.no_support)
     mesh = mesh_pattern(pattern, args.edge_length)
     settings = BasisSettings(k=args.kmax, c=args.c, drape=dsettings, continuation=not args.no_continuation)
     t1 = time.perf_counter()
-    basis = build_basis(pca, mesh, settings, name=args.garment, cache_dir=args.cache)
+    basis = build_basis(pca, pattern, settings, name=args.garment, cache_dir=args.cache)
+    support = basis.support  # the references and the refines hold the same support as the basis drapes
     t_basis = time.perf_counter() - t1
     reference = BodyFrame.of(pca.mean, pca.faces)
 
     # full drapes of the held-out bodies (the references), cached per body
     cache = Path(args.cache) if args.cache else basis_cache_dir()
     tag = hashlib.sha256(basis.key.encode() + held.vertices.double().numpy().tobytes()
-                         + mesh_hash(mesh).encode())
+                         + mesh_hash(mesh).encode() + (b"" if support is None else b"support"))
     ref_dir = cache / f"heldout-{tag.hexdigest()[:20]}"
     refs, ref_metrics, drape_seconds = [], [], []
     for i in tqdm(range(len(held)), desc="held-out full drapes"):
@@ -103,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
             e = torch.load(path, map_location="cpu", weights_only=True)
         else:
             t = time.perf_counter()
-            r = drape_on_body(mesh, held.vertices[i], held.faces, reference, dsettings)
+            r = drape_on_body(mesh, held.vertices[i], held.faces, reference, dsettings, support=support)
             e = {"x": r.x.detach().double(), "metrics_json": json.dumps(
                 {"ok": r.ok, "converged": r.converged, "min_sdf_mm": r.metrics["min_sdf_mm"],
                  "seconds": time.perf_counter() - t})}
@@ -164,13 +169,13 @@ def main(argv: list[str] | None = None) -> int:
         sdfs = [BodySDF.cached(b.vertices, b.faces, SDFSettings(voxel_size=args.voxel)) for b in bodies]
         for i in tqdm(range(min(args.time_cold, len(held))), desc="cold drapes (timed)"):
             t = time.perf_counter()
-            drape_on_body(mesh, held.vertices[i], held.faces, reference, dsettings)
+            drape_on_body(mesh, held.vertices[i], held.faces, reference, dsettings, support=support)
             cold_seconds.append(time.perf_counter() - t)
         for n in args.refine:
             means, maxes, secs, conv = [], [], [], 0
             for i in tqdm(range(len(held)), desc=f"refine {n}"):
                 t = time.perf_counter()
-                r = refine(mesh, xs[i], bodies[i], dsettings, iterations=n, sdf=sdfs[i])
+                r = refine(mesh, xs[i], bodies[i], dsettings, iterations=n, sdf=sdfs[i], support=support)
                 secs.append(time.perf_counter() - t)
                 d = torch.linalg.vector_norm(r.x.detach().double() - refs[i], dim=1)
                 means.append(1e3 * float(d.mean()))

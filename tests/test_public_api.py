@@ -67,6 +67,7 @@ PUBLIC = {
     ],
     "torchgarment.sim": [
         "drape",
+        "SupportLoop",
         "DrapeSettings",
         "DrapeResult",
         "DrapeStage",

@@ -117,7 +117,7 @@ def small_pca():
 def fake_drape_factory(calls: list):
     """A stand-in simulator whose result is affine in the body: x = placed x + 0.1 * body[:Vg]."""
 
-    def fake(mesh, vertices, faces, reference, settings, frame=None, start=None):
+    def fake(mesh, vertices, faces, reference, settings, frame=None, start=None, support=None):
         calls.append(start is not None)
         x = mesh.x + 0.1 * vertices[: mesh.num_vertices].double()
         return SimpleNamespace(x=x,

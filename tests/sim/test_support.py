@@ -177,3 +177,33 @@ def test_drape_cli_proposes_a_support_for_a_file_without_one(tmp_path, capsys):
     m = json.loads((tmp_path / "o" / "metrics.json").read_text())
     assert m["support"] == "skirt_front:waist_r,skirt_front:waist_l,skirt_back:waist_r,skirt_back:waist_l"
     assert m["support_vertices"] > 0 and "support_force_n" in m and "support_max_displacement_mm" in m
+
+
+def test_a_mesh_drapes_with_its_patterns_support_loop(skirt_drapes, body12):
+    """A mesh without its pattern (a clothing basis keeps only the mesh) is held by its SupportLoop exactly as
+    the pattern's drape holds it; without the loop it hangs by its tension like the unsupported drape."""
+    from torchgarment.pattern.meshing import mesh_pattern
+    from torchgarment.sim.support import SupportLoop
+
+    pattern, on, off = skirt_drapes
+    mesh = mesh_pattern(pattern, COARSE.edge_length)
+    loop = SupportLoop.of(pattern, mesh)
+    assert loop is not None and loop.name == on.metrics["support"]
+    saved = {k: v.clone() if torch.is_tensor(v) else v for k, v in loop.to_dict().items()}
+    back = SupportLoop.from_dict(saved)
+    assert torch.equal(back.indices, loop.indices) and torch.equal(back.arc, loop.arc)
+    assert (back.length, back.name) == (loop.length, loop.name) and SupportLoop.from_dict(None) is None
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        held = drape(mesh, body12, settings=COARSE, support=loop)
+        off_settings = DrapeSettings(edge_length=0.05, voxel_size=0.01, support=False)
+        hanging = drape(mesh, body12, settings=off_settings, support=loop)
+    finally:
+        torch.set_num_threads(n)
+    assert torch.equal(held.support_indices, on.support_indices)
+    assert float((held.x - on.x).abs().max()) <= 1e-9
+    assert held.metrics["support"] == on.metrics["support"]
+    assert hanging.support_indices is None and float((hanging.x - off.x).abs().max()) <= 1e-9
+    with pytest.raises(InputError, match="does not belong to this mesh"):
+        drape(mesh_pattern(pattern, 0.1), body12, settings=COARSE, support=loop)

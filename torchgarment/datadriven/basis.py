@@ -20,10 +20,16 @@ and for another body its placed positions are scaled about the floor and the Y a
 clearance from a larger body). Measurements come from :func:`torchgarment.body.measure.measure_body`. The
 rest shape (panel coordinates ``p``) is never changed: the simulator sees the same garment on every body.
 
+Support: a pattern with a support (a skirt's waistband, :attr:`SewingPattern.support`) keeps it in the
+basis (:attr:`ClothingBasis.support`, a :class:`~torchgarment.sim.support.SupportLoop`), and every drape of
+the basis, and every refine of a fit, holds it at that body's waist as a single drape does, so the garment
+does not slide down by centimetres with small waist changes (``DrapeSettings(support=False)`` lets it hang by
+its tension).
+
 Caching: every drape is saved as it finishes under ``<cache>/<key>/<sample>.pt`` (atomic writes), so an
 interrupted build resumes where it stopped, and a build for a larger k reuses the drapes of a smaller one;
-the key hashes the PCA model (:meth:`BodyPCA.fingerprint`), the garment mesh, ``c``, the drape settings and
-the placement rule. Default cache: ``$TORCHGARMENT_CACHE/clothing_basis``.
+the key hashes the PCA model (:meth:`BodyPCA.fingerprint`), the garment mesh, ``c``, the drape settings,
+the placement rule and the support. Default cache: ``$TORCHGARMENT_CACHE/clothing_basis``.
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ from torchgarment.io.atomic import atomic_path
 from torchgarment.io.payload import load_payload
 from torchgarment.options import OptionEnum
 from torchgarment.sim.drape import DrapeSettings
+from torchgarment.sim.support import SupportLoop
 from torchgarment.structures.garment_mesh import GarmentMesh
 
 if TYPE_CHECKING:
@@ -160,6 +167,8 @@ class ClothingBasis:
         key: cache key. name: garment name.
         metrics: per drape (``"mean"``, ``"plus_i"``, ``"minus_i"``): the drape's metrics (converged, ok,
             min_sdf_mm, seconds, ...).
+        support: the garment's support loop (a skirt's waistband), held at each example body's waist in its
+            drape (and in a refine), or None (the garment hangs by its tension).
     """
 
     mean: torch.Tensor
@@ -171,6 +180,7 @@ class ClothingBasis:
     key: str = ""
     name: str = ""
     metrics: dict = field(default_factory=dict)
+    support: SupportLoop | None = None
 
     @property
     def k(self) -> int:
@@ -234,6 +244,7 @@ class ClothingBasis:
             "steps": self.steps.cpu(), "pca_fingerprint": self.pca_fingerprint, "key": self.key,
             "name": self.name,
             "metrics_json": json.dumps(self.metrics, default=str),
+            "support": None if self.support is None else self.support.to_dict(),
             "garment": {"x": g.x.cpu(), "faces": g.faces.cpu(), "p": None if g.p is None else g.p.cpu(),
                         "panel_ids": None if g.panel_ids is None else g.panel_ids.cpu(),
                         "panel_names": list(g.panel_names), "seam_pairs": g.seam_pairs.cpu()},
@@ -250,8 +261,7 @@ class ClothingBasis:
         garment = GarmentMesh(gd["x"], gd["faces"], p=gd["p"], panel_ids=gd["panel_ids"],
                               panel_names=gd["panel_names"], seam_pairs=gd["seam_pairs"])
         basis = cls(p["mean"], p["plus"], p["minus"], p["steps"], garment, p["pca_fingerprint"], p["key"],
-                    p["name"],
-                    json.loads(p["metrics_json"]))
+                    p["name"], json.loads(p["metrics_json"]), SupportLoop.from_dict(p.get("support")))
         return basis.to(device=device, dtype=dtype)
 
 
@@ -267,8 +277,10 @@ def _as_garment_mesh(garment: SewingPattern | GarmentMesh, settings: DrapeSettin
     raise InputError(f"a clothing basis needs a SewingPattern or a GarmentMesh, got {type(garment).__name__}")
 
 
-def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings) -> str:
-    """Cache key of a basis: hash of the body model, garment, c, drape settings and placement rule.
+def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings,
+              support: SupportLoop | None = None) -> str:
+    """Cache key of a basis: hash of the body model, garment, c, drape settings, placement rule and the
+    support held in the drapes.
 
     ``k`` is not part of it: the drapes along component ``i`` do not depend on how many components are kept,
     so a basis for a larger k reuses those of a smaller one (the assembled basis is ``basis_k<k>.pt``).
@@ -277,6 +289,8 @@ def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings) -> str:
             "drape": _settings_description(settings.drape), "placement": PLACEMENT_VERSION}
     if settings.continuation:  # (absent from the key of the cold bases built before it existed)
         desc["continuation"] = True
+    if support is not None and settings.drape.support:  # (absent from the keys of unsupported bases)
+        desc["support"] = [support.name, support.indices.tolist()]
     return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:24]
 
 
@@ -287,7 +301,7 @@ def sample_names(k: int) -> list[str]:
 
 def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor, reference: BodyFrame,
                   settings: DrapeSettings, frame: BodyFrame | None = None,
-                  start: torch.Tensor | None = None) -> DrapeResult:
+                  start: torch.Tensor | None = None, support: SupportLoop | None = None) -> DrapeResult:
     """Drape the garment (placed for ``reference``) on one body after re-placing it (:func:`place_for_body`),
     or, with ``start``, settle it from those positions (:func:`refine`: sewing skipped). Every drape of a
     clothing basis goes through here.
@@ -298,6 +312,7 @@ def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor
         reference: frame of the body the garment is placed for.
         settings: drape settings. frame: the body's frame if already measured.
         start: (Vg, 3) sewn garment positions to start from (a continuation), or None.
+        support: the garment's support loop (:attr:`ClothingBasis.support`), held at the body's waist.
 
     Returns:
         the :class:`~torchgarment.sim.drape.DrapeResult`.
@@ -307,14 +322,15 @@ def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor
 
     body = Body(vertices=vertices.detach().cpu().double(), faces=faces.cpu().long())
     if start is not None:
-        return refine(mesh, start, body, settings)
+        return refine(mesh, start, body, settings, support=support)
     frame = frame if frame is not None else BodyFrame.of(vertices, faces)
     placed = mesh.with_positions(place_for_body(mesh.x, reference, frame))
-    return drape(placed, body, settings=settings)
+    return drape(placed, body, settings=settings, support=support)
 
 
 def refine(mesh: GarmentMesh, x: torch.Tensor, body: Body, settings: DrapeSettings,
-           iterations: int | None = None, sdf: BodySDF | None = None) -> DrapeResult:
+           iterations: int | None = None, sdf: BodySDF | None = None,
+           support: SupportLoop | None = None) -> DrapeResult:
     """Warm-started simulation: the PCA prediction ``x`` as the initial state of the quasistatic solve.
 
     The garment (already sewn: the sewing stage is skipped) settles on ``body`` with the drape's physics and
@@ -326,6 +342,7 @@ def refine(mesh: GarmentMesh, x: torch.Tensor, body: Body, settings: DrapeSettin
         x: (V, 3) its predicted positions on ``body``, metres.
         body: the customer's body (vertices and faces). settings: the basis's drape settings.
         iterations: settle budget (>= 0). sdf: the body's SDF when already built (else built and cached).
+        support: the garment's support loop (:attr:`ClothingBasis.support`), held at the body's waist.
 
     Returns:
         The :class:`~torchgarment.sim.drape.DrapeResult` (``metrics["converged"]`` tells whether the budget
@@ -337,7 +354,7 @@ def refine(mesh: GarmentMesh, x: torch.Tensor, body: Body, settings: DrapeSettin
         raise InputError(f"refine iterations must be an integer >= 0, got {iterations!r}")
     st = replace(settings, sew_max_iterations=0,
                  max_iterations=settings.max_iterations if iterations is None else iterations)
-    return drape(mesh.with_positions(x.detach().to(mesh.x)), body, settings=st, sdf=sdf)
+    return drape(mesh.with_positions(x.detach().to(mesh.x)), body, settings=st, sdf=sdf, support=support)
 
 
 def build_basis(
@@ -376,7 +393,9 @@ def build_basis(
     k = pca.k_for_variance(settings.variance) if settings.k is None else settings.k
     if k > pca.num_components:
         raise InputError(f"the body model has {pca.num_components} components, asked for k={k}")
-    key = basis_key(pca, mesh, settings)
+    support = (SupportLoop.of(garment, mesh)
+               if settings.drape.support and not isinstance(garment, GarmentMesh) else None)
+    key = basis_key(pca, mesh, settings, support)
     folder = Path(cache_dir) if cache_dir is not None else basis_cache_dir()
     folder = folder / key
     final = folder / f"basis_k{k}.pt"
@@ -407,7 +426,7 @@ def build_basis(
             if tri is None:
                 tri = attach(results["mean"], pca64.mean, faces.long())
             start = decode(encode(results["mean"], pca64.mean, faces.long(), tri), verts, faces.long(), tri)
-        result = drape_on_body(mesh, verts, faces, reference, settings.drape, start=start)
+        result = drape_on_body(mesh, verts, faces, reference, settings.drape, start=start, support=support)
         m = {key_: result.metrics[key_]
              for key_ in ("vertices", "iterations", "converged", "ok", "min_sdf_mm",
                                                     "inside_vertices", "max_seam_gap_mm", "residual")}
@@ -422,6 +441,6 @@ def build_basis(
     minus = torch.stack([results[f"minus_{i}"] for i in range(k)]) if k else torch.zeros_like(plus)
     steps = settings.c * pca64.sigmas[:k].clone()
     basis = ClothingBasis(results["mean"], plus, minus, steps, mesh.with_positions(results["mean"]),
-                          pca64.fingerprint(), key, name, metrics)
+                          pca64.fingerprint(), key, name, metrics, support)
     basis.save(final)
     return basis

@@ -353,7 +353,7 @@ def _finish_fit(args: argparse.Namespace, job: tuple[str, str | Path], body: obj
         t = time.perf_counter()
         sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=dset.voxel_size))
         seconds["refine_sdf"] = time.perf_counter() - t
-        r = refine(basis.garment, x, body, dset, iterations=args.refine, sdf=sdf)
+        r = refine(basis.garment, x, body, dset, iterations=args.refine, sdf=sdf, support=basis.support)
         x = r.x.detach().to(x)
         seconds["refine"] = r.metrics["seconds"]
         refined = {"iterations": r.metrics["iterations"], "converged": r.metrics["converged"],

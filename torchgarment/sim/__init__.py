@@ -6,8 +6,8 @@ Re-exported here:
 * scenes (:mod:`torchgarment.sim.scene`): :class:`Scene` (declares the :class:`Effect`\\ s and the
   :class:`Material`) and the :class:`SimModel` it builds;
 * draping (:mod:`torchgarment.sim.drape`): :func:`drape` with :class:`DrapeSettings`, :class:`DrapeResult`
-  and :class:`DrapeStage`, and the seam and stretch measures :func:`seam_gaps`, :func:`max_seam_gap` and
-  :func:`vertex_stretch_ratio`;
+  and :class:`DrapeStage`, the seam and stretch measures :func:`seam_gaps`, :func:`max_seam_gap` and
+  :func:`vertex_stretch_ratio`, and :class:`SupportLoop` (a mesh's support, :mod:`torchgarment.sim.support`);
 * solvers (:mod:`torchgarment.sim.solvers`): :func:`solve` with :class:`SolveSettings`, :class:`SolverKind`,
   :class:`Preconditioner` and the returned :class:`SolveInfo`;
 * the differentiable solve (:mod:`torchgarment.sim.diff`): :class:`DifferentiableSolver` (an ``nn.Module``),
@@ -55,6 +55,7 @@ from torchgarment.sim.energies import (
 )
 from torchgarment.sim.scene import Effect, Material, Scene, SimModel
 from torchgarment.sim.solvers import Preconditioner, SolveInfo, SolverKind, SolveSettings, solve
+from torchgarment.sim.support import SupportLoop
 
 if TYPE_CHECKING:
     from torchgarment.sim.contact import BodyMeshContact, SelfContact
@@ -90,8 +91,8 @@ __all__ = [
     "Pins",
     "PlanarSprings",
     "Preconditioner",
-    "QuasistaticSolve",
     "QuadraticBending",
+    "QuasistaticSolve",
     "Scene",
     "SelfContact",
     "SewingSprings",
@@ -99,6 +100,7 @@ __all__ = [
     "SolveInfo",
     "SolveSettings",
     "SolverKind",
+    "SupportLoop",
     "drape",
     "max_seam_gap",
     "seam_gaps",

@@ -44,6 +44,7 @@ from torchgarment.sim.scene import Effect, Material, Scene, SimModel
 from torchgarment.sim.solvers import SolveInfo, SolverKind, SolveSettings, solve
 from torchgarment.sim.support import (
     DEFAULT_SUPPORT_SAG,
+    SupportLoop,
     support_metrics,
     support_stiffness,
     waist_band_targets,
@@ -322,6 +323,7 @@ def drape(
     progress: ProgressFn | None = None,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
+    support: SupportLoop | None = None,
 ) -> DrapeResult:
     """Sew a garment's placed panels around a body and solve for equilibrium (see the module docstring).
 
@@ -335,6 +337,9 @@ def drape(
         sdf: a prebuilt SDF of ``body`` (skips building); it is also what the clearance is checked with.
         progress: ``progress(stage, iteration, residual)`` after every solver iteration.
         dtype: floating dtype of the simulation. device: its device.
+        support: the support of a :class:`GarmentMesh` (:meth:`SupportLoop.of` its pattern), held like a
+            pattern's own support (:attr:`DrapeSettings.support`); a pattern's own support is used for a
+            pattern, and a mesh without one hangs by its tension.
 
     Returns:
         The :class:`DrapeResult`.
@@ -372,7 +377,11 @@ def drape(
         final_mat.barrier_mu = float(settings.barrier_mu)
     weight = (float(mesh.rest_face_areas.abs().sum()) * mat.density * mat.gravity if mesh.p is not None
               else 0.0)
-    support = _support_pins(pattern_or_mesh, mesh, body, x, weight, settings)
+    if isinstance(pattern_or_mesh, GarmentMesh):
+        loop = support
+    else:
+        loop = SupportLoop.of(pattern_or_mesh, mesh) if settings.support else None
+    support = _support_pins(loop, mesh, body, x, weight, settings)
     effects = base | {Effect.GRAVITY}
     if support is not None:
         final_mat.pin_stiffness = support[2]
@@ -424,9 +433,7 @@ def drape(
     metrics["ok"] = bool(info.converged and min_phi >= 0 and gap <= settings.max_seam_gap)
     metrics["support"] = None
     if support is not None:
-        from torchgarment.pattern.support import format_support
-
-        metrics["support"] = format_support(pattern_or_mesh.support)
+        metrics["support"] = loop.name
         metrics.update(support_metrics(x, support[0], support[1], support[2]))
         metrics["support_target"] = support[3]
     return DrapeResult(x=x, mesh=mesh.with_positions(x), info=info, stages=stages, metrics=metrics,
@@ -435,12 +442,11 @@ def drape(
                        support_stiffness=None if support is None else support[2])
 
 
-def _support_pins(pattern_or_mesh: SewingPattern | GarmentMesh, mesh: GarmentMesh,
-                  body: Body | BodySDF | None, x: torch.Tensor, weight: float, settings: DrapeSettings
+def _support_pins(loop: SupportLoop | None, mesh: GarmentMesh, body: Body | BodySDF | None,
+                  x: torch.Tensor, weight: float, settings: DrapeSettings
                   ) -> tuple[torch.Tensor, torch.Tensor, float, dict] | None:
     """(indices, targets, stiffness, target info) of the support's pins, or None without a support."""
-    support = getattr(pattern_or_mesh, "support", ())
-    if not settings.support or isinstance(pattern_or_mesh, GarmentMesh) or not support:
+    if not settings.support or loop is None:
         return None
     verts, faces = getattr(body, "vertices", None), getattr(body, "faces", None)
     if verts is None or faces is None:
@@ -448,10 +454,11 @@ def _support_pins(pattern_or_mesh: SewingPattern | GarmentMesh, mesh: GarmentMes
                          "SDF) or DrapeSettings(support=False)")
     if weight <= 0:
         raise InputError("the support's stiffness needs the garment's weight: the mesh has no rest pattern p")
-    from torchgarment.pattern.support import support_vertices
-
-    idx, s, length = support_vertices(pattern_or_mesh, mesh)
-    targets, info = waist_band_targets(verts, faces, x[idx], s, length)
+    idx = loop.indices.to(device=x.device)
+    if idx.numel() == 0 or int(idx.max()) >= mesh.num_vertices:
+        raise InputError(f"the support loop {loop.name} does not belong to this mesh of {mesh.num_vertices} "
+                         "vertices")
+    targets, info = waist_band_targets(verts, faces, x[idx], loop.arc, loop.length)
     return idx, targets, support_stiffness(weight, int(idx.numel()), settings.support_sag), info
 
 

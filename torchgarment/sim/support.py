@@ -18,16 +18,25 @@ the existing sticking energy, :class:`~torchgarment.sim.energies.pins.Pins` (``E
   unevenly loaded pins stay within 1 mm. The total stiffness ``P k = W / sag`` does not depend on the mesh
   resolution.
 * **Report** (:func:`support_metrics`): the force the pins exert and their largest displacement.
+
+A mesh without its pattern (a clothing basis keeps only the mesh) carries its support as a
+:class:`SupportLoop` (:meth:`SupportLoop.of` the pattern and its mesh).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    from torchgarment.pattern.spec import SewingPattern
+    from torchgarment.structures.garment_mesh import GarmentMesh
 
 DEFAULT_SUPPORT_SAG = 5.0e-4
 """Mean displacement (m) of the support pins if they alone carried the garment's weight (sets k)."""
@@ -37,6 +46,44 @@ MIN_CLEARANCE = 1.0e-3
 
 PHASES = 4096
 """Number of rotations tried when placing the band's vertices along the target loop."""
+
+
+@dataclass(frozen=True)
+class SupportLoop:
+    """A garment mesh's support loop, for draping the mesh without its pattern.
+
+    Attributes:
+        indices: (P,) long mesh vertices of the loop, in loop order.
+        arc: (P,) float64 their rest arc length along the loop from its first vertex, metres.
+        length: the loop's rest length, metres.
+        name: the support as ``PANEL:EDGE,...`` (for reports).
+    """
+
+    indices: torch.Tensor
+    arc: torch.Tensor
+    length: float
+    name: str
+
+    @classmethod
+    def of(cls, pattern: SewingPattern, mesh: GarmentMesh) -> SupportLoop | None:
+        """The support of ``pattern`` on ``mesh`` (made from it by ``mesh_pattern``), or None without one."""
+        from torchgarment.pattern.support import format_support, support_vertices
+
+        if not pattern.support:
+            return None
+        idx, arc, length = support_vertices(pattern, mesh)
+        return cls(idx, arc, float(length), format_support(pattern.support))
+
+    def to_dict(self) -> dict:
+        """Plain data (tensors on the CPU) for ``torch.save``; :meth:`from_dict` reads it back."""
+        return {"indices": self.indices.cpu(), "arc": self.arc.cpu(), "length": self.length,
+                "name": self.name}
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> SupportLoop | None:
+        if d is None:
+            return None
+        return cls(d["indices"].long(), d["arc"].double(), float(d["length"]), str(d["name"]))
 
 
 def support_stiffness(weight: float, count: int, sag: float = DEFAULT_SUPPORT_SAG) -> float:
