@@ -195,3 +195,45 @@ def test_pca_fits_share_one_build_and_are_fitted_in_one_batched_call(tmp_path):
         a, _ = load_mesh(folder / "garment.obj")
         b, _ = load_mesh(single / "garment.obj")
         assert float((a - b).abs().max()) <= 1e-9
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_batch_joins_a_running_ray_cluster_by_its_address(tmp_path):
+    """`--address` joins a cluster started with `ray start --head` (here on this machine, on a free local
+    port; the head is stopped by ending its `--block` process, which stops only what it started); a wrong
+    address is refused in one line and leaves no output folder."""
+    import shutil as _shutil
+
+    manifest = _manifest(tmp_path, {"cross": [{"method": "drape", "garments": ["straight_skirt"],
+                                               "sizes": ["6", "12"], "settings": {"edge_length": EDGE}}]})
+    ray_cli = _shutil.which("ray") or str(Path(sys.executable).with_name("ray"))
+    port = _free_port()
+    head = subprocess.Popen([ray_cli, "start", "--head", f"--port={port}", "--num-cpus=2",
+                             "--include-dashboard=false", "--disable-usage-stats", "--block"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 90
+        for line in head.stdout:
+            if "Ray runtime started" in line or time.monotonic() > deadline:
+                break
+        out = tmp_path / "out"
+        proc = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
+                               str(out), "--address", f"127.0.0.1:{port}", "--no-progress", "--no-sheet"],
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert {r["status"] for r in _summary(out)} == {"ok"} and len(_summary(out)) == 2
+    finally:
+        head.terminate()
+        head.wait(timeout=60)
+    bad = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
+                          str(tmp_path / "bad"), "--address", f"127.0.0.1:{_free_port()}", "--no-progress"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "cannot join the Ray cluster" in bad.stderr.splitlines()[-1]
+    assert not (tmp_path / "bad").exists()

@@ -53,7 +53,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from torchgarment.batch.manifest import load_manifest
-    from torchgarment.batch.runner import BatchSettings, run_batch
+    from torchgarment.batch.runner import BatchSettings, ray_environment, run_batch
 
     settings = BatchSettings(out=Path(args.out), address=args.address, workers=args.workers,
                              threads=args.threads, retries=args.retries, resume=args.resume,
@@ -61,6 +61,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
                              progress=not args.no_progress, sheet=not args.no_sheet)
     settings.validate()
     jobs = load_manifest(args.manifest)
+    ray_environment(settings)  # before Ray is imported
     try:
         import ray  # noqa: F401 - checked before any work
     except ImportError:

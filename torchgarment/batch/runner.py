@@ -38,7 +38,7 @@ from torchgarment.batch.manifest import Job
 from torchgarment.batch.worker import prepare_body, run_command, run_pca_fits
 from torchgarment.errors import InputError
 
-__all__ = ["SHEET_TILES", "SUMMARY_COLUMNS", "BatchReport", "BatchSettings", "run_batch"]
+__all__ = ["SHEET_TILES", "SUMMARY_COLUMNS", "BatchReport", "BatchSettings", "ray_environment", "run_batch"]
 
 SUMMARY_COLUMNS = ("job", "method", "garment", "body", "status", "seconds", "error", "attempts", "folder")
 """The first columns of ``summary.csv``; the jobs' scalar metrics (``metrics.json``) follow."""
@@ -234,6 +234,37 @@ def _ray_tasks() -> tuple[Any, Any, Any]:
             ray.remote(max_retries=0)(batch_pca_fits))
 
 
+def ray_environment(settings: BatchSettings) -> None:
+    """Set what Ray reads when it is imported, before the first ``import ray`` (the command line calls it;
+    a library user joining a cluster sets it in the environment).
+
+    Ray clusters authenticate with a token (``ray start`` writes ``~/.ray/auth_token``); a driver joining by
+    an explicit ``--address`` sends it only in token mode, and Ray reads the mode when it is imported
+    (measured with ray 2.60: without ``RAY_AUTH_MODE=token`` the head answers "InvalidAuthToken"; with it,
+    set before the import, the join succeeds). So with an address and a token at hand, ``RAY_AUTH_MODE``
+    defaults to ``token``.
+    """
+    if not settings.address or "RAY_AUTH_MODE" in os.environ:
+        return
+    if os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH") \
+            or Path("~/.ray/auth_token").expanduser().is_file():
+        os.environ["RAY_AUTH_MODE"] = "token"
+
+
+def _check_reachable(address: str) -> None:
+    """Refuse a ``HOST:PORT`` nobody listens on at once (Ray itself retries for minutes)."""
+    import socket
+
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit() or "://" in address:
+        return  # "auto" or a ray:// client address: Ray resolves it
+    try:
+        socket.create_connection((host, int(port)), timeout=10).close()
+    except OSError as exc:
+        raise InputError(f"--address {address}: cannot join the Ray cluster: nothing answers there ({exc}); "
+                         "start it with `ray start --head --port=PORT` or check the address") from None
+
+
 def _start_ray(settings: BatchSettings) -> int:
     """Start or join Ray; return how many jobs run at once."""
     import logging
@@ -242,11 +273,13 @@ def _start_ray(settings: BatchSettings) -> int:
 
     common = dict(log_to_driver=False, logging_level=logging.ERROR, configure_logging=True)
     if settings.address:
+        _check_reachable(settings.address)
         try:
             ray.init(address=settings.address, **common)
         except (ConnectionError, RuntimeError, ValueError) as exc:
             raise InputError(f"--address {settings.address}: cannot join the Ray cluster: "
-                             f"{str(exc).splitlines()[0]}") from None
+                             f"{str(exc).splitlines()[0]} (is it running, and does this machine have the "
+                             "cluster's token, ~/.ray/auth_token from the head or RAY_AUTH_TOKEN?)") from None
         cpus = int(ray.cluster_resources().get("CPU", 1))
         return settings.workers or max(1, cpus // settings.threads)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -290,10 +323,9 @@ def run_batch(jobs: list[Job], settings: BatchSettings) -> BatchReport:
     from torchgarment.io.staging import check_output_folder
 
     check_output_folder(out)
+    created = not out.exists()
     t0 = time.perf_counter()
     with _lock(out):
-        _remove_stale_stages(out)
-        (out / "records").mkdir(exist_ok=True)
         done = {}
         if settings.resume:
             for job in jobs:
@@ -301,11 +333,19 @@ def run_batch(jobs: list[Job], settings: BatchSettings) -> BatchReport:
                 if rec and rec.get("status") == "ok" and (out / "jobs" / job.id).is_dir():
                     done[job.id] = rec
         todo = [j for j in jobs if j.id not in done]
-        state = _Run(out, settings, jobs, done)
         workers = 0
+        if todo:
+            try:
+                workers = _start_ray(settings)
+            except InputError:  # a cluster that cannot be joined: nothing written (the folder was new)
+                if created:
+                    shutil.rmtree(out, ignore_errors=True)
+                raise
+        _remove_stale_stages(out)
+        (out / "records").mkdir(exist_ok=True)
+        state = _Run(out, settings, jobs, done)
         try:
             if todo:
-                workers = _start_ray(settings)
                 state.run(todo, workers)
         finally:
             with contextlib.suppress(Exception):
