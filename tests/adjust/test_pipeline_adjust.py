@@ -244,26 +244,3 @@ def test_pipeline_gradient_is_loss_backward_through_the_solve_function(skirt_cas
     # a non-smooth point of the objective (FD error 1.5e-4, 2.2e-4 at 3e-5); at 3e-6 both agree to 5e-7
     for ad, fd in directional_derivatives(objective, q0, ev.grad, directions=2, h=3e-6, seed=3):
         assert abs(ad - fd) <= 1e-4 * abs(fd), (ad, fd)
-
-
-def test_a_too_long_initialization_is_shortened_not_dropped(skirt_case, monkeypatch):
-    """The section-7 initialization is tried whole, then half and a quarter of it: here it is made four times
-    too long, so the whole scores worse than the base pattern, and the better of half and a quarter (the real
-    initialization; measured 11.8 against 1581 for the half, base 1641) is used."""
-    import torchgarment.adjust.pipeline as pipeline
-    from torchgarment.body import Body
-
-    pattern, setup, _ = skirt_case
-    real = pipeline._initialize
-    monkeypatch.setattr(pipeline, "_initialize",
-                        lambda objective, param, q_base, n: q_base + 4.0 * (real(objective, param, q_base, n)
-                                                                            - q_base))
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        far = prepare(pattern, Body.from_size("12"), Body.from_size("20"), SETTINGS)
-    finally:
-        torch.set_num_threads(n)
-    assert setup.initialization_used and setup.initialization_step == 1.0
-    assert far.initialization_used and far.initialization_step == 0.25
-    assert far.objective_initial == pytest.approx(setup.objective_initial, rel=1e-6)

@@ -53,10 +53,6 @@ if TYPE_CHECKING:
     from torchgarment.sdf import BodySDF
 
 CHECKPOINT_NAME = "adjust.pt"
-
-INIT_STEPS = (1.0, 0.5, 0.25)
-"""Fractions of the section-7 initialization tried: all of it; if it does not beat the base pattern, the best
-of half and a quarter of it that does."""
 """File name of the resumable checkpoint inside ``checkpoint_dir``."""
 
 
@@ -403,8 +399,6 @@ class AdjustSetup:
         objective_base, terms_base: objective and terms of the base pattern on the target body.
         q_init: (B, 2) initialized boundary; objective_initial, terms_initial its objective and terms;
         x_init: (V, 3) its equilibrium. initialization_used: whether it beat the base pattern.
-        initialization_step: the fraction of the section-7 initialization used (:data:`INIT_STEPS`: 1, or
-            the better of 0.5 and 0.25 when all of it does not beat the base pattern; 0 when none does).
         timings: seconds of each stage.
         support_level_shift_m: how far (m, up positive) :func:`~torchgarment.adjust.transfer.level_support`
             moved the transferred support to the target's waist plane; None without a support.
@@ -433,7 +427,6 @@ class AdjustSetup:
     timings: dict = field(default_factory=dict)
     support_level_shift_m: float | None = None
     lines: object | None = None
-    initialization_step: float = 0.0
 
     def new_problem(self, x_start: torch.Tensor | None = None, settings: AdjustSettings | None = None
                     ) -> AdjustProblem:
@@ -576,30 +569,18 @@ def prepare(
     f_base, terms_base = ev.objective, problem.term_values()
     x_before = problem.x.clone()
     q_init, x_init, f_init, terms_init, init_used = q_base, x_before, f_base, terms_base, False
-    init_step = 0.0
     if settings.initialize:
         q_try = _initialize(objective, param, q_base, settings.init_iterations)
-
-        # the whole initialization; if it scores no better than the base pattern, the better of half and a
-        # quarter of it: the initialization minimizes stretching at the transferred garment and does not see
-        # where the lines hang, so all of it can score worse than the base pattern where part of it scores
-        # better (the sheath dress 12 -> 14 at 1.5 cm)
-        for alpha in INIT_STEPS:
-            q_alpha = q_base + alpha * (q_try - q_base)
-            problem.reset_state(x_transfer)
-            f_alpha = problem.evaluate(q_alpha, exact=True, need_grad=False, max_iterations=settle).objective
-            if f_alpha < f_init:
-                q_init, x_init, f_init, terms_init, init_used = q_alpha, problem.x.clone(), f_alpha, \
-                    problem.term_values(), True
-                init_step = alpha
-            if init_step == 1.0:
-                break
+        problem.reset_state(x_transfer)
+        ev = problem.evaluate(q_try, exact=True, need_grad=False, max_iterations=settle)
+        if ev.objective < f_base:
+            q_init, x_init, f_init, terms_init, init_used = q_try, problem.x.clone(), ev.objective, \
+                problem.term_values(), True
     timings["initialization_seconds"] = time.perf_counter() - t1
     pattern = pattern_or_mesh if isinstance(pattern_or_mesh, SewingPattern) else None
     return AdjustSetup(settings, pattern, mesh_base, dict(base.metrics), x_transfer, param, objective, model,
                        exact, q_base, x_before, f_base, terms_base, q_init, x_init, f_init, terms_init,
-                       init_used, timings, support_level_shift_m=support_shift, lines=lines,
-                       initialization_step=init_step)
+                       init_used, timings, support_level_shift_m=support_shift, lines=lines)
 
 
 def optimize(
@@ -696,7 +677,6 @@ def optimize(
         "objective_initial": f_init,
         "objective_final": run.objective,
         "initialization_used": setup.initialization_used,
-        "initialization_step": setup.initialization_step,
         "initialization_ratio": f_init / f_base if f_base > 0 else math.nan,
         "reduction_percent": 100.0 * (1.0 - run.objective / f_init) if f_init > 0 else 0.0,
         "reduction_vs_base_percent": 100.0 * (1.0 - run.objective / f_base) if f_base > 0 else 0.0,
