@@ -21,7 +21,9 @@ For ``--bodies`` held-out anny adults (sampled with seed ``--seed + 1000``, the 
 Reference per body: the same pattern meshed finer (``--ref-edge``) draped with a finer SDF (``--ref-voxel``)
 to a tolerance ten times tighter than the default (``atol_weight`` 1e-4), placed by the same rule as every
 drape here (:func:`torchgarment.datadriven.basis.drape_on_body`). References and the clothing basis are cached
-on disk.
+on disk. Every drape (reference, simulator, clothing basis, refine, retarget source) holds the garment's
+support at the body's waist, as ``torchgarment drape`` does (:class:`~torchgarment.sim.support.SupportLoop`);
+``--no-support`` lets the garment hang by its tension, as the study did before.
 
 Metrics per method and body (the garments have different meshes, so distances are **point-to-surface**: from
 every vertex of the method's garment to the welded reference surface, ``igl.point_mesh_squared_distance``):
@@ -107,6 +109,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--log-dir", default="logs/accuracy_vs_time",
                     help="TensorBoard root (run = a time stamp)")
     ap.add_argument("--cache", default=None, help="cache folder (default $TORCHGARMENT_CACHE/clothing_basis)")
+    ap.add_argument("--no-support", action="store_true",
+                    help="drapes without the garment's support (it hangs by its tension)")
     args = ap.parse_args(argv)
     if args.quick:
         args.bodies, args.train, args.kmax = min(args.bodies, 1), min(args.train, 12), min(args.kmax, 1)
@@ -157,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
     from torchgarment.pattern.meshing import mesh_pattern
     from torchgarment.sdf import BodySDF, SDFSettings
     from torchgarment.sim.drape import DrapeSettings
+    from torchgarment.sim.support import SupportLoop
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -176,8 +181,14 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
     mean_frame = BodyFrame.of(pca.mean, pca.faces)
     mesh = mesh_pattern(pattern, args.edge)
     ref_mesh = mesh_pattern(pattern, args.ref_edge)
+    held_up = not args.no_support
+
+    def support(gm: object) -> SupportLoop | None:
+        """The pattern's support on the mesh ``gm`` (None with --no-support)."""
+        return SupportLoop.of(pattern, gm) if held_up else None
+
     ref_settings = DrapeSettings(edge_length=args.ref_edge, voxel_size=args.ref_voxel, atol_weight=1e-4,
-                                 max_iterations=1500)
+                                 max_iterations=1500, support=held_up)
     print(f"{args.garment}: methods {mesh.num_vertices} vertices (edge {args.edge} m, voxel {args.voxel} m), "
           f"reference {ref_mesh.num_vertices} vertices (edge {args.ref_edge} m, voxel {args.ref_voxel} m, "
           f"atol_weight 1e-4); {args.train} training / {args.bodies} held-out bodies", flush=True)
@@ -190,8 +201,9 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
         girths = {k: float(g) for k, g in section_girths(v, held.faces, planes).items()}
         cases.append(BodyCase(i, v, held.faces.long(), BodyFrame.of(v, held.faces), planes, girths,
                               dict(held.params[i])))
+    ref_key = [args.ref_voxel, 1e-4, 1500] + (["support"] if held_up else [])
     tag = hashlib.sha256(held.vertices.double().numpy().tobytes() + mesh_hash(ref_mesh).encode()
-                         + json.dumps([args.ref_voxel, 1e-4, 1500]).encode()).hexdigest()[:20]
+                         + json.dumps(ref_key).encode()).hexdigest()[:20]
     ref_dir = cache / f"accuracy-reference-{tag}"
     ref_rows = []
     for case in tqdm(cases, desc="reference drapes"):
@@ -200,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
             e = torch.load(path, map_location="cpu", weights_only=True)
         else:
             t = time.perf_counter()
-            r = drape_on_body(ref_mesh, case.vertices, case.faces, mean_frame, ref_settings, frame=case.frame)
+            r = drape_on_body(ref_mesh, case.vertices, case.faces, mean_frame, ref_settings, frame=case.frame,
+                              support=support(ref_mesh))
             e = {"x": r.x.detach().double(), "metrics_json": json.dumps(
                 {"ok": r.ok, "converged": r.converged, "residual": r.metrics["residual"],
                  "seconds": time.perf_counter() - t})}
@@ -233,13 +246,14 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
         for edge, atol, iters in sweeps["sim"]:
             gm = mesh if edge == args.edge else mesh_pattern(pattern, edge)
             st = DrapeSettings(edge_length=edge, voxel_size=args.voxel, atol_weight=atol,
-                               max_iterations=iters)
+                               max_iterations=iters, support=held_up)
             name = f"sim e={edge * 100:.3g}cm tol={atol:g}"
             for case in tqdm(cases, desc=name):
                 # SDF build not timed
                 BodySDF.cached(case.vertices, case.faces, SDFSettings(voxel_size=args.voxel))
                 t = time.perf_counter()
-                r = drape_on_body(gm, case.vertices, case.faces, mean_frame, st, frame=case.frame)
+                r = drape_on_body(gm, case.vertices, case.faces, mean_frame, st, frame=case.frame,
+                                  support=support(gm))
                 sec = time.perf_counter() - t
                 wv, wf = welded_surface(r.x, gm)
                 record("sim", name, case, sec, 0.0, r.x, wv, wf,
@@ -249,8 +263,9 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
     if "pca" not in args.skip:
         try:
             t = time.perf_counter()
-            basis = build_basis(pca, mesh, BasisSettings(k=kmax, drape=DrapeSettings(
-                edge_length=args.edge, voxel_size=args.voxel)), name=args.garment, cache_dir=cache)
+            basis = build_basis(pca, pattern, BasisSettings(k=kmax, drape=DrapeSettings(
+                edge_length=args.edge, voxel_size=args.voxel, support=held_up)), name=args.garment,
+                cache_dir=cache)
             t_basis = time.perf_counter() - t
             offline = sum(float(mm.get("seconds", 0.0)) for mm in basis.metrics.values())
             print(f"clothing basis: {2 * kmax + 1} drapes, {offline:.0f} s of drapes ({t_basis:.0f} s this "
@@ -282,13 +297,14 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
                     if frame != "body":
                         continue
                     for n in (25, 100):  # warm-started refine: the prediction settled for n iterations
-                        dset = DrapeSettings(edge_length=args.edge, voxel_size=args.voxel)
+                        dset = DrapeSettings(edge_length=args.edge, voxel_size=args.voxel, support=held_up)
                         for case in cases:
                             body = Body(vertices=case.vertices.double(), faces=case.faces.long())
                             sdf = BodySDF.cached(body.vertices, body.faces,
                                                  SDFSettings(voxel_size=args.voxel))
                             t = time.perf_counter()
-                            r = refine(mesh, xs[case.index], body, dset, iterations=n, sdf=sdf)
+                            r = refine(mesh, xs[case.index], body, dset, iterations=n, sdf=sdf,
+                                       support=basis.support)
                             sec_r = time.perf_counter() - t
                             wv, wf = welded_surface(r.x, mesh)
                             record("pca", f"pca{tag} k={k}+refine {n}", case, sec + sec_r, offline, r.x, wv,
@@ -320,7 +336,8 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
             t = time.perf_counter()
             src_frame = BodyFrame.of(source.vertices, source.faces)
             r0 = drape_on_body(mesh, source.vertices, source.faces, mean_frame,
-                               DrapeSettings(edge_length=args.edge, voxel_size=args.voxel), frame=src_frame)
+                               DrapeSettings(edge_length=args.edge, voxel_size=args.voxel, support=held_up),
+                               frame=src_frame, support=support(mesh))
             offline = time.perf_counter() - t
             gv, gf = welded_surface(r0.x, mesh)
             print(f"retarget source drape on the mean-phenotype body: {offline:.0f} s, "
