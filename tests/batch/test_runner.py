@@ -237,3 +237,29 @@ def test_batch_joins_a_running_ray_cluster_by_its_address(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "cannot join the Ray cluster" in bad.stderr.splitlines()[-1]
     assert not (tmp_path / "bad").exists()
+
+
+def test_the_embedded_batch_ignores_a_cluster_running_on_the_machine(tmp_path):
+    """Without --address the batch starts its own Ray even while a cluster runs here (a plain `ray.init()`
+    would join it and refuse the CPU count)."""
+    import shutil as _shutil
+
+    manifest = _manifest(tmp_path, {"jobs": [{"method": "drape", "garment": "straight_skirt", "size": "6",
+                                              "settings": {"edge_length": EDGE}}]})
+    ray_cli = _shutil.which("ray") or str(Path(sys.executable).with_name("ray"))
+    head = subprocess.Popen([ray_cli, "start", "--head", f"--port={_free_port()}", "--num-cpus=1",
+                             "--include-dashboard=false", "--disable-usage-stats", "--block"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 90
+        for line in head.stdout:
+            if "Ray runtime started" in line or time.monotonic() > deadline:
+                break
+        proc = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
+                               str(tmp_path / "out"), "--no-progress", "--no-sheet"],
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert "1 jobs: 1 ok, 0 failed" in proc.stdout
+    finally:
+        head.terminate()
+        head.wait(timeout=60)

@@ -284,7 +284,9 @@ def _start_ray(settings: BatchSettings) -> int:
         return settings.workers or max(1, cpus // settings.threads)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     workers = settings.workers or max(1, cores // settings.threads)
-    ray.init(num_cpus=workers * settings.threads, include_dashboard=False, **common)
+    # address="local": a new embedded instance even when a cluster runs on this machine (a plain ray.init()
+    # joins the cluster named in /tmp/ray/ray_current_cluster or RAY_ADDRESS, and then refuses num_cpus)
+    ray.init(address="local", num_cpus=workers * settings.threads, include_dashboard=False, **common)
     return workers
 
 
