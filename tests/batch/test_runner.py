@@ -4,14 +4,17 @@ interrupted batch runs only the missing jobs."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -205,17 +208,13 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_batch_joins_a_running_ray_cluster_by_its_address(tmp_path):
-    """`--address` joins a cluster started with `ray start --head` (here on this machine, on a free local
-    port; the head is stopped by ending its `--block` process, which stops only what it started); a wrong
-    address is refused in one line and leaves no output folder."""
-    import shutil as _shutil
-
-    manifest = _manifest(tmp_path, {"cross": [{"method": "drape", "garments": ["straight_skirt"],
-                                               "sizes": ["6", "12"], "settings": {"edge_length": EDGE}}]})
-    ray_cli = _shutil.which("ray") or str(Path(sys.executable).with_name("ray"))
+@contextlib.contextmanager
+def _ray_head(cpus: int) -> Iterator[int]:
+    """A Ray cluster head on a free local port for the block (`ray start --head --block`; ending that process
+    stops only what it started, unlike `ray stop`); yields the port."""
+    ray_cli = shutil.which("ray") or str(Path(sys.executable).with_name("ray"))
     port = _free_port()
-    head = subprocess.Popen([ray_cli, "start", "--head", f"--port={port}", "--num-cpus=2",
+    head = subprocess.Popen([ray_cli, "start", "--head", f"--port={port}", f"--num-cpus={cpus}",
                              "--include-dashboard=false", "--disable-usage-stats", "--block"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -223,15 +222,24 @@ def test_batch_joins_a_running_ray_cluster_by_its_address(tmp_path):
         for line in head.stdout:
             if "Ray runtime started" in line or time.monotonic() > deadline:
                 break
-        out = tmp_path / "out"
-        proc = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
-                               str(out), "--address", f"127.0.0.1:{port}", "--no-progress", "--no-sheet"],
-                              capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        assert {r["status"] for r in _summary(out)} == {"ok"} and len(_summary(out)) == 2
+        yield port
     finally:
         head.terminate()
         head.wait(timeout=60)
+
+
+def test_batch_joins_a_running_ray_cluster_by_its_address(tmp_path):
+    """`--address` joins a cluster started with `ray start --head` (here on this machine, on a free local
+    port); a wrong address is refused in one line and leaves no output folder."""
+    manifest = _manifest(tmp_path, {"cross": [{"method": "drape", "garments": ["straight_skirt"],
+                                               "sizes": ["6", "12"], "settings": {"edge_length": EDGE}}]})
+    out = tmp_path / "out"
+    with _ray_head(cpus=2) as port:
+        proc = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
+                               str(out), "--address", f"127.0.0.1:{port}", "--no-progress", "--no-sheet"],
+                              capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert {r["status"] for r in _summary(out)} == {"ok"} and len(_summary(out)) == 2
     bad = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
                           str(tmp_path / "bad"), "--address", f"127.0.0.1:{_free_port()}", "--no-progress"],
                          capture_output=True, text=True, timeout=120)
@@ -242,24 +250,11 @@ def test_batch_joins_a_running_ray_cluster_by_its_address(tmp_path):
 def test_the_embedded_batch_ignores_a_cluster_running_on_the_machine(tmp_path):
     """Without --address the batch starts its own Ray even while a cluster runs here (a plain `ray.init()`
     would join it and refuse the CPU count)."""
-    import shutil as _shutil
-
     manifest = _manifest(tmp_path, {"jobs": [{"method": "drape", "garment": "straight_skirt", "size": "6",
                                               "settings": {"edge_length": EDGE}}]})
-    ray_cli = _shutil.which("ray") or str(Path(sys.executable).with_name("ray"))
-    head = subprocess.Popen([ray_cli, "start", "--head", f"--port={_free_port()}", "--num-cpus=1",
-                             "--include-dashboard=false", "--disable-usage-stats", "--block"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        deadline = time.monotonic() + 90
-        for line in head.stdout:
-            if "Ray runtime started" in line or time.monotonic() > deadline:
-                break
+    with _ray_head(cpus=1):
         proc = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
                                str(tmp_path / "out"), "--no-progress", "--no-sheet"],
                               capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        assert "1 jobs: 1 ok, 0 failed" in proc.stdout
-    finally:
-        head.terminate()
-        head.wait(timeout=60)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "1 jobs: 1 ok, 0 failed" in proc.stdout
