@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
 
 from torchgarment.errors import TorchGarmentError, UnusableResultError
+from torchgarment.io.jsonfile import write_json
 
 if TYPE_CHECKING:
     from torchgarment.body import Body
@@ -29,14 +30,6 @@ EXIT_INTERRUPTED = 130
 
 
 # --------------------------------------------------------------------------------------------- helpers
-def _write_json(path: Path, data: dict) -> None:
-    from torchgarment.io.atomic import atomic_open
-
-    with atomic_open(path) as f:
-        json.dump(data, f, indent=2, sort_keys=False)
-        f.write("\n")
-
-
 def _read_json_object(path: str) -> dict:
     from torchgarment.errors import InputError
     from torchgarment.io.jsonfile import read_json
@@ -67,7 +60,7 @@ def _write_body_outputs(body: Body, stage: Path, title: str) -> dict:
     report = {"units": "metres", "measured": measured, "requested": body.params.get("requested", {})}
     if "reach_errors" in body.params:
         report["fit_errors_mm"] = body.params["reach_errors"]
-    _write_json(stage / "measurements.json", report)
+    write_json(stage / "measurements.json", report)
     render_views([_body_layer(body)], stage / "body.png", title=title)
     return measured
 
@@ -167,7 +160,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
     vertices, faces = load_mesh(args.mesh)
     check_human_body(vertices, faces, str(args.mesh))
     measured = measure_body(vertices, faces).to_dict()
-    _write_json(Path(args.out), {"units": "metres", "mesh": str(args.mesh), "measured": measured})
+    write_json(Path(args.out), {"units": "metres", "mesh": str(args.mesh), "measured": measured})
     print(", ".join(f"{k} {v * 100:.1f} cm" for k, v in measured.items()))
     return 0
 
@@ -218,7 +211,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                                          "reduction_percent", "seconds") if k in metrics}
             print(f"adjust: objective {metrics['objective_initial']:.4g} -> {metrics['objective_final']:.4g} "
                   f"({metrics['reduction_percent']:.1f} % reduction) in {metrics['seconds']:.1f} s")
-        _write_json(stage / "summary.json", summary)
+        write_json(stage / "summary.json", summary)
     print(f"demo outputs in {args.out}")
     return 0
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import sys
 from pathlib import Path
@@ -217,7 +216,7 @@ def _json_safe(v: Any) -> Any:
 
 def write_outputs(result: AdjustResult, stage: Path, base_body: Body, target_body: Body, title: str) -> None:
     """Write every output file of ``torchgarment adjust`` for an :class:`AdjustResult` into ``stage``."""
-    from torchgarment.io.atomic import atomic_open
+    from torchgarment.io.jsonfile import write_json
     from torchgarment.io.mesh import save_obj
     from torchgarment.render import MeshLayer, render_views
     from torchgarment.sim.drape import vertex_stretch_ratio
@@ -247,9 +246,7 @@ def write_outputs(result: AdjustResult, stage: Path, base_body: Body, target_bod
         layer = MeshLayer(vertices=x, faces=result.mesh_base.faces, scalars=scal, cmap="coolwarm", vmin=-lim,
                           vmax=lim, label="stretch ratio - base")
         render_views([body, layer], stage / fname, title=f"{title}: {what} on the target body")
-    with atomic_open(stage / "metrics.json") as f:
-        json.dump(_json_safe(result.metrics), f, indent=2)
-        f.write("\n")
+    write_json(stage / "metrics.json", _json_safe(result.metrics))
 
 
 def _refuse_unusable(reason: str | None, what: str, allow: bool) -> None:

@@ -35,6 +35,7 @@ import torch
 from torchgarment.adjust.fit import fit_rows, measure_fit
 from torchgarment.adjust.pipeline import AdjustSettings, base_drape_settings, optimize, prepare
 from torchgarment.errors import InputError
+from torchgarment.io.jsonfile import write_json
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -141,7 +142,7 @@ def write_pattern_files(result: AdjustResult, stage: Path, base_body: Body, targ
     save_pattern(stage / "pattern.json", result.pattern)
     save_svg(stage / "pattern.svg", result.pattern)
     save_dxf(stage / "pattern.dxf", result.pattern)
-    _write_json(stage / "metrics.json", result.metrics)
+    write_json(stage / "metrics.json", _json_safe(result.metrics))
 
 
 def _json_safe(v: Any) -> Any:
@@ -154,14 +155,6 @@ def _json_safe(v: Any) -> Any:
     if isinstance(v, (bool, int, float, str)) or v is None:
         return v
     return str(v)
-
-
-def _write_json(path: Path, data: dict) -> None:
-    from torchgarment.io.atomic import atomic_open
-
-    with atomic_open(path) as f:
-        json.dump(_json_safe(data), f, indent=2)
-        f.write("\n")
 
 
 def _num(v: Any) -> float:
@@ -352,10 +345,9 @@ def grade(
 
                     with staged_output(out / k) as stage:
                         writer(result, stage, base_body, targets[k], f"{pattern.name}: {base_size} -> {k}")
-                        _write_json(stage / "fit.json", {"size": k, "base_size": base_size,
-                                                         "base": _fits_dict(fit_base),
-                                                         "target": _fits_dict(fit_target), "rows": rows,
-                                                         "seconds": seconds})
+                        write_json(stage / "fit.json", _json_safe({
+                            "size": k, "base_size": base_size, "base": _fits_dict(fit_base),
+                            "target": _fits_dict(fit_target), "rows": rows, "seconds": seconds}))
                 base_fit = base_fit or _fits_dict(fit_base)
                 outcomes[k] = SizeOutcome(k, "done", result.pattern, rows, dict(result.metrics), seconds)
             except Exception as e:  # noqa: BLE001 - a failing size is reported and the others go on
@@ -410,7 +402,7 @@ def _write_run_outputs(result: GradeResult, out: Path) -> None:
         plot_grade_nest(patterns, stage / "grade_nest.png", base=result.base_size,
                         title=f"{result.base_pattern.name}: grade nest (base {result.base_size})")
         _write_csv(stage / "grade.csv", result.rows)
-        _write_json(stage / "metrics.json", result.metrics)
+        write_json(stage / "metrics.json", _json_safe(result.metrics))
 
 
 def _size_order(names: list[str], base: str) -> list[str]:

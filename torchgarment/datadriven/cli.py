@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from torchgarment.errors import InputError, TorchGarmentError
+from torchgarment.io.jsonfile import write_json
 from torchgarment.options import env_limit
 
 if TYPE_CHECKING:
@@ -106,14 +107,6 @@ def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentP
                         "model's drape settings; builds the body's SDF), before any push-out")
     f.set_defaults(func=cmd_pca_fit)
     return p
-
-
-def _write_json(path: Path, data: dict) -> None:
-    from torchgarment.io.atomic import atomic_open
-
-    with atomic_open(path) as fh:
-        json.dump(data, fh, indent=2)
-        fh.write("\n")
 
 
 DEFAULT_MAX_BODIES = 20_000
@@ -212,7 +205,7 @@ def cmd_pca_build(args: argparse.Namespace) -> int:
     with staged_output(args.out) as stage:
         pca.save(stage / "pca.pt")
         basis.save(stage / "basis.pt")
-        _write_json(stage / "model.json", model)
+        write_json(stage / "model.json", model)
     bad = [n for n, m in basis.metrics.items() if not m.get("ok", False)]
     print(f"pca build {name}: {len(dataset)} bodies, k={basis.k} ({100 * model['explained_variance']:.1f} % "
           f"of the variance), {basis.num_vertices} garment vertices, {len(basis.metrics)} drapes"
@@ -382,7 +375,7 @@ def _finish_fit(args: argparse.Namespace, job: tuple[str, str | Path], body: obj
     with staged_output(out) as stage:
         welded, _ = basis.garment.with_positions(x.detach()).welded()
         save_obj(stage / "garment.obj", welded.x, welded.faces)
-        _write_json(stage / "metrics.json", metrics)
+        write_json(stage / "metrics.json", metrics)
     return (f"pca fit {name}: k={fitter.k}, weights {seconds['weights'] * 1e3:.2f} ms, "
             f"fit {seconds['fit'] * 1e3:.2f} ms, {pen['inside_vertices']} vertices inside the body"
             + (f" ({pen['inside_after_push_out']} after push-out)" if args.push_out else "") + f" -> {out}")

@@ -1,4 +1,5 @@
-"""Reading JSON input files with limits: a size cap and a clear refusal of absurd nesting (issue 17).
+"""JSON files: reading inputs with limits (:func:`read_json`: a size cap and a clear refusal of absurd
+nesting, issue 17) and writing outputs atomically (:func:`write_json`).
 
 Python's JSON parser recurses once per nesting level, so a file of 100,000 ``[`` raised a ``RecursionError``
 traceback; and a multi-gigabyte file was read whole. :func:`read_json` refuses both with one line.
@@ -54,4 +55,17 @@ def read_json(path: str | Path, what: str = "JSON file", error: type[InputError]
         raise error(f"{path}: JSON nested too deeply to be a {what}") from None
 
 
-__all__ = ["MAX_JSON_BYTES", "read_json"]
+def write_json(path: str | Path, data: Any) -> None:
+    """Write ``data`` as indented JSON with a final newline, atomically (a reader never sees half a file).
+
+    Args:
+        path: the file (its folder is created). data: JSON-serialisable plain data.
+    """
+    from torchgarment.io.atomic import atomic_open
+
+    with atomic_open(path) as f:
+        json.dump(data, f, indent=2)
+        f.write("\n")
+
+
+__all__ = ["MAX_JSON_BYTES", "read_json", "write_json"]

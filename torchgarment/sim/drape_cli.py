@@ -8,7 +8,6 @@ and ``metrics.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -156,11 +155,9 @@ def cmd_drape(args: argparse.Namespace) -> int:
                   MeshLayer(vertices=result.x, faces=result.mesh.faces, scalars=ratio, cmap="coolwarm",
                             vmin=0.9, vmax=1.1, label="stretch ratio")]
         render_views(layers, stage / "drape.png", title=f"{pattern.name} on {body_name}")
-        from torchgarment.io.atomic import atomic_open
+        from torchgarment.io.jsonfile import write_json
 
-        with atomic_open(stage / "metrics.json") as f:
-            json.dump(metrics, f, indent=2)
-            f.write("\n")
+        write_json(stage / "metrics.json", metrics)
     m = result.metrics
     print(f"drape {pattern.name} on {body_name}: {m['vertices']} vertices, {m['iterations']} iterations, "
           f"{metrics['seconds']:.1f} s, residual {m['residual']:.3g} N, min sdf {m['min_sdf_mm']:.2f} mm, "
