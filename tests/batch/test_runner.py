@@ -258,3 +258,21 @@ def test_the_embedded_batch_ignores_a_cluster_running_on_the_machine(tmp_path):
                               capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "1 jobs: 1 ok, 0 failed" in proc.stdout
+
+
+def test_the_shared_preparation_ships_the_body_and_its_sdf_to_another_machines_cache(tmp_path, monkeypatch):
+    """`prepare_body` returns the body's and the SDF's disk-cache entries; installed into an empty cache (a
+    cluster node's), the job there loads both from it instead of fitting and building them again."""
+    from torchgarment.batch import prepare_body
+    from torchgarment.batch.worker import install_cache_files
+    from torchgarment.body import Body
+    from torchgarment.sdf import SDFSettings, sdf_cache_path
+
+    shipped = prepare_body("6", 0.01)["files"]
+    assert sorted(name.split("/")[0] for name in shipped) == ["bodies", "sdf"]
+    monkeypatch.setenv("TORCHGARMENT_CACHE", str(tmp_path / "node"))
+    assert install_cache_files(shipped) == 2 and install_cache_files(shipped) == 0  # the second: all there
+    body = Body.from_size("6")
+    assert body.params["cache_hit"]
+    assert sdf_cache_path(body.vertices, body.faces, SDFSettings(voxel_size=0.01)).is_file()
+    assert prepare_body(str(tmp_path / "missing.obj"), 0.01) == {"files": {}}  # the job reports it itself

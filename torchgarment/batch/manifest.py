@@ -35,7 +35,7 @@ import io
 import itertools
 import json
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +79,7 @@ METHODS: dict[str, Method] = {
                        path_settings=frozenset({"source_skeleton", "target_skeleton", "source_avatar",
                                                 "skin_weights", "no_fit", "curves"}),
                        render=("retarget.png",)),
-    "pca_fit": Method(("pca", "fit"), {"model": "--model", "body": "--body"}, render=("fit.png",)),
+    "pca_fit": Method(("pca", "fit"), {"model": "--model", "body": "--body"}),  # `pca fit` writes no picture
 }
 """The batch methods: ``drape``, ``adjust``, ``grade``, ``retarget`` and ``pca_fit`` (``torchgarment pca
 fit``)."""
@@ -121,7 +121,6 @@ class Job:
     bodies: tuple[tuple[str, float | None], ...] = ()
     build: tuple[str, ...] | None = None
     entry: str = ""
-    render: tuple[str, ...] = field(default=(), compare=False)
 
     @property
     def build_id(self) -> str | None:
@@ -380,23 +379,20 @@ def _make_job(entry: dict, base_dir: Path, parser: argparse.ArgumentParser, wher
     name = entry.get("name")
     if name is not None and not isinstance(name, str):
         raise ManifestError("'name' must be a string")
-    slug = _slug(name or "", method_name, garment, body) if name is None else _slug(name)
+    slug = _slug(method_name, garment, body) if name is None else _slug(name)
     return Job(id=f"{slug}-{ident}", method=method_name, argv=tuple(argv), garment=garment, body=body,
-               bodies=_job_bodies(method_name, args), build=build, entry=where, render=method.render)
+               bodies=_job_bodies(method_name, args), build=build, entry=where)
 
 
 def _body_label(method: str, inputs: dict, args: argparse.Namespace, base_dir: Path) -> str:
-    def _stem(value: str) -> str:
-        return _label(value, base_dir)
-
     if method == "grade":
-        base = inputs.get("size") or _stem(inputs.get("body", ""))
-        targets = args.sizes or [_stem(t) for t in args.target_body or []]
+        base = inputs.get("size") or _label(inputs.get("body", ""), base_dir)
+        targets = args.sizes or [_label(t, base_dir) for t in args.target_body or []]
         return f"{base}->{'+'.join(targets)}"
     if method == "adjust":
-        base = args.base_size or _stem(args.base_body or "")
-        return f"{base}->{inputs.get('size') or _stem(inputs.get('body', ''))}"
-    return inputs.get("size") if "body" not in inputs else _stem(inputs["body"])
+        base = args.base_size or _label(args.base_body or "", base_dir)
+        return f"{base}->{inputs.get('size') or _label(inputs.get('body', ''), base_dir)}"
+    return inputs.get("size") if "body" not in inputs else _label(inputs["body"], base_dir)
 
 
 def _job_bodies(method: str, args: argparse.Namespace) -> tuple[tuple[str, float | None], ...]:

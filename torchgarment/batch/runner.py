@@ -34,9 +34,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from torchgarment.batch.manifest import Job
-from torchgarment.batch.worker import prepare_body, run_command, run_pca_fits
+from torchgarment.batch.manifest import METHODS, Job
+from torchgarment.batch.worker import folder_files, prepare_body, run_command, run_pca_fits
 from torchgarment.errors import InputError
+from torchgarment.io.jsonfile import write_json
 
 __all__ = ["SHEET_TILES", "SUMMARY_COLUMNS", "BatchReport", "BatchSettings", "ray_environment", "run_batch"]
 
@@ -138,14 +139,6 @@ def _remove_stale_stages(out: Path) -> None:
             shutil.rmtree(stale, ignore_errors=True)
         for stale in (out / sub).glob(".*.previous-*"):
             shutil.rmtree(stale, ignore_errors=True)
-
-
-def _write_json(path: Path, data: dict) -> None:
-    from torchgarment.io.atomic import atomic_open
-
-    with atomic_open(path) as f:
-        json.dump(data, f, indent=2)
-        f.write("\n")
 
 
 def _read_record(path: Path) -> dict | None:
@@ -377,8 +370,7 @@ class _Run:
 
             folder = self.out / "shared" / "pca" / job.build_id
             if (folder / "model.json").is_file():  # built by an earlier run into this folder
-                files = {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
-                self.models[job.build_id] = ray.put({"code": 0, "files": files, "stderr": ""})
+                self.models[job.build_id] = ray.put({"code": 0, "files": folder_files(folder), "stderr": ""})
             else:
                 build = job_task.options(num_cpus=self.settings.threads, max_retries=3)
                 self.models[job.build_id] = build.remote(list(job.build), self.settings.threads, None)
@@ -473,7 +465,7 @@ class _Run:
                   "command": ["torchgarment", *job.argv], "host": result.get("host", ""),
                   "metrics": _scalar_metrics(result["files"]) if status == "ok" else {},
                   "log_tail": "" if status == "ok" else log.decode(errors="replace")[-4000:]}
-        _write_json(self.out / "records" / f"{job.id}.json", record)
+        write_json(self.out / "records" / f"{job.id}.json", record)
         self.records[job.id] = record
         return status
 
@@ -507,7 +499,7 @@ class _Run:
                              retried=self.retried, seconds=seconds, workers=workers, rows=table,
                              summary=summary, sheets=sheets)
         settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self.settings).items()}
-        _write_json(self.out / "batch.json", {
+        write_json(self.out / "batch.json", {
             "jobs": report.jobs, "ran": report.ran, "skipped": report.skipped, "ok": ok, "failed": failed,
             "not_run": report.jobs - ok - failed, "retried": report.retried, "seconds": round(seconds, 3),
             "workers": workers, "settings": settings})
@@ -516,13 +508,14 @@ class _Run:
     def _sheets(self, rows: list[dict]) -> list[Path]:
         from torchgarment.render import contact_sheet
 
-        by_id = {j.id: j for j in self.jobs}
+        method_of = {j.id: j.method for j in self.jobs}
         tiles = []
         for rec in rows:
             folder = self.out / "jobs" / rec["job"]
             picture = None
             if rec["status"] == "ok":
-                names = [*by_id[rec["job"]].render, *sorted(p.name for p in folder.glob("*.png"))]
+                preferred = METHODS[method_of[rec["job"]]].render
+                names = [*preferred, *sorted(p.name for p in folder.glob("*.png"))]
                 picture = next((folder / n for n in names if (folder / n).is_file()), None)
             label = f"{rec['method']} {rec['garment']} / {rec['body']}: {rec['status']}"
             tiles.append((picture, label))

@@ -23,7 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
-__all__ = ["LOGS", "MODEL", "install_cache_files", "prepare_body", "run_command", "run_pca_fits"]
+__all__ = ["LOGS", "MODEL", "folder_files", "install_cache_files", "prepare_body", "run_command",
+           "run_pca_fits"]
 
 MODEL = "<model>"
 """Placeholder of a ``pca_fit`` job's ``--model`` folder in its argv: the shared model, unpacked where the job
@@ -32,7 +33,10 @@ runs."""
 LOGS = "<logs>"
 """Placeholder of ``--log-dir`` in a job's argv: the job's own ``logs/`` (TensorBoard) folder."""
 
-_TEMP_PREFIX = "torchgarment-batch-"
+_WORK_NAME = "torchgarment-batch"
+"""A job's private folder is a hidden ``.torchgarment-batch.staging-*`` in the temporary folder: the staging
+naming of :mod:`torchgarment.io.staging`, so that :func:`~torchgarment.io.staging.remove_orphan_stages`
+removes the ones that workers killed mid-job (``kill -9``) left behind."""
 
 
 def prepare_body(spec: str, voxel: float | None) -> dict:
@@ -43,8 +47,8 @@ def prepare_body(spec: str, voxel: float | None) -> dict:
             for no SDF.
 
     Returns:
-        ``{"files": {path relative to the cache root: bytes}, "error": None | str}``. A body the command
-        would refuse gives no files and the error line: the job then fails with the command's own message.
+        ``{"files": {path relative to the cache root: bytes}}``. A body the command would refuse gives no
+        files: the job then fails with the command's own message.
     """
     from torchgarment.body.cache import cache_root, entry_path
     from torchgarment.body.load import load_body_spec
@@ -61,10 +65,10 @@ def prepare_body(spec: str, voxel: float | None) -> dict:
             settings = SDFSettings(voxel_size=voxel)
             cached_sdf(body.vertices, body.faces, settings)
             paths.append(sdf_cache_path(body.vertices, body.faces, settings))
-    except (TorchGarmentError, OSError) as exc:
-        return {"files": {}, "error": str(exc).splitlines()[0]}
+    except (TorchGarmentError, OSError):
+        return {"files": {}}
     root = cache_root()
-    return {"files": {str(p.relative_to(root)): p.read_bytes() for p in paths if p.is_file()}, "error": None}
+    return {"files": {str(p.relative_to(root)): p.read_bytes() for p in paths if p.is_file()}}
 
 
 def install_cache_files(files: dict[str, bytes]) -> int:
@@ -96,19 +100,20 @@ def _unpack(files: dict[str, bytes], folder: Path) -> None:
         path.write_bytes(data)
 
 
-def _collect(folder: Path) -> dict[str, bytes]:
+def folder_files(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder``: relative path -> bytes (empty for a missing folder)."""
     if not folder.is_dir():
         return {}
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-def _remove_old_temporaries(max_age_s: float = 3600.0) -> None:
-    """A worker killed mid-job (``kill -9``) leaves its temporary folder: remove those older than an hour."""
-    now = time.time()
-    for old in Path(tempfile.gettempdir()).glob(f"{_TEMP_PREFIX}*"):
-        with contextlib.suppress(OSError):
-            if now - old.stat().st_mtime > max_age_s:
-                shutil.rmtree(old)
+def _work_folder() -> Path:
+    """A new private folder for one job (see :data:`_WORK_NAME`), after removing the orphaned ones."""
+    from torchgarment.io.staging import remove_orphan_stages
+
+    name = Path(tempfile.gettempdir()) / _WORK_NAME
+    remove_orphan_stages(name)
+    return Path(tempfile.mkdtemp(prefix=f".{_WORK_NAME}.staging-", dir=name.parent))
 
 
 def run_command(argv: list[str], threads: int, cache_files: list[dict[str, bytes]],
@@ -134,8 +139,7 @@ def run_command(argv: list[str], threads: int, cache_files: list[dict[str, bytes
     torch.set_num_threads(max(1, int(threads)))
     for files in cache_files:
         install_cache_files(files)
-    _remove_old_temporaries()
-    tmp = Path(tempfile.mkdtemp(prefix=_TEMP_PREFIX))
+    tmp = _work_folder()
     out, stdout, stderr = tmp / "out", io.StringIO(), io.StringIO()
     argv = [str(out / "logs") if a == LOGS else a for a in argv]
     if MODEL in argv:
@@ -149,7 +153,7 @@ def run_command(argv: list[str], threads: int, cache_files: list[dict[str, bytes
             except SystemExit as exc:  # argparse's usage errors
                 code = exc.code if isinstance(exc.code, int) else 2
         seconds = time.perf_counter() - t0
-        files = _collect(out) if code == 0 else {}
+        files = folder_files(out) if code == 0 else {}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return {"code": int(code or 0), "files": files, "stdout": stdout.getvalue(), "stderr": stderr.getvalue(),
@@ -177,8 +181,7 @@ def run_pca_fits(argvs: list[list[str]], threads: int,
     from torchgarment.errors import TorchGarmentError
 
     torch.set_num_threads(max(1, int(threads)))
-    _remove_old_temporaries()
-    tmp = Path(tempfile.mkdtemp(prefix=_TEMP_PREFIX))
+    tmp = _work_folder()
     try:
         _unpack(model_files or {}, tmp / "model")
         parser = build_parser()
@@ -195,7 +198,7 @@ def run_pca_fits(argvs: list[list[str]], threads: int,
         for outcome, out in zip(outcomes, outs):
             failed = isinstance(outcome, BaseException)
             results.append({"code": exit_code(outcome) if failed else 0,
-                            "files": {} if failed else _collect(out),
+                            "files": {} if failed else folder_files(out),
                             "stdout": "" if failed else outcome + "\n",
                             "stderr": f"torchgarment: error: {outcome}\n" if failed else "",
                             "seconds": share, "host": socket.gethostname(), "pid": os.getpid()})

@@ -381,14 +381,14 @@ def drape(
         loop = support
     else:
         loop = SupportLoop.of(pattern_or_mesh, mesh) if settings.support else None
-    support = _support_pins(loop, mesh, body, x, weight, settings)
+    pins = _support_pins(loop, mesh, body, x, weight, settings)
     effects = base | {Effect.GRAVITY}
-    if support is not None:
-        final_mat.pin_stiffness = support[2]
+    if pins is not None:
+        final_mat.pin_stiffness = pins[2]
         effects.add(Effect.PINS)
     scene = Scene(mesh, body_sdf=sdf, effects=effects, material=final_mat,
-                  pin_indices=None if support is None else support[0],
-                  pin_targets=None if support is None else support[1])
+                  pin_indices=None if pins is None else pins[0],
+                  pin_targets=None if pins is None else pins[1])
     settle_settings = SolveSettings(rtol=settings.rtol, atol=settings.atol_weight * weight,
                                     max_iterations=settings.max_iterations,
                                     max_displacement=settings.max_displacement,
@@ -432,14 +432,14 @@ def drape(
     }
     metrics["ok"] = bool(info.converged and min_phi >= 0 and gap <= settings.max_seam_gap)
     metrics["support"] = None
-    if support is not None:
+    if pins is not None:
         metrics["support"] = loop.name
-        metrics.update(support_metrics(x, support[0], support[1], support[2]))
-        metrics["support_target"] = support[3]
+        metrics.update(support_metrics(x, pins[0], pins[1], pins[2]))
+        metrics["support_target"] = pins[3]
     return DrapeResult(x=x, mesh=mesh.with_positions(x), info=info, stages=stages, metrics=metrics,
-                       model=model, support_indices=None if support is None else support[0],
-                       support_targets=None if support is None else support[1],
-                       support_stiffness=None if support is None else support[2])
+                       model=model, support_indices=None if pins is None else pins[0],
+                       support_targets=None if pins is None else pins[1],
+                       support_stiffness=None if pins is None else pins[2])
 
 
 def _support_pins(loop: SupportLoop | None, mesh: GarmentMesh, body: Body | BodySDF | None,
