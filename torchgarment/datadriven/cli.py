@@ -311,8 +311,8 @@ def fit_bodies(args: argparse.Namespace, jobs: list[tuple[str, str | Path]]) -> 
     t_w = time.perf_counter()
     x = fitter.fit(w, bodies=stack)[name]
     t_fit = time.perf_counter()
-    share = 1.0 / len(ok)  # the batched steps' time, per body
-    seconds = {"load": t_load - t0, "weights": (t_w - t_load) * share, "fit": (t_fit - t_w) * share}
+    share = 1.0 / len(ok)  # the shared steps' time (model and bodies read, batched weights and fit), per body
+    seconds = {"load": (t_load - t0) * share, "weights": (t_w - t_load) * share, "fit": (t_fit - t_w) * share}
     for row, n in enumerate(ok):
         try:
             outcomes[n] = _finish_fit(args, jobs[n], bodies[n], pca, basis, info, fitter, w[row], x[row],
