@@ -5,7 +5,7 @@ Usage:
     python scripts/bench_adjust.py --json FILE [--vertices 30000] [--iterations 256] [--garment sheath_dress]
         [--base-size 12] [--target-size 20] [--voxel 0.005] [--threads 2] [--inner-iterations 2]
         [--inner-solver newton|gd-chebyshev] [--adjoint direct|iterative] [--adjoint-max-iterations 50]
-        [--reuse-factorization] [--setup FILE]
+        [--reuse-factorization] [--setup FILE] [--device cpu|cuda]
 
 ``--setup FILE`` saves the precomputation (base drape, transfer, initialization: minutes at 30K vertices) on
 the first run and loads it on the next ones, so that optimizer options can be compared on one setup.
@@ -68,6 +68,9 @@ def main() -> None:
     ap.add_argument("--setup", default=None, metavar="FILE",
                     help="load the precomputation from FILE when it exists, else compute it and save it "
                          "there (torch.save of the AdjustSetup; the timed optimization is unaffected)")
+    ap.add_argument("--device", default="cpu",
+                    help="cpu, cuda or cuda:N: where the simulation and the objective run (the sparse "
+                         "factorizations stay on the CPU); a --setup file is read onto this device")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -75,12 +78,16 @@ def main() -> None:
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.io.atomic import atomic_open, atomic_path
+    from torchgarment.options import resolve_device
     from torchgarment.pattern.library import draft
+
+    device = resolve_device(args.device)
 
     pattern = draft(args.garment, chart_row(args.base_size))
     edge, n = edge_length_for(pattern, args.vertices)
     print(f"{args.garment}: edge length {1e3 * edge:.1f} mm -> {n} vertices")
-    base, target = Body.from_size(args.base_size), Body.from_size(args.target_size)
+    base = Body.from_size(args.base_size, device=device)
+    target = Body.from_size(args.target_size, device=device)
     settings = AdjustSettings(edge_length=edge, voxel_size=args.voxel, iterations=args.iterations,
                               inner_iterations=args.inner_iterations, exact_interval=args.exact_interval,
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
@@ -89,13 +96,13 @@ def main() -> None:
                               sparse_backend=args.sparse_backend)
     t0 = time.perf_counter()
     if args.setup and Path(args.setup).is_file():
-        setup = torch.load(args.setup, weights_only=False)
+        setup = torch.load(args.setup, weights_only=False, map_location=device)
         if setup.mesh_base.num_vertices != n or not math.isclose(setup.settings.edge_length, edge):
             raise SystemExit(f"error: {args.setup} holds a {setup.mesh_base.num_vertices}-vertex setup, not "
                              f"this {n}-vertex {args.garment}; pass another --setup file")
         print(f"precomputation loaded from {args.setup}")
     else:
-        setup = prepare(pattern, base, target, settings)
+        setup = prepare(pattern, base, target, settings, device=device)
         if args.setup:
             with atomic_path(args.setup) as tmp:
                 torch.save(setup, tmp)
@@ -112,7 +119,9 @@ def main() -> None:
     out = {
         "garment": args.garment, "vertices": m["vertices"], "boundary_vertices": m["boundary_vertices"],
         "edge_length_mm": 1e3 * edge, "iterations": m["iterations"], "threads": args.threads,
-        "inner_iterations": args.inner_iterations, "exact_interval": args.exact_interval,
+        "inner_iterations": args.inner_iterations, "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
+        "exact_interval": args.exact_interval,
         "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
         "adjoint_iterations": m["adjoint_iterations"],
         "adjoint_max_iterations": args.adjoint_max_iterations,

@@ -4,7 +4,7 @@ Usage:
     python scripts/bench_sim.py [--json FILE] [--sizes 5000 15000 30000 60000] [--garment tshirt]
                                 [--body-size 12] [--voxel-mm 2.5] [--sdf-dtype float32] [--threads 2]
                                 [--warmup 200] [--iterations 60] [--calls 60] [--rounds 6]
-                                [--diagonal-interval 4]
+                                [--diagonal-interval 4] [--device cpu|cuda] [--profile N]
 
 For every target size the library garment ``--garment`` (drafted for chart size ``--body-size``) is meshed at
 the edge length that gives about that many vertices, and a scene with stretch, sew, bend, gravity and the body
@@ -48,6 +48,7 @@ import torch
 from torchgarment.body import Body
 from torchgarment.body.size_chart import chart_row
 from torchgarment.io.atomic import atomic_open
+from torchgarment.options import resolve_device
 from torchgarment.pattern.library import draft
 from torchgarment.pattern.meshing import mesh_pattern
 from torchgarment.sdf import BodySDF, SDFSettings
@@ -74,10 +75,18 @@ def call_times(fn: Callable[[torch.Tensor], object], x: torch.Tensor, calls: int
     ts = []
     for _ in range(calls):
         xc = x.clone()
+        sync(x.device)
         t0 = time.perf_counter()
         fn(xc)
+        sync(x.device)
         ts.append(time.perf_counter() - t0)
     return ts
+
+
+def sync(device: torch.device) -> None:
+    """Wait for the device's queued work (CUDA launches are asynchronous; a no-op on the CPU)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def run_interleaved(tasks: dict, rounds: int) -> dict[str, tuple[float, float]]:
@@ -109,6 +118,7 @@ def iteration_times(model: SimModel, x: torch.Tensor, settings: SolveSettings,
     stamps: list[float] = []
 
     def cb(k: int, xk: torch.Tensor, gn: float, e: float) -> bool:
+        sync(xk.device)
         stamps.append(time.perf_counter())
         return False
 
@@ -120,6 +130,7 @@ def bench_size(target: int, args: argparse.Namespace, pattern: SewingPattern, sd
     """One table row (a dict) for the size ``target``."""
     dtype = torch.float64
     mesh, h = mesh_with_vertices(pattern, target, dtype)
+    mesh = mesh.to(sdf.device)
     settings = SolveSettings(rtol=0.0, atol=0.0)
 
     def build(effects: Iterable[Effect]) -> SimModel:
@@ -245,14 +256,18 @@ def main() -> None:
     ap.add_argument("--diagonal-interval", type=int, default=4,
                     help="also time iterations with the Hessian diagonal recomputed only every this many "
                          "iterations")
+    ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (the mesh, the SDF and the solve)")
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="also print torch.profiler's table of N solver iterations at about 30K vertices")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
 
     body = Body.from_size(args.body_size)
     pattern = draft(args.garment, chart_row(args.body_size))
     sdf_dtype = getattr(torch, args.sdf_dtype)
     sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=args.voxel_mm * 1e-3),
-                         dtype=sdf_dtype)
+                         dtype=sdf_dtype, device=device)
     rows = []
     for target in args.sizes:
         t0 = time.perf_counter()
@@ -266,6 +281,8 @@ def main() -> None:
           f"evaluation (target <= {TARGET_RATIO}x)")
     out = {
         "threads": args.threads,
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
         "garment": args.garment,
         "body_size": args.body_size,
         "voxel_mm": args.voxel_mm,
@@ -282,6 +299,32 @@ def main() -> None:
     if args.json:
         with atomic_open(args.json, "w") as f:
             json.dump(out, f, indent=2)
+    if args.profile > 0:
+        profile_iterations(args, pattern, sdf, r30["vertices"])
+
+
+def profile_iterations(args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF, target: int) -> None:
+    """Print torch.profiler's table (top operators by self time, CPU and CUDA) of ``--profile`` solver
+    iterations at about ``target`` vertices, after the warm-up; where the iteration's time goes."""
+    from torch.profiler import ProfilerActivity, profile
+
+    mesh, _ = mesh_with_vertices(pattern, target, torch.float64)
+    mesh = mesh.to(sdf.device)
+    model = Scene(mesh, body_sdf=sdf, effects=set(EFFECTS)).build()
+    settings = SolveSettings(rtol=0.0, atol=0.0)
+    x = model.project_feasible(mesh.x.detach())
+    x, _ = solve(model, x, settings, solver="gd-chebyshev", max_iterations=max(args.warmup, 1))
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if sdf.device.type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        solve(model, x, settings, solver="gd-chebyshev", max_iterations=args.profile)
+        sync(sdf.device)
+    key = "self_cuda_time_total" if sdf.device.type == "cuda" else "self_cpu_time_total"
+    table = prof.key_averages()
+    print(f"\nprofile of {args.profile} iterations at {mesh.num_vertices} vertices on {sdf.device}, "
+          f"by {key}:")
+    print(table.table(sort_by=key, row_limit=25, max_name_column_width=60))
+    if sdf.device.type == "cuda":
+        print(table.table(sort_by="self_cpu_time_total", row_limit=25, max_name_column_width=60))
 
 
 if __name__ == "__main__":

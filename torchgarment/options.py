@@ -1,5 +1,5 @@
 """String options as enums, resolved from names (the theseus pattern); resource limits read from the
-environment (:func:`env_limit`)."""
+environment (:func:`env_limit`); the compute device of the commands' ``--device`` (:func:`resolve_device`)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,12 @@ import math
 import os
 import re
 from enum import Enum
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from torchgarment.errors import InputError
+
+if TYPE_CHECKING:
+    import torch
 
 _E = TypeVar("_E", bound="OptionEnum")
 
@@ -40,6 +43,35 @@ class OptionEnum(str, Enum):
             known = ", ".join(m.value for m in cls)
             synonyms = "".join(f", {a} (= {v})" for a, v in cls.aliases().items())
             raise InputError(f"unknown {label} {value!r}; expected one of: {known}{synonyms}") from None
+
+
+DEVICE_CHOICES = ("cpu", "cuda")
+"""The values of the commands' ``--device`` option."""
+
+
+def resolve_device(name: object) -> torch.device:
+    """The torch device for a ``--device`` value: ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Raises:
+        InputError: an unknown name, CUDA asked for on a machine without it, or a GPU index it lacks.
+    """
+    import torch
+
+    text = str(name).strip().lower()
+    expected = f"--device {name}: expected one of {', '.join(DEVICE_CHOICES)} (or cuda:N)"
+    try:
+        device = torch.device(text)
+    except RuntimeError:
+        raise InputError(expected) from None
+    if device.type not in DEVICE_CHOICES:
+        raise InputError(expected)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise InputError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
+        count = torch.cuda.device_count()
+        if device.index is not None and device.index >= count:
+            raise InputError(f"--device {name}: this machine has {count} CUDA device(s)")
+    return device
 
 
 def env_limit(name: str, default: float, minimum: float) -> float:

@@ -122,7 +122,7 @@ def test_cli_budget_stop_keeps_a_usable_result_and_says_so(
     assert len(err) == 1 and "iteration budget" in err[0] and f"{m['grad_norm']:.3g}" in err[0], err
 
 
-@pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_skeleton", "garment_in_mm"])
+@pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_skeleton", "garment_in_mm", "gpu"])
 def test_cli_bad_input_one_line(
     files: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
 ) -> None:
@@ -138,6 +138,8 @@ def test_cli_bad_input_one_line(
         args["--target-avatar"] = str(tmp_path / "nope.obj")
     elif case == "bad_weight":
         extra = ["--fit-weight", "-1"]
+    elif case == "gpu":  # ipctk has no GPU path: refused in one line, also on a machine with CUDA
+        extra = ["--device", "cuda"]
     elif case == "garment_in_mm":  # issue 17: its solve ran for minutes at seconds per iteration
         v, f = read_obj(d / "garment.obj")
         save_obj(tmp_path / "garment_mm.obj", torch.as_tensor(1000.0 * v), torch.as_tensor(f))
@@ -162,3 +164,5 @@ def test_cli_bad_input_one_line(
     assert not (tmp_path / "o").exists()
     if case == "garment_in_mm":
         assert "different units" in err and "scale the garment by 0.001" in err, err
+    if case == "gpu":
+        assert "runs on the CPU only" in err and "ipctk" in err, err

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from torchgarment.errors import InputError
+from torchgarment.options import resolve_device
 
 if TYPE_CHECKING:
     from torchgarment.adjust.pipeline import AdjustResult, AdjustSettings
@@ -136,7 +137,9 @@ def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     tgt.add_argument("--target-size", metavar="S", help="target body: a chart size")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     add_settings_arguments(p)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device (default cpu)")
+    p.add_argument("--device", default="cpu", metavar="D",
+                   help="compute device: cpu, cuda or cuda:N (default cpu; sparse factorizations and the SDF "
+                        "build stay on the CPU)")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint/adjust.pt")
     p.add_argument("--log-dir", metavar="DIR",
                    help="TensorBoard folder (default logs/adjust/<garment>-<base>-to-<target>-<time>)")
@@ -264,13 +267,10 @@ def _refuse_unusable(reason: str | None, what: str, allow: bool) -> None:
 
 def cmd_adjust(args: argparse.Namespace) -> int:
     """Run ``torchgarment adjust``; returns the exit code."""
-    import torch
-
     from torchgarment.adjust.pipeline import CHECKPOINT_NAME, adjust
     from torchgarment.io.staging import staged_output
 
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: CUDA is not available on this machine")
+    device = resolve_device(args.device)
     settings = settings_from_args(args)
     base_spec = args.base_body if args.base_body is not None else args.base_size
     target_spec = args.target_body if args.target_body is not None else args.target_size
@@ -283,7 +283,6 @@ def cmd_adjust(args: argparse.Namespace) -> int:
     target_body, target_name = load_body_spec(target_spec, target_flag)
     base_size = base_spec if base_spec in list_sizes() else None
     pattern = pattern_from_args(args, base_size)
-    device = torch.device(args.device)
     if device.type != "cpu":
         base_body, target_body = base_body.to(device), target_body.to(device)
     out = Path(args.out)

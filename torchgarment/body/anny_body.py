@@ -256,8 +256,15 @@ def _import_anny_quietly() -> ModuleType:
 
 
 def anny_version() -> str:
-    """Installed anny version (part of the cache key)."""
-    return str(_import_anny_quietly().__version__)
+    """Installed anny version (part of the cache key), read from the package's metadata so that a cache hit
+    never imports anny and warp (about 2 s); from the module itself for an anny without metadata (a source
+    tree on ``sys.path``)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("anny")
+    except metadata.PackageNotFoundError:
+        return str(_import_anny_quietly().__version__)
 
 
 def validate_measurements(measurements: dict) -> dict[str, float]:

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 from torchgarment.errors import InputError, TorchGarmentError
 from torchgarment.io.jsonfile import write_json
-from torchgarment.options import env_limit
+from torchgarment.options import env_limit, resolve_device
 
 if TYPE_CHECKING:
     from torchgarment.datadriven.basis import ClothingBasis
@@ -105,6 +105,9 @@ def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentP
     f.add_argument("--refine", type=int, default=None, metavar="N",
                    help="settle the prediction on the body with the simulator for at most N iterations (the "
                         "model's drape settings; builds the body's SDF), before any push-out")
+    f.add_argument("--device", default="cpu", metavar="D",
+                   help="compute device of the fit and the refine: cpu, cuda or cuda:N (default cpu; the "
+                        "push-out's exact distances and the SDF build stay on the CPU)")
     f.set_defaults(func=cmd_pca_fit)
     return p
 
@@ -273,6 +276,7 @@ def fit_bodies(args: argparse.Namespace, jobs: list[tuple[str, str | Path]]) -> 
         raise InputError(f"--margin must be >= 0, got {args.margin}")
     if args.refine is not None and args.refine < 0:
         raise InputError(f"--refine must be >= 0 iterations, got {args.refine}")
+    device = resolve_device(getattr(args, "device", "cpu"))
     t0 = time.perf_counter()
     outcomes: list[str | BaseException] = []
     bodies = []
@@ -280,7 +284,7 @@ def fit_bodies(args: argparse.Namespace, jobs: list[tuple[str, str | Path]]) -> 
         try:
             if not Path(body_path).is_file():
                 raise InputError(f"--body {body_path}: no such file")
-            body = load_body(body_path)
+            body = load_body(body_path, device=device)
             check_human_body(body.vertices, body.faces, f"--body {body_path}")  # before the model: cheap
             bodies.append(body)
             outcomes.append("")
@@ -290,6 +294,8 @@ def fit_bodies(args: argparse.Namespace, jobs: list[tuple[str, str | Path]]) -> 
     if all(b is None for b in bodies):
         return outcomes
     pca, basis, info = load_model(args.model)
+    if device.type != "cpu":
+        pca, basis = pca.to(device=device), basis.to(device=device)
     for n, (body, (body_path, _)) in enumerate(zip(bodies, jobs)):
         if body is not None and (body.num_vertices != pca.num_vertices
                                  or body.faces.shape != pca.faces.shape

@@ -59,12 +59,13 @@ def write_json(path: str | Path, data: Any) -> None:
     """Write ``data`` as indented JSON with a final newline, atomically (a reader never sees half a file).
 
     Args:
-        path: the file (its folder is created). data: JSON-serialisable plain data.
+        path: the file (its folder is created). data: JSON-serialisable plain data; numpy and 0-d tensor
+            scalars are written as floats.
     """
     from torchgarment.io.atomic import atomic_open
 
     with atomic_open(path) as f:
-        json.dump(data, f, indent=2)
+        json.dump(data, f, indent=2, default=float)
         f.write("\n")
 
 

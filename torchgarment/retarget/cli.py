@@ -13,7 +13,6 @@ distortion_mean / distortion_max, each term's value, ...). TensorBoard scalars g
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -102,6 +101,9 @@ def add_retarget_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
     p.add_argument("--no-log", action="store_true", help="no TensorBoard scalars")
     p.add_argument("--no-render", action="store_true", help="skip retarget.png")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    p.add_argument("--device", default="cpu", metavar="D",
+                   help="compute device: only cpu (the commands' common option; retargeting's barrier, CCD, "
+                        "Hessian projection and intersection checks come from ipctk, which has no GPU path)")
     p.set_defaults(func=cmd_retarget)
     return p
 
@@ -138,7 +140,7 @@ def render_result(
 def cmd_retarget(args: argparse.Namespace) -> int:
     """Run ``torchgarment retarget``; returns the exit code (bad input raises InputError: exit 2 in the
     CLI)."""
-    from torchgarment.io.atomic import atomic_open
+    from torchgarment.io.jsonfile import write_json
     from torchgarment.io.mesh import save_obj
     from torchgarment.io.staging import staged_output
     from torchgarment.retarget.inputs import load_problem
@@ -161,6 +163,10 @@ def cmd_retarget(args: argparse.Namespace) -> int:
         v = getattr(args, name)
         if v is not None and not Path(v).is_file():
             raise InputError(f"--{name.replace('_', '-')} {v}: no such file")
+    if str(args.device).strip().lower() != "cpu":
+        raise InputError(f"--device {args.device}: retarget runs on the CPU only (its barrier, CCD, Hessian "
+                         "projection and intersection checks come from ipctk, which has no GPU path); use "
+                         "--device cpu")
     t0 = time.perf_counter()
     problem = load_problem(
         args.garment,
@@ -193,9 +199,7 @@ def cmd_retarget(args: argparse.Namespace) -> int:
                 result,
                 f"{Path(args.garment).stem} on {Path(args.target_avatar).stem}",
             )
-        with atomic_open(stage / "metrics.json") as f:
-            json.dump(metrics, f, indent=2, default=float)
-            f.write("\n")
+        write_json(stage / "metrics.json", metrics)
     m = result.metrics
     print(
         f"retarget {Path(args.garment).name} -> {Path(args.target_avatar).name}: {m['garment_vertices']} "

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from torchgarment.errors import InputError
+from torchgarment.options import resolve_device
 
 if TYPE_CHECKING:
     from torchgarment.pattern.spec import SewingPattern
@@ -52,6 +53,9 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                         "garment's; for a pattern file without one, the topmost closed loop of a bottom "
                         "garment, named on stderr)")
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
+    p.add_argument("--device", default="cpu", metavar="D",
+                   help="compute device: cpu, cuda or cuda:N (default cpu; the SDF build and the newton "
+                        "solver's factorizations stay on the CPU)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--allow-unconverged", action="store_true",
                    help="write the result even when it is unusable (far from equilibrium, far from the body) "
@@ -124,10 +128,12 @@ def cmd_drape(args: argparse.Namespace) -> int:
     settings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel, solver=args.solver,
                              max_iterations=args.max_iterations, support=not args.no_support)
     settings.validate()
+    device = resolve_device(args.device)
     t0 = time.perf_counter()
     from torchgarment.body.load import load_body_spec
 
     body, body_name = load_body_spec(args.body, "body")
+    body = body.to(device)
     pattern = _load_pattern(args.pattern, args.size, args.body)
     from torchgarment.pattern.support import choose_support
 
