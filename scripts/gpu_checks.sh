@@ -28,8 +28,8 @@ run_step() {  # name, command...
 }
 
 run_step info bash -c "nvidia-smi; uptime; nproc; $py -c 'import torch; print(torch.__version__, torch.cuda.get_device_name(0))'"
-run_step tests "$py" -m pytest -q -s -p no:cacheprovider tests/gpu
-run_step sim "$py" scripts/bench_sim.py --device cuda --threads 4 --sizes 5000 30000 60000 --rounds 4 \
+run_step tests "$py" -m pytest -q -s -p no:cacheprovider tests/gpu ${GPU_TESTS_K:+-k "$GPU_TESTS_K"}
+run_step sim "$py" scripts/bench_sim.py --device cuda --threads 4 --sizes ${SIM_SIZES:-5000 30000 60000} --rounds 4 \
     --profile "${SIM_PROFILE:-0}" --json "$out/bench_sim_cuda.json"
 for dev in cuda cpu; do  # the same adjustment on the GPU and on this machine's CPU cores (the baseline)
     run_step "adjust_$dev" timeout "${ADJUST_TIMEOUT:-900}" "$py" scripts/bench_adjust.py --device $dev \

@@ -403,3 +403,23 @@ def test_barrier_project_feasible(sphere_sdf):
     assert torch.equal(y[50:], x[50:]) and not torch.equal(y[:50], x[:50])
     assert term.offset == pytest.approx(max(1e-3, 0.25 * sphere_sdf.voxel_size))
     assert math.isfinite(float(term.value_and_grad(y)[0]))
+
+
+def test_pair_operator_index_path_equals_csr_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The GPU's gather/scatter path (index_select, index_add_) computes what the CPU's CSR products do; run
+    here on the CPU by forcing it."""
+    from torchgarment.sim.energies import PairOperator
+
+    gen = torch.Generator().manual_seed(3)
+    V, E = 50, 200
+    i = torch.randint(0, V, (E,), generator=gen)
+    j = (i + torch.randint(1, V, (E,), generator=gen)) % V  # pairs of two vertices (repeats allowed)
+    x = torch.randn(V, 3, dtype=torch.float64, generator=gen)
+    f = torch.randn(E, 9, dtype=torch.float64, generator=gen)
+    csr = PairOperator(i, j, V)
+    expected = (csr.diff(x), csr.scatter(f), csr.scatter_both(f))
+    monkeypatch.setattr(PairOperator, "uses_index_ops", staticmethod(lambda device: True))
+    op = PairOperator(i, j, V)
+    for got, want in zip((op.diff(x), op.scatter(f), op.scatter_both(f)), expected):
+        assert got.shape == want.shape
+        assert torch.allclose(got, want, rtol=0, atol=1e-12)
