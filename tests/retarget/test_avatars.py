@@ -115,3 +115,22 @@ def test_scaled_copies(avatars: dict) -> None:
 def test_unknown_avatar() -> None:
     with pytest.raises(InputError, match="unknown test avatar"):
         make_avatar("dragon")
+
+
+def test_creatures_are_messy(avatars: dict) -> None:
+    """Issue 14's non-human avatars: 10K / 50K triangles, self-intersecting, not closed, at 6 cm and 10 m."""
+    import ipctk
+    import trimesh
+
+    for name, triangles, height in (("creature-10k", 10_000, 0.06), ("creature-50k", 50_000, 10.0)):
+        a = avatars[name]
+        assert abs(a.faces.shape[0] - triangles) <= 0.1 * triangles, (name, a.faces.shape[0])
+        m = trimesh.Trimesh(a.vertices.numpy(), a.faces.numpy(), process=False)
+        assert not m.is_watertight and m.body_count > 10, name
+        h = float(a.vertices[:, 1].max() - a.vertices[:, 1].min())
+        assert h == pytest.approx(height), name
+        v = np.asfortranarray(a.vertices.numpy())
+        f = np.asfortranarray(a.faces.numpy().astype(np.int32))
+        assert ipctk.has_intersections(ipctk.CollisionMesh(v, ipctk.edges(f), f), v), name
+        # rigid skinning: every vertex belongs to one joint
+        assert torch.equal(a.skin_weights.max(dim=0).values, torch.ones(v.shape[0], dtype=torch.float64))

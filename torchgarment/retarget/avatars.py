@@ -21,6 +21,12 @@ Avatars (:func:`list_avatars`):
   inside the cylinder are removed, the openings' rims snapped onto the cylinder and bridged by a tube.
 * ``miniature``: the size-6 body scaled to 6 cm tall and moved to (100, -50, 30) m (tests ``to_work``).
 * ``giant``: the size-20 body scaled to 4 m tall and moved to (-20, 3, 7) m.
+* ``creature-10k``, ``creature-50k``: non-human avatars of about 10K and 50K triangles built on the size-12
+  skeleton with longer arms (x1.3) and shorter legs (x0.7) (:func:`creature`): a barrel torso, a big head with
+  two horns, capsule limbs, ball hands and feet and a tail, each a separate closed or open part that overlaps
+  its neighbours (the mesh intersects itself), with the tail's end and the horns' bases open (not closed).
+  Each part is skinned rigidly to one joint. ``creature-10k`` is scaled to 6 cm tall at (3, 1, -2) m,
+  ``creature-50k`` to 10 m at (-40, 0, 25) m.
 """
 
 from __future__ import annotations
@@ -41,6 +47,8 @@ __all__ = [
     "AVATARS",
     "TestAvatar",
     "ToyCase",
+    "creature",
+    "layered_garment",
     "edit_by_bones",
     "list_avatars",
     "make_avatar",
@@ -292,6 +300,197 @@ def _rescale(body: Body, height: float, offset: tuple[float, float, float]) -> B
     )
 
 
+def _part_mesh(kind: str, a: torch.Tensor, b: torch.Tensor, radius: float, detail: int,
+               radius_end: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """One creature part between points ``a`` and ``b`` (metres): a closed ``capsule`` of ``radius``, an
+    ``ellipsoid`` with ``a``-``b`` as its long axis and ``radius`` across, or a ``horn`` / ``tail``: an open
+    tube tapering from ``radius`` at ``a`` to ``radius_end`` at ``b`` (no cap at either end). ``detail``:
+    segments around."""
+    import trimesh
+
+    a64, b64 = a.double().numpy(), b.double().numpy()
+    axis = b64 - a64
+    length = float(np.linalg.norm(axis))
+    if kind == "capsule":
+        m = trimesh.creation.capsule(height=length, radius=radius, count=[detail, max(4, detail // 2)])
+    elif kind == "ellipsoid":
+        m = trimesh.creation.icosphere(subdivisions=1 + int(detail >= 24) + int(detail >= 48), radius=1.0)
+        m.apply_scale([radius, radius, 0.5 * length + radius])
+    else:
+        rings = max(2, int(round(detail * length / (2 * math.pi * radius))))
+        r_end = radius if radius_end is None else radius_end
+        th = np.arange(detail) * (2 * math.pi / detail)
+        z = np.linspace(-0.5 * length, 0.5 * length, rings + 1)
+        r = np.linspace(radius, r_end, rings + 1)
+        v = np.stack([np.outer(r, np.cos(th)), np.outer(r, np.sin(th)), np.repeat(z[:, None], detail, 1)],
+                     -1)
+        i = np.arange(rings)[:, None] * detail
+        j = np.arange(detail)[None, :]
+        a0, a1 = i + j, i + (j + 1) % detail
+        b0, b1 = a0 + detail, a1 + detail
+        f = np.concatenate([np.stack([a0, a1, b1], -1).reshape(-1, 3),
+                            np.stack([a0, b1, b0], -1).reshape(-1, 3)])
+        m = trimesh.Trimesh(v.reshape(-1, 3), f, process=False)
+    z = np.array([0.0, 0.0, 1.0])
+    d = axis / length
+    rot = trimesh.geometry.align_vectors(z, d)
+    m.apply_transform(rot)
+    m.apply_translation(0.5 * (a64 + b64))
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def creature(body: Body, triangles: int) -> Body:
+    """A non-human avatar on ``body``'s skeleton (an anny skeleton): overlapping parts, some open (see the
+    module docstring), about ``triangles`` triangles.
+
+    Args:
+        body: a rigged anny body (its skeleton is used, its mesh is not).
+        triangles: the approximate triangle count (the parts' resolution is scaled to reach it).
+
+    Returns:
+        A :class:`Body` with the same skeleton and (J, V) rigid skin weights (one joint per part).
+    """
+    sk = body.skeleton
+    J = sk.joints
+    n = sk.names.index
+
+    def mid(*names: str) -> torch.Tensor:
+        return torch.stack([J[n(k)] for k in names]).mean(dim=0)
+
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=J.dtype)
+    back = torch.tensor([0.0, 0.0, -1.0], dtype=J.dtype)
+    parts: list[tuple[str, torch.Tensor, torch.Tensor, float, str, float | None, float]] = [
+        # kind, a, b, radius, skinning joint, end radius, relative area weight
+        ("ellipsoid", J[n("spine05")] - 0.05 * up, J[n("neck01")], 0.16, "spine03", None, 3.0),
+        ("ellipsoid", J[n("head")], J[n("head")] + 0.2 * up, 0.13, "head", None, 1.5),
+        ("tail", J[n("spine05")] + 0.08 * back, J[n("spine05")] + 0.55 * back - 0.25 * up, 0.06, "spine05",
+         0.015, 0.8),
+    ]
+    for side in ("L", "R"):
+        sgn = 1.0 if float(J[n(f"clavicle.{side}"), 0]) > 0 else -1.0
+        horn_a = J[n("head")] + 0.14 * up + 0.06 * sgn * torch.tensor([1.0, 0.0, 0.0], dtype=J.dtype)
+        parts += [
+            ("horn", horn_a, horn_a + 0.16 * up + 0.1 * sgn * torch.tensor([1.0, 0.0, 0.0], dtype=J.dtype),
+             0.035, "head", 0.005, 0.3),
+            ("capsule", J[n(f"clavicle.{side}")], J[n(f"upperarm02.{side}")], 0.06, f"clavicle.{side}",
+             None, 0.8),
+            ("capsule", J[n(f"upperarm02.{side}")], J[n(f"lowerarm01.{side}")], 0.05, f"upperarm02.{side}",
+             None, 0.8),
+            ("capsule", J[n(f"lowerarm01.{side}")], J[n(f"wrist.{side}")], 0.042, f"lowerarm01.{side}",
+             None, 0.8),
+            ("ellipsoid", J[n(f"wrist.{side}")], mid(f"finger3-1.{side}", f"wrist.{side}"), 0.05,
+             f"wrist.{side}", None, 0.4),
+            ("capsule", J[n(f"upperleg01.{side}")], J[n(f"lowerleg01.{side}")], 0.085,
+             f"upperleg01.{side}", None, 1.0),
+            ("capsule", J[n(f"lowerleg01.{side}")], J[n(f"foot.{side}")], 0.065, f"lowerleg01.{side}",
+             None, 1.0),
+            ("ellipsoid", J[n(f"foot.{side}")], mid(f"toe3-1.{side}", f"foot.{side}"), 0.06,
+             f"foot.{side}", None, 0.5),
+        ]
+    total = sum(p[6] for p in parts)
+    scale = 1.0
+    for _ in range(2):  # the second pass corrects the triangle count of the first
+        verts, faces, joints = [], [], []
+        offset = 0
+        for kind, a, b, r, joint, r_end, share in parts:
+            # segments around from the part's share of the triangles (about detail^2 per part)
+            detail = max(8, int(round(scale * math.sqrt(triangles * share / total))))
+            v, f = _part_mesh(kind, a, b, r, detail, r_end)
+            verts.append(v)
+            faces.append(f + offset)
+            joints.append(np.full(len(v), n(joint)))
+            offset += len(v)
+        scale *= math.sqrt(triangles / sum(len(f) for f in faces))
+    v = torch.as_tensor(np.concatenate(verts), dtype=J.dtype)
+    f = torch.as_tensor(np.concatenate(faces), dtype=torch.long)
+    w = torch.zeros(sk.num_joints, v.shape[0], dtype=J.dtype)
+    w[torch.as_tensor(np.concatenate(joints)), torch.arange(v.shape[0])] = 1.0
+    return Body(v, f, Skeleton(J.clone(), sk.bones.clone(), list(sk.names)), w)
+
+
+def _creature(triangles: int, height: float, offset: tuple[float, float, float]) -> Body:
+    edited = _stretch_bones(_stretch_bones(_base("12"), ("upperarm", "lowerarm"), 1.3),
+                            ("upperleg", "lowerleg"), 0.7)
+    return _rescale(creature(edited, triangles), height, offset)
+
+
+def _outward_offset(patch_v: np.ndarray, patch_f: np.ndarray, body: Body, offset: float) -> np.ndarray:
+    """``patch_v`` moved ``offset`` metres along the patch's vertex normals, oriented away from ``body``."""
+    import igl
+    import trimesh
+
+    n = trimesh.Trimesh(patch_v, patch_f, process=False).vertex_normals
+    bv, bf = body.vertices.double().numpy(), body.faces.numpy().astype(np.int64)
+    moved = patch_v + offset * n
+    d0 = igl.signed_distance(patch_v, bv, bf)[0]
+    d1 = igl.signed_distance(moved, bv, bf)[0]
+    return moved if float(np.mean(d1 - d0)) >= 0 else patch_v - offset * n
+
+
+def _patch(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The faces of ``f`` whose three vertices are all in ``keep`` (a (V,) bool mask), reindexed."""
+    faces = f[keep[f].all(axis=1)]
+    used, inverse = np.unique(faces, return_inverse=True)
+    return v[used], inverse.reshape(-1, 3)
+
+
+def layered_garment(vertices: torch.Tensor, faces: torch.Tensor, body: Body, *,
+                    pockets: tuple[tuple[float, float, float], ...] = (), pocket_radius: float = 0.05,
+                    collar: bool = False, hood: bool = False, offset: float = 0.004,
+                    ) -> tuple[torch.Tensor, torch.Tensor, dict[str, int]]:
+    """A garment dressed on ``body`` with layered parts added as separate pieces (issue 14's messy bench).
+
+    Args:
+        vertices, faces: (N, 3) the garment (metres) and (F, 3) its faces.
+        body: the body it is dressed on (rigged anny body).
+        pockets: points (m) near which a round patch of the garment (``pocket_radius``) is copied
+            ``offset`` outwards: patch pockets.
+        collar: copy the faces within 3 cm of the garment's topmost boundary loop ``offset`` outwards (a
+            collar or a waistband).
+        hood: a shell ``5 * offset`` behind the back of the head and neck (the body's surface there, moved
+            along its normals).
+        offset: the layers' distance from what they lie on (m).
+
+    Returns:
+        ``(vertices, faces, parts)``: the garment with its layers, and the number of faces of each part.
+    """
+    from torchgarment.retarget.objectives import boundary_loops
+
+    v = vertices.detach().double().cpu().numpy()
+    f = faces.cpu().numpy().astype(np.int64)
+    parts: dict[str, int] = {"garment": len(f)}
+    out_v, out_f = [v], [f]
+    count = len(v)
+
+    def add(name: str, pv: np.ndarray, pf: np.ndarray) -> None:
+        nonlocal count
+        out_v.append(pv)
+        out_f.append(pf + count)
+        count += len(pv)
+        parts[name] = len(pf)
+
+    for k, point in enumerate(pockets):
+        centre = v[int(np.argmin(np.linalg.norm(v - np.asarray(point), axis=1)))]
+        pv, pf = _patch(v, f, np.linalg.norm(v - centre, axis=1) <= pocket_radius)
+        add(f"pocket{k}", _outward_offset(pv, pf, body, offset), pf)
+    if collar:
+        loops = boundary_loops(f)
+        top = max(loops, key=lambda lp: float(v[lp, 1].mean()))
+        near = np.min(np.linalg.norm(v[:, None] - v[top][None], axis=2), axis=1) <= 0.03
+        pv, pf = _patch(v, f, near)
+        add("collar", _outward_offset(pv, pf, body, offset), pf)
+    if hood:
+        sk = body.skeleton
+        neck = sk.joints[sk.names.index("neck01")].double().numpy()
+        head = sk.joints[sk.names.index("head")].double().numpy()
+        bv, bf = body.vertices.double().numpy(), body.faces.numpy().astype(np.int64)
+        keep = (bv[:, 1] > neck[1] + 0.02) & (bv[:, 2] < head[2] - 0.02)
+        pv, pf = _patch(bv, bf, keep)
+        add("hood", _outward_offset(pv, pf, body, 5 * offset), pf)
+    return (torch.as_tensor(np.concatenate(out_v), dtype=vertices.dtype),
+            torch.as_tensor(np.concatenate(out_f), dtype=torch.long), parts)
+
+
 def _anny_size(size: str) -> Callable[[], TestAvatar]:
     return lambda: _base(size)
 
@@ -333,6 +532,14 @@ AVATARS: dict[str, tuple[str, callable]] = {
     "giant": (
         "size 20 scaled to 4 m, away from the origin",
         lambda: _rescale(_base("20"), 4.0, (-20.0, 3.0, 7.0)),
+    ),
+    "creature-10k": (
+        "a non-human creature of about 10K triangles (horns, tail; self-intersecting, open), 6 cm tall",
+        lambda: _creature(10_000, 0.06, (3.0, 1.0, -2.0)),
+    ),
+    "creature-50k": (
+        "a non-human creature of about 50K triangles (horns, tail; self-intersecting, open), 10 m tall",
+        lambda: _creature(50_000, 10.0, (-40.0, 0.0, 25.0)),
     ),
 }
 """Name -> (description, builder)."""
