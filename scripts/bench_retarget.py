@@ -21,9 +21,10 @@ resolution: the anny size-12 body (13,348 vertices), the GarmentCode mean bodies
 (23,752 vertices; rigged with the skeleton and skin weights of the anny body fitted to their measurements,
 nearest vertex; skipped when the data is absent) and the procedural creatures ``creature-10k`` (6 cm) and
 ``creature-50k`` (10 m), which intersect themselves and are not closed. Drapes are cached under ``--cache``.
-``--profile`` adds, per pair, the seconds by stage (cProfile, so with its overhead): CCD (the collision-free
-step), broad phase and candidate/collision building, barrier and Hessian assembly, factorization and solves,
-line search (energy evaluations), the rest.
+``--profile`` adds, per pair, the self seconds by stage (cProfile, so with its overhead; :data:`STAGES`): CCD
+(the collision-free step), broad phase and the avatar's culling, sparse factorization, linear solves (the
+preconditioned CG's triangular solves), Hessian assembly, barrier values and gradients, line search, the rest;
+and the top functions by self time.
 """
 
 from __future__ import annotations
@@ -103,26 +104,30 @@ MESSY_AVATARS = ("anny-12", "mean_female", "mean_male", "creature-10k", "creatur
 
 #: cProfile function-name fragments -> stage (first match wins)
 STAGES = (
-    ("ccd", ("collision_free", "stepsize", "CollisionFreeBound", "max_step", "ccd")),
-    ("broad_phase", ("build", "BroadPhase", "Candidates", "candidates")),
-    ("factorization", ("factorize", "splu", "spsolve", "superlu", "solve_newton_system", "pcg", "minres")),
-    ("line_search", ("armijo", "line_search", "value_only")),
-    ("hessian", ("hessian", "to_sparse", "CSRAssembler", "psd", "project")),
-    ("barrier", ("barrier", "potential", "Contact", "ipc")),
+    ("ccd", ("collision_free", "stepsize")),
+    ("broad_phase_and_culling", ("ipctk.build", "_recull", "_set_subset", "BroadPhase", "Candidates")),
+    ("factorization", ("gstrf", "splu", "factorize")),
+    ("linear_solves", ("SuperLU", "pcg", "minres", "csr_matvec", "spsolve")),
+    ("hessian_assembly", ("ipctk.hessian", "hessian", "unweighted_blocks", "to_sparse", "CSRAssembler")),
+    ("barrier_value_gradient", ("ipctk.potential", "ipctk.gradient", "ipctk.compute", "barrier")),
+    ("line_search", ("armijo", "line_search")),
 )
 
 
-def _stage_seconds(prof: object) -> dict[str, float]:
-    """Self time (s) of the profiled functions summed by stage (:data:`STAGES`)."""
+def _stage_seconds(prof: object, top: int = 12) -> tuple[dict[str, float], list[tuple[str, float]]]:
+    """Self time (s) of the profiled functions summed by stage (:data:`STAGES`), and the ``top`` functions by
+    self time."""
     import pstats
 
     stats = pstats.Stats(prof)
     out = {name: 0.0 for name, _ in STAGES} | {"other": 0.0}
-    for (file, _line, func), (_cc, _nc, tottime, _ct, _callers) in stats.stats.items():
+    functions = []
+    for (file, line, func), (_cc, _nc, tottime, _ct, _callers) in stats.stats.items():
         label = f"{file}:{func}"
         stage = next((name for name, keys in STAGES if any(k in label for k in keys)), "other")
         out[stage] += tottime
-    return out
+        functions.append((f"{Path(file).name}:{line}:{func}", tottime))
+    return out, sorted(functions, key=lambda kv: -kv[1])[:top]
 
 
 def _messy_garment(name: str, source: Body, cache: Path) -> tuple[torch.Tensor, torch.Tensor, dict]:
@@ -223,7 +228,7 @@ def messy(args: argparse.Namespace) -> int:
                            distortion_mean=m["distortion_mean"],
                            steps={s["step"]: s["seconds"] for s in r.steps}, ok=True)
                 if prof is not None:
-                    rec["stages_seconds"] = _stage_seconds(prof)
+                    rec["stages_seconds"], rec["top_functions"] = _stage_seconds(prof)
             except Exception as e:  # noqa: BLE001 - reported per pair
                 rec.update(seconds=time.perf_counter() - t0, ok=False, error=f"{type(e).__name__}: {e}")
             records.append(rec)
@@ -234,6 +239,8 @@ def messy(args: argparse.Namespace) -> int:
                 if "stages_seconds" in rec:
                     print("      stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in
                                                            rec["stages_seconds"].items()), flush=True)
+                    for name, sec in rec["top_functions"]:
+                        print(f"      {sec:8.2f} s  {name}", flush=True)
             else:
                 print(f"{gname:>28}{aname:>14} FAILED {rec['error']}", flush=True)
     secs = [r["seconds"] for r in records if r["ok"]]
