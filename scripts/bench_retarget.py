@@ -179,6 +179,17 @@ def _garmentcode_avatar(name: str) -> TestAvatar | None:
                       description=f"GarmentCode {name}, rigged from the fitted anny body")
 
 
+def _report(summary: dict, records: list[dict], path: Path | None) -> int:
+    """Print the summary and write it with the records to ``path`` (JSON) when given; the exit code: 1 when a
+    pair failed or intersects."""
+    from torchgarment.io.jsonfile import write_json
+
+    print(json.dumps(summary))
+    if path is not None:
+        write_json(path, {"summary": summary, "records": records})
+    return 0 if summary["failed"] == 0 and summary["intersecting"] == 0 else 1
+
+
 def messy(args: argparse.Namespace) -> int:
     """The ``--messy`` bench (see the module docstring)."""
     import cProfile
@@ -186,7 +197,6 @@ def messy(args: argparse.Namespace) -> int:
     import ipctk
 
     from torchgarment.body import Body
-    from torchgarment.io.atomic import atomic_open
     from torchgarment.retarget.avatars import make_avatar
     from torchgarment.retarget.inputs import problem_from_arrays
     from torchgarment.retarget.pipeline import RetargetSettings, retarget
@@ -250,18 +260,11 @@ def messy(args: argparse.Namespace) -> int:
                "max_seconds": float(np.max(secs)) if secs else None,
                "targets": {"mean_seconds": 20.0, "max_seconds": 60.0}, "threads": args.threads,
                "profiled": bool(args.profile)}
-    print(json.dumps(summary))
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_open(args.json) as fh:
-            json.dump({"summary": summary, "records": records}, fh, indent=2)
-            fh.write("\n")
-    return 0 if summary["failed"] == 0 and summary["intersecting"] == 0 else 1
+    return _report(summary, records, args.json)
 
 
 def main(argv: list[str] | None = None) -> int:
     from torchgarment.body import Body
-    from torchgarment.io.atomic import atomic_open
     from torchgarment.io.mesh import load_mesh
     from torchgarment.retarget.inputs import problem_from_arrays
     from torchgarment.retarget.pipeline import RetargetSettings, retarget
@@ -353,13 +356,7 @@ def main(argv: list[str] | None = None) -> int:
         "step_bound": args.step_bound,
         "torch_threads": settings.threads,
     }
-    print(json.dumps(summary))
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_open(args.json) as f:
-            json.dump({"summary": summary, "records": records}, f, indent=2)
-            f.write("\n")
-    return 0 if summary["failed"] == 0 and summary["intersecting"] == 0 else 1
+    return _report(summary, records, args.json)
 
 
 if __name__ == "__main__":

@@ -281,7 +281,7 @@ class PairOperator:
 
     @staticmethod
     def uses_index_ops(device: torch.device) -> bool:
-        """Whether gathers and scatters on ``device`` use index operations (a GPU) rather than CSR products."""
+        """Whether gathers and scatters on ``device`` use index operations (a GPU), not CSR products."""
         return device.type != "cpu"
 
     def _indices(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
