@@ -101,6 +101,10 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init-iterations", type=int, default=d.init_iterations, metavar="N",
                    help=f"L-BFGS iterations of the section-7 initialization (default {d.init_iterations})")
     p.add_argument("--no-init", action="store_true", help="skip the section-7 initialization")
+    p.add_argument("--init-trial-iterations", type=int, default=d.init_trial_iterations, metavar="N",
+                   help="when the initialized pattern scores no better than the base pattern, optimize N "
+                        "iterations from each and keep the start that ends lower; 0 keeps the base pattern "
+                        f"(default {d.init_trial_iterations})")
 
 
 def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
@@ -119,7 +123,7 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
                           exact_interval=args.exact_interval, inexact=not args.exact,
                           inner_solver=args.inner_solver, adjoint=args.adjoint,
                           init_iterations=args.init_iterations, initialize=not args.no_init, weights=weights,
-                          support=not args.no_support)
+                          support=not args.no_support, init_trial_iterations=args.init_trial_iterations)
 
 
 def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
