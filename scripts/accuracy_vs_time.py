@@ -152,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
         build_basis,
         drape_on_body,
         mesh_hash,
+        place_for_body,
     )
     from torchgarment.datadriven.dataset import BodyDataset
     from torchgarment.datadriven.online import OnlineFitter, push_out, refine
@@ -303,8 +304,9 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
                             sdf = BodySDF.cached(body.vertices, body.faces,
                                                  SDFSettings(voxel_size=args.voxel))
                             t = time.perf_counter()
+                            placed = place_for_body(mesh.x, mean_frame, case.frame)
                             r = refine(mesh, xs[case.index], body, dset, iterations=n, sdf=sdf,
-                                       support=basis.support)
+                                       support=basis.support, support_reference=placed)
                             sec_r = time.perf_counter() - t
                             wv, wf = welded_surface(r.x, mesh)
                             record("pca", f"pca{tag} k={k}+refine {n}", case, sec + sec_r, offline, r.x, wv,

@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         build_basis,
         drape_on_body,
         mesh_hash,
+        place_for_body,
     )
     from torchgarment.datadriven.dataset import BodyDataset
     from torchgarment.datadriven.online import OnlineFitter, PushOutResult, push_out
@@ -171,11 +172,15 @@ def main(argv: list[str] | None = None) -> int:
             t = time.perf_counter()
             drape_on_body(mesh, held.vertices[i], held.faces, reference, dsettings, support=support)
             cold_seconds.append(time.perf_counter() - t)
+        # the support's targets take their rotation from the garment placed for each body, as the cold drapes'
+        placed = [place_for_body(mesh.x, reference, BodyFrame.of(held.vertices[i], held.faces))
+                  for i in range(len(held))]
         for n in args.refine:
             means, maxes, secs, conv = [], [], [], 0
             for i in tqdm(range(len(held)), desc=f"refine {n}"):
                 t = time.perf_counter()
-                r = refine(mesh, xs[i], bodies[i], dsettings, iterations=n, sdf=sdfs[i], support=support)
+                r = refine(mesh, xs[i], bodies[i], dsettings, iterations=n, sdf=sdfs[i], support=support,
+                           support_reference=placed[i])
                 secs.append(time.perf_counter() - t)
                 d = torch.linalg.vector_norm(r.x.detach().double() - refs[i], dim=1)
                 means.append(1e3 * float(d.mean()))

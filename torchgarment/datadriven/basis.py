@@ -330,7 +330,7 @@ def drape_on_body(mesh: GarmentMesh, vertices: torch.Tensor, faces: torch.Tensor
 
 def refine(mesh: GarmentMesh, x: torch.Tensor, body: Body, settings: DrapeSettings,
            iterations: int | None = None, sdf: BodySDF | None = None,
-           support: SupportLoop | None = None) -> DrapeResult:
+           support: SupportLoop | None = None, support_reference: torch.Tensor | None = None) -> DrapeResult:
     """Warm-started simulation: the PCA prediction ``x`` as the initial state of the quasistatic solve.
 
     The garment (already sewn: the sewing stage is skipped) settles on ``body`` with the drape's physics and
@@ -343,6 +343,10 @@ def refine(mesh: GarmentMesh, x: torch.Tensor, body: Body, settings: DrapeSettin
         body: the customer's body (vertices and faces). settings: the basis's drape settings.
         iterations: settle budget (>= 0). sdf: the body's SDF when already built (else built and cached).
         support: the garment's support loop (:attr:`ClothingBasis.support`), held at the body's waist.
+        support_reference: (V, 3) the garment placed for ``body`` (e.g. :func:`place_for_body` of a placed or
+            mean-body garment): the support's targets take their rotation about the body from it, as a cold
+            drape's do, not from the prediction ``x`` (whose rotation error a converged settle would keep);
+            None: from ``x``.
 
     Returns:
         The :class:`~torchgarment.sim.drape.DrapeResult` (``metrics["converged"]`` tells whether the budget
@@ -354,7 +358,8 @@ def refine(mesh: GarmentMesh, x: torch.Tensor, body: Body, settings: DrapeSettin
         raise InputError(f"refine iterations must be an integer >= 0, got {iterations!r}")
     st = replace(settings, sew_max_iterations=0,
                  max_iterations=settings.max_iterations if iterations is None else iterations)
-    return drape(mesh.with_positions(x.detach().to(mesh.x)), body, settings=st, sdf=sdf, support=support)
+    return drape(mesh.with_positions(x.detach().to(mesh.x)), body, settings=st, sdf=sdf, support=support,
+                 support_reference=support_reference)
 
 
 def build_basis(

@@ -352,7 +352,14 @@ def _finish_fit(args: argparse.Namespace, job: tuple[str, str | Path], body: obj
         t = time.perf_counter()
         sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=dset.voxel_size))
         seconds["refine_sdf"] = time.perf_counter() - t
-        r = refine(basis.garment, x, body, dset, iterations=args.refine, sdf=sdf, support=basis.support)
+        # the support's targets take their rotation about the body from the mean-body drape placed for this
+        # body (as a cold drape's from its placed panels), not from the prediction
+        from torchgarment.datadriven.basis import BodyFrame, place_for_body
+
+        placed = place_for_body(basis.garment.x.detach().cpu(), BodyFrame.of(pca.mean.cpu(), pca.faces.cpu()),
+                                BodyFrame.of(body.vertices.cpu(), body.faces.cpu()))
+        r = refine(basis.garment, x, body, dset, iterations=args.refine, sdf=sdf, support=basis.support,
+                   support_reference=placed)
         x = r.x.detach().to(x)
         seconds["refine"] = r.metrics["seconds"]
         refined = {"iterations": r.metrics["iterations"], "converged": r.metrics["converged"],

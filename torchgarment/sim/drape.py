@@ -324,6 +324,7 @@ def drape(
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
     support: SupportLoop | None = None,
+    support_reference: torch.Tensor | None = None,
 ) -> DrapeResult:
     """Sew a garment's placed panels around a body and solve for equilibrium (see the module docstring).
 
@@ -340,6 +341,11 @@ def drape(
         support: the support of a :class:`GarmentMesh` (:meth:`SupportLoop.of` its pattern), held like a
             pattern's own support (:attr:`DrapeSettings.support`); a pattern's own support is used for a
             pattern, and a mesh without one hangs by its tension.
+        support_reference: (V, 3) positions whose support vertices choose the rotation (phase) of the
+            support's targets around the waist (:func:`waist_band_targets`); None: the positions after the
+            sewing stage. A warm start (:func:`~torchgarment.datadriven.basis.refine`) passes the garment's
+            placed panels: its targets then are a cold drape's, instead of following a rotated start (a start
+            rotated by 2 degrees about the body kept 3.5 mm of it after a converged settle).
 
     Returns:
         The :class:`DrapeResult`.
@@ -381,7 +387,11 @@ def drape(
         loop = support
     else:
         loop = SupportLoop.of(pattern_or_mesh, mesh) if settings.support else None
-    pins = _support_pins(loop, mesh, body, x, weight, settings)
+    if support_reference is not None and tuple(support_reference.shape) != (mesh.num_vertices, 3):
+        raise InputError(f"support_reference must be ({mesh.num_vertices}, 3), got "
+                         f"{tuple(support_reference.shape)}")
+    phase_x = x if support_reference is None else support_reference.to(x)
+    pins = _support_pins(loop, mesh, body, phase_x, weight, settings)
     effects = base | {Effect.GRAVITY}
     if pins is not None:
         final_mat.pin_stiffness = pins[2]
