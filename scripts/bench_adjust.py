@@ -130,6 +130,7 @@ def main() -> None:
         "target_seconds": 115.0, "meets_target": bool(m["seconds"] <= 115.0),
         "closure_calls": m["closure_calls"], "sim_iterations": m["sim_iterations"],
         "exact_evaluations": m["exact_evaluations"], "backtracks": m["backtracks"],
+        "stage_seconds": m["stage_seconds"],
         "objective_initial": m["objective_initial"], "objective_final": m["objective_final"],
         "reduction_percent": m["reduction_percent"], "precomputation_seconds": t_prep,
         "timings": setup.timings,

@@ -276,3 +276,13 @@ def test_rejected_initialization_is_judged_by_a_short_optimization_from_each_sta
         assert trial["objective_from_initialization"] == outcome["init"]
     with pytest.raises(InputError, match="init_trial_iterations"):
         replace(SETTINGS, init_trial_iterations=-1).validate()
+
+
+def test_metrics_break_the_time_down_by_stage(skirt_case):
+    """Issue 14's breakdown: forward solves (exact and inexact) and objective + adjoints, within the run's
+    time."""
+    _, _, result = skirt_case
+    st = result.metrics["stage_seconds"]
+    assert set(st) == {"exact_solves", "inexact_solves", "objective_and_adjoints"}
+    assert st["exact_solves"] > 0 and st["inexact_solves"] > 0 and st["objective_and_adjoints"] > 0
+    assert sum(st.values()) <= result.metrics["seconds"] + 1e-6

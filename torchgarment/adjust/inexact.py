@@ -139,6 +139,9 @@ class AdjustProblem:
         self.retain_graph = bool(retain_graph)
         self.closure_evaluations = 0
         self.exact_evaluations = 0
+        #: wall seconds by stage of :meth:`evaluate`: ``exact_solves`` and ``inexact_solves`` (the forward
+        #: simulations), ``objective_and_adjoints`` (the costs and ``f.backward()``: the adjoint solves)
+        self.stage_seconds = {"exact_solves": 0.0, "inexact_solves": 0.0, "objective_and_adjoints": 0.0}
         self.last: Evaluation | None = None
         self.last_q: torch.Tensor | None = None
         self.last_p: torch.Tensor | None = None
@@ -241,12 +244,15 @@ class AdjustProblem:
             x = self.solver({self.parameter: p.to(self.model.dtype)},
                             iterations=None if exact else int(iterations),
                             max_iterations=max_iterations if exact else None)
+            t_solved = time.perf_counter()
+            self.stage_seconds["exact_solves" if exact else "inexact_solves"] += t_solved - t0
             f = self.objective(x, p)
             fval = float(f.detach())
             if not math.isfinite(fval):
                 raise NonConvergenceError(f"the objective is not finite ({fval}) at the current pattern")
             if need_grad:
                 f.backward(retain_graph=self.retain_graph)
+        self.stage_seconds["objective_and_adjoints"] += time.perf_counter() - t_solved
         gq = qr.grad.detach().clone() if need_grad else None
         if need_grad and self.retain_graph:
             self._graph = (qr, p, x)

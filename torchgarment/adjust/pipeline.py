@@ -725,6 +725,7 @@ def optimize(
         "adjoint_iterations": problem.adjoint_iterations,
         "adjoint_fallbacks": problem.adjoint_fallbacks,
         "exact_evaluations": problem.exact_evaluations,
+        "stage_seconds": dict(problem.stage_seconds),
         "backtracks": run.backtracks,
         "stopped": run.stopped,
         "base_drape_ok": bool(bd.get("ok", False)),
