@@ -188,3 +188,15 @@ def test_moving_a_skeleton_joint_moves_the_hem() -> None:
     hem_b, collar_b = run(0.15)
     assert hem_b < hem_a - 0.05, f"hem moved {1e3 * (hem_b - hem_a):.0f} mm for a 150 mm joint drop"
     assert abs(collar_b - collar_a) < 0.5 * abs(hem_b - hem_a)
+
+
+def test_runs_are_reproducible_and_threads_are_restored(toy_result: tuple) -> None:
+    """With one thread (the default) ipctk's queries run serially and a second run gives the same garment bit
+    for bit (with two, runs of one pair differed by 0.4 mm); the caller's thread counts are restored."""
+    import ipctk
+
+    p, first, _ = toy_result
+    torch_threads, ipctk_threads = torch.get_num_threads(), ipctk.get_num_threads()
+    again = retarget(p, progress=False)
+    assert torch.equal(again.garment_vertices, first.garment_vertices)
+    assert torch.get_num_threads() == torch_threads and ipctk.get_num_threads() == ipctk_threads

@@ -93,9 +93,12 @@ class RetargetSettings:
             (exact: re-culled after half of it of motion, see :class:`~torchgarment.sim.contact.
             MovingObstacleContact`); None keeps the
             whole avatar (slower broad phase on large or subdivided avatars).
-        threads: torch intra-op threads during the run (restored afterwards); None keeps the current number.
-            The per-element work is many small tensor ops, for which one thread is fastest (measured: 2
-            threads were 2-3x slower on a loaded 2-core machine).
+        threads: torch's intra-op threads and ipctk's threads during the run (both restored afterwards); None
+            keeps the current numbers. The per-element work is many small tensor ops, for which one thread is
+            fastest (measured: 2 threads were 2-3x slower on a loaded 2-core machine). With one ipctk thread a
+            run is reproducible bit for bit; ipctk's parallel queries (2 threads) made two runs of the same
+            pair differ by 0.4 mm, and a hard pair (a layered T-shirt on the 10 m creature) pass in one run
+            and fail in the next two.
         sparse_backend: the sparse direct solver of the Newton systems (``"superlu"``; ``"pardiso"`` when
             installed).
     """
@@ -289,9 +292,10 @@ def retarget(
     x_src = problem.garment_vertices * k
     log = _Progress(log_dir, progress)
     steps: list[dict] = []
-    saved_threads = torch.get_num_threads()
+    saved_threads = torch.get_num_threads(), ipctk.get_num_threads()
     if s.threads is not None:
         torch.set_num_threads(int(s.threads))
+        ipctk.set_num_threads(int(s.threads))
     try:
         # ---------------------------------------------------------------- Step 1
         t0 = time.perf_counter()
@@ -485,7 +489,8 @@ def retarget(
         }
     finally:
         log.close()
-        torch.set_num_threads(saved_threads)
+        torch.set_num_threads(saved_threads[0])
+        ipctk.set_num_threads(saved_threads[1])
     work = x / k
     return RetargetResult(
         garment_vertices=problem.to_work.inverse(work),
