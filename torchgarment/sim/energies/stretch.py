@@ -256,7 +256,8 @@ class PairOperator:
 
     def __init__(self, i: torch.Tensor, j: torch.Tensor, num_vertices: int) -> None:
         self.i, self.j, self.num_vertices = i, j, int(num_vertices)
-        self._mats: dict[tuple, tuple[torch.Tensor, ...]] = {}
+        self._mats: dict[tuple, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self._index: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def _get(self, dtype: torch.dtype,
              device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -285,10 +286,10 @@ class PairOperator:
         return device.type != "cpu"
 
     def _indices(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        key = ("indices", device)
-        if key not in self._mats:
-            self._mats[key] = (self.i.to(device), self.j.to(device))
-        return self._mats[key]
+        """``(i, j)`` on ``device`` (copied once per device)."""
+        if device not in self._index:
+            self._index[device] = (self.i.to(device), self.j.to(device))
+        return self._index[device]
 
     def diff(self, x: torch.Tensor) -> torch.Tensor:
         """(E, C) ``x[i] - x[j]`` for x (V, C)."""
@@ -320,7 +321,7 @@ class PairOperator:
         """Blocks of ``sum_s [[K_s, -K_s], [-K_s, K_s]]``: V diagonal blocks and 2E off-diagonal ``-K_s``."""
         diag = self.diagonal(K)
         ar = torch.arange(self.num_vertices, device=K.device)
-        i, j = self.i.to(K.device), self.j.to(K.device)
+        i, j = self._indices(K.device)
         return HessianBlocks(torch.cat([ar, i, j]), torch.cat([ar, j, i]), torch.cat([diag, -K, -K]))
 
 
