@@ -319,10 +319,15 @@ def fit_bodies(args: argparse.Namespace, jobs: list[tuple[str, str | Path]]) -> 
     t_fit = time.perf_counter()
     share = 1.0 / len(ok)  # the shared steps' time (model and bodies read, batched weights and fit), per body
     seconds = {"load": (t_load - t0) * share, "weights": (t_w - t_load) * share, "fit": (t_fit - t_w) * share}
+    mean_frame = None
+    if args.refine is not None:  # the refines' support reference: the mean-body drape placed for each body
+        from torchgarment.datadriven.basis import BodyFrame
+
+        mean_frame = BodyFrame.of(pca.mean.cpu(), pca.faces.cpu())
     for row, n in enumerate(ok):
         try:
             outcomes[n] = _finish_fit(args, jobs[n], bodies[n], pca, basis, info, fitter, w[row], x[row],
-                                      dict(seconds), len(ok))
+                                      dict(seconds), len(ok), mean_frame)
         except (TorchGarmentError, OSError) as exc:  # one body's failure (e.g. its refine) leaves the others
             outcomes[n] = exc
     return outcomes
@@ -330,8 +335,10 @@ def fit_bodies(args: argparse.Namespace, jobs: list[tuple[str, str | Path]]) -> 
 
 def _finish_fit(args: argparse.Namespace, job: tuple[str, str | Path], body: object, pca: BodyPCA,
                 basis: ClothingBasis, info: dict, fitter: object, w: object, x: object, seconds: dict,
-                batch: int) -> str:
-    """Refine, push out, measure and write one body's fit; returns the command's summary line."""
+                batch: int, mean_frame: object | None) -> str:
+    """Refine, push out, measure and write one body's fit; returns the command's summary line.
+    ``mean_frame``: the PCA mean body's :class:`~torchgarment.datadriven.basis.BodyFrame` (needed with
+    ``--refine``)."""
     t0 = time.perf_counter()
     from torchgarment.datadriven.online import push_out
     from torchgarment.io.mesh import save_obj
@@ -356,7 +363,7 @@ def _finish_fit(args: argparse.Namespace, job: tuple[str, str | Path], body: obj
         # body (as a cold drape's from its placed panels), not from the prediction
         from torchgarment.datadriven.basis import BodyFrame, place_for_body
 
-        placed = place_for_body(basis.garment.x.detach().cpu(), BodyFrame.of(pca.mean.cpu(), pca.faces.cpu()),
+        placed = place_for_body(basis.garment.x.detach().cpu(), mean_frame,
                                 BodyFrame.of(body.vertices.cpu(), body.faces.cpu()))
         r = refine(basis.garment, x, body, dset, iterations=args.refine, sdf=sdf, support=basis.support,
                    support_reference=placed)
