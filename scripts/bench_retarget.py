@@ -149,33 +149,17 @@ def _messy_garment(name: str, source: Body, cache: Path) -> tuple[torch.Tensor, 
 
 
 def _garmentcode_avatar(name: str) -> TestAvatar | None:
-    """A GarmentCode mean body rigged with the anny body fitted to its measurements (skeleton and skin weights
-    of the nearest anny vertex); None without ``../shared/data``."""
-    from scipy.spatial import cKDTree
-
-    from torchgarment.body import Body
+    """A GarmentCode mean body rigged from the anny body fitted to its measurements
+    (:func:`~torchgarment.retarget.avatars.rig_from_fitted_anny`); None without ``../shared/data``."""
     from torchgarment.body.load import load_body
-    from torchgarment.retarget.avatars import TestAvatar
+    from torchgarment.retarget.avatars import TestAvatar, rig_from_fitted_anny
 
     root = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "garmentcode" / "bodies"
     if not (root / f"{name}.obj").is_file():
         return None
-    from torchgarment.body.measure import measure_body
-
-    gc = load_body(root / f"{name}.obj")
-    m = measure_body(gc.vertices, gc.faces)
-    fitted = Body.from_measurements(height=m.height, bust=m.bust, waist=m.waist, hips=m.hips, closest=True)
-    v, fv = gc.vertices, fitted.vertices
-    # align the fitted body to the mesh: feet on the same floor, same centre in x and z
-    shift = torch.stack([v[:, 0].mean() - fv[:, 0].mean(), v[:, 1].min() - fv[:, 1].min(),
-                         v[:, 2].mean() - fv[:, 2].mean()])
-    idx = cKDTree((fv + shift).numpy()).query(v.numpy(), k=1)[1]
-    sk = fitted.skeleton
-    from torchgarment.body.skeleton import Skeleton
-
-    return TestAvatar(name=name, vertices=v, faces=gc.faces.long(),
-                      skeleton=Skeleton(sk.joints + shift, sk.bones, list(sk.names)),
-                      skin_weights=fitted.skin_weights[:, torch.as_tensor(idx)],
+    b = rig_from_fitted_anny(load_body(root / f"{name}.obj"))
+    return TestAvatar(name=name, vertices=b.vertices, faces=b.faces, skeleton=b.skeleton,
+                      skin_weights=b.skin_weights,
                       description=f"GarmentCode {name}, rigged from the fitted anny body")
 
 

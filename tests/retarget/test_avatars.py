@@ -134,3 +134,18 @@ def test_creatures_are_messy(avatars: dict) -> None:
         assert ipctk.has_intersections(ipctk.CollisionMesh(v, ipctk.edges(f), f), v), name
         # rigid skinning: every vertex belongs to one joint
         assert torch.equal(a.skin_weights.max(dim=0).values, torch.ones(v.shape[0], dtype=torch.float64))
+
+
+def test_rig_from_fitted_anny_recovers_a_chart_bodys_own_rig() -> None:
+    """An anny chart body stripped of its rig gets back a skeleton within 2 cm of its own and skin weights that
+    mostly name the same dominant joint (the refit from its measured girths is a slightly different body)."""
+    from torchgarment.body import Body
+    from torchgarment.retarget.avatars import rig_from_fitted_anny
+
+    own = Body.from_size("12")
+    rigged = rig_from_fitted_anny(Body(own.vertices, own.faces))
+    assert torch.equal(rigged.vertices, own.vertices) and rigged.skeleton.names == own.skeleton.names
+    assert float((rigged.skeleton.joints - own.skeleton.joints).norm(dim=1).max()) < 0.02
+    assert torch.allclose(rigged.skin_weights.sum(dim=0), torch.ones(own.num_vertices, dtype=torch.float64))
+    same = (rigged.skin_weights.argmax(dim=0) == own.skin_weights.argmax(dim=0)).double().mean()
+    assert float(same) > 0.9

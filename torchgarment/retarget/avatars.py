@@ -49,6 +49,7 @@ __all__ = [
     "ToyCase",
     "creature",
     "layered_garment",
+    "rig_from_fitted_anny",
     "edit_by_bones",
     "list_avatars",
     "make_avatar",
@@ -412,6 +413,35 @@ def _creature(triangles: int, height: float, offset: tuple[float, float, float])
     edited = _stretch_bones(_stretch_bones(_base("12"), ("upperarm", "lowerarm"), 1.3),
                             ("upperleg", "lowerleg"), 0.7)
     return _rescale(creature(edited, triangles), height, offset)
+
+
+def rig_from_fitted_anny(body: Body) -> Body:
+    """A skeleton and skin weights for an unrigged human mesh (e.g. a GarmentCode body): those of the anny
+    body fitted to the mesh's own measurements (height, bust, waist, hips; the closest anny body when they are
+    out of reach), placed on the same floor and centre in x and z, the weights taken from the nearest anny
+    vertex.
+
+    Args:
+        body: the mesh (metres, +Y up, A- or T-pose, closed), on the CPU.
+
+    Returns:
+        ``body``'s mesh with the fitted anny body's skeleton and (J, V) skin weights (columns sum to one).
+    """
+    from scipy.spatial import cKDTree
+
+    from torchgarment.body.measure import measure_body
+
+    v = body.vertices.detach().double().cpu()
+    m = measure_body(v, body.faces)
+    fitted = Body.from_measurements(height=m.height, bust=m.bust, waist=m.waist, hips=m.hips, closest=True)
+    fv = fitted.vertices.double()
+    shift = torch.stack([v[:, 0].mean() - fv[:, 0].mean(), v[:, 1].min() - fv[:, 1].min(),
+                         v[:, 2].mean() - fv[:, 2].mean()])
+    idx = torch.as_tensor(cKDTree((fv + shift).numpy()).query(v.numpy(), k=1)[1])
+    sk = fitted.skeleton
+    return Body(v.to(body.vertices.dtype), body.faces.long(),
+                Skeleton((sk.joints + shift).to(body.vertices.dtype), sk.bones.clone(), list(sk.names)),
+                fitted.skin_weights[:, idx].to(body.vertices.dtype), params={"rigged_from": "anny"})
 
 
 def _outward_offset(patch_v: np.ndarray, patch_f: np.ndarray, body: Body, offset: float) -> np.ndarray:
