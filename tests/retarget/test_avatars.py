@@ -137,8 +137,9 @@ def test_creatures_are_messy(avatars: dict) -> None:
 
 
 def test_rig_from_fitted_anny_recovers_a_chart_bodys_own_rig() -> None:
-    """An anny chart body stripped of its rig gets back a skeleton within 2 cm of its own and skin weights that
-    mostly name the same dominant joint (the refit from its measured girths is a slightly different body)."""
+    """An anny chart body stripped of its rig gets back a skeleton within 2 cm of its own and skin weights
+    that mostly name the same dominant joint (the refit from its measured girths is a slightly different
+    body)."""
     from torchgarment.body import Body
     from torchgarment.retarget.avatars import rig_from_fitted_anny
 

@@ -506,7 +506,9 @@ def layered_garment(vertices: torch.Tensor, faces: torch.Tensor, body: Body, *,
     if collar:
         loops = boundary_loops(f)
         top = max(loops, key=lambda lp: float(v[lp, 1].mean()))
-        near = np.min(np.linalg.norm(v[:, None] - v[top][None], axis=2), axis=1) <= 0.03
+        from scipy.spatial import cKDTree
+
+        near = cKDTree(v[top]).query(v, k=1)[0] <= 0.03
         pv, pf = _patch(v, f, near)
         add("collar", _outward_offset(pv, pf, body, offset), pf)
     if hood:
