@@ -39,6 +39,7 @@ PUBLIC = {
         "GradeResult",
         "base_drape_settings",
         "measure_fit",
+        "FitScale",
         "LineFit",
         "fit_rows",
         "construction_lines",

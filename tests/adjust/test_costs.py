@@ -78,6 +78,17 @@ def test_distance_cost():
     grad_checks(c, x, p)
     with pytest.raises(InputError):
         c(x[:-1], p)
+    # a fit scale s: the looseness kept in proportion; the garment scaled by s about the centre of a sphere
+    # scaled by s keeps it
+    s = 1.05
+    big = SphereSDF(0.15 * s)
+    scaled = DistanceCost.from_garment(m.x, base, big, weight=2.0, scale=s)
+    x_s = base.center + s * (m.x - base.center)
+    assert float(scaled(x_s, m.p)) < 1e-24 < float(DistanceCost.from_garment(m.x, base, big)(x_s, m.p))
+    assert torch.equal(DistanceCost.from_garment(m.x, base, big, scale=1.0).base_distance,
+                       DistanceCost.from_garment(m.x, base, big).base_distance)
+    with pytest.raises(InputError, match="scale"):
+        DistanceCost.from_garment(m.x, base, big, scale=-1.0)
 
 
 def test_hinge_kernel_vanishes_on_flat_embeddings():

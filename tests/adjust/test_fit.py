@@ -329,6 +329,51 @@ def test_line_targets_keep_the_base_ease_and_placement():
     assert set(d["lines"]) == {"waist", "hips"} and d["skipped"] == {}
 
 
+def test_fit_scale_asks_a_scaled_body_for_the_scaled_fit():
+    """``fit_scale``: 1 between the chart bodies (one height) and for ``none``, the height ratio onto a body
+    scaled by s. With it, the line targets on the body scaled by s about its feet are the base garment scaled
+    alike: every line (and every held hem vertex) at s times its base height above the feet, every girth s
+    times the base pattern's; ``scale=1`` is the absolute rule bit for bit."""
+    from torchgarment.adjust.acceptance import pattern_line_widths, scaled_body
+    from torchgarment.adjust.fit import FitScale, construction_lines, fit_scale, guide_lines, line_targets
+    from torchgarment.body import Body
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+    from torchgarment.pattern.meshing import mesh_pattern
+
+    body = Body.from_size("12")
+    assert fit_scale(body, Body.from_size("20")) == 1.0 and fit_scale(body, Body.from_size("6")) == 1.0
+    s = 1.05
+    big = scaled_body(body, s)
+    assert fit_scale(body, big) == pytest.approx(s, abs=1e-6)
+    assert fit_scale(body, big, "none") == 1.0 and fit_scale(body, big, FitScale.NONE) == 1.0
+    with pytest.raises(InputError, match="unknown fit scale 'girth'"):
+        fit_scale(body, big, "girth")
+    pattern = draft("straight_skirt", chart_row("12"))
+    mesh = mesh_pattern(pattern, 0.05)
+    c = torch.stack([body.vertices[:, 0].mean(), body.vertices[:, 1].min(), body.vertices[:, 2].mean()])
+    xs = c + s * (mesh.x - c)
+    lines = {**construction_lines(pattern),
+             **{k: (g.first, g.second) for k, g in guide_lines(pattern).items()}}
+    widths = pattern_line_widths(pattern, lines)
+    out = line_targets(pattern, mesh, mesh.x, xs, body, big, scale=fit_scale(body, big))
+    assert out.lines == ["waist", "hips", "hem"]
+    for i, line in enumerate(out.lines):
+        assert out.target_height_m[i] == pytest.approx(out.transfer_height_m[i], abs=2e-3), line
+        assert out.target_girth_m[i] == pytest.approx(s * widths[line], abs=2e-3), line
+    held = out.held_vertices
+    assert np.allclose(out.held_height_m, xs[held, 1].numpy(), atol=2e-3)
+    absolute = line_targets(pattern, mesh, mesh.x, xs, body, big)
+    one = line_targets(pattern, mesh, mesh.x, xs, body, big, scale=1.0)
+    assert one.target_girth_m == absolute.target_girth_m and one.target_height_m == absolute.target_height_m
+    assert np.array_equal(one.held_height_m, absolute.held_height_m)
+    # absolute lengths fall short by (s - 1) times the base ease at each line
+    hips = out.lines.index("hips")
+    assert out.target_girth_m[hips] - absolute.target_girth_m[hips] > 0.5e-3
+    with pytest.raises(InputError, match="scale"):
+        line_targets(pattern, mesh, mesh.x, xs, body, big, scale=0.0)
+
+
 def test_guide_line_keeps_the_hem_on_the_leg_and_follows_the_hip_grade():
     """The skirt's hem (a guide line): its target height keeps its height above the knee (the same height on
     a body of the same height, whatever the transfer does), its target girth takes the hip line's change;

@@ -240,10 +240,14 @@ def test_pipeline_gradient_is_loss_backward_through_the_solve_function(skirt_cas
         prob.reset_state(x_eq)
         return prob.evaluate(q, exact=True, need_grad=False).objective
 
-    # h = 3e-6 m: with the size-20 body of FIT_VERSION 6, a step of 1e-5 m along the first direction crosses
-    # a non-smooth point of the objective (FD error 1.5e-4, 2.2e-4 at 3e-5); at 3e-6 both agree to 5e-7
-    for ad, fd in directional_derivatives(objective, q0, ev.grad, directions=2, h=3e-6, seed=3):
-        assert abs(ad - fd) <= 1e-4 * abs(fd), (ad, fd)
+    # errors relative to the larger of the two directional derivatives: the first is small (0.12 against
+    # -2.23), and the central differences' noise grows as the step shrinks (the solves' tolerance over h):
+    # measured (pin extension kept, issue 18) 3.1e-5 / 9.1e-5 absolute at h = 1e-5, 1.9e-4 / 5.5e-4 at 3e-6,
+    # 4.3e-3 / 9.4e-3 at 3e-7; other seeds agree to 2e-7..2e-5 relative at 3e-6
+    pairs = directional_derivatives(objective, q0, ev.grad, directions=2, h=1e-5, seed=3)
+    scale = max(abs(fd) for _, fd in pairs)
+    for ad, fd in pairs:
+        assert abs(ad - fd) <= 1e-4 * scale, (ad, fd)
 
 
 def test_rejected_initialization_is_judged_by_a_short_optimization_from_each_start(skirt_case, monkeypatch):

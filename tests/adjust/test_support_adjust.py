@@ -44,13 +44,22 @@ def test_target_pins_sit_at_the_transferred_base_positions(case):
     pins = _pins(setup.model)
     assert pins is not None and "pins" in [e.value for e in setup.model.effects]
     assert torch.equal(pins.indices, base.support_indices)
-    # the sticking targets are the base drape's support positions carried by the positional cost's transfer
-    assert torch.equal(pins.targets.detach(), setup.x_transfer[base.support_indices])
-    # levelled: the band sits as high above the size-10 body's waist plane as above the size-12 body's
+    # the sticking targets are the base drape's support positions carried by the positional cost's transfer,
+    # plus the base's pin extension (each pin's target minus where its vertex hung in the base drape)
+    extension = base.support_targets - base.x[base.support_indices]
+    assert float(extension.norm(dim=1).max()) > 1e-4  # the base pins hold the band a sag above where it hangs
+    assert torch.allclose(pins.targets.detach(), setup.x_transfer[base.support_indices] + extension,
+                          rtol=0, atol=1e-15)
+    # levelled: the band hangs as high above the size-10 body's waist plane as above the size-12 body's (one
+    # chart height: a fit scale of 1), and its pins' targets sit as high above it as the base's did
     b12, b10 = case[1], case[2]
-    above_base = float(base.support_targets[:, 1].mean()) - float(b12.measurements().planes["waist"].point[1])
-    above_target = float(pins.targets[:, 1].mean()) - float(b10.measurements().planes["waist"].point[1])
-    assert above_target == pytest.approx(above_base, abs=1e-9)
+    waist12 = float(b12.measurements().planes["waist"].point[1])
+    waist10 = float(b10.measurements().planes["waist"].point[1])
+    above_base = float(base.x[base.support_indices, 1].mean()) - waist12
+    above_target = float(setup.x_transfer[base.support_indices, 1].mean()) - waist10
+    assert setup.fit_scale == 1.0 and above_target == pytest.approx(above_base, abs=1e-9)
+    assert float(pins.targets[:, 1].mean()) - waist10 == pytest.approx(
+        float(base.support_targets[:, 1].mean()) - waist12, abs=1e-9)
     assert setup.support_level_shift_m is not None and abs(setup.support_level_shift_m) < 0.05
     assert pins.stiffness == base.support_stiffness
     # prepare reused the given base drape: the objective's base garment is that drape

@@ -19,7 +19,7 @@ Re-exported here:
 * grading a size run (:mod:`torchgarment.adjust.grade`): :func:`grade` and its :class:`GradeResult`,
   :func:`base_drape_settings` (the base drape every size shares);
 * fit preservation (:mod:`torchgarment.adjust.fit`): :func:`measure_fit`, :class:`LineFit`, :func:`fit_rows`,
-  :func:`construction_lines`.
+  :func:`construction_lines`, :class:`FitScale` (how the kept fit scales with the body's height).
 
 The command line is :mod:`torchgarment.adjust.cli` and its demo :mod:`torchgarment.adjust.demo` (both in the
 command layer, not re-exported); the acceptance-study measurements are in
@@ -27,7 +27,7 @@ command layer, not re-exported); the acceptance-study measurements are in
 """
 
 from torchgarment.adjust.costs import DistanceCost, PositionalCost, SmoothnessCost, StretchingCost
-from torchgarment.adjust.fit import LineFit, construction_lines, fit_rows, measure_fit
+from torchgarment.adjust.fit import FitScale, LineFit, construction_lines, fit_rows, measure_fit
 from torchgarment.adjust.grade import GradeResult, grade
 from torchgarment.adjust.inexact import AdjustProblem
 from torchgarment.adjust.objective import AdjustObjective, CostWeights
@@ -61,6 +61,7 @@ __all__ = [
     "LBFGS",
     "AdjustObjective",
     "AdjustProblem",
+    "FitScale",
     "GradeResult",
     "LineFit",
     "base_drape_settings",

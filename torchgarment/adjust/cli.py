@@ -44,6 +44,7 @@ def _length_or_none(text: str) -> float | None:
 def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     """Add the options of :class:`~torchgarment.adjust.pipeline.AdjustSettings` that ``adjust`` and ``grade``
     share (read back by :func:`settings_from_args`)."""
+    from torchgarment.adjust.fit import FitScale
     from torchgarment.adjust.objective import (
         DEFAULT_EASE_WEIGHT,
         DEFAULT_PLACEMENT_WEIGHT,
@@ -96,6 +97,10 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
                         "position and curve held in the pattern) relative to the placement term; 0 turns it "
                         "off (default 1)")
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
+    p.add_argument("--fit-scale", default=d.fit_scale.value, choices=[k.value for k in FitScale],
+                   help="how the kept ease, line heights and waistband level scale with the body: 'stature' "
+                        "multiplies them by the target's height over the base's (1 within a size chart), "
+                        f"'none' keeps them absolute (default {d.fit_scale.value})")
     p.add_argument("--exact", action="store_true",
                    help="exact simulation at every iteration (no Algorithm 1)")
     p.add_argument("--init-iterations", type=int, default=d.init_iterations, metavar="N",
@@ -123,7 +128,8 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
                           exact_interval=args.exact_interval, inexact=not args.exact,
                           inner_solver=args.inner_solver, adjoint=args.adjoint,
                           init_iterations=args.init_iterations, initialize=not args.no_init, weights=weights,
-                          support=not args.no_support, init_trial_iterations=args.init_trial_iterations)
+                          support=not args.no_support, init_trial_iterations=args.init_trial_iterations,
+                          fit_scale=args.fit_scale)
 
 
 def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:

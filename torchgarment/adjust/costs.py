@@ -12,6 +12,7 @@ on the base body and of the base pattern ``p̄`` are computed once at constructi
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import torch
@@ -110,11 +111,15 @@ class DistanceCost(_LeastSquaresCost):
 
     @classmethod
     def from_garment(cls, x_base: torch.Tensor, base_sdf: torch.nn.Module, target_sdf: torch.nn.Module,
-                     weight: float = 1.0) -> "DistanceCost":
-        """The cost with ``phī(x̄)`` sampled from ``base_sdf`` at the base garment ``x_base`` (V, 3)."""
+                     weight: float = 1.0, scale: float = 1.0) -> "DistanceCost":
+        """The cost with ``phī(x̄)`` sampled from ``base_sdf`` at the base garment ``x_base`` (V, 3), times
+        ``scale`` (the fit scale, :func:`~torchgarment.adjust.fit.fit_scale`: the looseness kept in
+        proportion to the body's height; 1 keeps it as measured)."""
+        if not (math.isfinite(scale) and scale > 0):
+            raise InputError(f"DistanceCost: scale must be a positive number, got {scale}")
         with torch.no_grad():
             phi = base_sdf(x_base.to(dtype=_sdf_dtype(base_sdf, x_base)))
-        return cls(target_sdf, phi.to(x_base.dtype), weight)
+        return cls(target_sdf, phi.to(x_base.dtype) * scale, weight)
 
     def residuals(self, x: torch.Tensor, p: torch.Tensor | None = None) -> torch.Tensor:
         """(V,) ``phi(x_i) - phī(x̄_i)`` (metres)."""

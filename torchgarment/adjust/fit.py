@@ -45,6 +45,7 @@ from torchgarment.adjust.acceptance import (
     pattern_line_widths,
 )
 from torchgarment.errors import InputError
+from torchgarment.options import OptionEnum
 
 if TYPE_CHECKING:
     import torch
@@ -59,6 +60,7 @@ __all__ = [
     "GUIDE_LINES",
     "KNEE_HEIGHT_RATIO",
     "LANDMARKS",
+    "FitScale",
     "GuideLine",
     "LineTargets",
     "ROW_KEYS",
@@ -67,6 +69,7 @@ __all__ = [
     "chart_changes",
     "construction_lines",
     "fit_rows",
+    "fit_scale",
     "guide_lines",
     "knee_height",
     "landmark_heights",
@@ -204,6 +207,48 @@ def knee_height(body: Body) -> float:
     floor)."""
     floor = float(body.vertices[:, 1].min())
     return floor + KNEE_HEIGHT_RATIO * float(body.measurements().height)
+
+
+class FitScale(OptionEnum):
+    """How the lengths the fit rules keep scale from the base body to the target.
+
+    The rules keep lengths: each construction line's ease and its height above its landmark plane, each hem
+    guide's height above the knee (:func:`line_targets`), the support's height above the waist plane
+    (:func:`~torchgarment.adjust.transfer.level_support`) and the depth of its curve
+    (:class:`~torchgarment.adjust.regularizers.SupportShapeRegularizer`).
+
+    * ``stature`` (default): each kept length is multiplied by :func:`fit_scale`, the target's height over
+      the base's. The rules are then similarity-invariant: onto the base body scaled by ``s`` they ask for
+      the base fit scaled by ``s``, which the base pattern scaled by ``s`` has (the manufactured solution of
+      issue 18; with absolute lengths the rules asked a 5 % larger body for the base ease and heights, about
+      1.3 mm each on the straight skirt). Between bodies of one height, as a size chart's (every chart body
+      here is 1.6637 m to 0.5 um), the factor is exactly 1 and the rules are the absolute ones.
+    * ``none``: the base lengths kept as they are, whatever the target's height.
+    """
+
+    STATURE = "stature"
+    NONE = "none"
+
+
+STATURE_TOLERANCE_M = 1e-3
+"""Heights closer than this (m) are one height for :func:`fit_scale` (the chart bodies' measured heights
+differ by 0.5 um)."""
+
+
+def fit_scale(base_body: Body, target_body: Body, kind: FitScale | str = FitScale.STATURE) -> float:
+    """The factor on the lengths the fit rules keep (:class:`FitScale`): the target's height over the base's
+    (:meth:`Body.measurements`); exactly 1 for ``none`` and for heights within :data:`STATURE_TOLERANCE_M`
+    (a jump of at most 0.06 % of a kept length).
+
+    Raises:
+        InputError: an unknown ``kind``, or a body without a positive height.
+    """
+    if FitScale.resolve(kind) is FitScale.NONE:
+        return 1.0
+    hb, ht = float(base_body.measurements().height), float(target_body.measurements().height)
+    if not (hb > 0 and ht > 0 and math.isfinite(hb) and math.isfinite(ht)):
+        raise InputError(f"the fit scale needs two bodies of positive height, got {hb} and {ht} m")
+    return 1.0 if abs(ht - hb) < STATURE_TOLERANCE_M else ht / hb
 
 
 def landmark_heights(body: Body) -> dict[str, float]:
@@ -354,12 +399,14 @@ class LineTargets:
         base_height_m: per line, its mean corner height in the base drape.
         transfer_height_m: per line, its mean corner height in the transferred garment.
         target_height_m: per line, where it should sit on the target: as high above the target's
-            ``landmark`` plane as it sat above the base's (``at_landmarks``), else ``transfer_height_m``.
+            ``landmark`` plane as it sat above the base's, times the fit scale (``at_landmarks``), else
+            ``transfer_height_m``.
         base_girth_m: per line, the base pattern's girth.
         body_change_m: per line, the target body's girth at ``target_height_m`` minus the base body's at
             ``base_height_m``.
-        target_girth_m: per line, ``base_girth_m + body_change_m`` (the base ease kept); for a guide line,
-            its base girth plus the girth change of the line it follows.
+        target_girth_m: per line, ``base_girth_m + body_change_m`` (the base ease kept) plus ``(s - 1)``
+            times the base ease for a fit scale ``s`` (:func:`line_targets`); for a guide line, its base girth
+            plus the girth change of the line it follows (and the same proportional term).
         girth_slope: per line, the target body's girth change per metre of height at ``target_height_m``
             (central differences over +-:data:`GIRTH_SLOPE_STEP_M`; 0 for a guide line, or where a plane
             misses the body). Where a line sits on a steep part of the body (just under a full bust the girth
@@ -423,24 +470,29 @@ class LineTargets:
 def line_targets(pattern: SewingPattern, mesh: GarmentMesh, x_base: torch.Tensor, x_transfer: torch.Tensor,
                  base_body: Body, target_body: Body, *, at_landmarks: bool = True,
                  lines: dict[str, tuple[str, str]] | None = None,
-                 guides: dict[str, GuideLine] | None = None) -> LineTargets:
+                 guides: dict[str, GuideLine] | None = None, scale: float = 1.0) -> LineTargets:
     """Target heights and girths that keep the base drape's fit at each construction line (and guide line).
 
     Per line: its height in the base drape ``y_b`` and in the transferred garment ``y_t`` (mean of its corner
     vertices), its nearest landmark plane on the base body (``h_b``; ``h_t`` that plane on the target), the
-    target height ``y* = h_t + (y_b - h_b)`` (the base placement kept; ``y_t`` when not ``at_landmarks``),
-    the base pattern's girth ``P_b`` (corner-to-corner widths of ``mesh.p``), and the target girth
-    ``P_b + G_t(y*) - G_b(y_b)`` with ``G`` each body's :func:`body_girth_at` (the base ease kept).
+    target height ``y* = h_t + s (y_b - h_b)`` (the base placement kept, in proportion ``s``; ``y_t`` when
+    not ``at_landmarks``), the base pattern's girth ``P_b`` (corner-to-corner widths of ``mesh.p``), and the
+    target girth ``P_b + G_t(y*) - G_b(y_b) + (s - 1) e_b`` with ``G`` each body's :func:`body_girth_at` and
+    ``e_b = P_b - G_b(y_b)`` (the base ease kept, in proportion ``s``).
 
-    A guide line (:class:`GuideLine`) is placed the same way from the knee (:func:`knee_height`) and takes
-    the girth change ``G_t(y*) - G_b(y_b)`` of the construction line it follows.
+    A guide line (:class:`GuideLine`) is placed the same way from the knee (:func:`knee_height`; each held
+    vertex at ``knee_t + s (y_b,v - knee_b)``) and takes the girth change ``G_t(y*) - G_b(y_b)`` of the
+    construction line it follows, plus ``(s - 1)`` times its girth's excess over that line's base body girth.
+    With ``s = 1`` (the default, and :func:`fit_scale` between bodies of one height) every kept length is
+    absolute, bit for bit.
 
     Args:
         pattern: the pattern ``mesh`` was made from. mesh: its mesh (with a layout and ``p``).
         x_base: (V, 3) the base drape. x_transfer: (V, 3) the transferred garment (Eq. 15).
         base_body, target_body: the bodies. at_landmarks: place the lines by the landmark planes (else where
         the transfer carries them). lines: default :func:`construction_lines`. guides: default
-        :func:`guide_lines` (``{}``: none).
+        :func:`guide_lines` (``{}``: none). scale: ``s``, the factor on the kept lengths
+        (:func:`fit_scale`; > 0).
 
     Returns:
         The targets; a line whose plane misses a body (or a guide whose followed line was left out) is left
@@ -453,6 +505,8 @@ def line_targets(pattern: SewingPattern, mesh: GarmentMesh, x_base: torch.Tensor
 
     if mesh.p is None:
         raise InputError("line_targets needs the mesh's pattern positions p")
+    if not (math.isfinite(scale) and scale > 0):
+        raise InputError(f"line_targets: scale must be a positive number, got {scale}")
     lines = construction_lines(pattern) if lines is None else lines
     guides = guide_lines(pattern) if guides is None else guides
     p = mesh.p.detach().cpu().double().numpy()
@@ -464,14 +518,18 @@ def line_targets(pattern: SewingPattern, mesh: GarmentMesh, x_base: torch.Tensor
                       line_of=np.zeros(0, np.int64))
     corners, line_of = [], []
 
+    base_body_girth: dict[str, float] = {}
+
     def add(name: str, kind: str, idx: np.ndarray, landmark: str, yb: float, yt: float, y: float,
-            change: float, slope: float) -> None:
+            change: float, slope: float, body_girth: float) -> None:
         girth = float(np.linalg.norm(p[idx[:, 1]] - p[idx[:, 0]], axis=1).sum())
+        base_body_girth[name] = body_girth
         corners.append(idx)
         line_of.append(np.full(len(idx), len(out.lines), np.int64))
+        target = girth + change + (scale - 1.0) * (girth - body_girth)
         for key, value in (("lines", name), ("kind", kind), ("landmark", landmark), ("base_height_m", yb),
                            ("transfer_height_m", yt), ("target_height_m", y), ("base_girth_m", girth),
-                           ("body_change_m", change), ("target_girth_m", girth + change),
+                           ("body_change_m", change), ("target_girth_m", target),
                            ("girth_slope", slope)):
             getattr(out, key).append(value)
 
@@ -486,13 +544,14 @@ def line_targets(pattern: SewingPattern, mesh: GarmentMesh, x_base: torch.Tensor
         idx = line_vertices(pattern, mesh, first, second).reshape(-1, 2)
         yb, yt = float(xb[idx, 1].mean()), float(xt[idx, 1].mean())
         near = min(lm_b, key=lambda k: abs(yb - lm_b[k]))
-        y = lm_t[near] + (yb - lm_b[near]) if at_landmarks else yt
+        y = lm_t[near] + scale * (yb - lm_b[near]) if at_landmarks else yt
         try:
-            change = body_girth_at(target_body, y) - body_girth_at(base_body, yb)
+            g_b = body_girth_at(base_body, yb)
+            change = body_girth_at(target_body, y) - g_b
         except MeshError as e:
             out.skipped[name] = str(e)
             continue
-        add(name, "construction", idx, near, yb, yt, y, change, slope_at(y))
+        add(name, "construction", idx, near, yb, yt, y, change, slope_at(y), g_b)
     knee_b = knee_height(base_body)
     knee_t = knee_height(target_body) if at_landmarks else knee_b
     held = []
@@ -503,14 +562,17 @@ def line_targets(pattern: SewingPattern, mesh: GarmentMesh, x_base: torch.Tensor
             continue
         idx = line_vertices(pattern, mesh, guide.first, guide.second).reshape(-1, 2)
         yb, yt = float(xb[idx, 1].mean()), float(xt[idx, 1].mean())
-        y = knee_t + (yb - knee_b) if at_landmarks else yt
+        y = knee_t + scale * (yb - knee_b) if at_landmarks else yt
         add(name, "guide", idx, "knee", yb, yt, y, out.body_change_m[out.lines.index(guide.girth_follows)],
-            0.0)
+            0.0, base_body_girth[guide.girth_follows])
         along = verts[np.isin(labels, guide.edges)]
-        held.append((np.unique(np.concatenate([idx.reshape(-1), along])), y - yb))
+        held.append((np.unique(np.concatenate([idx.reshape(-1), along])), yb, y - yb))
     if corners:
         out.corners, out.line_of = np.concatenate(corners), np.concatenate(line_of)
     if held:
-        out.held_vertices = np.concatenate([v for v, _ in held]).astype(np.int64)
-        out.held_height_m = np.concatenate([xb[v, 1] + shift for v, shift in held])
+        # each vertex as high above the knee as in the base, in proportion: the line's shift plus (s - 1)
+        # times the vertex's height above the line's mean (0 for s = 1)
+        out.held_vertices = np.concatenate([v for v, _, _ in held]).astype(np.int64)
+        out.held_height_m = np.concatenate([xb[v, 1] + shift + (scale - 1.0) * (xb[v, 1] - yb)
+                                            for v, yb, shift in held])
     return out

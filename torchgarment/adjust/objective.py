@@ -221,6 +221,26 @@ def body_sdf(body: Body, dtype: torch.dtype, device: torch.device | str | None,
     return BodySDF.cached(body.vertices, body.faces, dtype=dtype, device=device).with_sampling(sampling)
 
 
+def scaled_panels(q: torch.Tensor, panel_of: torch.Tensor, s: float) -> torch.Tensor:
+    """(B, 2) boundary positions ``q`` (metres) with each panel scaled by ``s`` about the mean of its rows
+    (``panel_of``: (B,) long panel of each row); ``q`` itself for ``s == 1``.
+
+    Raises:
+        InputError: ``s`` not a positive number, or ``panel_of`` not (B,).
+    """
+    if not (math.isfinite(s) and s > 0):
+        raise InputError(f"scaled_panels: s must be a positive number, got {s}")
+    if s == 1.0:
+        return q
+    if panel_of.shape != q.shape[:1]:
+        raise InputError(f"scaled_panels: panel_of must be ({q.shape[0]},), got {tuple(panel_of.shape)}")
+    n = int(panel_of.max()) + 1
+    count = torch.zeros(n, dtype=q.dtype, device=q.device).index_add_(0, panel_of, torch.ones_like(q[:, 0]))
+    centre = (torch.zeros(n, 2, dtype=q.dtype, device=q.device).index_add_(0, panel_of, q)
+              / count.clamp(min=1)[:, None])[panel_of]
+    return centre + s * (q - centre)
+
+
 class AdjustObjective(torch.nn.Module):
     """Total weighted objective of Eq. 17 as a function of ``x`` (V, 3) and ``p`` (V, 2).
 
@@ -239,7 +259,7 @@ class AdjustObjective(torch.nn.Module):
                  x_transfer: torch.Tensor | None = None, base_sdf: torch.nn.Module | None = None,
                  target_sdf: torch.nn.Module | None = None, band: float = DEFAULT_BAND,
                  sdf_sampling: str = "trilinear", lines: LineTargets | None = None,
-                 support: torch.Tensor | None = None) -> None:
+                 support: torch.Tensor | None = None, fit_scale: float = 1.0) -> None:
         """Precompute every reference quantity.
 
         Args:
@@ -258,6 +278,11 @@ class AdjustObjective(torch.nn.Module):
             support: (P,) mesh vertices of the garment's support (the sticking line, e.g.
                 :attr:`~torchgarment.sim.drape.DrapeResult.support_indices`) whose pattern outline the
                 support-shape term holds; None: no such term.
+            fit_scale: factor on what the objective keeps of the base
+                (:func:`~torchgarment.adjust.fit.fit_scale`; the line targets carry their own): the distance
+                cost's base looseness, and the pattern the fixing and support-shape terms hold (each
+                panel's base boundary scaled about its mean, :func:`scaled_panels`); 1 keeps them as
+                measured.
 
         Raises:
             InputError: bad weights, shapes, or bodies of different topologies (when transferring).
@@ -282,7 +307,8 @@ class AdjustObjective(torch.nn.Module):
         if w.distance > 0:
             bs = base_sdf if base_sdf is not None else body_sdf(base_body, dtype, device, sdf_sampling)
             ts = target_sdf if target_sdf is not None else body_sdf(target_body, dtype, device, sdf_sampling)
-            costs["distance"] = DistanceCost.from_garment(base_mesh.x.detach(), bs, ts, w.distance)
+            costs["distance"] = DistanceCost.from_garment(base_mesh.x.detach(), bs, ts, w.distance,
+                                                          scale=fit_scale)
         if w.smoothness > 0:
             costs["smoothness"] = SmoothnessCost(base_mesh, w.smoothness)
         if w.stretching > 0:
@@ -301,8 +327,12 @@ class AdjustObjective(torch.nn.Module):
         # row of each mesh vertex in q (-1 off the boundary)
         pos = torch.full((V,), -1, dtype=torch.long)
         pos[parametrization.boundary_index.cpu()] = torch.arange(parametrization.num_boundary)
+        # the base pattern at the target's scale (q0 itself for a fit scale of 1): what the fixing and
+        # support-shape terms hold
+        row_panel = base_mesh.vertex_panel_ids.to(device)[parametrization.boundary_index.to(device)]
+        q_ref = scaled_panels(q0, row_panel, fit_scale)
         if w.fixing > 0:
-            regs["fixing"] = FixingRegularizer(q0, w.fixing * rf["fixing"])
+            regs["fixing"] = FixingRegularizer(q_ref, w.fixing * rf["fixing"])
         if w.curvature > 0:
             regs["curvature"] = BoundaryCurvatureRegularizer(parametrization, w.curvature * rf["curvature"],
                                                              w.corner_weight, q_base=q0)
@@ -348,7 +378,8 @@ class AdjustObjective(torch.nn.Module):
             # each panel's support counts as two corners, spread over its held vertices
             weight = (w.support_shape * w.placement * rf["lines"] * 2 * int(torch.unique(panel_of).numel())
                       / held.numel())
-            regs["support_shape"] = SupportShapeRegularizer(rows.to(device), panel_of.to(device), q0, weight)
+            regs["support_shape"] = SupportShapeRegularizer(rows.to(device), panel_of.to(device), q_ref,
+                                                            weight)
         self.costs = torch.nn.ModuleDict(costs)
         self.regularizers = torch.nn.ModuleDict(regs)
         self.num_vertices = V

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from torchgarment.adjust.fit import FitScale
 from torchgarment.adjust.inexact import AdjustProblem, InexactRunner, InexactSettings, IterationRecord
 from torchgarment.adjust.optimizers import OptimizerKind, make_optimizer
 from torchgarment.errors import InputError, PatternError
@@ -105,12 +106,18 @@ class AdjustSettings:
         support: stick the pattern's support (:attr:`SewingPattern.support`, e.g. a skirt's waistband; the
             paper's sticking energy ``F(x)`` of Eq. 4): the base drape holds it at the base body's waist
             (``DrapeSettings.support``) and the target simulation holds its vertices at their base positions
-            carried by the deformation transfer (the positional cost's ``x_transfer``), with the base drape's
-            pin stiffness. The transfer is levelled first
-            (:func:`~torchgarment.adjust.transfer.level_support`): the support sits as high above the
-            target's waist plane as above the base's, and the garment down to the hip plane follows (the
-            shift is ``support_level_shift_mm`` in the metrics). False: no support in either (the garment
-            hangs by its own tension).
+            carried by the deformation transfer (the positional cost's ``x_transfer``) plus the base's pin
+            extension (each pin's target minus where its vertex hung in the base drape, so that the support
+            hangs where the transfer carries it rather than one sag lower), with the base drape's pin
+            stiffness. The transfer is levelled first (:func:`~torchgarment.adjust.transfer.level_support`):
+            the support hangs as high above the target's waist plane as it hung above the base's, and the
+            garment down to the hip plane follows (the shift is ``support_level_shift_mm`` in the metrics).
+            False: no support in either (the garment hangs by its own tension).
+        fit_scale: how the lengths the fit rules keep (the lines' ease and heights, the support's level and
+            curve depth) scale with the body (:class:`~torchgarment.adjust.fit.FitScale`): ``"stature"``
+            (default) multiplies them by the target's height over the base's, so a uniformly scaled body gets
+            the uniformly scaled pattern (1 between bodies of one height, as a size chart's); ``"none"``
+            keeps them absolute.
     """
 
     optimizer: OptimizerKind = OptimizerKind.PGD
@@ -139,6 +146,7 @@ class AdjustSettings:
     band: float | None = None
     checkpoint_every: int = 0
     support: bool = True
+    fit_scale: FitScale = FitScale.STATURE
 
     def __post_init__(self) -> None:
         """Validate at construction (and on ``dataclasses.replace``)."""
@@ -151,6 +159,7 @@ class AdjustSettings:
         self.solver = SolverKind.resolve(self.solver)
         self.adjoint = AdjointLinearSolver.resolve(self.adjoint)
         self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
+        self.fit_scale = FitScale.resolve(self.fit_scale)
         checks = [
             (self.iterations >= 0, "iterations must be >= 0"),
             (self.inner_iterations >= 1 and self.exact_interval >= 1,
@@ -412,6 +421,7 @@ class AdjustSetup:
             moved the transferred support to the target's waist plane; None without a support.
         lines: the construction lines' targets of the objective's ease and placement terms
             (:func:`~torchgarment.adjust.fit.line_targets`); None without them.
+        fit_scale: the factor on the lengths the fit rules keep (:func:`~torchgarment.adjust.fit.fit_scale`).
     """
 
     settings: AdjustSettings
@@ -435,6 +445,7 @@ class AdjustSetup:
     timings: dict = field(default_factory=dict)
     support_level_shift_m: float | None = None
     lines: object | None = None
+    fit_scale: float = 1.0
 
     def new_problem(self, x_start: torch.Tensor | None = None, settings: AdjustSettings | None = None
                     ) -> AdjustProblem:
@@ -482,7 +493,7 @@ def prepare(
     Raises:
         InputError: see :func:`adjust`; ``base`` of another mesh.
     """
-    from torchgarment.adjust.fit import construction_lines, line_targets
+    from torchgarment.adjust.fit import construction_lines, fit_scale, line_targets
     from torchgarment.adjust.objective import AdjustObjective, CostWeights
     from torchgarment.adjust.parametrization import BoundaryParametrization
     from torchgarment.adjust.transfer import level_support, transfer_deformation
@@ -513,9 +524,12 @@ def prepare(
     x_transfer = transfer_deformation(base.x, base_body, target_body,
                                       **kw).to(dtype=dtype, device=mesh_base.device)
     support_shift = None
+    # the kept lengths' factor: the stature ratio (1 between a size chart's bodies) or 1
+    scale = fit_scale(base_body, target_body, settings.fit_scale)
     if settings.support and base.support_indices is not None:
-        # the support sits as high above the target's waist plane as it sat above the base's
-        above = float(base.support_targets[:, 1].mean()) - _plane_height(base_body, "waist")
+        # the support hangs as high above the target's waist plane as it hung above the base's (in
+        # proportion): its equilibrium heights, not its pins' targets (the pins hold it a sag above those)
+        above = scale * (float(base.x[base.support_indices, 1].mean()) - _plane_height(base_body, "waist"))
         x_transfer, support_shift = level_support(x_transfer, base.x.to(x_transfer), base.support_indices,
                                                   _plane_height(target_body, "waist") + above,
                                                   _plane_height(base_body, "hips"))
@@ -536,12 +550,13 @@ def prepare(
         # the line terms' targets: the base ease and placement at each construction line (placed by the
         # landmark planes when the placement term is on, else where the transfer carries the line)
         lines = line_targets(pattern_or_mesh, mesh_base, base.x, x_transfer, base_body, target_body,
-                             at_landmarks=weights.placement > 0)
+                             at_landmarks=weights.placement > 0, scale=scale)
     objective = AdjustObjective(mesh_base, base_body, target_body, param, weights,
                                 x_transfer=x_transfer,
                                 base_sdf=base_grid.with_sampling(SDFSampling.TRILINEAR),
                                 target_sdf=sdf.with_sampling(SDFSampling.TRILINEAR), lines=lines,
-                                support=base.support_indices if settings.support else None)
+                                support=base.support_indices if settings.support else None,
+                                fit_scale=scale)
     mat = replace(dset.material)
     if mesh_base.seam_pairs.shape[0] and dset.final_sew_stiffness is not None:
         mat.sew_stiffness = float(dset.final_sew_stiffness)
@@ -553,9 +568,12 @@ def prepare(
     pin_idx = pin_tgt = None
     if settings.support and base.support_indices is not None:
         # sticking targets: the base drape's support positions carried by the deformation transfer (Eq. 15),
-        # levelled with the target's waist plane (level_support)
+        # levelled with the target's waist plane (level_support), plus the base's pin extension (each
+        # target minus where its vertex hung): the support then hangs where the transfer carries it, not a
+        # second sag below
         pin_idx = base.support_indices.to(mesh_base.device)
-        pin_tgt = x_transfer[pin_idx].detach().clone()
+        extension = (base.support_targets.to(x_transfer) - base.x[base.support_indices].to(x_transfer))
+        pin_tgt = (x_transfer[pin_idx] + extension).detach().clone()
         mat.pin_stiffness = float(base.support_stiffness)
         effects.add(Effect.PINS)
     model = Scene(mesh_base.with_positions(x_transfer), body_sdf=sdf, effects=effects, material=mat,
@@ -591,7 +609,8 @@ def prepare(
     pattern = pattern_or_mesh if isinstance(pattern_or_mesh, SewingPattern) else None
     setup = AdjustSetup(settings, pattern, mesh_base, dict(base.metrics), x_transfer, param, objective, model,
                         exact, q_base, x_before, f_base, terms_base, q_init, x_init, f_init, terms_init,
-                        init_used, timings, support_level_shift_m=support_shift, lines=lines)
+                        init_used, timings, support_level_shift_m=support_shift, lines=lines,
+                        fit_scale=scale)
     if trial is not None:
         t1 = time.perf_counter()
         setup = _initialization_trial(setup, *trial)
@@ -736,6 +755,7 @@ def optimize(
         **_support_metrics(setup.model, run.x),
         "support_level_shift_mm": (None if setup.support_level_shift_m is None
                                    else 1e3 * setup.support_level_shift_m),
+        "fit_scale": setup.fit_scale,
         "line_targets": None if setup.lines is None else setup.lines.to_dict(),
         "pattern_fit_error_mm": None if fit_error is None else 1e3 * fit_error,
         **setup.timings,
