@@ -89,6 +89,20 @@ def test_reference_edge_length_option():
     assert fine.weights.reference_edge_length == 0.01
 
 
+def test_fit_scale_option(tmp_path):
+    """``--fit-scale``: ``stature`` by default, ``none`` on request; another name is refused by argparse
+    before anything is written."""
+    from torchgarment.adjust.cli import settings_from_args
+    from torchgarment.adjust.fit import FitScale
+
+    base = ["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", str(tmp_path)]
+    assert settings_from_args(_parse(base)).fit_scale is FitScale.STATURE
+    assert settings_from_args(_parse(base + ["--fit-scale", "none"])).fit_scale is FitScale.NONE
+    with pytest.raises(SystemExit):
+        _parse(base + ["--fit-scale", "girth"])
+    assert not any(tmp_path.iterdir())
+
+
 def test_line_term_options():
     """The construction lines' ease and placement terms: library defaults, settable, 0 turns them off."""
     from torchgarment.adjust.cli import settings_from_args
