@@ -113,8 +113,9 @@ class AdjustSettings:
             the support hangs as high above the target's waist plane as it hung above the base's, and the
             garment down to the hip plane follows (the shift is ``support_level_shift_mm`` in the metrics).
             False: no support in either (the garment hangs by its own tension).
-        fit_scale: how the lengths the fit rules keep (the lines' ease and heights, the support's level and
-            curve depth) scale with the body (:class:`~torchgarment.adjust.fit.FitScale`): ``"stature"``
+        fit_scale: how the lengths the fit rules keep (the lines' ease and heights, the support's level, the
+            distance cost's looseness, the pattern the fixing and support-shape terms hold) scale with the
+            body (:class:`~torchgarment.adjust.fit.FitScale`): ``"stature"``
             (default) multiplies them by the target's height over the base's, so a uniformly scaled body gets
             the uniformly scaled pattern (1 between bodies of one height, as a size chart's); ``"none"``
             keeps them absolute.
