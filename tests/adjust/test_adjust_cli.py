@@ -90,14 +90,14 @@ def test_reference_edge_length_option():
 
 
 def test_fit_scale_option(tmp_path):
-    """``--fit-scale``: ``stature`` by default, ``none`` on request; another name is refused by argparse
+    """``--fit-scale``: ``none`` by default, ``stature`` on request; another name is refused by argparse
     before anything is written."""
     from torchgarment.adjust.cli import settings_from_args
     from torchgarment.adjust.fit import FitScale
 
     base = ["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", str(tmp_path)]
-    assert settings_from_args(_parse(base)).fit_scale is FitScale.STATURE
-    assert settings_from_args(_parse(base + ["--fit-scale", "none"])).fit_scale is FitScale.NONE
+    assert settings_from_args(_parse(base)).fit_scale is FitScale.NONE
+    assert settings_from_args(_parse(base + ["--fit-scale", "stature"])).fit_scale is FitScale.STATURE
     with pytest.raises(SystemExit):
         _parse(base + ["--fit-scale", "girth"])
     assert not any(tmp_path.iterdir())

@@ -115,10 +115,9 @@ class AdjustSettings:
             False: no support in either (the garment hangs by its own tension).
         fit_scale: how the lengths the fit rules keep (the lines' ease and heights, the support's level, the
             distance cost's looseness, the pattern the fixing and support-shape terms hold) scale with the
-            body (:class:`~torchgarment.adjust.fit.FitScale`): ``"stature"``
-            (default) multiplies them by the target's height over the base's, so a uniformly scaled body gets
-            the uniformly scaled pattern (1 between bodies of one height, as a size chart's); ``"none"``
-            keeps them absolute.
+            body (:class:`~torchgarment.adjust.fit.FitScale`): ``"none"`` (default) keeps them absolute;
+            ``"stature"`` multiplies them by the target's height over the base's, so a uniformly scaled body
+            gets the uniformly scaled pattern (1 between bodies of one height, as a size chart's).
     """
 
     optimizer: OptimizerKind = OptimizerKind.PGD
@@ -147,7 +146,7 @@ class AdjustSettings:
     band: float | None = None
     checkpoint_every: int = 0
     support: bool = True
-    fit_scale: FitScale = FitScale.STATURE
+    fit_scale: FitScale = FitScale.NONE
 
     def __post_init__(self) -> None:
         """Validate at construction (and on ``dataclasses.replace``)."""
