@@ -311,3 +311,26 @@ def test_support_shape_term_is_built_from_the_support():
         interior = torch.tensor([int(torch.nonzero(~torch.isin(torch.arange(mesh.num_vertices),
                                                                P.boundary_index))[0])])
         AdjustObjective(mesh, body, body, P, w, **{**kw, "support": torch.cat([idx, interior])})
+
+
+def test_scaled_panels_scales_each_panel_about_its_mean():
+    """``scaled_panels``: each panel's rows scaled by s about their own mean (the means stay, every distance
+    within a panel grows by s, rows of different panels are not mixed); s = 1 returns ``q`` itself; a bad s or
+    a ``panel_of`` of another length is refused."""
+    from torchgarment.adjust.objective import scaled_panels
+
+    g = torch.Generator().manual_seed(0)
+    q = torch.randn(12, 2, generator=g, dtype=torch.float64)
+    panel_of = torch.tensor([0, 0, 0, 0, 1, 1, 1, 2, 2, 2, 2, 2])
+    s = 1.07
+    out = scaled_panels(q, panel_of, s)
+    for k in range(3):
+        a, b = q[panel_of == k], out[panel_of == k]
+        assert torch.allclose(b.mean(0), a.mean(0), atol=1e-14)
+        assert torch.allclose(torch.cdist(b, b), s * torch.cdist(a, a), atol=1e-13)
+    assert scaled_panels(q, panel_of, 1.0) is q
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(InputError, match="positive"):
+            scaled_panels(q, panel_of, bad)
+    with pytest.raises(InputError, match="panel_of"):
+        scaled_panels(q, panel_of[:-1], s)
