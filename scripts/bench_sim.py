@@ -4,7 +4,7 @@ Usage:
     python scripts/bench_sim.py [--json FILE] [--sizes 5000 15000 30000 60000] [--garment tshirt]
                                 [--body-size 12] [--voxel-mm 2.5] [--sdf-dtype float32] [--threads 2]
                                 [--warmup 200] [--iterations 60] [--calls 60] [--rounds 6]
-                                [--diagonal-interval 4] [--device cpu|cuda] [--profile N]
+                                [--diagonal-interval 4] [--device cpu|cuda] [--sweep] [--profile N]
 
 For every target size the library garment ``--garment`` (drafted for chart size ``--body-size``) is meshed at
 the edge length that gives about that many vertices, and a scene with stretch, sew, bend, gravity and the body
@@ -53,7 +53,7 @@ from torchgarment.pattern.library import draft
 from torchgarment.pattern.meshing import mesh_pattern
 from torchgarment.sdf import BodySDF, SDFSettings
 from torchgarment.sim.scene import Effect, Scene, SimModel
-from torchgarment.sim.solvers import SolveSettings, solve
+from torchgarment.sim.solvers import Preconditioner, SolveSettings, solve
 from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse
 
 if TYPE_CHECKING:
@@ -257,6 +257,9 @@ def main() -> None:
                     help="also time iterations with the Hessian diagonal recomputed only every this many "
                          "iterations")
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (the mesh, the SDF and the solve)")
+    ap.add_argument("--sweep", action="store_true",
+                    help="also time the iteration at about 30K vertices with each SWEEP configuration (and "
+                         "on a GPU the elastic terms replayed from a CUDA graph)")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="also print torch.profiler's table of N solver iterations at about 30K vertices")
     args = ap.parse_args()
@@ -296,11 +299,27 @@ def main() -> None:
                     "ratio_to_bare_spring": TARGET_RATIO},
         "sizes": rows,
     }
+    if args.sweep:
+        out["sweep"] = sweep(args, pattern, sdf, r30["target_vertices"])
     if args.json:
         with atomic_open(args.json, "w") as f:
             json.dump(out, f, indent=2)
     if args.profile > 0:
-        profile_iterations(args, pattern, sdf, r30["vertices"])
+        profile_iterations(args, pattern, sdf, r30["target_vertices"])
+
+
+def settled_state(args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF,
+                  target: int) -> tuple[GarmentMesh, SimModel, torch.Tensor]:
+    """``(mesh, model, x)``: the garment meshed at about ``target`` vertices, its full scene
+    (:data:`EFFECTS`) and its state after ``--warmup`` GD-Chebyshev iterations from the placed panels (as
+    :func:`bench_size`)."""
+    mesh, _ = mesh_with_vertices(pattern, target, torch.float64)
+    mesh = mesh.to(sdf.device)
+    model = Scene(mesh, body_sdf=sdf, effects=set(EFFECTS)).build()
+    x = model.project_feasible(mesh.x.detach())
+    x, _ = solve(model, x, SolveSettings(rtol=0.0, atol=0.0), solver="gd-chebyshev",
+                 max_iterations=max(args.warmup, 1))
+    return mesh, model, x
 
 
 def profile_iterations(args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF, target: int) -> None:
@@ -308,12 +327,8 @@ def profile_iterations(args: argparse.Namespace, pattern: SewingPattern, sdf: Bo
     iterations at about ``target`` vertices, after the warm-up; where the iteration's time goes."""
     from torch.profiler import ProfilerActivity, profile
 
-    mesh, _ = mesh_with_vertices(pattern, target, torch.float64)
-    mesh = mesh.to(sdf.device)
-    model = Scene(mesh, body_sdf=sdf, effects=set(EFFECTS)).build()
+    mesh, model, x = settled_state(args, pattern, sdf, target)
     settings = SolveSettings(rtol=0.0, atol=0.0)
-    x = model.project_feasible(mesh.x.detach())
-    x, _ = solve(model, x, settings, solver="gd-chebyshev", max_iterations=max(args.warmup, 1))
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if sdf.device.type == "cuda" else [])
     with profile(activities=activities) as prof:
         solve(model, x, settings, solver="gd-chebyshev", max_iterations=args.profile)
@@ -325,6 +340,72 @@ def profile_iterations(args: argparse.Namespace, pattern: SewingPattern, sdf: Bo
     print(table.table(sort_by=key, row_limit=25, max_name_column_width=60))
     if sdf.device.type == "cuda":
         print(table.table(sort_by="self_cpu_time_total", row_limit=25, max_name_column_width=60))
+
+
+SWEEP = {
+    # name: (settings changed from SolveSettings(rtol=0, atol=0), whether the barrier samples only the
+    # vertices that may be within its range (its default) or every vertex)
+    "default": ({}, True),
+    "barrier_every_vertex": ({}, False),
+    "preconditioner_every_4": ({"diagonal_interval": 4}, True),
+    "no_seam_blocks": ({"seam_blocks": False}, True),
+    "scalar_jacobi": ({"preconditioner": Preconditioner.SCALAR}, True),
+    "every_vertex+every_4+no_seam_blocks": ({"diagonal_interval": 4, "seam_blocks": False}, False),
+}
+"""The ``--sweep`` configurations: each switches settings that exist, on the same state."""
+
+
+def sweep(args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF, target: int) -> dict:
+    """What each part of an iteration costs on this device: the median and minimum ms per iteration of each
+    :data:`SWEEP` configuration from the same state (interleaved rounds), and on a GPU the elastic terms'
+    ``value_and_grad`` (stretch, sew, bend, gravity) eager against a replay of it captured in a CUDA graph
+    (what graph capture of the static-shape terms would save)."""
+    mesh, model, x = settled_state(args, pattern, sdf, target)
+    barrier = model.term(Effect.BODY_BARRIER.value)
+    base = SolveSettings(rtol=0.0, atol=0.0)
+    per_round = max(1, args.iterations // args.rounds)
+
+    def task(changes: dict, lazy: bool) -> Callable[[], list[float]]:
+        def run() -> list[float]:
+            barrier.lazy = lazy
+            try:
+                return iteration_times(model, x, replace(base, **changes), per_round)
+            finally:
+                barrier.lazy = True
+        return run
+
+    res = run_interleaved({name: task(*cfg) for name, cfg in SWEEP.items()}, args.rounds)
+    out: dict = {"vertices": mesh.num_vertices,
+                 "ms_per_iteration": {k: v[0] for k, v in res.items()},
+                 "ms_per_iteration_min": {k: v[1] for k, v in res.items()}}
+    if x.device.type == "cuda":
+        elastic = Scene(mesh, effects={Effect.STRETCH, Effect.SEW, Effect.BEND, Effect.GRAVITY}).build()
+        xs = x.clone()
+        out["elastic_value_grad_eager_ms"] = 1e3 * statistics.median(
+            call_times(lambda xc: elastic.value_and_grad(xs), xs, args.calls))
+        side = torch.cuda.Stream(x.device)
+        side.wait_stream(torch.cuda.current_stream(x.device))
+        with torch.cuda.stream(side):
+            for _ in range(3):  # warm-up on a side stream, as graph capture asks
+                elastic.value_and_grad(xs)
+        torch.cuda.current_stream(x.device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            _, g_graph = elastic.value_and_grad(xs)
+        out["elastic_value_grad_graph_ms"] = 1e3 * statistics.median(
+            call_times(lambda xc: graph.replay(), xs, args.calls))
+        xs.add_(1e-6)
+        graph.replay()
+        out["graph_matches_eager"] = bool(torch.allclose(g_graph, elastic.value_and_grad(xs)[1], rtol=1e-9,
+                                                         atol=1e-12))
+    print(f"\nsweep at {mesh.num_vertices} vertices on {x.device} (ms per iteration, median / min):")
+    for k in SWEEP:
+        print(f"  {k:>38} {out['ms_per_iteration'][k]:7.2f} {out['ms_per_iteration_min'][k]:7.2f}")
+    if "elastic_value_grad_graph_ms" in out:
+        print(f"  elastic terms' value_and_grad: eager {out['elastic_value_grad_eager_ms']:.3f} ms, CUDA "
+              f"graph replay {out['elastic_value_grad_graph_ms']:.3f} ms (same gradient: "
+              f"{out['graph_matches_eager']})")
+    return out
 
 
 if __name__ == "__main__":
