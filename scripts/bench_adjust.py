@@ -5,7 +5,7 @@ Usage:
     python scripts/bench_adjust.py --json FILE [--vertices 30000] [--iterations 256] [--garment sheath_dress]
         [--base-size 12] [--target-size 20] [--voxel 0.005] [--threads 2] [--inner-iterations 2]
         [--inner-solver newton|gd-chebyshev] [--adjoint direct|iterative] [--adjoint-max-iterations 50]
-        [--reuse-factorization] [--setup FILE] [--device cpu|cuda]
+        [--reuse-factorization] [--linear-solver direct|jacobi-pcg] [--setup FILE] [--device cpu|cuda]
 
 ``--setup FILE`` saves the precomputation (base drape, transfer, initialization: minutes at 30K vertices) on
 the first run and loads it on the next ones, so that optimizer options can be compared on one setup.
@@ -65,6 +65,9 @@ def main() -> None:
     ap.add_argument("--sparse-backend", default="superlu", choices=["superlu", "pardiso", "cholespy"],
                     help="sparse direct solver of Newton systems, adjoints and tangents (pardiso/cholespy: "
                          "when installed)")
+    ap.add_argument("--linear-solver", default="direct", choices=["direct", "jacobi-pcg"],
+                    help="Newton's linear solves (AdjustSettings.linear_solver): a factorization on the CPU "
+                         "or block-Jacobi CG on --device")
     ap.add_argument("--setup", default=None, metavar="FILE",
                     help="load the precomputation from FILE when it exists, else compute it and save it "
                          "there (torch.save of the AdjustSetup; the timed optimization is unaffected)")
@@ -93,7 +96,7 @@ def main() -> None:
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
                               adjoint_max_iterations=args.adjoint_max_iterations,
                               reuse_factorization=args.reuse_factorization,
-                              sparse_backend=args.sparse_backend)
+                              sparse_backend=args.sparse_backend, linear_solver=args.linear_solver)
     t0 = time.perf_counter()
     if args.setup and Path(args.setup).is_file():
         setup = torch.load(args.setup, weights_only=False, map_location=device)
@@ -113,7 +116,7 @@ def main() -> None:
                                   exact_interval=args.exact_interval, inner_solver=args.inner_solver,
                                   adjoint=args.adjoint, adjoint_max_iterations=args.adjoint_max_iterations,
                                   reuse_factorization=args.reuse_factorization,
-                                  sparse_backend=args.sparse_backend),
+                                  sparse_backend=args.sparse_backend, linear_solver=args.linear_solver),
                    progress=True)
     m = res.metrics
     out = {
@@ -123,6 +126,7 @@ def main() -> None:
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
         "exact_interval": args.exact_interval,
         "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
+        "linear_solver": args.linear_solver,
         "adjoint_iterations": m["adjoint_iterations"],
         "adjoint_max_iterations": args.adjoint_max_iterations,
         "adjoint_factorizations": m["factorizations"],

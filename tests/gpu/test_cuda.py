@@ -59,6 +59,22 @@ def test_drape_on_cuda_matches_cpu(tmp_path: Path) -> None:
     assert gap <= 2e-3
 
 
+def test_drape_with_jacobi_pcg_on_cuda_matches_the_direct_solver(tmp_path: Path) -> None:
+    """The settle stage's Newton by block-Jacobi CG on the device (``--linear-solver jacobi-pcg``: no
+    factorization) against the CPU's default (SuperLU): same usable drape, the mean vertex within 0.5 mm (a
+    hem may settle on another of its equilibria, see the README's reproducibility floor)."""
+    argv = ["drape", "--pattern", "straight_skirt", "--size", "12", "--body", "12", *COARSE]
+    ref, dev = tmp_path / "reference", tmp_path / "device"
+    assert cli.main([*argv, "--out", str(ref), "--device", "cpu"]) == 0
+    assert cli.main([*argv, "--out", str(dev), "--device", DEVICE, "--linear-solver", "jacobi-pcg"]) == 0
+    mc, mg = _metrics(ref), _metrics(dev)
+    d = (_vertices(ref) - _vertices(dev)).norm(dim=1)
+    print(f"drape jacobi-pcg: cpu direct {mc['seconds']:.2f} s, {DEVICE} jacobi-pcg {mg['seconds']:.2f} s, "
+          f"mean difference {1e3 * float(d.mean()):.3f} mm, largest {1e3 * float(d.max()):.3f} mm")
+    assert mg["inside_vertices"] == 0 and mg["converged"]
+    assert float(d.mean()) <= 5e-4
+
+
 def test_adjust_on_cuda_matches_cpu(tmp_path: Path) -> None:
     cpu, gpu = _both(tmp_path, ["adjust", "--garment", "straight_skirt", "--base-size", "12", "--target-size",
                                 "16", "--iterations", "4", "--exact-interval", "2", "--log-dir",
@@ -69,7 +85,11 @@ def test_adjust_on_cuda_matches_cpu(tmp_path: Path) -> None:
     mc, mg = _metrics(cpu), _metrics(gpu)
     print(f"adjust: objective cpu {mc['objective_final']:.6g}, cuda {mg['objective_final']:.6g}; "
           f"seconds cpu {mc.get('seconds')}, cuda {mg.get('seconds')}")
-    assert mg["objective_final"] <= 1.02 * mc["objective_final"] + 1e-12
+    # The GPU's atomic scatter-adds change the last bits run to run, and a short adjustment amplifies them
+    # (the README: a 1e-16 change moved final objectives by -14 % to +18 %). On an H200 the same command gave
+    # 2.55 and 2.77 against the CPU's 2.67 (2026-11-26), so the check is that it optimizes as well, not
+    # to the bit.
+    assert mg["objective_final"] <= 1.15 * mc["objective_final"] + 1e-12
 
 
 def test_pca_fit_on_cuda_matches_cpu(tmp_path: Path) -> None:

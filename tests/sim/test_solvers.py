@@ -477,3 +477,43 @@ def test_newton_reusing_its_factorization_reaches_the_same_equilibrium(
     torch.testing.assert_close(xb, xa, rtol=0.0, atol=1e-7)
     with pytest.raises(InputError):
         SolveSettings(pcg_rtol=1.5).validate()
+
+
+def test_jacobi_pcg_solve_matches_a_direct_solve() -> None:
+    """sim.solvers.jacobi_pcg_solve: block- and scalar-Jacobi CG on a real SPD system (a spring net's Hessian
+    plus a shift) reaches the direct solution to its tolerance; no factorization."""
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    from torchgarment.sim.solvers import jacobi_pcg_solve
+
+    m = SpringNetModel(n=8)
+    h = CSRAssembler(m.num_vertices).assemble(m.hessian_blocks(m.x0(), project_psd=True))
+    h = (h + 1e-3 * scipy.sparse.identity(h.shape[0], format="csr")).tocsr()
+    rhs = np.random.default_rng(3).standard_normal(h.shape[0])
+    exact = scipy.sparse.linalg.spsolve(h.tocsc(), rhs)
+    for blocks in (True, False):
+        y, its = jacobi_pcg_solve(h, rhs, torch.device("cpu"), 1e-10, 10_000, blocks=blocks)
+        assert y is not None and 0 < its < 10_000
+        assert np.linalg.norm(h @ y - rhs) <= 1e-9 * np.linalg.norm(rhs)
+        np.testing.assert_allclose(y, exact, rtol=0.0, atol=1e-8 * np.abs(exact).max())
+    with pytest.raises(InputError):
+        jacobi_pcg_solve(h[:-1, :-1], rhs[:-1], torch.device("cpu"), 1e-6, 10)
+
+
+def test_newton_with_jacobi_pcg_reaches_the_same_equilibrium() -> None:
+    """SolveSettings(linear_solver="jacobi-pcg"): inexact Newton steps by block-Jacobi CG (no factorization,
+    the GPU path) converge to the equilibrium plain Newton finds; it excludes reuse_factorization."""
+    m = SpringNetModel(n=8)
+    st = dict(rtol=1e-10, atol=0.0, max_iterations=200)
+    xa, ia = solve(m, m.x0(), SolveSettings(**st), solver="newton")
+    xb, ib = solve(m, m.x0(), SolveSettings(linear_solver="jacobi-pcg", jacobi_pcg_rtol=1e-6, **st),
+                   solver="newton")
+    assert ia.converged and ib.converged
+    torch.testing.assert_close(xb, xa, rtol=0.0, atol=1e-7)
+    with pytest.raises(InputError, match="reuse_factorization"):
+        SolveSettings(linear_solver="jacobi-pcg", reuse_factorization=True)
+    with pytest.raises(InputError):
+        SolveSettings(linear_solver="cholmod")
+    with pytest.raises(InputError):
+        SolveSettings(jacobi_pcg_rtol=0.0)

@@ -52,7 +52,7 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     )
     from torchgarment.adjust.optimizers import OptimizerKind
     from torchgarment.adjust.pipeline import AdjustSettings
-    from torchgarment.sim.solvers import SolverKind
+    from torchgarment.sim.solvers import LinearSolver, SolverKind
 
     d = AdjustSettings()
     p.add_argument("--optimizer", default=d.optimizer.value, choices=[k.value for k in OptimizerKind],
@@ -71,6 +71,10 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--inner-solver", default=d.inner_solver.value, choices=[k.value for k in SolverKind],
                    help=f"solver of the S-iteration simulations (default {d.inner_solver.value}; "
                         f"gd-chebyshev for large meshes)")
+    p.add_argument("--linear-solver", default=d.linear_solver.value, choices=[k.value for k in LinearSolver],
+                   help="how the simulation's newton solves its systems: a sparse factorization on the CPU "
+                        "(direct) or block-Jacobi CG on --device (jacobi-pcg; with --adjoint iterative no "
+                        f"simulation system is factorized, the GPU path) (default {d.linear_solver.value})")
     p.add_argument("--adjoint", default="direct", choices=["direct", "iterative", "sparse", "cg"],
                    help="adjoint solve of the gradients: direct (= sparse, the default) or iterative "
                         "(= cg, for large meshes)")
@@ -129,7 +133,7 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
                           inner_solver=args.inner_solver, adjoint=args.adjoint,
                           init_iterations=args.init_iterations, initialize=not args.no_init, weights=weights,
                           support=not args.no_support, init_trial_iterations=args.init_trial_iterations,
-                          fit_scale=args.fit_scale)
+                          fit_scale=args.fit_scale, linear_solver=args.linear_solver)
 
 
 def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:

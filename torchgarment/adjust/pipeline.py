@@ -40,7 +40,7 @@ from torchgarment.sim.diff import AdjointLinearSolver
 from torchgarment.sim.drape import DrapeResult, DrapeSettings, drape
 from torchgarment.sim.energies.pins import Pins
 from torchgarment.sim.scene import Effect, Scene
-from torchgarment.sim.solvers import SolverKind, SolveSettings
+from torchgarment.sim.solvers import LinearSolver, SolverKind, SolveSettings
 from torchgarment.sim.support import support_metrics
 from torchgarment.structures.garment_mesh import GarmentMesh
 
@@ -101,6 +101,11 @@ class AdjustSettings:
             dress; without it by ~1e-10) and a resumed run no longer repeats the uninterrupted one.
         sparse_backend: the sparse direct solver of the simulation's Newton systems, adjoints and tangents
             (:class:`~torchgarment.linalg.SparseBackend`: ``"superlu"``, or ``"pardiso"`` when installed).
+        linear_solver: how the simulation's Newton (the base drape's settle, the exact and Newton inexact
+            solves) solves its systems (:class:`~torchgarment.sim.solvers.LinearSolver`): ``"direct"``
+            (``sparse_backend``, default) or ``"jacobi-pcg"`` (block-Jacobi CG on the device, no
+            factorization; with ``adjoint="iterative"`` no simulation system is factorized, only the
+            optimizer's small pattern-space preconditioner, once). Not with ``reuse_factorization``.
         band: blending band ``B`` of the deformation transfer in metres; None = its default.
         checkpoint_every: also write a checkpoint every this many iterations (0 = only on Ctrl-C).
         support: stick the pattern's support (:attr:`SewingPattern.support`, e.g. a skirt's waistband; the
@@ -143,6 +148,7 @@ class AdjustSettings:
     adjoint_max_iterations: int = 50
     reuse_factorization: bool = False
     sparse_backend: SparseBackend = SparseBackend.SUPERLU
+    linear_solver: LinearSolver = LinearSolver.DIRECT
     band: float | None = None
     checkpoint_every: int = 0
     support: bool = True
@@ -159,8 +165,12 @@ class AdjustSettings:
         self.solver = SolverKind.resolve(self.solver)
         self.adjoint = AdjointLinearSolver.resolve(self.adjoint)
         self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
+        self.linear_solver = LinearSolver.resolve(self.linear_solver)
         self.fit_scale = FitScale.resolve(self.fit_scale)
         checks = [
+            (not (self.reuse_factorization and self.linear_solver == LinearSolver.JACOBI_PCG),
+             "reuse_factorization reuses a factorization, which linear_solver='jacobi-pcg' never makes: set "
+             "one of them"),
             (self.iterations >= 0, "iterations must be >= 0"),
             (self.inner_iterations >= 1 and self.exact_interval >= 1,
              "inner_iterations/exact_interval must be >= 1"),
@@ -456,7 +466,8 @@ class AdjustSetup:
                              self.x_init if x_start is None else x_start,
                              exact_settings=replace(self.exact_settings,
                                                     reuse_factorization=s.reuse_factorization,
-                                                    sparse_backend=s.sparse_backend),
+                                                    sparse_backend=s.sparse_backend,
+                                                    linear_solver=s.linear_solver),
                              solver=s.solver, inexact_solver=s.inner_solver, adjoint=s.adjoint,
                              adjoint_rtol=s.adjoint_rtol, adjoint_max_iterations=s.adjoint_max_iterations,
                              retain_graph=s.optimizer == OptimizerKind.GN)
@@ -467,7 +478,8 @@ def base_drape_settings(settings: AdjustSettings) -> DrapeSettings:
     ``settings.drape`` or ``DrapeSettings(edge_length, voxel_size)``, with the support held only when
     ``settings.support``."""
     dset = (settings.drape if settings.drape is not None
-            else DrapeSettings(edge_length=settings.edge_length, voxel_size=settings.voxel_size))
+            else DrapeSettings(edge_length=settings.edge_length, voxel_size=settings.voxel_size,
+                               linear_solver=settings.linear_solver))
     return replace(dset, support=dset.support and settings.support)
 
 
@@ -582,7 +594,7 @@ def prepare(
     exact = SolveSettings(rtol=0.0, atol=settings.atol_weight * weight,
                           max_iterations=settings.max_solver_iterations,
                           reuse_factorization=settings.reuse_factorization,
-                          sparse_backend=settings.sparse_backend)
+                          sparse_backend=settings.sparse_backend, linear_solver=settings.linear_solver)
     problem = AdjustProblem(model, param, objective, x_transfer, exact_settings=exact, solver=settings.solver,
                             inexact_solver=settings.inner_solver)
     q_base = param.initial().detach()

@@ -41,7 +41,7 @@ import torch
 from torchgarment.errors import InputError
 from torchgarment.sdf.grid import SDFSampling
 from torchgarment.sim.scene import Effect, Material, Scene, SimModel
-from torchgarment.sim.solvers import SolveInfo, SolverKind, SolveSettings, solve
+from torchgarment.sim.solvers import LinearSolver, SolveInfo, SolverKind, SolveSettings, solve
 from torchgarment.sim.support import (
     DEFAULT_SUPPORT_SAG,
     SupportLoop,
@@ -99,7 +99,10 @@ class DrapeSettings:
         reuse_factorization: the settle stage's Newton reuses its last factorization as a CG preconditioner
             (``SolveSettings.reuse_factorization``). Measured on the straight skirt, size 12: 7,349 vertices
             settle in 62.6 s instead of 96.8 s (138 and 136 iterations), 1,877 vertices in 5.5 s instead of
-            7.2 s.
+            7.2 s. No effect with ``linear_solver="jacobi-pcg"``, which makes no factorization.
+        linear_solver: how the settle stage's Newton solves its systems
+            (:class:`~torchgarment.sim.solvers.LinearSolver`): ``"direct"`` (a sparse factorization on the
+            CPU, default) or ``"jacobi-pcg"`` (block-Jacobi CG on the garment's device, the GPU path).
         max_displacement: GD trust region per iteration in metres.
         check_interval: iterations between seam-gap checks in the sewing stage.
         max_seam_gap: largest acceptable seam gap in metres for :attr:`DrapeResult.ok`.
@@ -125,6 +128,7 @@ class DrapeSettings:
     atol_weight: float = 1.0e-3
     max_iterations: int = 1500
     reuse_factorization: bool = True
+    linear_solver: LinearSolver = LinearSolver.DIRECT
     max_displacement: float | None = 0.01
     check_interval: int = 5
     max_seam_gap: float = 1.0e-3
@@ -135,11 +139,13 @@ class DrapeSettings:
         self.sew_solver = SolverKind.resolve(self.sew_solver)
         self.solver = SolverKind.resolve(self.solver)
         self.sdf_sampling = SDFSampling.resolve(self.sdf_sampling)
+        self.linear_solver = LinearSolver.resolve(self.linear_solver)
         self.validate()
 
     def validate(self) -> None:
         """Raise :class:`InputError` for out-of-range settings (called on construction; changes nothing)."""
-        for name, kind in (("sew_solver", SolverKind), ("solver", SolverKind), ("sdf_sampling", SDFSampling)):
+        for name, kind in (("sew_solver", SolverKind), ("solver", SolverKind), ("sdf_sampling", SDFSampling),
+                           ("linear_solver", LinearSolver)):
             if not isinstance(getattr(self, name), kind):
                 raise InputError(f"DrapeSettings.{name} must be one of {[k.value for k in kind]}, "
                                  f"got {getattr(self, name)!r}")
@@ -402,7 +408,9 @@ def drape(
     settle_settings = SolveSettings(rtol=settings.rtol, atol=settings.atol_weight * weight,
                                     max_iterations=settings.max_iterations,
                                     max_displacement=settings.max_displacement,
-                                    reuse_factorization=settings.reuse_factorization)
+                                    linear_solver=settings.linear_solver,
+                                    reuse_factorization=(settings.reuse_factorization
+                                                         and settings.linear_solver == LinearSolver.DIRECT))
     model = scene.build()
     x_start = model.project_feasible(x)
     energy_start = float(model.value_and_grad(x_start)[0])

@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``drape`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
     from torchgarment.sim.drape import DrapeSettings
-    from torchgarment.sim.solvers import SolverKind
+    from torchgarment.sim.solvers import LinearSolver, SolverKind
 
     d = DrapeSettings()
     p = subparsers.add_parser(
@@ -45,6 +45,10 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                    help=f"body SDF voxel size in metres (default {d.voxel_size})")
     p.add_argument("--solver", default=d.solver.value, choices=[k.value for k in SolverKind],
                    help=f"solver of the final (settle) stage (default {d.solver.value})")
+    p.add_argument("--linear-solver", default=d.linear_solver.value, choices=[k.value for k in LinearSolver],
+                   help="how the newton settle solves its systems: a sparse factorization on the CPU "
+                        "(direct) or block-Jacobi CG on --device (jacobi-pcg, the GPU path) "
+                        f"(default {d.linear_solver.value})")
     p.add_argument("--max-iterations", type=int, default=d.max_iterations, metavar="N",
                    help=f"iteration budget of the settle stage (default {d.max_iterations})")
     p.add_argument("--support", metavar="PANEL:EDGE[,...]",
@@ -55,7 +59,7 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
     p.add_argument("--device", default="cpu", metavar="D",
                    help="compute device: cpu, cuda or cuda:N (default cpu; the SDF build and the newton "
-                        "solver's factorizations stay on the CPU)")
+                        "solver's factorizations stay on the CPU; --linear-solver jacobi-pcg runs on it)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--allow-unconverged", action="store_true",
                    help="write the result even when it is unusable (far from equilibrium, far from the body) "
@@ -126,7 +130,8 @@ def cmd_drape(args: argparse.Namespace) -> int:
     if args.support is not None and args.no_support:
         raise InputError("--support and --no-support exclude each other")
     settings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel, solver=args.solver,
-                             max_iterations=args.max_iterations, support=not args.no_support)
+                             max_iterations=args.max_iterations, support=not args.no_support,
+                             linear_solver=args.linear_solver)
     settings.validate()
     device = resolve_device(args.device)
     t0 = time.perf_counter()

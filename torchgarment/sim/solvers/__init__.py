@@ -18,6 +18,7 @@ from torchgarment.errors import InputError
 from torchgarment.sim.solvers.chebyshev import solve_gd_chebyshev
 from torchgarment.sim.solvers.common import (
     Callback,
+    LinearSolver,
     NonFiniteError,
     Preconditioner,
     Safeguard,
@@ -27,15 +28,17 @@ from torchgarment.sim.solvers.common import (
     SolveSettings,
     check_x0,
 )
-from torchgarment.sim.solvers.newton import solve_newton
+from torchgarment.sim.solvers.newton import jacobi_pcg_solve, solve_newton
 
 __all__ = [
+    "LinearSolver",
     "NonFiniteError",
     "Preconditioner",
     "Safeguard",
     "SolveInfo",
     "SolveSettings",
     "SolverKind",
+    "jacobi_pcg_solve",
     "solve",
 ]
 

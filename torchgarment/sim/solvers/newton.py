@@ -23,6 +23,7 @@ next iterations start from it. The solve stops as stalled only when every damped
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -31,11 +32,14 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
-from torchgarment.errors import InputError, SingularMatrixError
-from torchgarment.linalg import CSRAssembler, FactorCache, SparseBackend, armijo_backtracking, factorize
+from torchgarment.errors import InputError, NonConvergenceError, SingularMatrixError
+from torchgarment.linalg import CSRAssembler, FactorCache, SparseBackend, armijo_backtracking, factorize, pcg
+from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse
 from torchgarment.sim.solvers.common import (
     Callback,
+    LinearSolver,
     NonFiniteError,
+    Preconditioner,
     SolveInfo,
     SolverKind,
     SolverModel,
@@ -66,6 +70,64 @@ def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, cache: FactorCache
     if cache is not None:
         cache.store(fact, shift)
     return y
+
+
+def jacobi_pcg_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, device: torch.device, rtol: float,
+                     max_iterations: int, *, blocks: bool = True) -> tuple[np.ndarray | None, int]:
+    """Solve ``h y = rhs`` (``h`` symmetric positive definite) by conjugate gradients on ``device``,
+    preconditioned by the inverse of ``h``'s 3x3 diagonal blocks (``blocks``; unknowns ordered ``x, y, z`` per
+    vertex) or of its scalar diagonal.
+
+    No factorization: one CSR product and one batched 3x3 product per iteration, on ``device`` (torch tensors,
+    :func:`~torchgarment.linalg.pcg`). Stops at relative residual ``rtol``, after ``max_iterations``, or at a
+    direction of non-positive curvature (Steihaug), returning the iterate reached; from a zero start every CG
+    iterate is a descent direction of the quadratic model.
+
+    Args:
+        h: (n, n) CSR float64 (n a multiple of 3 when ``blocks``).
+        rhs: (n,) float64.
+        device: where the iteration runs.
+        rtol, max_iterations: CG's stopping rule.
+        blocks: 3x3 block Jacobi (True) or scalar Jacobi.
+
+    Returns:
+        ``(y, iterations)``: y (n,) float64, or None when it is not finite.
+    """
+    n = h.shape[0]
+    if blocks and n % 3:
+        raise InputError(f"block-Jacobi PCG needs 3 unknowns per vertex, got a system of size {n}")
+    coo = h.tocoo()
+    if blocks:
+        same = coo.row // 3 == coo.col // 3  # the entries of the 3x3 diagonal blocks
+        diag = torch.zeros(n // 3, 9, dtype=torch.float64)
+        diag.index_put_((torch.from_numpy(coo.row[same] // 3),
+                         torch.from_numpy(coo.row[same] % 3 * 3 + coo.col[same] % 3)),
+                        torch.from_numpy(coo.data[same]), accumulate=True)
+        inv = jacobi_inverse(diag.view(-1, 3, 3), Preconditioner.BLOCK, 1e-8).to(device)
+
+        def precondition(r: torch.Tensor) -> torch.Tensor:
+            return apply_inverse(inv, r.view(-1, 3)).view(-1)
+    else:
+        d = torch.from_numpy(np.abs(h.diagonal()))
+        dinv = d.clamp_min(1e-8 * float(d.mean()) if n else 1.0).reciprocal_().to(device)
+
+        def precondition(r: torch.Tensor) -> torch.Tensor:
+            return dinv * r
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "sparse CSR support is in beta"
+        mat = torch.sparse_csr_tensor(torch.from_numpy(h.indptr.astype(np.int64)),
+                                      torch.from_numpy(h.indices.astype(np.int64)),
+                                      torch.from_numpy(np.ascontiguousarray(h.data, dtype=np.float64)),
+                                      size=h.shape).to(device)
+    b = torch.from_numpy(np.ascontiguousarray(rhs, dtype=np.float64)).to(device)
+    try:
+        y, iterations, _ = pcg(lambda v: (mat @ v.unsqueeze(1)).squeeze(1), b, precondition, rtol,
+                               max_iterations, stop_at_negative_curvature=True)
+    except NonConvergenceError:
+        return None, 0
+    out = y.cpu().numpy()
+    return (out if np.all(np.isfinite(out)) else None), iterations
 
 
 @dataclass
@@ -153,7 +215,8 @@ class NewtonOptions:
 
 def newton_direction(
     h: scipy.sparse.csr_matrix, g: np.ndarray, settings: SolveSettings, iteration: int,
-    cache: FactorCache | None = None, options: NewtonOptions | None = None,
+    cache: FactorCache | None = None, options: NewtonOptions | None = None, *,
+    device: torch.device | None = None, blocks: bool = True,
 ) -> tuple[np.ndarray, int]:
     """A descent direction ``dx`` solving ``(H + lambda I) dx = -g``, regularizing when needed.
 
@@ -166,9 +229,12 @@ def newton_direction(
             (``settings.reuse_factorization``), and keep every fresh factorization in it.
         options: the regularization policy (``regularize_first``, ``regularization_growth``,
             ``gradient_fallback``); None: the defaults.
+        device: where ``settings.linear_solver = "jacobi-pcg"`` iterates (None: the CPU).
+        blocks: that solver's preconditioner is 3x3 block Jacobi (False: scalar, for systems on a subset of
+            the unknowns).
 
     Returns:
-        ``(dx, retries)``: the direction (n,) and how many regularized factorizations were needed.
+        ``(dx, retries)``: the direction (n,) and how many regularized solves were needed.
 
     Raises:
         NonFiniteError: no descent direction was found after ``max_regularizations`` retries (unless
@@ -179,15 +245,23 @@ def newton_direction(
         dx = cache.solve(h, -g, settings.pcg_rtol, settings.pcg_max_iterations)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, 0
+
+    def linear_solve(a: scipy.sparse.csr_matrix, shift: float) -> np.ndarray | None:
+        if settings.linear_solver == LinearSolver.JACOBI_PCG:
+            return jacobi_pcg_solve(a, -g, torch.device("cpu") if device is None else device,
+                                    settings.jacobi_pcg_rtol, settings.jacobi_pcg_max_iterations,
+                                    blocks=blocks)[0]
+        return sparse_solve(a, -g, cache, shift, backend=settings.sparse_backend)
+
     if not o.regularize_first:
-        dx = sparse_solve(h, -g, cache, backend=settings.sparse_backend)
+        dx = linear_solve(h, 0.0)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, 0
     scale = float(np.abs(h.diagonal()).mean()) or 1.0
     eye = scipy.sparse.identity(h.shape[0], format="csr", dtype=np.float64)
     lam = settings.regularization * scale
     for retry in range(1, settings.max_regularizations + 1):
-        dx = sparse_solve((h + lam * eye).tocsr(), -g, cache, lam, backend=settings.sparse_backend)
+        dx = linear_solve((h + lam * eye).tocsr(), lam)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, retry
         lam *= o.regularization_growth
@@ -285,7 +359,8 @@ def solve_newton(
             trial = 0
             while not accepted and trial <= (LEVENBERG_RETRIES if o.levenberg else 0):
                 hk = h if damping == 0.0 else (h + scipy.sparse.diags(damping * diag, format="csr")).tocsr()
-                dxf, retries = newton_direction(hk, g64, settings, k, cache if damping == 0.0 else None, o)
+                dxf, retries = newton_direction(hk, g64, settings, k, cache if damping == 0.0 else None, o,
+                                                device=x.device, blocks=free is None)
                 info.restarts += retries
                 slope = float(g64 @ dxf)  # < 0
                 if free is None:
