@@ -28,3 +28,19 @@ def garmentcode_dir() -> Path:
     if d is None:
         pytest.skip("../shared/data/garmentcode is absent")
     return d / "garmentcode"
+
+
+@pytest.fixture
+def splu_calls(monkeypatch: pytest.MonkeyPatch) -> dict:
+    """``{"n": count}`` of SuperLU factorizations (``scipy.sparse.linalg.splu``) made during the test."""
+    import scipy.sparse.linalg
+
+    calls = {"n": 0}
+    splu = scipy.sparse.linalg.splu
+
+    def counting(*a, **kw):
+        calls["n"] += 1
+        return splu(*a, **kw)
+
+    monkeypatch.setattr(scipy.sparse.linalg, "splu", counting)
+    return calls

@@ -451,22 +451,11 @@ def test_seam_block_inverse_is_the_exact_6x6_block_inverse() -> None:
     torch.testing.assert_close(out, expected, rtol=1e-7, atol=1e-12)
 
 
-def test_newton_reusing_its_factorization_reaches_the_same_equilibrium(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def test_newton_reusing_its_factorization_reaches_the_same_equilibrium(splu_calls: dict) -> None:
     """SolveSettings.reuse_factorization: CG preconditioned by the last LU (inexact Newton) converges to the
     same equilibrium as plain Newton, with fewer factorizations."""
-    import scipy.sparse.linalg
-
     m = SpringNetModel(n=8)
-    calls = {"n": 0}
-    splu = scipy.sparse.linalg.splu
-
-    def counting(*a, **kw):
-        calls["n"] += 1
-        return splu(*a, **kw)
-
-    monkeypatch.setattr(scipy.sparse.linalg, "splu", counting)
+    calls = splu_calls
     st = dict(rtol=1e-10, atol=0.0, max_iterations=200)
     xa, ia = solve(m, m.x0(), SolveSettings(**st), solver="newton")
     plain = calls["n"]
