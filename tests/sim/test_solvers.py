@@ -506,3 +506,34 @@ def test_newton_with_jacobi_pcg_reaches_the_same_equilibrium() -> None:
         SolveSettings(linear_solver="cholmod")
     with pytest.raises(InputError):
         SolveSettings(jacobi_pcg_rtol=0.0)
+
+
+def test_jacobi_pcg_seam_blocks_cut_the_iterations_of_a_stiffly_sewn_system() -> None:
+    """jacobi_pcg_solve(seams=...): the seam pairs' exact 6x6 blocks in the CG preconditioner. On a real sewn
+    garment's Hessian with the drape's settle stiffness (1e5 N/m) the solution is the same and CG needs far
+    fewer iterations than with 3x3 blocks alone."""
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    from torchgarment.body.size_chart import chart_row
+    from torchgarment.pattern.library import draft
+    from torchgarment.pattern.meshing import mesh_pattern
+    from torchgarment.sim.scene import Effect, Material, Scene
+    from torchgarment.sim.solvers import jacobi_pcg_solve
+    from torchgarment.sim.solvers.chebyshev import seam_pairs
+
+    mesh = mesh_pattern(draft("straight_skirt", chart_row("12")), 0.05, dtype=torch.float64)
+    model = Scene(mesh, effects={Effect.STRETCH, Effect.SEW, Effect.BEND, Effect.GRAVITY},
+                  material=Material(sew_stiffness=1e5)).build()
+    h = CSRAssembler(model.num_vertices).assemble(model.hessian_blocks(mesh.x, project_psd=True))
+    h = (h + 1e-3 * float(np.abs(h.diagonal()).mean()) * scipy.sparse.identity(h.shape[0])).tocsr()
+    rhs = np.random.default_rng(5).standard_normal(h.shape[0])
+    exact = scipy.sparse.linalg.spsolve(h.tocsc(), rhs)
+    seams = seam_pairs(model)
+    assert seams is not None and seams[0].shape[0] > 10 and seams[1] == 1e5
+    cpu = torch.device("cpu")
+    y0, its0 = jacobi_pcg_solve(h, rhs, cpu, 1e-10, 20_000)
+    y1, its1 = jacobi_pcg_solve(h, rhs, cpu, 1e-10, 20_000, seams=seams)
+    for y in (y0, y1):
+        np.testing.assert_allclose(y, exact, rtol=0.0, atol=1e-7 * np.abs(exact).max())
+    assert its1 < 0.5 * its0, (its1, its0)

@@ -100,7 +100,8 @@ class SolveSettings:
         seam_blocks: with BLOCK, precondition each seam pair (two vertices joined by a sewing spring, each in
             no other pair) with its exact 6x6 block instead of two 3x3 blocks, so that stiff seams do not
             freeze the pair's common motion (see
-            :func:`~torchgarment.sim.solvers.chebyshev.seam_block_inverse`).
+            :func:`~torchgarment.sim.solvers.chebyshev.seam_block_inverse`); Newton's ``"jacobi-pcg"``
+            uses the same blocks in its CG preconditioner.
         diagonal_floor: relative floor of the preconditioner, times the mean Hessian diagonal, so that
             vertices without stiffness do not get infinite steps.
         safeguard: how GD keeps barriers finite (MAX_STEP or PROJECT).

@@ -34,7 +34,7 @@ import torch
 
 from torchgarment.errors import InputError, NonConvergenceError, SingularMatrixError
 from torchgarment.linalg import CSRAssembler, FactorCache, SparseBackend, armijo_backtracking, factorize, pcg
-from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse
+from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse, seam_block_inverse, seam_pairs
 from torchgarment.sim.solvers.common import (
     Callback,
     LinearSolver,
@@ -73,10 +73,16 @@ def sparse_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, cache: FactorCache
 
 
 def jacobi_pcg_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, device: torch.device, rtol: float,
-                     max_iterations: int, *, blocks: bool = True) -> tuple[np.ndarray | None, int]:
+                     max_iterations: int, *, blocks: bool = True,
+                     seams: tuple[torch.Tensor, float] | None = None) -> tuple[np.ndarray | None, int]:
     """Solve ``h y = rhs`` (``h`` symmetric positive definite) by conjugate gradients on ``device``,
     preconditioned by the inverse of ``h``'s 3x3 diagonal blocks (``blocks``; unknowns ordered ``x, y, z`` per
     vertex) or of its scalar diagonal.
+
+    With ``seams`` (disjoint seam pairs ``(P, 2)`` and the sewing stiffness ``k``, as
+    :func:`~torchgarment.sim.solvers.chebyshev.seam_pairs` gives them) each pair's 6x6 block, coupled by
+    ``-k I``, is inverted exactly (:func:`~torchgarment.sim.solvers.chebyshev.seam_block_inverse`, the GD
+    solver's seam blocks): stiff seams otherwise make CG creep.
 
     No factorization: one CSR product and one batched 3x3 product per iteration, on ``device`` (torch tensors,
     :func:`~torchgarment.linalg.pcg`). Stops at relative residual ``rtol``, after ``max_iterations``, or at a
@@ -103,7 +109,10 @@ def jacobi_pcg_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, device: torch.
         diag.index_put_((torch.from_numpy(coo.row[same] // 3),
                          torch.from_numpy(coo.row[same] % 3 * 3 + coo.col[same] % 3)),
                         torch.from_numpy(coo.data[same]), accumulate=True)
-        inv = jacobi_inverse(diag.view(-1, 3, 3), Preconditioner.BLOCK, 1e-8).to(device)
+        diag = diag.view(-1, 3, 3).to(device)
+        inv = jacobi_inverse(diag, Preconditioner.BLOCK, 1e-8)
+        if seams is not None:
+            inv = seam_block_inverse(diag, inv, seams[0].to(device), seams[1], 1e-8)
 
         def precondition(r: torch.Tensor) -> torch.Tensor:
             return apply_inverse(inv, r.view(-1, 3)).view(-1)
@@ -216,7 +225,7 @@ class NewtonOptions:
 def newton_direction(
     h: scipy.sparse.csr_matrix, g: np.ndarray, settings: SolveSettings, iteration: int,
     cache: FactorCache | None = None, options: NewtonOptions | None = None, *,
-    device: torch.device | None = None, blocks: bool = True,
+    device: torch.device | None = None, blocks: bool = True, seams: tuple[torch.Tensor, float] | None = None,
 ) -> tuple[np.ndarray, int]:
     """A descent direction ``dx`` solving ``(H + lambda I) dx = -g``, regularizing when needed.
 
@@ -232,6 +241,7 @@ def newton_direction(
         device: where ``settings.linear_solver = "jacobi-pcg"`` iterates (None: the CPU).
         blocks: that solver's preconditioner is 3x3 block Jacobi (False: scalar, for systems on a subset of
             the unknowns).
+        seams: that solver's seam blocks (see :func:`jacobi_pcg_solve`); None: none.
 
     Returns:
         ``(dx, retries)``: the direction (n,) and how many regularized solves were needed.
@@ -250,7 +260,7 @@ def newton_direction(
         if settings.linear_solver == LinearSolver.JACOBI_PCG:
             return jacobi_pcg_solve(a, -g, torch.device("cpu") if device is None else device,
                                     settings.jacobi_pcg_rtol, settings.jacobi_pcg_max_iterations,
-                                    blocks=blocks)[0]
+                                    blocks=blocks, seams=seams)[0]
         return sparse_solve(a, -g, cache, shift, backend=settings.sparse_backend)
 
     if not o.regularize_first:
@@ -345,6 +355,8 @@ def solve_newton(
         k = 0
         damping = 0.0  # Levenberg damping carried between iterations (0: plain projected Newton)
         cache = FactorCache() if settings.reuse_factorization else None
+        seams = (seam_pairs(model) if settings.linear_solver == LinearSolver.JACOBI_PCG and free is None
+                 and settings.seam_blocks else None)
         while not info.converged and k < max_iterations:
             k += 1
             h = assemble_hessian(x)
@@ -360,7 +372,7 @@ def solve_newton(
             while not accepted and trial <= (LEVENBERG_RETRIES if o.levenberg else 0):
                 hk = h if damping == 0.0 else (h + scipy.sparse.diags(damping * diag, format="csr")).tocsr()
                 dxf, retries = newton_direction(hk, g64, settings, k, cache if damping == 0.0 else None, o,
-                                                device=x.device, blocks=free is None)
+                                                device=x.device, blocks=free is None, seams=seams)
                 info.restarts += retries
                 slope = float(g64 @ dxf)  # < 0
                 if free is None:
