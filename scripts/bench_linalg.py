@@ -18,9 +18,9 @@ with SuperLU's (``"max_rel_diff_vs_superlu"``).
 ``--size`` (its SDF at 2.5 mm), 200 GD-Chebyshev iterations, then the projected Hessian of the whole scene
 (stretch, sew, bend, gravity, body barrier) plus the same regularization, and the right-hand side ``-g`` (a
 Newton step). ``--pcg`` adds conjugate gradients preconditioned by the 3x3 block Jacobi inverse
-(:func:`~torchgarment.sim.solvers.jacobi_pcg_solve`, Newton's ``"jacobi-pcg"`` linear solver, the CSR
-product on ``--device``) to relative residuals 1e-2, 1e-4 and 1e-6: iterations and seconds (the second of two
-runs). The direct backends always factorize on the CPU.
+(:func:`~torchgarment.sim.solvers.jacobi_pcg_solve`, Newton's ``"jacobi-pcg"`` linear solver with the seam
+pairs' 6x6 blocks, the CSR product on ``--device``) to relative residuals 1e-2, 1e-4 and 1e-6: iterations
+and seconds (the second of two runs). The direct backends always factorize on the CPU.
 """
 
 from __future__ import annotations
@@ -62,6 +62,7 @@ def main() -> None:
     from torchgarment.pattern.library import draft
     from torchgarment.pattern.meshing import mesh_pattern
     from torchgarment.sim.scene import Effect, Scene
+    from torchgarment.sim.solvers.chebyshev import seam_pairs
 
     device = resolve_device(args.device)
 
@@ -78,7 +79,7 @@ def main() -> None:
             h = CSRAssembler(model.num_vertices).assemble(model.hessian_blocks(mesh.x, project_psd=False))
             rhs = np.random.default_rng(0).standard_normal(h.shape[0])
         else:
-            h, rhs = draped_system(mesh, args.size)
+            model, h, rhs = draped_system(mesh, args.size)
         shift = 1e-8 * float(np.abs(h.diagonal()).mean())
         print(f"{args.garment} size {args.size}: {mesh.num_vertices} vertices, {h.shape[0]} dofs, "
               f"{h.nnz} nonzeros")
@@ -115,7 +116,7 @@ def main() -> None:
                   f"residual {residual:.1e}  deterministic {row['deterministic']}  "
                   f"vs superlu {row['max_rel_diff_vs_superlu']:.1e}")
         if args.pcg:
-            row = pcg_row(h, shift, rhs, device)
+            row = pcg_row(h, shift, rhs, device, seam_pairs(model))
             row.update(vertices=mesh.num_vertices, dofs=h.shape[0], nnz=int(h.nnz))
             rows.append(row)
             print(f"  pcg ({row['device']}, 3x3 block Jacobi): " + ", ".join(
@@ -131,8 +132,8 @@ def main() -> None:
 
 
 def draped_system(mesh, size: str):  # noqa: ANN001, ANN201 (imports are local to main)
-    """``(H, rhs)``: the projected Hessian (scipy CSR) of the whole scene of ``mesh`` on chart body ``size``
-    after 200 GD-Chebyshev iterations from the placed panels, and ``-g`` there (flattened)."""
+    """``(model, H, rhs)``: the whole scene of ``mesh`` on chart body ``size``, its projected Hessian (scipy
+    CSR) after 200 GD-Chebyshev iterations from the placed panels, and ``-g`` there (flattened)."""
     import torch
 
     from torchgarment.body import Body
@@ -148,13 +149,14 @@ def draped_system(mesh, size: str):  # noqa: ANN001, ANN201 (imports are local t
     x, _ = solve(model, x, SolveSettings(rtol=0.0, atol=0.0), solver="gd-chebyshev", max_iterations=200)
     _, g = model.value_and_grad(x)
     h = CSRAssembler(model.num_vertices).assemble(model.hessian_blocks(x, project_psd=True))
-    return h, -g.detach().cpu().numpy().reshape(-1)
+    return model, h, -g.detach().cpu().numpy().reshape(-1)
 
 
-def pcg_row(h, shift: float, rhs, device) -> dict:  # noqa: ANN001 (imports are local to main)
-    """:func:`~torchgarment.sim.solvers.jacobi_pcg_solve` (Newton's ``"jacobi-pcg"`` linear solver) of
-    ``(h + shift I) y = rhs`` on ``device`` to three relative residuals; each timed on its second run (the
-    first pays for kernel loading), the copy of the matrix to the device and the block inverses included."""
+def pcg_row(h, shift: float, rhs, device, seams) -> dict:  # noqa: ANN001 (imports are local to main)
+    """:func:`~torchgarment.sim.solvers.jacobi_pcg_solve` (Newton's ``"jacobi-pcg"`` linear solver, with the
+    model's seam blocks ``seams``) of ``(h + shift I) y = rhs`` on ``device`` to three relative residuals;
+    each timed on its second run (the first pays for kernel loading), the copy of the matrix to the device and
+    the block inverses included."""
     import time
 
     import numpy as np
@@ -169,12 +171,12 @@ def pcg_row(h, shift: float, rhs, device) -> dict:  # noqa: ANN001 (imports are 
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 
-    out: dict = {"backend": "jacobi-pcg", "device": str(device), "rtol": {}}
+    out: dict = {"backend": "jacobi-pcg", "device": str(device), "seam_blocks": seams is not None, "rtol": {}}
     for tol in (1e-2, 1e-4, 1e-6):
         for _ in range(2):
             sync()
             t0 = time.perf_counter()
-            y, its = jacobi_pcg_solve(a, rhs, device, tol, 20000)
+            y, its = jacobi_pcg_solve(a, rhs, device, tol, 20000, seams=seams)
             sync()
             seconds = time.perf_counter() - t0
         residual = float(np.linalg.norm(a @ y - rhs) / np.linalg.norm(rhs))
