@@ -6,12 +6,13 @@ what differs between them is passed in :class:`NewtonOptions` (which unknowns ar
 bounded, the regularization policy, extra stopping rules, a hook after every accepted step).
 
 Each iteration assembles the Hessian from ``model.hessian_blocks(x, project_psd=True)`` (per-element blocks
-projected to positive semi-definite) into a scipy CSR matrix on the CPU, solves ``H dx = -g`` with SuperLU,
-caps the step at ``step_fraction * model.max_step(x, dx)`` when the full step would make a barrier infinite
-(or at ``NewtonOptions.step_bound.max_step(x, dx)``, e.g. retargeting's CCD bound), and
-backtracks (:func:`armijo_backtracking`) until the Armijo condition ``E(x + a dx) <= E(x) + c a g.dx`` holds.
-When the factorization fails or the solution is not a descent direction, ``lambda * I`` is added (``lambda``
-growing tenfold per retry).
+projected to positive semi-definite) into a scipy CSR matrix on the CPU, solves ``H dx = -g`` with SuperLU
+(or, with ``SolveSettings.linear_solver = "jacobi-pcg"``, by block-Jacobi CG on the positions' device,
+:func:`jacobi_pcg_solve`), caps the step at ``step_fraction * model.max_step(x, dx)`` when the full step
+would make a barrier infinite (or at ``NewtonOptions.step_bound.max_step(x, dx)``, e.g. retargeting's CCD
+bound), and backtracks (:func:`armijo_backtracking`) until the Armijo condition
+``E(x + a dx) <= E(x) + c a g.dx`` holds. When the factorization fails or the solution is not a descent
+direction, ``lambda * I`` is added (``lambda`` growing tenfold per retry).
 
 When the line search fails (the projected Hessian is a poor model: dropped negative-curvature parts of
 compressed springs or of the barrier, a non-smooth SDF), the step is not abandoned: the direction is
