@@ -462,6 +462,7 @@ class AdjustSetup:
         """A fresh :class:`AdjustProblem` warm-started at ``x_start`` (default: the initialized equilibrium),
         with the solvers, adjoint and factorization reuse of ``settings`` (default: ``self.settings``)."""
         s = self.settings if settings is None else settings
+        self.model.reset_caches()  # a second optimize() of one setup repeats the first bit for bit
         return AdjustProblem(self.model, self.param, self.objective,
                              self.x_init if x_start is None else x_start,
                              exact_settings=replace(self.exact_settings,

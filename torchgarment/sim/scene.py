@@ -275,6 +275,14 @@ class SimModel(torch.nn.Module):
         #: :meth:`value_grad_hessian_diagonal`; None = possibly all
         self.last_volatile_rows: torch.Tensor | None = None
 
+    def reset_caches(self) -> None:
+        """Forget the state earlier evaluations left (each term's :meth:`EnergyTerm.reset_cache` and the
+        cached elastic diagonal), so that a solve from the same start repeats an earlier one bit for bit."""
+        for t in self.terms:
+            t.reset_cache()
+        self._elastic_diag = None
+        self.last_volatile_rows = None
+
     @property
     def term_names(self) -> tuple[str, ...]:
         """Names of the terms, in order."""

@@ -152,6 +152,14 @@ class BodyBarrier(EnergyTerm):
         self._cache_key: tuple | None = None
         self._cache_val: tuple[torch.Tensor, torch.Tensor] | None = None
 
+    def reset_cache(self) -> None:
+        """Forget each vertex's last sample (:meth:`_phi_grad_lazy`) and the last query: the next evaluation
+        samples every vertex. The lazy bounds are exact where the barrier acts, but the step bounds they give
+        :meth:`max_step` depend on where the references were taken, so a solve's last bits depend on the
+        solves before it without this."""
+        self._ref_x = self._ref_phi = None
+        self._cache_x = self._cache_key = self._cache_val = None
+
     # ------------------------------------------------------------------ sampling
     def _phi(self, x: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():

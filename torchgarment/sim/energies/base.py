@@ -74,6 +74,11 @@ class EnergyTerm(torch.nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def reset_cache(self) -> None:
+        """Forget what earlier evaluations left behind that can change later results' last bits (the body
+        barrier's lazy sampling references), so that a new solve repeats an earlier one bit for bit. Terms
+        without such state do nothing."""
+
     def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Energy () and analytic gradient (V, 3). The default uses autograd; terms override it."""
         with torch.enable_grad():
