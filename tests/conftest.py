@@ -44,3 +44,14 @@ def splu_calls(monkeypatch: pytest.MonkeyPatch) -> dict:
 
     monkeypatch.setattr(scipy.sparse.linalg, "splu", counting)
     return calls
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Run the test with one torch thread (reproducible reductions), restoring the count afterwards."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
