@@ -35,7 +35,7 @@ import torch
 
 from torchgarment.errors import InputError, NonConvergenceError, SingularMatrixError
 from torchgarment.linalg import CSRAssembler, FactorCache, SparseBackend, armijo_backtracking, factorize, pcg
-from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse, seam_block_inverse, seam_pairs
+from torchgarment.sim.solvers.chebyshev import JacobiState, apply_inverse, seam_pairs
 from torchgarment.sim.solvers.common import (
     Callback,
     LinearSolver,
@@ -111,9 +111,11 @@ def jacobi_pcg_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, device: torch.
                          torch.from_numpy(coo.row[same] % 3 * 3 + coo.col[same] % 3)),
                         torch.from_numpy(coo.data[same]), accumulate=True)
         diag = diag.view(-1, 3, 3).to(device)
-        inv = jacobi_inverse(diag, Preconditioner.BLOCK, 1e-8)
-        if seams is not None:
-            inv = seam_block_inverse(diag, inv, seams[0].to(device), seams[1], 1e-8)
+        # the GD solver's preconditioner, as the iterative adjoint builds it (one mechanism)
+        pre = JacobiState(SolveSettings(preconditioner=Preconditioner.BLOCK, diagonal_floor=1e-8),
+                          None if seams is None else (seams[0].to(device), seams[1]))
+        pre.rebuild(diag)
+        inv = pre.inverse
 
         def precondition(r: torch.Tensor) -> torch.Tensor:
             return apply_inverse(inv, r.view(-1, 3)).view(-1)
