@@ -361,18 +361,14 @@ def sweep(args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF, target
     ``value_and_grad`` (stretch, sew, bend, gravity) eager against a replay of it captured in a CUDA graph
     (what graph capture of the static-shape terms would save)."""
     mesh, model, x = settled_state(args, pattern, sdf, target)
-    barrier = model.term(Effect.BODY_BARRIER.value)
+    every_vertex = Scene(mesh, body_sdf=sdf, effects=set(EFFECTS)).build()  # the same scene, its barrier
+    every_vertex.term(Effect.BODY_BARRIER.value).lazy = False  # sampling every vertex (BodyBarrier(lazy=))
+    models = {True: model, False: every_vertex}
     base = SolveSettings(rtol=0.0, atol=0.0)
     per_round = max(1, args.iterations // args.rounds)
 
     def task(changes: dict, lazy: bool) -> Callable[[], list[float]]:
-        def run() -> list[float]:
-            barrier.lazy = lazy
-            try:
-                return iteration_times(model, x, replace(base, **changes), per_round)
-            finally:
-                barrier.lazy = True
-        return run
+        return lambda: iteration_times(models[lazy], x, replace(base, **changes), per_round)
 
     res = run_interleaved({name: task(*cfg) for name, cfg in SWEEP.items()}, args.rounds)
     out: dict = {"vertices": mesh.num_vertices,
