@@ -22,6 +22,7 @@ import argparse
 import json
 import math
 import platform
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -98,8 +99,13 @@ def main() -> None:
                               reuse_factorization=args.reuse_factorization,
                               sparse_backend=args.sparse_backend, linear_solver=args.linear_solver)
     t0 = time.perf_counter()
+    setup = None
     if args.setup and Path(args.setup).is_file():
-        setup = torch.load(args.setup, weights_only=False, map_location=device)
+        try:
+            setup = torch.load(args.setup, weights_only=False, map_location=device)
+        except Exception as exc:  # noqa: BLE001 - a cache: any unreadable file is made again
+            print(f"{args.setup} is unreadable ({type(exc).__name__}); making the precomputation again")
+    if setup is not None:
         if setup.mesh_base.num_vertices != n or not math.isclose(setup.settings.edge_length, edge):
             raise SystemExit(f"error: {args.setup} holds a {setup.mesh_base.num_vertices}-vertex setup, not "
                              f"this {n}-vertex {args.garment}; pass another --setup file")
@@ -148,4 +154,11 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from torchgarment.cli import exit_code
+    from torchgarment.errors import TorchGarmentError
+
+    try:
+        main()
+    except TorchGarmentError as exc:  # e.g. a 30K precomputation's settle that does not converge: one line
+        print(f"bench_adjust: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        sys.exit(exit_code(exc))

@@ -191,7 +191,7 @@ def messy(args: argparse.Namespace) -> int:
     args.cache.mkdir(parents=True, exist_ok=True)
     records = []
     print(f"{'garment':>28}{'avatar':>14}{'g.verts':>8}{'a.tris':>8}{'iters':>7}{'seconds':>9}{'inter':>7}"
-          f"{'dmin mm':>9}")
+          f"{'dmin mm':>9}{'inflation dmin mm':>19}")
     for gname in args.messy_garments:
         gv, gf, parts = _messy_garment(gname, source, args.cache)
         v = np.asfortranarray(gv.numpy())
@@ -220,6 +220,8 @@ def messy(args: argparse.Namespace) -> int:
                 rec.update(seconds=time.perf_counter() - t0, newton_iterations=m["newton_iterations"],
                            intersections=m["intersections"], min_distance_mm=m["min_distance_mm"],
                            distortion_mean=m["distortion_mean"],
+                           inflation_min_distance_mm=next(s["min_distance_mm"] for s in r.steps
+                                                          if s["step"] == "inflate"),
                            steps={s["step"]: s["seconds"] for s in r.steps}, ok=True)
                 if prof is not None:
                     rec["stages_seconds"], rec["top_functions"] = _stage_seconds(prof)
@@ -229,7 +231,7 @@ def messy(args: argparse.Namespace) -> int:
             if rec["ok"]:
                 print(f"{gname:>28}{aname:>14}{rec['garment_vertices']:>8}{rec['avatar_triangles']:>8}"
                       f"{rec['newton_iterations']:>7}{rec['seconds']:>9.1f}{rec['intersections']:>7}"
-                      f"{rec['min_distance_mm']:>9.3f}", flush=True)
+                      f"{rec['min_distance_mm']:>9.3f}{rec['inflation_min_distance_mm']:>19.2e}", flush=True)
                 if "stages_seconds" in rec:
                     print("      stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in
                                                            rec["stages_seconds"].items()), flush=True)

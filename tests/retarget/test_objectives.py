@@ -279,3 +279,46 @@ def test_terms_follow_the_energy_term_contract_on_the_state(sc: dict) -> None:
         .numpy()[: 3 * x.shape[0] + 1, : 3 * x.shape[0] + 1]
     )
     np.testing.assert_allclose(hb, 2.5 * _hess(term, x, t), rtol=1e-14, atol=0)
+
+
+def test_culled_contact_matches_the_whole_avatar_and_keeps_its_mesh_when_it_can(
+    sc: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The culled collision mesh gives the whole avatar's energy, gradient and step bounds along a path, and a
+    re-cull that keeps the same faces does not rebuild it."""
+    from torchgarment.sim.contact import MovingObstacleContact, StepBound
+
+    x0, f = sc["garment_vertices"], sc["garment_faces"]
+    args = (x0, f, sc["avatar_full"], sc["avatar_faces"], sc["avatar_shrunk"])
+    whole = MovingObstacleContact(*args, dhat=0.03, stiffness=10.0)
+    culled = MovingObstacleContact(*args, dhat=0.03, stiffness=10.0, cull_radius=0.12)
+    builds: list[int] = []
+    original = MovingObstacleContact._set_subset
+
+    def counting(self: MovingObstacleContact, verts: np.ndarray, faces: np.ndarray) -> None:
+        builds.append(faces.shape[0])
+        original(self, verts, faces)
+
+    monkeypatch.setattr(MovingObstacleContact, "_set_subset", counting)
+    x, t = x0.clone(), 0.82
+    for k in range(16):  # the garment slides along the avatar by 15 mm a step, up and back down: re-culls
+        dx = torch.tensor([0.0, 0.015 if k % 8 < 4 else -0.015, 0.0], dtype=torch.float64).expand_as(x)
+        a_whole = whole.max_step(x, t, dx.numpy(), 0.0, StepBound.ADDITIVE)
+        a_culled = culled.max_step(x, t, dx.numpy(), 0.0, StepBound.ADDITIVE)
+        assert a_culled == pytest.approx(a_whole, rel=1e-9, abs=1e-12)
+        x = x + a_whole * dx
+        e0, g0, gt0 = whole.value_grad(x, t)
+        e1, g1, gt1 = culled.value_grad(x, t)
+        assert e0 > 0 and e1 == pytest.approx(e0, rel=1e-12)
+        assert gt1 == pytest.approx(gt0, rel=1e-9, abs=1e-12)
+        np.testing.assert_allclose(g1, g0, rtol=1e-9, atol=1e-12 * np.abs(g0).max())
+    assert culled.num_culls >= 3 and len(builds) >= 2 and max(builds) < sc["avatar_faces"].shape[0]
+    # a re-cull that keeps the same faces (here: at the same positions, then 0.1 mm away) does not rebuild
+    # the mesh
+    xn = x.numpy()
+    culled._recull(xn, t)
+    rebuilt, culls = len(builds), culled.num_culls
+    culled._recull(xn, t)
+    culled._recull(xn + 1e-4, t)
+    assert culled.num_culls == culls + 2 and len(builds) == rebuilt
+    assert culled.value_grad(x, t)[0] == pytest.approx(whole.value_grad(x, t)[0], rel=1e-12)

@@ -82,6 +82,10 @@ def test_toy_retarget_is_intersection_free(toy_result: tuple) -> None:
     assert set(m["terms"]) == {"surf", "pos", "curve", "contact", "fit"}
     assert r.distortion.shape == (r.garment_faces.shape[0],) and float(r.distortion.min()) >= 0
     assert m["distortion_max"] >= m["distortion_mean"] > 0
+    # the inflation's closest pair, from its per-iteration history (human scale, mm)
+    inflate = next(s for s in r.steps if s["step"] == "inflate")
+    closest = min((h["min_distance"] for h in r.history if h["stage"] == "inflate"), default=math.inf)
+    assert inflate["min_distance_mm"] == 1000.0 * closest and 0 < inflate["min_distance_mm"]
 
 
 def test_tensorboard_scalars_written(toy_result: tuple) -> None:

@@ -385,6 +385,10 @@ def retarget(
                 "t_snap": t_snap,
                 "step_bound_seconds": bound_s,
                 "culls": contact.ipc.num_culls,
+                # the closest garment-avatar / garment-self pair met (human scale): far below dhat where the
+                # inflation squeezes the garment (e.g. between overlapping parts of the avatar)
+                "min_distance_mm": 1000.0 * min((h["min_distance"] for h in log.history
+                                                 if h["stage"] == "inflate"), default=math.inf),
             }
         )
 

@@ -781,6 +781,7 @@ class MovingObstacleContact:
         rest = np.asfortranarray(np.concatenate([self._garment_rest, self._full]))
         self.mesh = ipctk.CollisionMesh(rest, ipctk.edges(allf), allf)
         self.mesh.can_collide = ipctk.make_static_obstacle_filter(n)
+        self._faces = faces
         self._cache_key: bytes | None = None
         self._cache_col = None
 
@@ -815,7 +816,11 @@ class MovingObstacleContact:
         le_g = float(np.sqrt(((ga - ga[:, [1, 2, 0]]) ** 2).sum(-1)).max(initial=0.0))
         keep = dnear[self._af_all].max(1) - le_f - le_g <= r
         faces = self._af_all[keep]
-        self._set_subset(np.unique(faces.reshape(-1)), faces)
+        # the same faces make the same collision mesh: keep it (often the case after small moves; a mesh
+        # holding more faces would be valid too, but the broad phase's order, and so the run's round-off,
+        # would change)
+        if not np.array_equal(faces, self._faces):
+            self._set_subset(np.unique(faces.reshape(-1)), faces)
         self._ref_x, self._ref_t = xn.copy(), float(t)
         self.num_culls += 1
 
