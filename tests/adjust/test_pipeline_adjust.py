@@ -250,14 +250,21 @@ def test_pipeline_gradient_is_loss_backward_through_the_solve_function(skirt_cas
         prob.reset_state(x_eq)
         return prob.evaluate(q, exact=True, need_grad=False).objective
 
-    # errors relative to the larger of the two directional derivatives: the first is small (0.12 against
-    # -2.23), and the central differences' noise grows as the step shrinks (the solves' tolerance over h):
-    # measured (pin extension kept, issue 18) 3.1e-5 / 9.1e-5 absolute at h = 1e-5, 1.9e-4 / 5.5e-4 at 3e-6,
-    # 4.3e-3 / 9.4e-3 at 3e-7; other seeds agree to 2e-7..2e-5 relative at 3e-6
-    pairs = directional_derivatives(objective, q0, ev.grad, directions=2, h=1e-5, seed=3)
-    scale = max(abs(fd) for _, fd in pairs)
-    for ad, fd in pairs:
-        assert abs(ad - fd) <= 1e-4 * scale, (ad, fd)
+    # errors relative to the larger of the two directional derivatives. The central differences' noise grows
+    # as the step shrinks (the solves' tolerance over h), and a step too large can straddle a kink of the
+    # equilibrium map, so the adjoint must match at one of two steps. Measured (pin extension kept, issue 18)
+    # 3.1e-5 / 9.1e-5 absolute at h = 1e-5, 1.9e-4 / 5.5e-4 at 3e-6, 4.3e-3 / 9.4e-3 at 3e-7. Since Newton's
+    # barrier blocks hold the SDF's curvature the fixture's adjustment ends elsewhere; there the directional
+    # derivatives are 6.1667 and 28.5377, and the first one's differences are 6.1541 / 6.1665 / 6.1591 /
+    # 6.16667 at h = 1e-4 / 3e-5 / 1e-5 / 3e-6 (a kink within 1e-5; both agree to 1e-6 at 3e-6)
+    misses = []
+    for h in (1e-5, 3e-6):
+        pairs = directional_derivatives(objective, q0, ev.grad, directions=2, h=h, seed=3)
+        scale = max(abs(fd) for _, fd in pairs)
+        misses.append([(ad, fd) for ad, fd in pairs if not abs(ad - fd) <= 1e-4 * scale])
+        if not misses[-1]:
+            break
+    assert not misses[-1], misses
 
 
 def test_rejected_initialization_is_judged_by_a_short_optimization_from_each_start(skirt_case, monkeypatch):

@@ -350,6 +350,47 @@ def test_barrier_body_sdf_gradient(sphere_sdf):
     assert min_eigenvalue(blocks, x.shape[0]) >= -1e-12 * float(blocks.values.abs().max())
 
 
+class BallSDF(torch.nn.Module):
+    """phi = sign (|x| - R): a ball (sign +1, a convex body) or a spherical cavity (sign -1, a concave one),
+    with its analytic gradient; ``Hess(phi) = sign (I - u u^T) / |x|``."""
+
+    def __init__(self, radius: float, sign: float) -> None:
+        super().__init__()
+        self.radius, self.sign = radius, sign
+
+    def forward(self, x):
+        return self.sign * (torch.linalg.vector_norm(x, dim=1) - self.radius)
+
+    def value_and_gradient(self, x):
+        r = torch.linalg.vector_norm(x, dim=1)
+        return self.sign * (r - self.radius), self.sign * x / r.unsqueeze(1)
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_barrier_hessian_blocks_include_the_curvature(sign):
+    """The unprojected blocks are the exact Hessian on a curved SDF (``b' Hess(phi)`` included); projected,
+    the curvature part is dropped where the body is convex and kept where it is concave."""
+    radius, dhat = 0.3, 0.02
+    r = radius + sign * torch.linspace(0.002, 0.03, 40, dtype=torch.float64)  # some beyond dhat
+    x = _shell_points(40, 1.0, 1.0, seed=7) * r.unsqueeze(1)
+    term = BodyBarrier(BallSDF(radius, sign), x.shape[0], dhat=dhat)
+    check_hessian_blocks(term, x, num_columns=None, rtol=1e-6, atol=1e-9)
+    gn = term.hessian_diagonal(x)
+    exact = term.hessian_blocks(x, project_psd=False).values
+    proj = term.hessian_blocks(x, project_psd=True).values
+    curv = term.curvature_blocks(x)
+    assert torch.allclose(exact, gn + curv)
+    near = term.sdf(x) < dhat
+    assert bool(near.any()) and bool((~near).any()) and bool((curv[~near] == 0).all())
+    assert float(curv[near].abs().amax()) > 1e-3 * float(gn[near].abs().amax())
+    assert float(torch.linalg.eigvalsh(proj).min()) >= -1e-9 * float(proj.abs().max())
+    scale = float(proj.abs().max())
+    if sign > 0:  # convex: b' Hess(phi) is negative semi-definite, projected away
+        assert torch.allclose(proj, gn, atol=1e-9 * scale)
+    else:  # concave: positive semi-definite, kept whole
+        assert torch.allclose(proj, exact, atol=1e-9 * scale)
+
+
 def test_barrier_infeasible_is_inf_not_nan():
     sdf = PlaneSDF(normal=(0.0, 1.0, 0.0), c=0.0)
     x = torch.tensor([[0.0, 0.1, 0.0], [0.2, 0.0, 0.0], [0.0, -0.1, 0.3]], dtype=torch.float64)

@@ -22,11 +22,10 @@ system is solved by
   double-backward of ``model.energy`` (:attr:`HessianProduct.AUTOGRAD`; needs twice-differentiable terms,
   which a :class:`~torchgarment.sdf.BodySDF` is not).
 
-Exactness of ``K``: every term's unprojected blocks are exact except the body barrier's, which drop
-``-mu Hess(phi) / phi`` (see :mod:`torchgarment.sim.energies.barrier`). :func:`exact_hessian_blocks` adds that
-part back, with ``Hess(phi)`` from central differences of the SDF's analytic gradient (exact for a trilinear
-interpolant away from cell faces, up to rounding), so the adjoint gradient is that of the energy the forward
-solve actually minimizes.
+Exactness of ``K``: every term's unprojected blocks are exact; the body barrier's include ``b'(phi)
+Hess(phi)`` with ``Hess(phi)`` from central differences of the SDF's analytic gradient (exact for a trilinear
+interpolant away from cell faces, up to rounding; :meth:`~torchgarment.sim.energies.barrier.BodyBarrier.
+curvature_blocks`), so the adjoint gradient is that of the energy the forward solve actually minimizes.
 
 Backward modes (:class:`BackwardMode`, chosen by name as in theseus): ``"adjoint"`` (alias ``"implicit"``)
 as above; ``"unroll"`` differentiates through a damped Newton iteration from the cold start (autograd through
@@ -153,61 +152,14 @@ class AdjointInfo:
 
 
 # ---------------------------------------------------------------------------------------------- Hessian
-def barrier_curvature_blocks(term: BodyBarrier, x: torch.Tensor) -> torch.Tensor:
-    """The part ``b'(phi(x_i)) Hess(phi)(x_i)`` (V, 3, 3) that the barrier's Hessian blocks drop.
-
-    ``Hess(phi)`` is the central difference of the SDF's analytic gradient ``value_and_gradient`` with step
-    ``eps^(1/3) * 1 cm`` (``eps`` the dtype's machine epsilon; 6e-8 m in float64), symmetrized: exact (up to
-    rounding) for a trilinear interpolant inside a cell and for smooth SDFs up to ``O(step^2)``.
-
-    Args:
-        term: the body barrier.
-        x: (V, 3) feasible positions in metres.
-
-    Returns:
-        (V, 3, 3) blocks in N/m.
-    """
-    x = x.detach()
-    phi, _ = term.sdf.value_and_gradient(x)
-    phi = phi.to(x.dtype)
-    d1 = term.derivatives(phi)[0]
-    out = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype, device=x.device)
-    # a range-limited barrier acts on the vertices within dhat only (b' = 0 beyond): difference just those
-    act = torch.nonzero(d1 != 0, as_tuple=False).flatten()
-    if act.numel() == 0:
-        return out
-    xa = x.index_select(0, act)
-    step = torch.finfo(x.dtype).eps ** (1.0 / 3.0) * 1e-2
-    eye = torch.eye(3, dtype=x.dtype, device=x.device)
-    cols = []
-    for a in range(3):
-        gp = term.sdf.value_and_gradient(xa + step * eye[a])[1].to(x.dtype)
-        gm = term.sdf.value_and_gradient(xa - step * eye[a])[1].to(x.dtype)
-        cols.append((gp - gm) / (2.0 * step))
-    hphi = torch.stack(cols, dim=2)  # (A, 3, 3): column a = d grad / d x_a
-    hphi = 0.5 * (hphi + hphi.transpose(1, 2))
-    out.index_copy_(0, act, hphi * d1.index_select(0, act)[:, None, None])
-    return out
-
-
 def exact_hessian_blocks(model: torch.nn.Module, x: torch.Tensor) -> HessianBlocks:
     """The unprojected Hessian ``d^2E/dx^2`` of ``model`` at ``x`` as block-COO, including the barrier
-    curvature.
-
-    ``model.hessian_blocks(x, project_psd=False)`` plus, for every :class:`BodyBarrier` term, the diagonal
-    blocks of :func:`barrier_curvature_blocks` (zero for a planar SDF).
+    curvature: ``model.hessian_blocks(x, project_psd=False)``.
 
     Args:
         model: a SimModel. x: (V, 3) positions in metres.
     """
-    blocks = model.hessian_blocks(x.detach(), project_psd=False)
-    extra = [b for b in model.terms if isinstance(b, BodyBarrier)]
-    if not extra:
-        return blocks
-    ar = torch.arange(model.num_vertices, device=x.device)
-    parts = [blocks] + [HessianBlocks(ar, ar.clone(), barrier_curvature_blocks(t, x).to(blocks.values.dtype))
-                        for t in extra]
-    return HessianBlocks.cat(parts)
+    return model.hessian_blocks(x.detach(), project_psd=False)
 
 
 def check_twice_differentiable(model: torch.nn.Module, x: torch.Tensor, rtol: float = 1e-5) -> None:
@@ -215,8 +167,8 @@ def check_twice_differentiable(model: torch.nn.Module, x: torch.Tensor, rtol: fl
 
     A :class:`~torchgarment.sdf.BodySDF` is differentiable once (its backward is the analytic gradient): a
     double backward through it silently drops ``Hess(phi)`` instead of failing. This compares, for each
-    :class:`BodyBarrier`, an autograd Hessian-vector product with the exact blocks (assembled plus
-    :func:`barrier_curvature_blocks`) on a random vector.
+    :class:`BodyBarrier`, an autograd Hessian-vector product with its exact blocks (``hessian_blocks(x,
+    project_psd=False)``, curvature included) on a random vector.
 
     Args:
         model: a SimModel. x: (V, 3) feasible positions. rtol: accepted relative mismatch.
@@ -233,9 +185,7 @@ def check_twice_differentiable(model: torch.nn.Module, x: torch.Tensor, rtol: fl
                 (hv,) = torch.autograd.grad(g, xr, v, allow_unused=True)
             except RuntimeError as exc:
                 raise InputError(f"the body SDF is not twice differentiable by autograd ({exc})") from exc
-        ar = torch.arange(t.num_vertices, device=x.device)
-        exact = HessianBlocks.cat([t.hessian_blocks(x.detach(), project_psd=False),
-                                   HessianBlocks(ar, ar.clone(), barrier_curvature_blocks(t, x))])
+        exact = t.hessian_blocks(x.detach(), project_psd=False)
         ref = (exact.to_sparse(t.num_vertices) @ v.reshape(-1, 1)).view_as(v)
         hv = torch.zeros_like(v) if hv is None else hv
         err = float(torch.linalg.vector_norm(hv - ref)) / max(float(torch.linalg.vector_norm(ref)), 1e-300)
@@ -906,7 +856,6 @@ __all__ = [
     "QuasistaticSolve",
     "SolveLayer",
     "SolveRequest",
-    "barrier_curvature_blocks",
     "check_twice_differentiable",
     "exact_hessian_blocks",
     "parameter_vjp",

@@ -19,10 +19,19 @@ Where ``phi <= 0`` the energy is ``+inf`` (never NaN); the gradient and Hessian 
 start (the paper projects penetrating vertices onto the body surface).
 
 Hessian: per vertex ``b''(phi) g g^T + b'(phi) Hess(phi)`` (``b'' = mu / phi^2``, ``b' = -mu / phi`` for the
-unbounded form). The second part is dropped: the trilinear
-SDF's second derivatives are piecewise (mixed partials only, jumping across cells) and near the surface
-``Hess(phi)`` of a convex body part is PSD, so the dropped term would mostly reduce stiffness. What remains is
-always PSD, so projection changes nothing. (With a planar SDF, ``Hess(phi) = 0`` and the blocks are exact.)
+unbounded form). ``Hess(phi)`` is the central difference of the SDF's analytic gradient
+(:meth:`BodyBarrier.curvature_blocks`, only at the vertices within ``dhat``).
+:meth:`BodyBarrier.hessian_blocks` gives the exact sum without projection, and ``b'' g g^T + P(b' Hess(phi))``
+with it (``P``: the nearest PSD matrix). Since ``b' < 0``, the curvature part is negative semi-definite where
+the body is convex (projected to zero) and positive where it is concave (under the bust, between the legs, at
+the armpits): there, without it, Newton's model of a tight garment is too soft and its steps overshoot into
+the barrier. Measured on the adjustment's first exact solve of a sheath dress from size 12 on the size-20 body
+(1,530 vertices): 590 Newton iterations, the line search cutting the step to 1/8 in 546 of them, without the
+part; 113 with it. (Projecting the whole block instead, ``P(b'' g g^T + b' Hess(phi))``, took 228: the
+interpolated SDF's ``Hess(phi)`` has a normal component, and its negative part then softens the normal
+stiffness.) :meth:`BodyBarrier.hessian_diagonal`, the Jacobi preconditioner of the GD solver, keeps
+``b'' g g^T`` alone: the curvature costs six more SDF queries per vertex in range, and GD iterations are meant
+to be cheap.
 
 The SDF is any module with ``forward(x) -> phi`` (differentiable) and ``value_and_gradient(x) -> (phi,
 grad)``, typically a :class:`~torchgarment.sdf.BodySDF`.
@@ -330,15 +339,64 @@ class BodyBarrier(EnergyTerm):
         return s.unsqueeze(2) * s.unsqueeze(1)
 
     def hessian_diagonal(self, x: torch.Tensor, project_psd: bool = True) -> torch.Tensor:
-        """(V, 3, 3) blocks ``b''(phi) g g^T`` (PSD: ``b'' >= 0``; the ``b'(phi) Hess(phi)`` part is
-        dropped)."""
+        """(V, 3, 3) diagonal blocks: with ``project_psd`` (the GD solver's Jacobi preconditioner) the
+        Gauss-Newton part ``b''(phi) g g^T`` alone (PSD: ``b'' >= 0``; see the module docstring for why the
+        curvature is left out there); without, the exact blocks of :meth:`hessian_blocks`."""
+        if not project_psd:
+            return self.hessian_blocks(x, project_psd=False).values
         _, safe, gphi = self._evaluate(x)
         return self._blocks(safe, gphi)
 
+    def curvature_blocks(self, x: torch.Tensor) -> torch.Tensor:
+        """(V, 3, 3) ``b'(phi(x_i)) Hess(phi)(x_i)`` in N/m, zero where ``b' = 0`` (beyond ``dhat``).
+
+        ``Hess(phi)`` is the central difference of the SDF's analytic gradient ``value_and_gradient`` with
+        step ``eps^(1/3) * 1 cm`` (``eps`` the dtype's machine epsilon; 6e-8 m in float64), symmetrized:
+        exact (up to rounding) for a trilinear interpolant inside a cell and for smooth SDFs up to
+        ``O(step^2)``.
+
+        Args:
+            x: (V, 3) feasible positions in metres.
+        """
+        check_positions(x, self.num_vertices, self.name)
+        x = x.detach()
+        phi, _ = self._phi_grad_cached(x)
+        phi = torch.where(phi > 0, phi, torch.full_like(phi, self.offset))  # as the gradient (see _evaluate)
+        d1 = self.derivatives(phi)[0]
+        out = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype, device=x.device)
+        # a range-limited barrier acts on the vertices within dhat only (b' = 0 beyond): difference just those
+        act = torch.nonzero(d1 != 0, as_tuple=False).flatten()
+        if act.numel() == 0:
+            return out
+        xa = x.index_select(0, act)
+        step = torch.finfo(x.dtype).eps ** (1.0 / 3.0) * 1e-2
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        cols = []
+        for a in range(3):
+            gp = self._phi_grad(xa + step * eye[a])[1]
+            gm = self._phi_grad(xa - step * eye[a])[1]
+            cols.append((gp - gm) / (2.0 * step))
+        hphi = torch.stack(cols, dim=2)  # (A, 3, 3): column a = d grad / d x_a
+        hphi = 0.5 * (hphi + hphi.transpose(1, 2))
+        out.index_copy_(0, act, hphi * d1.index_select(0, act)[:, None, None])
+        return out
+
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
-        """The V diagonal blocks of :meth:`hessian_diagonal` (the barrier couples no two vertices)."""
+        """The V diagonal blocks (the barrier couples no two vertices): ``b'' g g^T + b' Hess(phi)``, or with
+        ``project_psd`` ``b'' g g^T + P(b' Hess(phi))`` (``P`` clamps negative eigenvalues to zero; see the
+        module docstring)."""
+        _, safe, gphi = self._evaluate(x)
+        h = self._blocks(safe, gphi)
+        curv = self.curvature_blocks(x)
+        act = torch.nonzero(curv.reshape(-1, 9).abs().amax(1) > 0, as_tuple=False).flatten()
+        if act.numel():
+            c = curv.index_select(0, act)
+            if project_psd:
+                w, v = torch.linalg.eigh(c)
+                c = (v * w.clamp_min(0.0).unsqueeze(1)) @ v.transpose(1, 2)
+            h.index_add_(0, act, c)
         ar = torch.arange(self.num_vertices, device=x.device)
-        return HessianBlocks(ar, ar.clone(), self.hessian_diagonal(x, project_psd))
+        return HessianBlocks(ar, ar.clone(), h)
 
     # ------------------------------------------------------------------ feasibility
     @torch.no_grad()
