@@ -88,7 +88,12 @@ class AdjustSettings:
         voxel_size: body SDF voxel size in metres.
         drape: settings of the base drape; None = ``DrapeSettings(edge_length, voxel_size)``.
         atol_weight: exact-solve force tolerance as a fraction of the garment's weight (as the drape's).
-        max_solver_iterations: iteration budget of an exact solve.
+        max_solver_iterations: iteration budget of an exact solve. An exact check after inexact
+            iterations starts several times the garment's weight out of balance and takes 70-150 Newton
+            iterations (README, "Not yet met"); a check that runs out of budget counts as a failed evaluation
+            and makes Algorithm 1 backtrack. 200 (it was 100: the coarse demo's first check needed more after
+            Newton's barrier blocks gained the body's curvature, and the demo then returned its initialized
+            pattern).
         adjoint: :class:`~torchgarment.sim.diff.AdjointLinearSolver` of the gradients: ``"direct"`` (a SuperLU
             factorization per gradient, exact) or ``"iterative"`` (block-Jacobi CG warm-started from the last
             adjoint, at most ``adjoint_max_iterations``: the large-mesh path, inexact gradients).
@@ -142,7 +147,7 @@ class AdjustSettings:
     voxel_size: float = 0.005
     drape: DrapeSettings | None = None
     atol_weight: float = 1e-3
-    max_solver_iterations: int = 100
+    max_solver_iterations: int = 200
     adjoint: AdjointLinearSolver = AdjointLinearSolver.SPARSE
     adjoint_rtol: float = 1e-3
     adjoint_max_iterations: int = 50
