@@ -232,3 +232,13 @@ def test_missing_backend_is_an_input_error(monkeypatch: pytest.MonkeyPatch) -> N
     for backend in ("pardiso", "cholespy"):
         with pytest.raises(InputError, match="pip install"):
             factorize(_spd(), backend=backend)
+
+
+def test_csr_matvec_is_the_matrix_product():
+    from torchgarment.linalg import csr_matvec
+
+    rng = np.random.default_rng(4)
+    h = scipy.sparse.random(40, 40, density=0.2, random_state=rng, format="coo")
+    v = torch.from_numpy(rng.standard_normal(40))
+    y = csr_matvec(h, torch.device("cpu"))(v)
+    assert y.dtype == torch.float64 and torch.allclose(y, torch.from_numpy(h.tocsr() @ v.numpy()), atol=1e-14)

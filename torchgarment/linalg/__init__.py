@@ -9,7 +9,7 @@ every solver and optimizer of the package builds on it.
 * :func:`pcg`: preconditioned conjugate gradients on torch tensors (or numpy arrays); :func:`minres`:
   preconditioned MINRES for symmetric indefinite systems.
 * :func:`armijo_backtracking`: the sufficient-decrease line search.
-* :class:`CSRAssembler`: 3x3 vertex blocks -> scipy CSR.
+* :class:`CSRAssembler`: 3x3 vertex blocks -> scipy CSR; :func:`csr_matvec`: its products on a device.
 
 Example:
     >>> fact = factorize(hessian, what="simulation Hessian")
@@ -24,6 +24,7 @@ from torchgarment.linalg.sparse import (
     Factorization,
     FactorizationCache,
     SparseBackend,
+    csr_matvec,
     factorize,
 )
 
@@ -34,6 +35,7 @@ __all__ = [
     "FactorizationCache",
     "SparseBackend",
     "armijo_backtracking",
+    "csr_matvec",
     "factorize",
     "minres",
     "pcg",

@@ -24,7 +24,6 @@ next iterations start from it. The solve stops as stalled only when every damped
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -34,7 +33,15 @@ import scipy.sparse.linalg
 import torch
 
 from torchgarment.errors import InputError, NonConvergenceError, SingularMatrixError
-from torchgarment.linalg import CSRAssembler, FactorCache, SparseBackend, armijo_backtracking, factorize, pcg
+from torchgarment.linalg import (
+    CSRAssembler,
+    FactorCache,
+    SparseBackend,
+    armijo_backtracking,
+    csr_matvec,
+    factorize,
+    pcg,
+)
 from torchgarment.sim.solvers.chebyshev import JacobiState, apply_inverse, seam_pairs
 from torchgarment.sim.solvers.common import (
     Callback,
@@ -126,21 +133,7 @@ def jacobi_pcg_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray, device: torch.
         def precondition(r: torch.Tensor) -> torch.Tensor:
             return dinv * r
 
-    if device.type == "cpu":  # scipy's CSR product, as the iterative adjoint's: faster than torch's there
-        hc = h.tocsr()
-
-        def matvec(v: torch.Tensor) -> torch.Tensor:
-            return torch.from_numpy(hc @ v.numpy())
-    else:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # "sparse CSR support is in beta"
-            mat = torch.sparse_csr_tensor(torch.from_numpy(h.indptr.astype(np.int64)),
-                                          torch.from_numpy(h.indices.astype(np.int64)),
-                                          torch.from_numpy(np.ascontiguousarray(h.data, dtype=np.float64)),
-                                          size=h.shape).to(device)
-
-        def matvec(v: torch.Tensor) -> torch.Tensor:
-            return (mat @ v.unsqueeze(1)).squeeze(1)
+    matvec = csr_matvec(h, device)
     b = torch.from_numpy(np.ascontiguousarray(rhs, dtype=np.float64)).to(device)
     try:
         y, iterations, _ = pcg(matvec, b, precondition, rtol, max_iterations, stop_at_negative_curvature=True)
