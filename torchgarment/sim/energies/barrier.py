@@ -360,14 +360,19 @@ class BodyBarrier(EnergyTerm):
         """
         check_positions(x, self.num_vertices, self.name)
         x = x.detach()
+        act, curv = self._curvature_rows(x)
+        out = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype, device=x.device)
+        return out.index_copy_(0, act, curv) if act.numel() else out
+
+    def _curvature_rows(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(act, blocks)``: the vertices where ``b' != 0`` (A,) and their curvature blocks (A, 3, 3)."""
         phi, _ = self._phi_grad_cached(x)
         phi = torch.where(phi > 0, phi, torch.full_like(phi, self.offset))  # as the gradient (see _evaluate)
         d1 = self.derivatives(phi)[0]
-        out = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype, device=x.device)
         # a range-limited barrier acts on the vertices within dhat only (b' = 0 beyond): difference just those
         act = torch.nonzero(d1 != 0, as_tuple=False).flatten()
         if act.numel() == 0:
-            return out
+            return act, x.new_zeros(0, 3, 3)
         xa = x.index_select(0, act)
         step = torch.finfo(x.dtype).eps ** (1.0 / 3.0) * 1e-2
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
@@ -378,8 +383,7 @@ class BodyBarrier(EnergyTerm):
             cols.append((gp - gm) / (2.0 * step))
         hphi = torch.stack(cols, dim=2)  # (A, 3, 3): column a = d grad / d x_a
         hphi = 0.5 * (hphi + hphi.transpose(1, 2))
-        out.index_copy_(0, act, hphi * d1.index_select(0, act)[:, None, None])
-        return out
+        return act, hphi * d1.index_select(0, act)[:, None, None]
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
         """The V diagonal blocks (the barrier couples no two vertices): ``b'' g g^T + b' Hess(phi)``, or with
@@ -387,10 +391,8 @@ class BodyBarrier(EnergyTerm):
         module docstring)."""
         _, safe, gphi = self._evaluate(x)
         h = self._blocks(safe, gphi)
-        curv = self.curvature_blocks(x)
-        act = torch.nonzero(curv.reshape(-1, 9).abs().amax(1) > 0, as_tuple=False).flatten()
+        act, c = self._curvature_rows(x.detach())
         if act.numel():
-            c = curv.index_select(0, act)
             if project_psd:
                 w, v = torch.linalg.eigh(c)
                 c = (v * w.clamp_min(0.0).unsqueeze(1)) @ v.transpose(1, 2)
