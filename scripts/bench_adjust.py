@@ -63,9 +63,10 @@ def main() -> None:
     ap.add_argument("--reuse-factorization", action="store_true",
                     help="Newton solves reuse their LU factorization through PCG "
                          "(AdjustSettings.reuse_factorization)")
-    ap.add_argument("--sparse-backend", default="superlu", choices=["superlu", "pardiso", "cholespy"],
-                    help="sparse direct solver of Newton systems, adjoints and tangents (pardiso/cholespy: "
-                         "when installed)")
+    ap.add_argument("--sparse-backend", default="superlu",
+                    choices=["superlu", "pardiso", "cholespy", "cholmod"],
+                    help="sparse direct solver of Newton systems, adjoints and tangents "
+                         "(pardiso/cholespy/cholmod: when installed)")
     ap.add_argument("--linear-solver", default="direct", choices=["direct", "jacobi-pcg"],
                     help="Newton's linear solves (AdjustSettings.linear_solver): a factorization on the CPU "
                          "or block-Jacobi CG on --device")

@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument("--size", default="12")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--backends", nargs="+", default=["superlu", "pardiso", "cholespy"])
+    ap.add_argument("--backends", nargs="+", default=["superlu", "pardiso", "cholespy", "cholmod"])
     ap.add_argument("--state", choices=["rest", "draped"], default="rest",
                     help="the Hessian at the flat placed panels (rest) or a draped Newton system (see above)")
     ap.add_argument("--pcg", action="store_true", help="also block-Jacobi PCG on --device (torch tensors)")

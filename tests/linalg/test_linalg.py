@@ -60,6 +60,26 @@ def test_the_symmetric_superlu_call_is_unchanged() -> None:
     assert np.array_equal(factorize(a).solve(b), lu.solve(b))
 
 
+def test_cholmod_backend_matches_a_dense_solve_and_rejects_what_it_cannot_factorize() -> None:
+    pytest.importorskip("cvxopt")
+    a = _spd(60, seed=5)
+    b = np.random.default_rng(6).standard_normal((60, 2))
+    fact = factorize(a, backend="cholmod", shift=0.25)
+    assert fact.backend is SparseBackend.CHOLMOD and fact.shift == 0.25
+    dense = np.linalg.solve(a.toarray() + 0.25 * np.eye(60), b)
+    np.testing.assert_allclose(fact.solve(b), dense, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(fact.solve(b[:, 1], transpose=True), dense[:, 1], rtol=1e-10, atol=1e-12)
+    # two factorizations stay independent (each has its own analysis and factor)
+    other = factorize(2.0 * a, backend="cholmod")
+    np.testing.assert_allclose(fact.solve(b), dense, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(other.solve(b), np.linalg.solve(2.0 * a.toarray(), b), rtol=1e-10, atol=1e-12)
+    # an indefinite matrix is not factorized (Newton regularizes on this error); nor is a nonsymmetric one
+    with pytest.raises(SingularMatrixError, match="not positive definite"):
+        factorize(a - 10.0 * scipy.sparse.identity(60), backend="cholmod")
+    with pytest.raises(InputError, match="symmetric positive definite"):
+        factorize(a, backend="cholmod", symmetric=False)
+
+
 def test_singular_matrix_raises() -> None:
     a = scipy.sparse.csr_matrix(np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
     with pytest.raises(SingularMatrixError, match="stiffness matrix is singular"):
@@ -224,12 +244,12 @@ def test_missing_backend_is_an_input_error(monkeypatch: pytest.MonkeyPatch) -> N
     real = importlib.import_module
 
     def fake(name: str, package: str | None = None) -> types.ModuleType:
-        if name in ("pypardiso", "cholespy"):
+        if name in ("pypardiso", "cholespy", "cvxopt"):
             raise ImportError(name)
         return real(name, package)
 
     monkeypatch.setattr(importlib, "import_module", fake)
-    for backend in ("pardiso", "cholespy"):
+    for backend in ("pardiso", "cholespy", "cholmod"):
         with pytest.raises(InputError, match="pip install"):
             factorize(_spd(), backend=backend)
 

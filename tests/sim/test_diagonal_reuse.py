@@ -128,6 +128,45 @@ def test_partial_update_equals_a_rebuild_with_the_same_scale():
                                atol=0.0)
 
 
+def test_partial_update_with_seam_blocks_equals_a_rebuild():
+    """A partial update whose rows include seam vertices (one pair stops being positive definite and falls
+    back to its 3x3 inverses) equals a full rebuild with the same floor scale; a positive definite pair's
+    block is the exact 6x6 inverse."""
+    torch.manual_seed(0)
+    V, k = 40, 50.0
+    eye = torch.eye(3, dtype=torch.float64)
+    m = torch.randn(V, 3, 3, dtype=torch.float64)
+    h = m @ m.transpose(1, 2) + 3.0 * eye
+    pairs = torch.tensor([[0, 1], [2, 3], [4, 5], [6, 7]])
+    h[pairs.flatten()] += k * eye
+    settings = SolveSettings(preconditioner=Preconditioner.BLOCK)
+    state = JacobiState(settings, (pairs, k))
+    state.rebuild(h, torch.tensor([0, 10]))
+    assert state.inverse.i.numel() == 4
+    h2 = h.clone()
+    h2[2] += 5.0 * eye
+    h2[11] += 2.0 * eye
+    h2[7] = -h2[7]  # the pair (6, 7) is no longer positive definite
+    state.update(h2, torch.tensor([2, 11, 7]))
+    assert state.inverse.i.tolist() == [0, 2, 4]  # (6, 7) keeps its 3x3 inverses
+    ref = JacobiState(settings, (pairs, k))
+    ref._scale = state._scale
+    ref._base = jacobi_inverse(h2, settings.preconditioner, settings.diagonal_floor, state._scale)
+    ref._finish(h2)
+    g = torch.randn(V, 3, dtype=torch.float64)
+    out = apply_inverse(state.inverse, g)
+    torch.testing.assert_close(out, apply_inverse(ref.inverse, g), rtol=1e-12, atol=0.0)
+    f = settings.diagonal_floor * state._scale
+    for i, j in ((2, 3), (0, 1)):
+        block = torch.cat([torch.cat([h2[i] + f * eye, -k * eye], 1),
+                           torch.cat([-k * eye, h2[j] + f * eye], 1)])
+        uv = torch.linalg.solve(block, torch.cat([g[i], g[j]]))
+        torch.testing.assert_close(torch.cat([out[i], out[j]]), uv, rtol=1e-9, atol=0.0)
+    base = jacobi_inverse(h2, settings.preconditioner, settings.diagonal_floor, state._scale)
+    for v in (6, 7, 11):
+        torch.testing.assert_close(out[v], base[v] @ g[v], rtol=1e-12, atol=0.0)
+
+
 def test_spd_inverse_3x3_against_linalg():
     gen = torch.Generator().manual_seed(0)
     a = torch.randn(200, 3, 3, dtype=torch.float64, generator=gen)

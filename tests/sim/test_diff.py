@@ -378,3 +378,31 @@ def test_inexact_cg_adjoint_at_negative_curvature_is_solved_by_minres():
     lam_fb = warm.adjoint(compressed, rhs)
     assert warm.adjoint_fallbacks == 1 and warm.last_adjoint_info.solver == "sparse"
     torch.testing.assert_close(lam_fb, lam_direct)
+
+
+def test_cholmod_newton_and_the_adjoint_at_an_indefinite_hessian():
+    """With the Cholesky backend ``"cholmod"`` the forward Newton solve factorizes by CHOLMOD, and the
+    adjoint, whose exact Hessian may be indefinite (a compressed state), by SuperLU: the same solution and
+    adjoint as SuperLU throughout, where a Cholesky of that Hessian fails."""
+    pytest.importorskip("cvxopt")
+    from dataclasses import replace
+
+    from torchgarment.errors import SingularMatrixError
+    from torchgarment.linalg import CSRAssembler, SparseBackend, factorize
+    from torchgarment.sim.diff import exact_hessian_blocks
+
+    assert SparseBackend.CHOLMOD.for_indefinite() is SparseBackend.SUPERLU
+    assert SparseBackend.PARDISO.for_indefinite() is SparseBackend.PARDISO
+    model, x0 = build("stretch")
+    ref = DifferentiableSolver(model, x0, TIGHT, linear_solver="sparse")
+    layer = DifferentiableSolver(model, x0, replace(TIGHT, sparse_backend="cholmod"), linear_solver="sparse")
+    x_ref, x = ref().detach(), layer().detach()
+    assert float((x - x_ref).abs().max()) <= 1e-9
+    compressed = x.mean(0) + 0.8 * (x - x.mean(0))
+    with pytest.raises(SingularMatrixError, match="not positive definite"):
+        factorize(CSRAssembler(model.num_vertices).assemble(exact_hessian_blocks(model, compressed)),
+                  backend="cholmod")
+    rhs = torch.randn(x.shape, generator=torch.Generator().manual_seed(2), dtype=x.dtype)
+    torch.testing.assert_close(layer.adjoint(compressed, rhs), ref.adjoint(compressed, rhs), rtol=1e-9,
+                               atol=0.0)
+    assert layer.last_adjoint_info.solver == "sparse"

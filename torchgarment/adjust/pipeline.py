@@ -104,8 +104,9 @@ class AdjustSettings:
             thread): 62.3 s without, 35.8 s with. Off by default: CG's stopping decisions amplify round-off,
             so two runs of one setup then differ (1e-3 of the objective on the 5 cm skirt, 15 % on the 3K
             dress; without it by ~1e-10) and a resumed run no longer repeats the uninterrupted one.
-        sparse_backend: the sparse direct solver of the simulation's Newton systems, adjoints and tangents
-            (:class:`~torchgarment.linalg.SparseBackend`: ``"superlu"``, or ``"pardiso"`` when installed).
+        sparse_backend: the sparse direct solver of the simulation's Newton systems (the base drape's too),
+            adjoints and tangents (:class:`~torchgarment.linalg.SparseBackend`: ``"superlu"``, or
+            ``"cholmod"`` / ``"pardiso"`` when installed; see the README's linear algebra section).
         linear_solver: how the simulation's Newton (the base drape's settle, the exact and Newton inexact
             solves) solves its systems (:class:`~torchgarment.sim.solvers.LinearSolver`): ``"direct"``
             (``sparse_backend``, default) or ``"jacobi-pcg"`` (block-Jacobi CG on the device, no
@@ -485,7 +486,7 @@ def base_drape_settings(settings: AdjustSettings) -> DrapeSettings:
     ``settings.support``."""
     dset = (settings.drape if settings.drape is not None
             else DrapeSettings(edge_length=settings.edge_length, voxel_size=settings.voxel_size,
-                               linear_solver=settings.linear_solver))
+                               linear_solver=settings.linear_solver, sparse_backend=settings.sparse_backend))
     return replace(dset, support=dset.support and settings.support)
 
 

@@ -519,7 +519,9 @@ class DifferentiableSolver(torch.nn.Module):
         self._x_last: torch.Tensor | None = None
         self._adjoint_last: torch.Tensor | None = None
         self._assembler = CSRAssembler(model.num_vertices)
-        self._factorizations = FactorizationCache(self.settings.sparse_backend, what="simulation Hessian")
+        # the exact Hessian may be indefinite: a Cholesky backend serves the Newton systems only
+        self._factorizations = FactorizationCache(self.settings.sparse_backend.for_indefinite(),
+                                                  what="simulation Hessian")
         self.last_info: SolveInfo | None = None
         self.last_adjoint_info: AdjointInfo | None = None
         self.sim_iterations = 0
