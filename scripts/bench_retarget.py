@@ -106,8 +106,8 @@ MESSY_AVATARS = ("anny-12", "mean_female", "mean_male", "creature-10k", "creatur
 STAGES = (
     ("ccd", ("collision_free", "stepsize")),
     ("broad_phase_and_culling", ("ipctk.build", "_recull", "_set_subset", "BroadPhase", "Candidates")),
-    ("factorization", ("gstrf", "splu", "factorize")),
-    ("linear_solves", ("SuperLU", "pcg", "minres", "csr_matvec", "spsolve")),
+    ("factorization", ("gstrf", "splu", "factorize", "cvxopt.cholmod.numeric", "cvxopt.cholmod.symbolic")),
+    ("linear_solves", ("SuperLU", "pcg", "minres", "csr_matvec", "spsolve", "cvxopt.cholmod.solve")),
     ("hessian_assembly", ("ipctk.hessian", "hessian", "unweighted_blocks", "to_sparse", "CSRAssembler")),
     ("barrier_value_gradient", ("ipctk.potential", "ipctk.gradient", "ipctk.compute", "barrier")),
     ("line_search", ("armijo", "line_search")),
@@ -187,7 +187,7 @@ def messy(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     source = Body.from_size("12")
-    settings = RetargetSettings(step_bound=args.step_bound)
+    settings = RetargetSettings(step_bound=args.step_bound, sparse_backend=args.sparse_backend)
     args.cache.mkdir(parents=True, exist_ok=True)
     records = []
     print(f"{'garment':>28}{'avatar':>14}{'g.verts':>8}{'a.tris':>8}{'iters':>7}{'seconds':>9}{'inter':>7}"
@@ -245,7 +245,7 @@ def messy(args: argparse.Namespace) -> int:
                "mean_seconds": float(np.mean(secs)) if secs else None,
                "max_seconds": float(np.max(secs)) if secs else None,
                "targets": {"mean_seconds": 20.0, "max_seconds": 60.0}, "threads": args.threads,
-               "profiled": bool(args.profile)}
+               "profiled": bool(args.profile), "sparse_backend": args.sparse_backend}
     return _report(summary, records, args.json)
 
 
@@ -262,6 +262,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--avatar", nargs="+", default=["anny-6", "anny-20"])
     ap.add_argument("--avatar-vertices", type=int, nargs="+", default=[2000, 10000])
     ap.add_argument("--step-bound", default=RetargetSettings().step_bound.value)
+    ap.add_argument("--sparse-backend", default="superlu",
+                    choices=["superlu", "pardiso", "cholespy", "cholmod"],
+                    help="sparse direct solver of the Newton systems (pardiso/cholespy/cholmod: when "
+                         "installed)")
     ap.add_argument("--json", type=Path, help="write the records and the summary here")
     ap.add_argument("--messy", action="store_true", help="the messy bench (layered garments, dense avatars)")
     ap.add_argument("--messy-garments", nargs="+", default=list(MESSY_GARMENTS), choices=list(MESSY_GARMENTS))
@@ -275,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
         return messy(args)
 
     source = Body.from_size(args.source_size)
-    settings = RetargetSettings(step_bound=args.step_bound)
+    settings = RetargetSettings(step_bound=args.step_bound, sparse_backend=args.sparse_backend)
     if args.garment is not None:
         gv0, gf0 = load_mesh(args.garment, weld=True, dtype=torch.float64)
         gv0, gf0 = gv0.numpy(), gf0.numpy()
@@ -340,6 +344,7 @@ def main(argv: list[str] | None = None) -> int:
         "mean_seconds": float(np.mean(secs)) if secs else None,
         "max_seconds": float(np.max(secs)) if secs else None,
         "step_bound": args.step_bound,
+        "sparse_backend": args.sparse_backend,
         "torch_threads": settings.threads,
     }
     return _report(summary, records, args.json)
