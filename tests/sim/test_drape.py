@@ -55,35 +55,26 @@ def test_small_drape_end_to_end(small_drape):
     assert 0.9 < float(ratio.median()) < 1.1
 
 
-def test_jacobi_pcg_settle_makes_no_factorization(small_drape, splu_calls: dict):
-    """DrapeSettings(linear_solver="jacobi-pcg"): the settle's Newton solves by block-Jacobi CG (the GPU path)
-    without a single factorization, and reaches a usable drape next to the direct solver's (mean vertex within
-    0.5 mm; a hem may settle on another of its equilibria)."""
+@pytest.mark.parametrize("option, value, bad", [
+    ("linear_solver", "jacobi-pcg", "lu"),
+    ("sparse_backend", "cholmod", "umfpack"),
+])
+def test_settle_without_superlu_matches_the_default(small_drape, splu_calls: dict, option, value, bad):
+    """The settle's Newton without a single SuperLU factorization reaches a usable drape next to the default's
+    (mean vertex within 0.5 mm; a hem may settle on another of its equilibria), converged, outside the body:
+    ``linear_solver="jacobi-pcg"`` solves by block-Jacobi CG (the GPU path, no factorization at all),
+    ``sparse_backend="cholmod"`` factorizes by CHOLMOD's Cholesky (the extra ``.[cholmod]``)."""
     from dataclasses import replace
 
+    if value == "cholmod":
+        pytest.importorskip("cvxopt")
     body, pattern, ref = small_drape
-    r = drape(pattern, body, settings=replace(SMALL, linear_solver="jacobi-pcg"))
+    r = drape(pattern, body, settings=replace(SMALL, **{option: value}))
     assert splu_calls["n"] == 0
     assert r.ok and r.converged and r.metrics["inside_vertices"] == 0
     assert float((r.x - ref.x).norm(dim=1).mean()) <= 5e-4
     with pytest.raises(InputError):
-        DrapeSettings(linear_solver="lu")
-
-
-def test_cholmod_settle_matches_superlu(small_drape, splu_calls: dict):
-    """DrapeSettings(sparse_backend="cholmod"): the settle factorizes by CHOLMOD's Cholesky (no SuperLU call)
-    and reaches the same drape as SuperLU (mean vertex within 0.5 mm; a hem may settle on another of its
-    equilibria), converged, outside the body."""
-    pytest.importorskip("cvxopt")
-    from dataclasses import replace
-
-    body, pattern, ref = small_drape
-    r = drape(pattern, body, settings=replace(SMALL, sparse_backend="cholmod"))
-    assert splu_calls["n"] == 0
-    assert r.ok and r.converged and r.metrics["inside_vertices"] == 0
-    assert float((r.x - ref.x).norm(dim=1).mean()) <= 5e-4
-    with pytest.raises(InputError):
-        DrapeSettings(sparse_backend="umfpack")
+        DrapeSettings(**{option: bad})
 
 
 def pattern_mesh(pattern):
