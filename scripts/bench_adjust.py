@@ -6,6 +6,7 @@ Usage:
         [--base-size 12] [--target-size 20] [--voxel 0.005] [--threads 2] [--inner-iterations 2]
         [--inner-solver newton|gd-chebyshev] [--adjoint direct|iterative] [--adjoint-max-iterations 50]
         [--reuse-factorization] [--linear-solver direct|jacobi-pcg] [--setup FILE] [--device cpu|cuda]
+        [--sparse-backend superlu|cholmod|...] [--exact-curvature-cg N]
 
 ``--setup FILE`` saves the precomputation (base drape, transfer, initialization: minutes at 30K vertices) on
 the first run and loads it on the next ones, so that optimizer options can be compared on one setup.
@@ -67,6 +68,10 @@ def main() -> None:
                     choices=["superlu", "pardiso", "cholespy", "cholmod"],
                     help="sparse direct solver of Newton systems, adjoints and tangents "
                          "(pardiso/cholespy/cholmod: when installed)")
+    ap.add_argument("--exact-curvature-cg", type=int, default=0, metavar="N",
+                    help="Newton's direction by N CG iterations on the exact Hessian preconditioned by the "
+                         "projected one's factorization (AdjustSettings.exact_curvature_cg; 0: projected "
+                         "Newton)")
     ap.add_argument("--linear-solver", default="direct", choices=["direct", "jacobi-pcg"],
                     help="Newton's linear solves (AdjustSettings.linear_solver): a factorization on the CPU "
                          "or block-Jacobi CG on --device")
@@ -98,7 +103,8 @@ def main() -> None:
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
                               adjoint_max_iterations=args.adjoint_max_iterations,
                               reuse_factorization=args.reuse_factorization,
-                              sparse_backend=args.sparse_backend, linear_solver=args.linear_solver)
+                              sparse_backend=args.sparse_backend, linear_solver=args.linear_solver,
+                              exact_curvature_cg=args.exact_curvature_cg)
     t0 = time.perf_counter()
     setup = None
     if args.setup and Path(args.setup).is_file():
@@ -123,7 +129,8 @@ def main() -> None:
                                   exact_interval=args.exact_interval, inner_solver=args.inner_solver,
                                   adjoint=args.adjoint, adjoint_max_iterations=args.adjoint_max_iterations,
                                   reuse_factorization=args.reuse_factorization,
-                                  sparse_backend=args.sparse_backend, linear_solver=args.linear_solver),
+                                  sparse_backend=args.sparse_backend, linear_solver=args.linear_solver,
+                                  exact_curvature_cg=args.exact_curvature_cg),
                    progress=True)
     m = res.metrics
     out = {
@@ -133,7 +140,7 @@ def main() -> None:
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
         "exact_interval": args.exact_interval,
         "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
-        "linear_solver": args.linear_solver,
+        "linear_solver": args.linear_solver, "exact_curvature_cg": args.exact_curvature_cg,
         "adjoint_iterations": m["adjoint_iterations"],
         "adjoint_max_iterations": args.adjoint_max_iterations,
         "adjoint_factorizations": m["factorizations"],

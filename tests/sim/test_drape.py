@@ -77,6 +77,21 @@ def test_settle_without_superlu_matches_the_default(small_drape, splu_calls: dic
         DrapeSettings(**{option: bad})
 
 
+def test_exact_curvature_settle_matches_the_default(small_drape):
+    """DrapeSettings(exact_curvature_cg=10): the settle's Newton directions by CG on the exact Hessian
+    (preconditioned by the projected one's factorization) reach the default's drape (mean vertex within
+    0.5 mm), converged, outside the body; out-of-range values are refused."""
+    from dataclasses import replace
+
+    body, pattern, ref = small_drape
+    r = drape(pattern, body, settings=replace(SMALL, exact_curvature_cg=10))
+    assert r.ok and r.converged and r.metrics["inside_vertices"] == 0
+    assert float((r.x - ref.x).norm(dim=1).mean()) <= 5e-4
+    for bad in ({"exact_curvature_cg": -1}, {"exact_curvature_cg": 5, "linear_solver": "jacobi-pcg"}):
+        with pytest.raises(InputError, match="exact_curvature_cg"):
+            DrapeSettings(**bad).validate()
+
+
 def pattern_mesh(pattern):
     from torchgarment.pattern.meshing import mesh_pattern
 

@@ -537,3 +537,50 @@ def test_jacobi_pcg_seam_blocks_cut_the_iterations_of_a_stiffly_sewn_system() ->
     for y in (y0, y1):
         np.testing.assert_allclose(y, exact, rtol=0.0, atol=1e-7 * np.abs(exact).max())
     assert its1 < 0.5 * its0, (its1, its0)
+
+
+def test_exact_curvature_cg_direction():
+    """``SolveSettings.exact_curvature_cg``: CG on the exact Hessian preconditioned by the projected one's
+    factorization. One iteration is the projected Newton step scaled by the exact curvature along it; run to
+    convergence it is the exact Newton step (a sheet shrunk to 95 %: a few compressed springs, so the two
+    Hessians differ while the exact one is still positive definite); at an indefinite state (90 %) the
+    direction stays a descent direction (for a generic right-hand side ``g``); the settings are checked."""
+    import sys
+    from pathlib import Path
+
+    import scipy.sparse.linalg
+
+    from torchgarment.sim.diff import DifferentiableSolver
+    from torchgarment.sim.solvers.newton import newton_direction
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_diff import TIGHT, build
+
+    model, x0 = build("stretch")
+    x = DifferentiableSolver(model, x0, TIGHT)().detach()
+    asm = CSRAssembler(model.num_vertices)
+    for scale in (0.95, 0.9):
+        xc = x.mean(0) + scale * (x - x.mean(0))
+        h = asm.assemble(model.hessian_blocks(xc, project_psd=True))
+        he = asm.assemble(model.hessian_blocks(xc, project_psd=False))
+        # a generic right-hand side (the gradient of a uniform shrink is an eigenvector of both Hessians)
+        g = np.random.default_rng(7).standard_normal(h.shape[0])
+        assert abs(he - h).max() > 1.0  # the projection changed the Hessian
+        p = -scipy.sparse.linalg.spsolve(h.tocsc(), g)
+        one, _ = newton_direction(h, g, SolveSettings(exact_curvature_cg=1), 1, exact=lambda he=he: he)
+        curvature = float(p @ (he @ p))
+        # at non-positive curvature along it (Steihaug stops before a first iterate): the projected step
+        np.testing.assert_allclose(one, p * float(-(g @ p) / curvature) if curvature > 0 else p, rtol=1e-7,
+                                   atol=1e-9 * np.abs(p).max())
+        full, _ = newton_direction(h, g, SolveSettings(exact_curvature_cg=300, exact_curvature_rtol=1e-12), 1,
+                                   exact=lambda he=he: he)
+        assert float(g @ full) < 0.0
+        if scale == 0.95:
+            assert np.linalg.eigvalsh(he.toarray()).min() > 0.0
+            newton = -scipy.sparse.linalg.spsolve(he.tocsc(), g)
+            np.testing.assert_allclose(full, newton, rtol=1e-8, atol=1e-10 * np.abs(newton).max())
+            assert np.abs(full - p).max() > 1e-3 * np.abs(p).max()  # not the projected step
+    with pytest.raises(InputError, match="exact_curvature_cg"):
+        SolveSettings(exact_curvature_cg=5, reuse_factorization=True)
+    with pytest.raises(InputError, match="exact_curvature_cg"):
+        SolveSettings(exact_curvature_cg=-1)

@@ -104,6 +104,10 @@ class AdjustSettings:
             thread): 62.3 s without, 35.8 s with. Off by default: CG's stopping decisions amplify round-off,
             so two runs of one setup then differ (1e-3 of the objective on the 5 cm skirt, 15 % on the 3K
             dress; without it by ~1e-10) and a resumed run no longer repeats the uninterrupted one.
+        exact_curvature_cg: Newton's direction in the base drape's settle and the exact solves by up to this
+            many CG iterations on the exact Hessian preconditioned by the projected one's factorization
+            (``SolveSettings.exact_curvature_cg``; 0, the default: projected Newton). Not with
+            ``reuse_factorization``.
         sparse_backend: the sparse direct solver of the simulation's Newton systems (the base drape's too),
             adjoints and tangents (:class:`~torchgarment.linalg.SparseBackend`: ``"superlu"``, or
             ``"cholmod"`` / ``"pardiso"`` when installed; see the README's linear algebra section).
@@ -154,6 +158,7 @@ class AdjustSettings:
     adjoint_max_iterations: int = 50
     reuse_factorization: bool = False
     sparse_backend: SparseBackend = SparseBackend.SUPERLU
+    exact_curvature_cg: int = 0
     linear_solver: LinearSolver = LinearSolver.DIRECT
     band: float | None = None
     checkpoint_every: int = 0
@@ -474,7 +479,8 @@ class AdjustSetup:
                              exact_settings=replace(self.exact_settings,
                                                     reuse_factorization=s.reuse_factorization,
                                                     sparse_backend=s.sparse_backend,
-                                                    linear_solver=s.linear_solver),
+                                                    linear_solver=s.linear_solver,
+                                                    exact_curvature_cg=s.exact_curvature_cg),
                              solver=s.solver, inexact_solver=s.inner_solver, adjoint=s.adjoint,
                              adjoint_rtol=s.adjoint_rtol, adjoint_max_iterations=s.adjoint_max_iterations,
                              retain_graph=s.optimizer == OptimizerKind.GN)
@@ -486,7 +492,8 @@ def base_drape_settings(settings: AdjustSettings) -> DrapeSettings:
     ``settings.support``."""
     dset = (settings.drape if settings.drape is not None
             else DrapeSettings(edge_length=settings.edge_length, voxel_size=settings.voxel_size,
-                               linear_solver=settings.linear_solver, sparse_backend=settings.sparse_backend))
+                               linear_solver=settings.linear_solver, sparse_backend=settings.sparse_backend,
+                               exact_curvature_cg=settings.exact_curvature_cg))
     return replace(dset, support=dset.support and settings.support)
 
 
@@ -601,7 +608,8 @@ def prepare(
     exact = SolveSettings(rtol=0.0, atol=settings.atol_weight * weight,
                           max_iterations=settings.max_solver_iterations,
                           reuse_factorization=settings.reuse_factorization,
-                          sparse_backend=settings.sparse_backend, linear_solver=settings.linear_solver)
+                          sparse_backend=settings.sparse_backend, linear_solver=settings.linear_solver,
+                          exact_curvature_cg=settings.exact_curvature_cg)
     problem = AdjustProblem(model, param, objective, x_transfer, exact_settings=exact, solver=settings.solver,
                             inexact_solver=settings.inner_solver)
     q_base = param.initial().detach()

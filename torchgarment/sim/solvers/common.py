@@ -123,6 +123,15 @@ class SolveSettings:
             Large meshes (the drape's settle stage) spend most of a Newton iteration in the factorization.
         pcg_rtol: relative residual of those CG solves, in (0, 1).
         pcg_max_iterations: CG iterations before a fresh factorization (>= 1).
+        exact_curvature_cg: 0 (default): Newton's direction is the projected Newton step ``-H_psd^-1 g``.
+            N > 0: up to N conjugate-gradient iterations on the exact (unprojected) Hessian, preconditioned by
+            the factorization of the projected one, from zero, to relative residual ``exact_curvature_rtol``
+            or the first direction of non-positive curvature (Steihaug); the first iterate is the projected
+            step scaled by the exact curvature along it. Projecting every compressed spring's block makes the
+            model 5-8x stiffer than the energy along the Newton direction of a settling garment (measured on
+            the 3K sheath dress), which costs projected Newton hundreds of full but short steps. A fresh
+            factorization every iteration: not with ``reuse_factorization`` nor ``"jacobi-pcg"``.
+        exact_curvature_rtol: relative residual of those CG iterations, in (0, 1).
         sparse_backend: the sparse direct solver of Newton's systems
             (:class:`~torchgarment.linalg.SparseBackend`; ``"superlu"``, always installed and deterministic,
             by default; ``"cholmod"``, a Cholesky, factorizes the projected Newton systems 3-4x faster, and
@@ -161,6 +170,8 @@ class SolveSettings:
     reuse_factorization: bool = False
     pcg_rtol: float = 1e-2
     pcg_max_iterations: int = 25
+    exact_curvature_cg: int = 0
+    exact_curvature_rtol: float = 0.05
     sparse_backend: SparseBackend = SparseBackend.SUPERLU
     linear_solver: LinearSolver = LinearSolver.DIRECT
     jacobi_pcg_rtol: float = 1e-4
@@ -207,6 +218,12 @@ class SolveSettings:
             (not (self.reuse_factorization and self.linear_solver == LinearSolver.JACOBI_PCG),
              "reuse_factorization reuses a factorization, which linear_solver='jacobi-pcg' never makes: "
              "set one of them"),
+            (self.exact_curvature_cg >= 0 and 0.0 < self.exact_curvature_rtol < 1.0,
+             "exact_curvature_cg must be >= 0 and exact_curvature_rtol lie in (0, 1)"),
+            (self.exact_curvature_cg == 0 or (not self.reuse_factorization
+                                              and self.linear_solver == LinearSolver.DIRECT),
+             "exact_curvature_cg preconditions by a fresh factorization of the projected Hessian: not with "
+             "reuse_factorization or linear_solver='jacobi-pcg'"),
         ]
         for ok, msg in checks:
             if not ok:

@@ -230,6 +230,7 @@ def newton_direction(
     h: scipy.sparse.csr_matrix, g: np.ndarray, settings: SolveSettings, iteration: int,
     cache: FactorCache | None = None, options: NewtonOptions | None = None, *,
     device: torch.device | None = None, blocks: bool = True, seams: tuple[torch.Tensor, float] | None = None,
+    exact: Callable[[], scipy.sparse.csr_matrix] | None = None,
 ) -> tuple[np.ndarray, int]:
     """A descent direction ``dx`` solving ``(H + lambda I) dx = -g``, regularizing when needed.
 
@@ -246,6 +247,10 @@ def newton_direction(
         blocks: that solver's preconditioner is 3x3 block Jacobi (False: scalar, for systems on a subset of
             the unknowns).
         seams: that solver's seam blocks (see :func:`jacobi_pcg_solve`); None: none.
+        exact: with ``settings.exact_curvature_cg > 0``, builds the exact (unprojected) Hessian: the direction
+            is then CG on it preconditioned by the factorization of ``h`` (see
+            :class:`~torchgarment.sim.solvers.SolveSettings`); the projected step when ``h`` does not
+            factorize to a descent direction's first try.
 
     Returns:
         ``(dx, retries)``: the direction (n,) and how many regularized solves were needed.
@@ -259,6 +264,18 @@ def newton_direction(
         dx = cache.solve(h, -g, settings.pcg_rtol, settings.pcg_max_iterations)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, 0
+    if exact is not None and settings.exact_curvature_cg > 0 and not o.regularize_first:
+        try:
+            fact = factorize(h, backend=settings.sparse_backend, what="Newton system")
+            dx = fact.solve(-g)
+        except SingularMatrixError:
+            dx = None
+        if dx is not None and float(g @ dx) < 0.0:
+            k = exact()
+            y, its, _ = pcg(lambda v: k @ v, -g, fact.solve, settings.exact_curvature_rtol,
+                            settings.exact_curvature_cg, stop_at_negative_curvature=True)
+            # from zero every CG iterate before a non-positive curvature is a descent direction
+            return (y if its > 0 and float(g @ y) < 0.0 else dx), 0
 
     def linear_solve(a: scipy.sparse.csr_matrix, shift: float) -> np.ndarray | None:
         if settings.linear_solver == LinearSolver.JACOBI_PCG:
@@ -321,13 +338,14 @@ def solve_newton(
     part_assemblers: list[CSRAssembler] = []
     block_parts = getattr(model, "hessian_block_parts", None)
 
-    def assemble_hessian(x: torch.Tensor) -> scipy.sparse.csr_matrix:
-        """The Hessian as CSR; a model with ``hessian_block_parts`` (blocks grouped by how often their
-        sparsity changes) gets one cached assembler per group, so a changing contact pattern does not
-        re-sort the rest."""
+    def assemble_hessian(x: torch.Tensor, project: bool = True) -> scipy.sparse.csr_matrix:
+        """The Hessian as CSR (projected per ``settings.project_psd`` unless ``project`` is False); a model
+        with ``hessian_block_parts`` (blocks grouped by how often their sparsity changes) gets one cached
+        assembler per group, so a changing contact pattern does not re-sort the rest."""
+        psd = settings.project_psd and project
         if block_parts is None:
-            return assembler.assemble(model.hessian_blocks(x, project_psd=settings.project_psd))
-        parts = block_parts(x, project_psd=settings.project_psd)
+            return assembler.assemble(model.hessian_blocks(x, project_psd=psd))
+        parts = block_parts(x, project_psd=psd)
         while len(part_assemblers) < len(parts):
             part_assemblers.append(CSRAssembler(model.num_vertices))
         mats = [asm.assemble(b) for asm, b in zip(part_assemblers, parts)]
@@ -371,12 +389,18 @@ def solve_newton(
                 h = h[free][:, free]
                 g64 = g64[free]
             diag = np.maximum(np.abs(h.diagonal()), 1e-12 * float(np.abs(h.diagonal()).max() or 1.0))
+
+            def exact_hessian(x: torch.Tensor = x) -> scipy.sparse.csr_matrix:
+                he = assemble_hessian(x, project=False)
+                return he if free is None else he[free][:, free]
+
             accepted = False
             trial = 0
             while not accepted and trial <= (LEVENBERG_RETRIES if o.levenberg else 0):
                 hk = h if damping == 0.0 else (h + scipy.sparse.diags(damping * diag, format="csr")).tocsr()
                 dxf, retries = newton_direction(hk, g64, settings, k, cache if damping == 0.0 else None, o,
-                                                device=x.device, blocks=free is None, seams=seams)
+                                                device=x.device, blocks=free is None, seams=seams,
+                                                exact=exact_hessian if damping == 0.0 else None)
                 info.restarts += retries
                 slope = float(g64 @ dxf)  # < 0
                 if free is None:
