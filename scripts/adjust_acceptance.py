@@ -270,12 +270,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fit-scale", choices=("stature", "none"), default=None,
                     help="how the fit rules' lengths scale with the body's height (default: torchgarment "
                          "adjust's; the manufactured solution is exact with 'stature')")
+    ap.add_argument("--sparse-backend", default=None, choices=("superlu", "pardiso", "cholespy", "cholmod"),
+                    help="sparse direct solver of the simulation (default: torchgarment adjust's, superlu)")
+    ap.add_argument("--exact-curvature-cg", type=int, default=None, metavar="N",
+                    help="Newton's direction by N CG iterations on the exact Hessian (AdjustSettings."
+                         "exact_curvature_cg; default 0: projected Newton)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     overrides = {k: v for k, v in (("edge_length", args.edge_length), ("voxel_size", args.voxel),
-                                   ("iterations", args.iterations), ("fit_scale", args.fit_scale))
+                                   ("iterations", args.iterations), ("fit_scale", args.fit_scale),
+                                   ("sparse_backend", args.sparse_backend),
+                                   ("exact_curvature_cg", args.exact_curvature_cg))
                  if v is not None}
     if args.weights:
         overrides["weights"] = CostWeights.from_dict(args.weights)
@@ -292,6 +299,8 @@ def main(argv: list[str] | None = None) -> int:
     results = {"settings": {"edge_length": settings.edge_length, "voxel_size": settings.voxel_size,
                             "iterations": settings.iterations, "optimizer": str(settings.optimizer),
                             "fit_scale": settings.fit_scale.value,
+                            "sparse_backend": settings.sparse_backend.value,
+                            "exact_curvature_cg": settings.exact_curvature_cg,
                             "weights": (settings.weights or CostWeights()).to_dict(),
                             "fit_tolerance_m": FIT_TOLERANCE_M},
                "grading": [], "mtm": [], "manufactured": []}
