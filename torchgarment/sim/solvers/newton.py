@@ -334,8 +334,9 @@ def solve_newton(
     timer = Timer()
     info = SolveInfo(solver=SolverKind.NEWTON.value)
     eps = torch.finfo(x0.dtype).eps
-    assembler = CSRAssembler(model.num_vertices)
-    part_assemblers: list[CSRAssembler] = []
+    # one list of cached assemblers (one per block group) for the projected and one for the exact Hessian
+    # (exact_curvature_cg), so that alternating between the two never rebuilds a sparsity pattern
+    assemblers: dict[bool, list[CSRAssembler]] = {True: [], False: []}
     block_parts = getattr(model, "hessian_block_parts", None)
 
     def assemble_hessian(x: torch.Tensor, project: bool = True) -> scipy.sparse.csr_matrix:
@@ -343,12 +344,12 @@ def solve_newton(
         with ``hessian_block_parts`` (blocks grouped by how often their sparsity changes) gets one cached
         assembler per group, so a changing contact pattern does not re-sort the rest."""
         psd = settings.project_psd and project
-        if block_parts is None:
-            return assembler.assemble(model.hessian_blocks(x, project_psd=psd))
-        parts = block_parts(x, project_psd=psd)
-        while len(part_assemblers) < len(parts):
-            part_assemblers.append(CSRAssembler(model.num_vertices))
-        mats = [asm.assemble(b) for asm, b in zip(part_assemblers, parts)]
+        parts = ([model.hessian_blocks(x, project_psd=psd)] if block_parts is None
+                 else block_parts(x, project_psd=psd))
+        cached = assemblers[project]
+        while len(cached) < len(parts):
+            cached.append(CSRAssembler(model.num_vertices))
+        mats = [asm.assemble(b) for asm, b in zip(cached, parts)]
         h = mats[0]
         for m in mats[1:]:
             h = h + m
