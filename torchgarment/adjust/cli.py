@@ -81,6 +81,11 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
                    help="sparse direct solver of the simulation's factorizations: superlu (always installed) "
                         "or an optional one; cholmod (pip install -e \".[cholmod]\") factorizes 3-4x faster "
                         f"(default {d.sparse_backend.value})")
+    p.add_argument("--exact-curvature-cg", type=int, default=d.exact_curvature_cg, metavar="N",
+                   help="Newton's direction (base drape, exact solves) by up to N CG iterations on the exact "
+                        "Hessian, preconditioned by the projected one's factorization; 0 = projected Newton "
+                        f"(default {d.exact_curvature_cg}; 10 with --sparse-backend cholmod is the fast "
+                        "configuration measured in the README)")
     p.add_argument("--adjoint", default="direct", choices=["direct", "iterative", "sparse", "cg"],
                    help="adjoint solve of the gradients: direct (= sparse, the default) or iterative "
                         "(= cg, for large meshes)")
@@ -140,7 +145,7 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
                           init_iterations=args.init_iterations, initialize=not args.no_init, weights=weights,
                           support=not args.no_support, init_trial_iterations=args.init_trial_iterations,
                           fit_scale=args.fit_scale, linear_solver=args.linear_solver,
-                          sparse_backend=args.sparse_backend)
+                          sparse_backend=args.sparse_backend, exact_curvature_cg=args.exact_curvature_cg)
 
 
 def add_adjust_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:

@@ -195,6 +195,10 @@ class AdjustSettings:
             (self.checkpoint_every >= 0, "checkpoint_every must be >= 0"),
             (0.0 < self.adjoint_rtol < 1.0 and self.adjoint_max_iterations >= 1,
              "adjoint_rtol must be in (0, 1) and adjoint_max_iterations >= 1"),
+            (self.exact_curvature_cg >= 0 and (self.exact_curvature_cg == 0 or (
+                not self.reuse_factorization and self.linear_solver == LinearSolver.DIRECT)),
+             "exact_curvature_cg must be >= 0, and 0 with reuse_factorization or linear_solver='jacobi-pcg' "
+             "(it preconditions by a fresh factorization)"),
         ]
         for ok, msg in checks:
             if not ok:

@@ -55,6 +55,10 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                    help="sparse direct solver of those factorizations: superlu (always installed) or an "
                         "optional one; cholmod (pip install -e \".[cholmod]\") factorizes 3-4x faster "
                         f"(default {d.sparse_backend.value})")
+    p.add_argument("--exact-curvature-cg", type=int, default=d.exact_curvature_cg, metavar="N",
+                   help="the settle's Newton direction by up to N CG iterations on the exact Hessian, "
+                        "preconditioned by the projected one's factorization; 0 = projected Newton "
+                        f"(default {d.exact_curvature_cg})")
     p.add_argument("--max-iterations", type=int, default=d.max_iterations, metavar="N",
                    help=f"iteration budget of the settle stage (default {d.max_iterations})")
     p.add_argument("--support", metavar="PANEL:EDGE[,...]",
@@ -137,7 +141,8 @@ def cmd_drape(args: argparse.Namespace) -> int:
         raise InputError("--support and --no-support exclude each other")
     settings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel, solver=args.solver,
                              max_iterations=args.max_iterations, support=not args.no_support,
-                             linear_solver=args.linear_solver, sparse_backend=args.sparse_backend)
+                             linear_solver=args.linear_solver, sparse_backend=args.sparse_backend,
+                             exact_curvature_cg=args.exact_curvature_cg)
     settings.validate()
     device = resolve_device(args.device)
     t0 = time.perf_counter()
