@@ -128,7 +128,7 @@ class SolveSettings:
             the factorization of the projected one, from zero, to relative residual ``exact_curvature_rtol``
             or the first direction of non-positive curvature (Steihaug); the first iterate is the projected
             step scaled by the exact curvature along it. Projecting every compressed spring's block makes the
-            model 5-8x stiffer than the energy along the Newton direction of a settling garment (measured on
+            model 6-12x stiffer than the energy along the Newton direction of a settling garment (measured on
             the 3K sheath dress), which costs projected Newton hundreds of full but short steps. A fresh
             factorization every iteration: not with ``reuse_factorization`` nor ``"jacobi-pcg"``.
         exact_curvature_rtol: relative residual of those CG iterations, in (0, 1).
