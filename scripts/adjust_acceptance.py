@@ -248,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchgarment.adjust.objective import CostWeights
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.body import Body
+    from torchgarment.sim.solvers import exact_curvature_iterations
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--only", choices=("grading", "mtm", "manufactured"), nargs="+", default=None,
@@ -274,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="sparse direct solver of the simulation (default: torchgarment adjust's, superlu)")
     ap.add_argument("--exact-curvature-cg", type=int, default=None, metavar="N",
                     help="Newton's direction by N CG iterations on the exact Hessian (AdjustSettings."
-                         "exact_curvature_cg; default 0: projected Newton)")
+                         "exact_curvature_cg; default: torchgarment adjust's, 10; 0: projected Newton)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
     args = ap.parse_args(argv)
@@ -300,7 +301,8 @@ def main(argv: list[str] | None = None) -> int:
                             "iterations": settings.iterations, "optimizer": str(settings.optimizer),
                             "fit_scale": settings.fit_scale.value,
                             "sparse_backend": settings.sparse_backend.value,
-                            "exact_curvature_cg": settings.exact_curvature_cg,
+                            "exact_curvature_cg": exact_curvature_iterations(settings.exact_curvature_cg,
+                                                                             settings.linear_solver),
                             "weights": (settings.weights or CostWeights()).to_dict(),
                             "fit_tolerance_m": FIT_TOLERANCE_M},
                "grading": [], "mtm": [], "manufactured": []}

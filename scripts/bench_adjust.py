@@ -68,10 +68,10 @@ def main() -> None:
                     choices=["superlu", "pardiso", "cholespy", "cholmod"],
                     help="sparse direct solver of Newton systems, adjoints and tangents "
                          "(pardiso/cholespy/cholmod: when installed)")
-    ap.add_argument("--exact-curvature-cg", type=int, default=0, metavar="N",
-                    help="Newton's direction by N CG iterations on the exact Hessian preconditioned by the "
-                         "projected one's factorization (AdjustSettings.exact_curvature_cg; 0: projected "
-                         "Newton)")
+    ap.add_argument("--exact-curvature-cg", type=int, default=None, metavar="N",
+                    help="Newton's direction by N CG iterations on the exact Hessian preconditioned by a "
+                         "factorization of the projected one (AdjustSettings.exact_curvature_cg; 0: "
+                         "projected Newton; default: the library's, 10 with --linear-solver direct, else 0)")
     ap.add_argument("--linear-solver", default="direct", choices=["direct", "jacobi-pcg"],
                     help="Newton's linear solves (AdjustSettings.linear_solver): a factorization on the CPU "
                          "or block-Jacobi CG on --device")
@@ -90,6 +90,7 @@ def main() -> None:
     from torchgarment.io.atomic import atomic_open, atomic_path
     from torchgarment.options import resolve_device
     from torchgarment.pattern.library import draft
+    from torchgarment.sim.solvers import LinearSolver, exact_curvature_iterations
 
     device = resolve_device(args.device)
 
@@ -140,7 +141,9 @@ def main() -> None:
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
         "exact_interval": args.exact_interval,
         "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
-        "linear_solver": args.linear_solver, "exact_curvature_cg": args.exact_curvature_cg,
+        "linear_solver": args.linear_solver,
+        "exact_curvature_cg": exact_curvature_iterations(args.exact_curvature_cg,
+                                                         LinearSolver.resolve(args.linear_solver)),
         "adjoint_iterations": m["adjoint_iterations"],
         "adjoint_max_iterations": args.adjoint_max_iterations,
         "adjoint_factorizations": m["factorizations"],

@@ -108,8 +108,7 @@ def test_bad_input():
         AdjustSettings(iterations=-1).validate()
     with pytest.raises(InputError, match="unknown optimizer kind"):
         AdjustSettings(optimizer="adam").validate()
-    for bad in ({"exact_curvature_cg": -1}, {"exact_curvature_cg": 10, "reuse_factorization": True},
-                {"exact_curvature_cg": 10, "linear_solver": "jacobi-pcg"}):
+    for bad in ({"exact_curvature_cg": -1}, {"exact_curvature_cg": 10, "linear_solver": "jacobi-pcg"}):
         with pytest.raises(InputError, match="exact_curvature_cg"):
             AdjustSettings(**bad).validate()
     with pytest.raises(InputError, match="unknown sparse backend"):

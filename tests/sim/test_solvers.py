@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from torchgarment.errors import InputError
-from torchgarment.linalg import CSRAssembler
+from torchgarment.linalg import CSRAssembler, FactorCache, factorize
 from torchgarment.sim.energies.base import HessianBlocks
 from torchgarment.sim.solvers import (
     NonFiniteError,
@@ -580,7 +580,21 @@ def test_exact_curvature_cg_direction():
             newton = -scipy.sparse.linalg.spsolve(he.tocsc(), g)
             np.testing.assert_allclose(full, newton, rtol=1e-8, atol=1e-10 * np.abs(newton).max())
             assert np.abs(full - p).max() > 1e-3 * np.abs(p).max()  # not the projected step
+            # with reuse_factorization: a factorization of a nearby state's projected Hessian preconditions
+            # CG while it reaches the tolerance (no new factorization), else a fresh one is made and kept
+            xn = x.mean(0) + 0.96 * (x - x.mean(0))
+            cache = FactorCache()
+            cache.store(factorize(asm.assemble(model.hessian_blocks(xn, project_psd=True))))
+            reuse = SolveSettings(exact_curvature_cg=300, exact_curvature_rtol=1e-12,
+                                  reuse_factorization=True)
+            stale, _ = newton_direction(h, g, reuse, 1, cache, exact=lambda he=he: he)
+            np.testing.assert_allclose(stale, newton, rtol=1e-8, atol=1e-10 * np.abs(newton).max())
+            assert (cache.factorizations, cache.pcg_solves) == (1, 1)
+            short = SolveSettings(exact_curvature_cg=1, exact_curvature_rtol=1e-12, reuse_factorization=True)
+            fresh, _ = newton_direction(h, g, short, 1, cache, exact=lambda he=he: he)
+            np.testing.assert_allclose(fresh, one, rtol=1e-10, atol=1e-12 * np.abs(one).max())
+            assert (cache.factorizations, cache.pcg_solves) == (2, 1)
     with pytest.raises(InputError, match="exact_curvature_cg"):
-        SolveSettings(exact_curvature_cg=5, reuse_factorization=True)
+        SolveSettings(exact_curvature_cg=5, linear_solver="jacobi-pcg")
     with pytest.raises(InputError, match="exact_curvature_cg"):
         SolveSettings(exact_curvature_cg=-1)

@@ -53,7 +53,7 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     from torchgarment.adjust.optimizers import OptimizerKind
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.linalg import SparseBackend
-    from torchgarment.sim.solvers import LinearSolver, SolverKind
+    from torchgarment.sim.solvers import DEFAULT_EXACT_CURVATURE_CG, LinearSolver, SolverKind
 
     d = AdjustSettings()
     p.add_argument("--optimizer", default=d.optimizer.value, choices=[k.value for k in OptimizerKind],
@@ -83,9 +83,9 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
                         f"(default {d.sparse_backend.value})")
     p.add_argument("--exact-curvature-cg", type=int, default=d.exact_curvature_cg, metavar="N",
                    help="Newton's direction (base drape, exact solves) by up to N CG iterations on the exact "
-                        "Hessian, preconditioned by the projected one's factorization; 0 = projected Newton "
-                        f"(default {d.exact_curvature_cg}; 10 with --sparse-backend cholmod is the fast "
-                        "configuration measured in the README)")
+                        "Hessian, preconditioned by a factorization of the projected one; 0 = projected "
+                        f"Newton (default {DEFAULT_EXACT_CURVATURE_CG} with --linear-solver direct, 0 with "
+                        "jacobi-pcg)")
     p.add_argument("--adjoint", default="direct", choices=["direct", "iterative", "sparse", "cg"],
                    help="adjoint solve of the gradients: direct (= sparse, the default) or iterative "
                         "(= cg, for large meshes)")

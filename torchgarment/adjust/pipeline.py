@@ -40,7 +40,7 @@ from torchgarment.sim.diff import AdjointLinearSolver
 from torchgarment.sim.drape import DrapeResult, DrapeSettings, drape
 from torchgarment.sim.energies.pins import Pins
 from torchgarment.sim.scene import Effect, Scene
-from torchgarment.sim.solvers import LinearSolver, SolverKind, SolveSettings
+from torchgarment.sim.solvers import LinearSolver, SolverKind, SolveSettings, exact_curvature_iterations
 from torchgarment.sim.support import support_metrics
 from torchgarment.structures.garment_mesh import GarmentMesh
 
@@ -106,8 +106,10 @@ class AdjustSettings:
             dress; without it by ~1e-10) and a resumed run no longer repeats the uninterrupted one.
         exact_curvature_cg: Newton's direction in the base drape's settle and the exact solves by up to this
             many CG iterations on the exact Hessian preconditioned by the projected one's factorization
-            (``SolveSettings.exact_curvature_cg``; 0, the default: projected Newton). Not with
-            ``reuse_factorization``.
+            (``SolveSettings.exact_curvature_cg``; 0: projected Newton; None, the default:
+            :data:`~torchgarment.sim.solvers.DEFAULT_EXACT_CURVATURE_CG` with ``linear_solver="direct"``, 0
+            with ``"jacobi-pcg"``). With ``reuse_factorization`` the last factorization preconditions while CG
+            converges.
         sparse_backend: the sparse direct solver of the simulation's Newton systems (the base drape's too),
             adjoints and tangents (:class:`~torchgarment.linalg.SparseBackend`: ``"superlu"``, or
             ``"cholmod"`` / ``"pardiso"`` when installed; see the README's linear algebra section).
@@ -158,7 +160,7 @@ class AdjustSettings:
     adjoint_max_iterations: int = 50
     reuse_factorization: bool = False
     sparse_backend: SparseBackend = SparseBackend.SUPERLU
-    exact_curvature_cg: int = 0
+    exact_curvature_cg: int | None = None
     linear_solver: LinearSolver = LinearSolver.DIRECT
     band: float | None = None
     checkpoint_every: int = 0
@@ -195,10 +197,11 @@ class AdjustSettings:
             (self.checkpoint_every >= 0, "checkpoint_every must be >= 0"),
             (0.0 < self.adjoint_rtol < 1.0 and self.adjoint_max_iterations >= 1,
              "adjoint_rtol must be in (0, 1) and adjoint_max_iterations >= 1"),
-            (self.exact_curvature_cg >= 0 and (self.exact_curvature_cg == 0 or (
-                not self.reuse_factorization and self.linear_solver == LinearSolver.DIRECT)),
-             "exact_curvature_cg must be >= 0, and 0 with reuse_factorization or linear_solver='jacobi-pcg' "
-             "(it preconditions by a fresh factorization)"),
+            (self.exact_curvature_cg is None or (
+                isinstance(self.exact_curvature_cg, int) and self.exact_curvature_cg >= 0
+                and (self.exact_curvature_cg == 0 or self.linear_solver == LinearSolver.DIRECT)),
+             "exact_curvature_cg must be >= 0, and 0 with linear_solver='jacobi-pcg' (it preconditions by a "
+             "factorization)"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -484,7 +487,8 @@ class AdjustSetup:
                                                     reuse_factorization=s.reuse_factorization,
                                                     sparse_backend=s.sparse_backend,
                                                     linear_solver=s.linear_solver,
-                                                    exact_curvature_cg=s.exact_curvature_cg),
+                                                    exact_curvature_cg=exact_curvature_iterations(
+                                                        s.exact_curvature_cg, s.linear_solver)),
                              solver=s.solver, inexact_solver=s.inner_solver, adjoint=s.adjoint,
                              adjoint_rtol=s.adjoint_rtol, adjoint_max_iterations=s.adjoint_max_iterations,
                              retain_graph=s.optimizer == OptimizerKind.GN)
@@ -613,7 +617,8 @@ def prepare(
                           max_iterations=settings.max_solver_iterations,
                           reuse_factorization=settings.reuse_factorization,
                           sparse_backend=settings.sparse_backend, linear_solver=settings.linear_solver,
-                          exact_curvature_cg=settings.exact_curvature_cg)
+                          exact_curvature_cg=exact_curvature_iterations(settings.exact_curvature_cg,
+                                                                        settings.linear_solver))
     problem = AdjustProblem(model, param, objective, x_transfer, exact_settings=exact, solver=settings.solver,
                             inexact_solver=settings.inner_solver)
     q_base = param.initial().detach()

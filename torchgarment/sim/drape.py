@@ -42,7 +42,14 @@ from torchgarment.errors import InputError
 from torchgarment.linalg import SparseBackend
 from torchgarment.sdf.grid import SDFSampling
 from torchgarment.sim.scene import Effect, Material, Scene, SimModel
-from torchgarment.sim.solvers import LinearSolver, SolveInfo, SolverKind, SolveSettings, solve
+from torchgarment.sim.solvers import (
+    LinearSolver,
+    SolveInfo,
+    SolverKind,
+    SolveSettings,
+    exact_curvature_iterations,
+    solve,
+)
 from torchgarment.sim.support import (
     DEFAULT_SUPPORT_SAG,
     SupportLoop,
@@ -100,13 +107,16 @@ class DrapeSettings:
         reuse_factorization: the settle stage's Newton reuses its last factorization as a CG preconditioner
             (``SolveSettings.reuse_factorization``). Measured on the straight skirt, size 12: 7,349 vertices
             settle in 62.6 s instead of 96.8 s (138 and 136 iterations), 1,877 vertices in 5.5 s instead of
-            7.2 s. No effect with ``linear_solver="jacobi-pcg"``, which makes no factorization, nor with
-            ``exact_curvature_cg``, which factorizes afresh every iteration.
+            7.2 s. No effect with ``linear_solver="jacobi-pcg"``, which makes no factorization. With
+            ``exact_curvature_cg`` the factorization preconditions CG on the exact Hessian while CG converges.
         exact_curvature_cg: the settle's Newton direction by up to this many CG iterations on the exact
-            Hessian preconditioned by the projected one's factorization (``SolveSettings.exact_curvature_cg``;
-            0, the default: projected Newton). Measured with ``sparse_backend="cholmod"`` at 2 cm edges:
-            the sheath dress drafted for 12 on the size-20 body settles in 34 Newton iterations instead of
-            193; over eight drapes 44.7 s of settling instead of 65.7 s (see the README).
+            Hessian preconditioned by a factorization of the projected one
+            (``SolveSettings.exact_curvature_cg``; 0: projected Newton; None, the default:
+            :data:`~torchgarment.sim.solvers.DEFAULT_EXACT_CURVATURE_CG` with ``linear_solver="direct"``, 0
+            with ``"jacobi-pcg"``). Measured at 1.5-2 cm edges, SuperLU,
+            factorizations reused, 1 thread: the sheath dress drafted for 12 on the size-20 body settles in 36
+            Newton iterations (4.0 s) instead of 193 (10.3 s); over eight library drapes 59.8 s of settling
+            instead of 88.5 s (see the README).
         sparse_backend: the sparse direct solver of those factorizations
             (:class:`~torchgarment.linalg.SparseBackend`): ``"superlu"`` (default) or an optional one,
             e.g. ``"cholmod"`` (``pip install -e ".[cholmod]"``; 3-4x faster factorizations).
@@ -139,7 +149,7 @@ class DrapeSettings:
     max_iterations: int = 1500
     reuse_factorization: bool = True
     sparse_backend: SparseBackend = SparseBackend.SUPERLU
-    exact_curvature_cg: int = 0
+    exact_curvature_cg: int | None = None
     linear_solver: LinearSolver = LinearSolver.DIRECT
     max_displacement: float | None = 0.01
     check_interval: int = 5
@@ -176,8 +186,9 @@ class DrapeSettings:
             raise InputError("DrapeSettings: iteration budgets must be >= 0 and check_interval >= 1")
         if not (self.rtol >= 0 and self.sew_rtol >= 0 and self.atol_weight >= 0):
             raise InputError("DrapeSettings: tolerances must be >= 0")
-        if self.exact_curvature_cg < 0 or (self.exact_curvature_cg
-                                           and self.linear_solver != LinearSolver.DIRECT):
+        ecg = self.exact_curvature_cg
+        if ecg is not None and (not isinstance(ecg, int) or ecg < 0
+                                or (ecg and self.linear_solver != LinearSolver.DIRECT)):
             raise InputError("DrapeSettings.exact_curvature_cg must be >= 0, and 0 with linear_solver="
                              "'jacobi-pcg' (it preconditions by a factorization)")
 
@@ -428,10 +439,10 @@ def drape(
                                     max_displacement=settings.max_displacement,
                                     linear_solver=settings.linear_solver,
                                     sparse_backend=settings.sparse_backend,
-                                    exact_curvature_cg=settings.exact_curvature_cg,
+                                    exact_curvature_cg=exact_curvature_iterations(settings.exact_curvature_cg,
+                                                                                  settings.linear_solver),
                                     reuse_factorization=(settings.reuse_factorization
-                                                         and settings.linear_solver == LinearSolver.DIRECT
-                                                         and settings.exact_curvature_cg == 0))
+                                                         and settings.linear_solver == LinearSolver.DIRECT))
     model = scene.build()
     x_start = model.project_feasible(x)
     energy_start = float(model.value_and_grad(x_start)[0])

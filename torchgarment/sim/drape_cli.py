@@ -24,7 +24,7 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     """Add the ``drape`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
     from torchgarment.linalg import SparseBackend
     from torchgarment.sim.drape import DrapeSettings
-    from torchgarment.sim.solvers import LinearSolver, SolverKind
+    from torchgarment.sim.solvers import DEFAULT_EXACT_CURVATURE_CG, LinearSolver, SolverKind
 
     d = DrapeSettings()
     p = subparsers.add_parser(
@@ -57,8 +57,9 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                         f"(default {d.sparse_backend.value})")
     p.add_argument("--exact-curvature-cg", type=int, default=d.exact_curvature_cg, metavar="N",
                    help="the settle's Newton direction by up to N CG iterations on the exact Hessian, "
-                        "preconditioned by the projected one's factorization; 0 = projected Newton "
-                        f"(default {d.exact_curvature_cg})")
+                        "preconditioned by a factorization of the projected one; 0 = projected Newton "
+                        f"(default {DEFAULT_EXACT_CURVATURE_CG} with --linear-solver direct, 0 with "
+                        "jacobi-pcg)")
     p.add_argument("--max-iterations", type=int, default=d.max_iterations, metavar="N",
                    help=f"iteration budget of the settle stage (default {d.max_iterations})")
     p.add_argument("--support", metavar="PANEL:EDGE[,...]",

@@ -17,6 +17,7 @@ import torch
 from torchgarment.errors import InputError
 from torchgarment.sim.solvers.chebyshev import solve_gd_chebyshev
 from torchgarment.sim.solvers.common import (
+    DEFAULT_EXACT_CURVATURE_CG,
     Callback,
     LinearSolver,
     NonFiniteError,
@@ -27,10 +28,12 @@ from torchgarment.sim.solvers.common import (
     SolverModel,
     SolveSettings,
     check_x0,
+    exact_curvature_iterations,
 )
 from torchgarment.sim.solvers.newton import jacobi_pcg_solve, solve_newton
 
 __all__ = [
+    "DEFAULT_EXACT_CURVATURE_CG",
     "LinearSolver",
     "NonFiniteError",
     "Preconditioner",
@@ -38,6 +41,7 @@ __all__ = [
     "SolveInfo",
     "SolveSettings",
     "SolverKind",
+    "exact_curvature_iterations",
     "jacobi_pcg_solve",
     "solve",
 ]

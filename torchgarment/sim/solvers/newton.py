@@ -240,7 +240,8 @@ def newton_direction(
         settings: solve settings (regularization, max_regularizations).
         iteration: for error messages.
         cache: with one, first try CG preconditioned by the cached factorization
-            (``settings.reuse_factorization``), and keep every fresh factorization in it.
+            (``settings.reuse_factorization``; on the exact Hessian with ``exact``), and keep every fresh
+            factorization in it.
         options: the regularization policy (``regularize_first``, ``regularization_growth``,
             ``gradient_fallback``); None: the defaults.
         device: where ``settings.linear_solver = "jacobi-pcg"`` iterates (None: the CPU).
@@ -260,22 +261,41 @@ def newton_direction(
             ``gradient_fallback``).
     """
     o = options or NewtonOptions()
-    if cache is not None:
-        dx = cache.solve(h, -g, settings.pcg_rtol, settings.pcg_max_iterations)
-        if dx is not None and float(g @ dx) < 0.0:
-            return dx, 0
-    if exact is not None and settings.exact_curvature_cg > 0 and not o.regularize_first:
+    curvature = exact is not None and settings.exact_curvature_cg > 0 and not o.regularize_first
+    if curvature:
+        assert exact is not None
+        k_exact = exact()
+        budget, rtol = settings.exact_curvature_cg, settings.exact_curvature_rtol
+
+        def exact_cg(precondition: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, int, float]:
+            return pcg(lambda v: k_exact @ v, -g, precondition, rtol, budget, stop_at_negative_curvature=True)
+
+        stale = cache.factorization if cache is not None else None
+        if stale is not None and tuple(stale.shape) == h.shape:
+            # the last factorization (of an earlier, nearby projected Hessian) as the preconditioner: kept
+            # when CG gets to its tolerance, or stops at non-positive curvature after at least one iteration
+            try:
+                y, its, res = exact_cg(stale.solve)
+            except SingularMatrixError:
+                its = 0
+            if its > 0 and (res <= rtol or its < budget) and np.all(np.isfinite(y)) and float(g @ y) < 0.0:
+                cache.pcg_solves += 1
+                return y, 0
         try:
             fact = factorize(h, backend=settings.sparse_backend, what="Newton system")
             dx = fact.solve(-g)
         except SingularMatrixError:
             dx = None
         if dx is not None and float(g @ dx) < 0.0:
-            k = exact()
-            y, its, _ = pcg(lambda v: k @ v, -g, fact.solve, settings.exact_curvature_rtol,
-                            settings.exact_curvature_cg, stop_at_negative_curvature=True)
+            if cache is not None:
+                cache.store(fact)
+            y, its, _ = exact_cg(fact.solve)
             # from zero every CG iterate before a non-positive curvature is a descent direction
             return (y if its > 0 and float(g @ y) < 0.0 else dx), 0
+    elif cache is not None:
+        dx = cache.solve(h, -g, settings.pcg_rtol, settings.pcg_max_iterations)
+        if dx is not None and float(g @ dx) < 0.0:
+            return dx, 0
 
     def linear_solve(a: scipy.sparse.csr_matrix, shift: float) -> np.ndarray | None:
         if settings.linear_solver == LinearSolver.JACOBI_PCG:
