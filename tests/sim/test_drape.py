@@ -9,6 +9,7 @@ import torch
 
 from torchgarment.errors import InputError
 from torchgarment.sim.drape import DrapeSettings, drape, max_seam_gap, seam_gaps, vertex_stretch_ratio
+from torchgarment.sim.solvers import LinearSolver
 from torchgarment.structures.garment_mesh import GarmentMesh
 
 # small case at the default (strict) force tolerance |g|_2 <= 1e-3 * weight, with the default C1 (quadratic)
@@ -77,15 +78,23 @@ def test_settle_without_superlu_matches_the_default(small_drape, splu_calls: dic
         DrapeSettings(**{option: bad})
 
 
-def test_exact_curvature_settle_matches_the_default(small_drape):
-    """DrapeSettings(exact_curvature_cg=10): the settle's Newton directions by CG on the exact Hessian
-    (preconditioned by the projected one's factorization) reach the default's drape (mean vertex within
-    0.5 mm), converged, outside the body; out-of-range values are refused."""
+def test_projected_newton_settle_matches_the_default(small_drape):
+    """The default settle takes Newton's directions by CG on the exact Hessian (``exact_curvature_cg`` None:
+    10 with the direct solver, 0 with ``jacobi-pcg``); projected Newton (``exact_curvature_cg=0``) reaches
+    the same drape (mean vertex within 0.5 mm), converged, outside the body; out-of-range values are
+    refused."""
     from dataclasses import replace
 
+    from torchgarment.sim.solvers import DEFAULT_EXACT_CURVATURE_CG, exact_curvature_iterations
+
+    assert SMALL.exact_curvature_cg is None
+    assert exact_curvature_iterations(None, SMALL.linear_solver) == DEFAULT_EXACT_CURVATURE_CG > 0
+    assert exact_curvature_iterations(None, LinearSolver.JACOBI_PCG) == 0
+    assert exact_curvature_iterations(3, SMALL.linear_solver) == 3
     body, pattern, ref = small_drape
-    r = drape(pattern, body, settings=replace(SMALL, exact_curvature_cg=10))
+    r = drape(pattern, body, settings=replace(SMALL, exact_curvature_cg=0))
     assert r.ok and r.converged and r.metrics["inside_vertices"] == 0
+    assert not torch.equal(r.x, ref.x)  # another path: the default did not run projected Newton
     assert float((r.x - ref.x).norm(dim=1).mean()) <= 5e-4
     for bad in ({"exact_curvature_cg": -1}, {"exact_curvature_cg": 5, "linear_solver": "jacobi-pcg"}):
         with pytest.raises(InputError, match="exact_curvature_cg"):
