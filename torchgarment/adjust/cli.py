@@ -52,8 +52,8 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     )
     from torchgarment.adjust.optimizers import OptimizerKind
     from torchgarment.adjust.pipeline import AdjustSettings
-    from torchgarment.linalg import SparseBackend
-    from torchgarment.sim.solvers import DEFAULT_EXACT_CURVATURE_CG, LinearSolver, SolverKind
+    from torchgarment.sim.drape_cli import add_newton_system_arguments
+    from torchgarment.sim.solvers import LinearSolver, SolverKind
 
     d = AdjustSettings()
     p.add_argument("--optimizer", default=d.optimizer.value, choices=[k.value for k in OptimizerKind],
@@ -76,16 +76,7 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
                    help="how the simulation's newton solves its systems: a sparse factorization on the CPU "
                         "(direct) or block-Jacobi CG on --device (jacobi-pcg; with --adjoint iterative no "
                         f"simulation system is factorized, the GPU path) (default {d.linear_solver.value})")
-    p.add_argument("--sparse-backend", default=d.sparse_backend.value,
-                   choices=[k.value for k in SparseBackend],
-                   help="sparse direct solver of the simulation's factorizations: superlu (always installed) "
-                        "or an optional one; cholmod (pip install -e \".[cholmod]\") factorizes 3-4x faster "
-                        f"(default {d.sparse_backend.value})")
-    p.add_argument("--exact-curvature-cg", type=int, default=d.exact_curvature_cg, metavar="N",
-                   help="Newton's direction (base drape, exact solves) by up to N CG iterations on the exact "
-                        "Hessian, preconditioned by a factorization of the projected one; 0 = projected "
-                        f"Newton (default {DEFAULT_EXACT_CURVATURE_CG} with --linear-solver direct, 0 with "
-                        "jacobi-pcg)")
+    add_newton_system_arguments(p, d.sparse_backend, "the simulation's (base drape, Newton solves)")
     p.add_argument("--adjoint", default="direct", choices=["direct", "iterative", "sparse", "cg"],
                    help="adjoint solve of the gradients: direct (= sparse, the default) or iterative "
                         "(= cg, for large meshes)")

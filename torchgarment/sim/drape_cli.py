@@ -17,14 +17,33 @@ from torchgarment.errors import InputError
 from torchgarment.options import resolve_device
 
 if TYPE_CHECKING:
+    from torchgarment.linalg import SparseBackend
     from torchgarment.pattern.spec import SewingPattern
+
+
+def add_newton_system_arguments(p: argparse.ArgumentParser, sparse_backend: SparseBackend,
+                                whose: str) -> None:
+    """Add ``--sparse-backend`` (default ``sparse_backend``) and ``--exact-curvature-cg`` (default None: the
+    settings' own rule) for the Newton solves ``whose`` (e.g. "the settle's") names; ``drape``, ``adjust`` and
+    ``grade`` share them."""
+    from torchgarment.linalg import SparseBackend
+    from torchgarment.sim.solvers import DEFAULT_EXACT_CURVATURE_CG
+
+    p.add_argument("--sparse-backend", default=sparse_backend.value, choices=[k.value for k in SparseBackend],
+                   help=f"sparse direct solver of {whose} factorizations: superlu (always installed) or an "
+                        "optional one; cholmod (pip install -e \".[cholmod]\") factorizes 3-4x faster "
+                        f"(default {sparse_backend.value})")
+    p.add_argument("--exact-curvature-cg", type=int, default=None, metavar="N",
+                   help=f"{whose} Newton direction by up to N CG iterations on the exact Hessian, "
+                        "preconditioned by a factorization of the projected one; 0 = projected Newton "
+                        f"(default {DEFAULT_EXACT_CURVATURE_CG} with --linear-solver direct, 0 with "
+                        "jacobi-pcg)")
 
 
 def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``drape`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
-    from torchgarment.linalg import SparseBackend
     from torchgarment.sim.drape import DrapeSettings
-    from torchgarment.sim.solvers import DEFAULT_EXACT_CURVATURE_CG, LinearSolver, SolverKind
+    from torchgarment.sim.solvers import LinearSolver, SolverKind
 
     d = DrapeSettings()
     p = subparsers.add_parser(
@@ -50,16 +69,7 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                    help="how the newton settle solves its systems: a sparse factorization on the CPU "
                         "(direct) or block-Jacobi CG on --device (jacobi-pcg, the GPU path) "
                         f"(default {d.linear_solver.value})")
-    p.add_argument("--sparse-backend", default=d.sparse_backend.value,
-                   choices=[k.value for k in SparseBackend],
-                   help="sparse direct solver of those factorizations: superlu (always installed) or an "
-                        "optional one; cholmod (pip install -e \".[cholmod]\") factorizes 3-4x faster "
-                        f"(default {d.sparse_backend.value})")
-    p.add_argument("--exact-curvature-cg", type=int, default=d.exact_curvature_cg, metavar="N",
-                   help="the settle's Newton direction by up to N CG iterations on the exact Hessian, "
-                        "preconditioned by a factorization of the projected one; 0 = projected Newton "
-                        f"(default {DEFAULT_EXACT_CURVATURE_CG} with --linear-solver direct, 0 with "
-                        "jacobi-pcg)")
+    add_newton_system_arguments(p, d.sparse_backend, "the settle's")
     p.add_argument("--max-iterations", type=int, default=d.max_iterations, metavar="N",
                    help=f"iteration budget of the settle stage (default {d.max_iterations})")
     p.add_argument("--support", metavar="PANEL:EDGE[,...]",
