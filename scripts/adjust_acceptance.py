@@ -248,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchgarment.adjust.objective import CostWeights
     from torchgarment.adjust.pipeline import AdjustSettings
     from torchgarment.body import Body
+    from torchgarment.linalg import SparseBackend
     from torchgarment.sim.solvers import exact_curvature_iterations
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -271,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fit-scale", choices=("stature", "none"), default=None,
                     help="how the fit rules' lengths scale with the body's height (default: torchgarment "
                          "adjust's; the manufactured solution is exact with 'stature')")
-    ap.add_argument("--sparse-backend", default=None, choices=("superlu", "pardiso", "cholespy", "cholmod"),
+    ap.add_argument("--sparse-backend", default=None, choices=[k.value for k in SparseBackend],
                     help="sparse direct solver of the simulation (default: torchgarment adjust's, superlu)")
     ap.add_argument("--exact-curvature-cg", type=int, default=None, metavar="N",
                     help="Newton's direction by N CG iterations on the exact Hessian (AdjustSettings."

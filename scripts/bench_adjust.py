@@ -46,6 +46,8 @@ def edge_length_for(pattern: SewingPattern, vertices: int) -> tuple[float, int]:
 
 
 def main() -> None:
+    from torchgarment.linalg import SparseBackend
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", default=None, help="write the results to this JSON file")
     ap.add_argument("--vertices", type=int, default=30000)
@@ -65,7 +67,7 @@ def main() -> None:
                     help="Newton solves reuse their LU factorization through PCG "
                          "(AdjustSettings.reuse_factorization)")
     ap.add_argument("--sparse-backend", default="superlu",
-                    choices=["superlu", "pardiso", "cholespy", "cholmod"],
+                    choices=[k.value for k in SparseBackend],
                     help="sparse direct solver of Newton systems, adjoints and tangents "
                          "(pardiso/cholespy/cholmod: when installed)")
     ap.add_argument("--exact-curvature-cg", type=int, default=None, metavar="N",

@@ -252,6 +252,7 @@ def messy(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     from torchgarment.body import Body
     from torchgarment.io.mesh import load_mesh
+    from torchgarment.linalg import SparseBackend
     from torchgarment.retarget.inputs import problem_from_arrays
     from torchgarment.retarget.pipeline import RetargetSettings, retarget
 
@@ -263,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--avatar-vertices", type=int, nargs="+", default=[2000, 10000])
     ap.add_argument("--step-bound", default=RetargetSettings().step_bound.value)
     ap.add_argument("--sparse-backend", default="superlu",
-                    choices=["superlu", "pardiso", "cholespy", "cholmod"],
+                    choices=[k.value for k in SparseBackend],
                     help="sparse direct solver of the Newton systems (pardiso/cholespy/cholmod: when "
                          "installed)")
     ap.add_argument("--json", type=Path, help="write the records and the summary here")

@@ -149,6 +149,7 @@ def contact_sheet(path: Path, tiles: list[tuple[str, object, object]], columns: 
 
 def main(argv: list[str] | None = None) -> int:
     from torchgarment.body import Body
+    from torchgarment.linalg import SparseBackend
     from torchgarment.retarget.avatars import list_avatars
     from torchgarment.retarget.pipeline import RetargetSettings
 
@@ -166,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--avatar", action="append", help="avatar names (default: all of list_avatars())")
     ap.add_argument("--fit-weight", type=float, default=RetargetSettings().w_fit)
     ap.add_argument("--sparse-backend", default="superlu",
-                    choices=["superlu", "pardiso", "cholespy", "cholmod"],
+                    choices=[k.value for k in SparseBackend],
                     help="sparse direct solver of the Newton systems (pardiso/cholespy/cholmod: when "
                          "installed)")
     ap.add_argument("--out", type=Path, default=Path("out/retarget_pairs"))
