@@ -13,7 +13,10 @@ garment (random, the right sizes: the timing does not depend on the values) are 
   13,348 vertices): exact distances at the garment's vertices
   (:func:`~torchgarment.datadriven.online.push_out`, the distance tree's build included), on a 30K-vertex
   garment-like point set (body surface points offset along their normals by N(4 mm, 6 mm), so that about a
-  quarter start inside); ``online_ms`` = weights + fit + push-out (target <= 100 ms).
+  quarter start inside); ``online_ms`` = weights + fit + push-out (target <= 100 ms);
+* ``anchor_ms``: the waist-plane measurement that hangs a garment with a support (a skirt's waistband) from
+  the customer's waist (:meth:`~torchgarment.datadriven.online.OnlineFitter.anchors`), once per customer like
+  the weights, on the same body; ``online_anchored_ms`` adds it (the move itself is part of ``fit``).
 
 Example::
 
@@ -70,6 +73,16 @@ def bench_push_out(n: int, repeats: int) -> dict:
     return {"push_out_ms": 1e3 * push_s, "tree_ms": 1e3 * tree_s, "repeats": repeats,
             "inside_before": res.inside_before, "moved": res.moved, "inside_after": res.inside_after,
             "min_distance_after_mm": 1e3 * res.min_phi}
+
+
+def bench_anchor(repeats: int) -> float:
+    """Median seconds of the waist-plane measurement of the size-12 chart body (an anny body)."""
+    from torchgarment.body import Body
+    from torchgarment.sim.support import waist_height
+
+    body = Body.from_size("12")
+    v, f = body.vertices.double(), body.faces.long()
+    return median_seconds(lambda: waist_height(v, f), repeats)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -129,10 +142,12 @@ def main(argv: list[str] | None = None) -> int:
     push = bench_push_out(ng, max(11, args.repeats // 5))
     online_ms = {f"{r['frame']} k={r['k']}": r["weights_ms"] + r["fit_ms"] + push["push_out_ms"]
                  for r in rows}
+    anchor_ms = 1e3 * bench_anchor(max(5, args.repeats // 10))
     result = {"garment_vertices": ng, "body_vertices": nb, "dtype": args.dtype,
               "interpolation": args.interpolation,
               "threads": torch.get_num_threads(), "torch": torch.__version__, "rows": rows,
-              "push_out": push, "online_ms": online_ms}
+              "push_out": push, "online_ms": online_ms, "anchor_ms": anchor_ms,
+              "online_anchored_ms": {k: v + anchor_ms for k, v in online_ms.items()}}
     print(f"online fit of a {ng}-vertex garment ({args.dtype}, {args.interpolation}, {result['threads']} "
           f"threads), medians of {args.repeats}:")
     print(f"{'frame':>8} {'k':>3} {'fit ms':>8} {'weights ms':>11} {'batch':>6} {'batch ms':>9} "
@@ -145,6 +160,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{push['repeats']}, of which the tree {push['tree_ms']:.1f} ms; online cost per customer "
           "(weights + fit + push-out): "
           + ", ".join(f"{k} {v:.1f} ms" for k, v in online_ms.items()))
+    print(f"anchor (waist-plane measurement of the size-12 body, once per customer, for a garment with a "
+          f"support): median {anchor_ms:.1f} ms")
     if args.json:
         from torchgarment.io.atomic import atomic_path
 

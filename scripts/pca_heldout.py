@@ -6,7 +6,10 @@ the +-c sigma_i example bodies (the clothing basis, cached and resumable). For e
 (sampled with another seed) the same garment mesh, placed by the same rule, is fully draped (the reference,
 also cached), and the PCA garment for k = 0..kmax components is compared with it: mean and max vertex
 distance (mm), vertices inside the body (exact signed distance) before and after the push-out, and the body's
-own rank-k reconstruction error.
+own rank-k reconstruction error. A garment with a support (the skirt's waistband) is shown both as blended and
+anchored (``anchor`` column): moved vertically to hang from each body's measured waist plane, as its drape
+does (:meth:`~torchgarment.datadriven.online.OnlineFitter.anchors`); the refine starts from the anchored
+prediction unless ``--no-anchor``.
 
 The references' own reproducibility (``--reference-noise``): each held-out body moved by 0.1 mm along x
 (the SDF's grid samples shift; nothing a customer would notice) is draped cold again and compared with its
@@ -64,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference-noise", type=int, default=None, metavar="H",
                     help="re-drape the first H held-out bodies moved by 0.1 mm and compare with their "
                          "references (the floor of every error here; default: all held-out bodies; 0: skip)")
+    ap.add_argument("--no-anchor", action="store_true",
+                    help="refine from the unanchored prediction (the table shows both; OnlineFitter.anchors)")
     ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
     args = ap.parse_args(argv)
 
@@ -135,9 +140,12 @@ def main(argv: list[str] | None = None) -> int:
         return push_out(x, held.vertices[i], held.faces, iterations=0)
 
     rows = []
-    variants = [(f, i) for f in (BasisFrame.ABSOLUTE, BasisFrame.BODY)
-                for i in (Interpolation.LINEAR, Interpolation.PIECEWISE)]
-    for frame, interp in variants:
+    variants = [(f, i, a) for f in (BasisFrame.ABSOLUTE, BasisFrame.BODY)
+                for i in (Interpolation.LINEAR, Interpolation.PIECEWISE) for a in (False, True)]
+    anchors = None
+    for frame, interp, anchored in variants:
+        if anchored and support is None:
+            continue
         for k in range(args.kmax + 1):
             fitter = OnlineFitter(pca, {args.garment: basis}, k=k, interpolation=interp, frame=frame)
             tw = time.perf_counter()
@@ -145,6 +153,12 @@ def main(argv: list[str] | None = None) -> int:
             tf = time.perf_counter()
             xs = fitter.fit(w, bodies=held.vertices)[args.garment]
             tend = time.perf_counter()
+            if anchored:
+                if anchors is None:
+                    ta = time.perf_counter()
+                    anchors = fitter.anchors(held.vertices)
+                    anchor_ms = 1e3 * (time.perf_counter() - ta) / len(held)
+                xs = fitter.fit(w, bodies=held.vertices, anchors=anchors)[args.garment]
             body_err = pca.reconstruction_error(held.vertices, k)
             means, maxes, inside, inside_after = [], [], [], []
             for i in range(len(held)):
@@ -154,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
                 inside.append(measured(i, xs[i]).inside_before)
                 inside_after.append(push_out(xs[i], held.vertices[i], held.faces).inside_after)
             rows.append({
-                "frame": frame.value, "interpolation": interp.value, "k": k,
+                "frame": frame.value, "interpolation": interp.value, "k": k, "anchored": anchored,
                 "explained_variance": float(pca.explained_variance_ratio[:k].sum()),
                 "mean_error_mm": statistics.mean(means), "max_error_mm": max(maxes),
                 "median_of_max_error_mm": statistics.median(maxes),
@@ -163,6 +177,7 @@ def main(argv: list[str] | None = None) -> int:
                 "body_reconstruction_mean_mm": 1e3 * float(body_err["mean"].mean()),
                 "weights_ms_per_body": 1e3 * (tf - tw) / len(held),
                 "fit_ms_per_body": 1e3 * (tend - tf) / len(held),
+                "anchor_ms_per_body": anchor_ms if anchored else 0.0,
             })
     ref_inside = [measured(i, refs[i]).inside_before for i in range(len(held))]
     branch = branch_deviation(basis, pca)  # each example drape against the mean drape carried onto its body
@@ -190,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
     refine_rows, cold_seconds = [], []
     if args.refine:
         fitter = OnlineFitter(pca, {args.garment: basis}, k=args.kmax, interpolation=Interpolation.PIECEWISE)
-        xs = fitter.fit(fitter.weights(held.vertices))[args.garment]
+        a = None if args.no_anchor or support is None else anchors
+        xs = fitter.fit(fitter.weights(held.vertices), anchors=a)[args.garment]
         bodies = [Body(vertices=held.vertices[i].double(), faces=held.faces.long()) for i in range(len(held))]
         sdfs = [BodySDF.cached(b.vertices, b.faces, SDFSettings(voxel_size=args.voxel)) for b in bodies]
         for i in tqdm(range(min(args.time_cold, len(held))), desc="cold drapes (timed)"):
@@ -236,11 +252,12 @@ def main(argv: list[str] | None = None) -> int:
           f"bodies, k95={result['k_for_95']} k99={result['k_for_99']}, full drape median "
           f"{result['seconds']['full_drape_median']:.1f} s, {result['heldout_drapes_ok']}/{args.heldout} "
           "references ok")
-    hdr = f"{'frame':>8} {'interp':>9} {'k':>2} {'var%':>6} {'mean mm':>8} {'max mm':>8} {'med max':>8} " \
-          f"{'inside':>7} {'in max':>6} {'push':>5} {'body mm':>8} {'fit ms':>7}"
+    hdr = f"{'frame':>8} {'interp':>9} {'anchor':>6} {'k':>2} {'var%':>6} {'mean mm':>8} {'max mm':>8} " \
+          f"{'med max':>8} {'inside':>7} {'in max':>6} {'push':>5} {'body mm':>8} {'fit ms':>7}"
     print(hdr)
     for r in rows:
-        print(f"{r['frame']:>8} {r['interpolation']:>9} {r['k']:>2} {100 * r['explained_variance']:>6.2f} "
+        print(f"{r['frame']:>8} {r['interpolation']:>9} {'yes' if r['anchored'] else 'no':>6} {r['k']:>2} "
+              f"{100 * r['explained_variance']:>6.2f} "
               f"{r['mean_error_mm']:>8.2f} {r['max_error_mm']:>8.2f} {r['median_of_max_error_mm']:>8.2f} "
               f"{r['inside_vertices_mean']:>7.1f} {r['inside_vertices_max']:>6d} "
               f"{r['inside_after_push_out_max']:>5d} {r['body_reconstruction_mean_mm']:>8.2f} "
@@ -250,7 +267,8 @@ def main(argv: list[str] | None = None) -> int:
           + ", ".join(f"{n} {d['mean_mm']:.1f} / {d['hem_mean_mm']:.1f}" for n, d in branch.items()))
     if refine_rows:
         cold = statistics.median(cold_seconds) if cold_seconds else float("nan")
-        print(f"warm-started refine from k={args.kmax} piecewise (cold drape median {cold:.2f} s over "
+        kind = "" if args.no_anchor or support is None else " anchored"
+        print(f"warm-started refine from k={args.kmax} piecewise{kind} (cold drape median {cold:.2f} s over "
               f"{len(cold_seconds)} bodies, this run, SDF prebuilt):")
         print(f"{'iters':>6} {'mean mm':>8} {'max mm':>8} {'med max':>8} {'s med':>7} {'/cold':>6} "
               f"{'conv':>5}")

@@ -82,6 +82,17 @@ def test_fit_writes_garment_and_metrics(model_dir, tmp_path):
 
     w = pca.project(load_body(tmp_path / "b.obj").vertices, 2)
     assert torch.allclose(torch.tensor(m["weights"], dtype=torch.float64), w, atol=1e-9)
+    # the skirt has a waistband: by default it hangs from the body's waist plane (--no-anchor: as blended)
+    assert m["anchored"] is True and m["seconds"]["anchor"] > 0
+    for name, extra in (("anchored", []), ("plain", ["--no-anchor"])):
+        assert run(["pca", "fit", "--model", str(model_dir), "--body", str(tmp_path / "b.obj"), "--out",
+                    str(tmp_path / name), *extra]) == 0
+    m2 = json.loads((tmp_path / "plain" / "metrics.json").read_text())
+    assert m2["anchored"] is False and m2["seconds"]["anchor"] < 0.01
+    (a, _), (b, _) = (load_mesh(tmp_path / n / "garment.obj") for n in ("anchored", "plain"))
+    d = a - b  # a rigid vertical move
+    assert float(d[:, [0, 2]].abs().max()) < 1e-6
+    assert float(d[:, 1].max() - d[:, 1].min()) < 1e-6 and float(d[:, 1].abs().max()) > 1e-5
 
 
 def test_fit_rejects_other_topology_and_missing_model(model_dir, tmp_path):

@@ -85,3 +85,49 @@ def test_branch_deviation_is_zero_on_the_carried_branch_and_sees_a_moved_hem(pca
     dev = branch_deviation(basis, pca)
     assert dev["plus_0"]["mean_mm"] < 1e-6 and dev["plus_0"]["hem_mean_mm"] < 1e-6
     assert abs(dev["minus_0"]["hem_mean_mm"] - 50.0) < 1e-6 and dev["minus_0"]["mean_mm"] < 10.0
+
+
+def test_anchor_hangs_a_supported_garment_from_the_customers_waist_plane(pca):
+    """Issue 15: the waist plane (the minimum torso girth's level, where a drape puts a support's band) is a
+    flat minimum that a linear blend cannot follow. With ``anchors=`` the fit moves each supported garment
+    vertically, rigidly, so that its band sits over the customer's measured waist plane as the mean drape's
+    band sits over the mean body's; a garment without a support is left as blended."""
+    from torchgarment.sim.support import SupportLoop, waist_height
+
+    faces = pca.faces.long()
+    y_mean = waist_height(pca.mean, faces)
+    g = torch.Generator().manual_seed(3)
+    x_mean = pca.mean[::30] + 0.02 * torch.randn(pca.mean[::30].shape, generator=g, dtype=torch.float64)
+    k, c = 2, 1.0
+    plus = torch.stack([x_mean + 0.01 * torch.randn(x_mean.shape, generator=g, dtype=torch.float64)
+                        for _ in range(k)])
+    minus = torch.stack([x_mean - 0.01 * torch.randn(x_mean.shape, generator=g, dtype=torch.float64)
+                         for _ in range(k)])
+    band = torch.arange(0, x_mean.shape[0], 7)
+    loop = SupportLoop(band, torch.arange(band.numel(), dtype=torch.float64), float(band.numel()), "waist")
+    garment = GarmentMesh(x_mean, torch.tensor([[0, 1, 2]]))
+    supported = ClothingBasis(x_mean, plus, minus, c * pca.sigmas[:k].clone(), garment, pca.fingerprint(),
+                              "", "skirt", support=loop)
+    free = ClothingBasis(x_mean, plus, minus, c * pca.sigmas[:k].clone(), garment, pca.fingerprint(), "",
+                         "shirt")
+    customers = torch.stack([pca.sample_body(0, 1.5), pca.sample_body(1, -0.8)])
+    for frame in BasisFrame:
+        fitter = OnlineFitter(pca, [supported, free], frame=frame)
+        assert fitter.anchored_garments == ["skirt"]
+        a = fitter.anchors(customers)
+        assert a.shape == (2,)
+        assert float(a[0]) == pytest.approx(waist_height(customers[0], faces), abs=1e-12)
+        w = fitter.weights(customers)
+        plain = fitter.fit(w, bodies=customers)
+        anchored = fitter.fit(w, bodies=customers, anchors=a)
+        assert torch.equal(anchored["shirt"], plain["shirt"])
+        for i in range(2):
+            d = anchored["skirt"][i] - plain["skirt"][i]
+            assert float(d[:, [0, 2]].abs().max()) == 0.0  # only vertical
+            assert float(d[:, 1].max() - d[:, 1].min()) < 1e-12  # rigidly
+            band_y = float(anchored["skirt"][i][band, 1].mean())
+            assert band_y - float(a[i]) == pytest.approx(float(x_mean[band, 1].mean()) - y_mean, abs=1e-9)
+        one = fitter.fit(w[0], bodies=customers[0], anchors=a[0])["skirt"]
+        assert torch.allclose(one, anchored["skirt"][0], atol=1e-12)
+        with pytest.raises(InputError, match="anchors"):
+            fitter.fit(w, bodies=customers, anchors=a[:1])

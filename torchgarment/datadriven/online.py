@@ -6,6 +6,14 @@ components (:meth:`OnlineFitter.weights`, ``3 M N`` multiply-adds); every catalo
 product over the concatenated vertices of all garments. Garments may end slightly inside a body (the linear
 model is an approximation); :func:`push_out` moves such vertices out to a margin from the body's surface with
 exact point-mesh distances at the garment's vertices (no per-customer SDF), timed separately.
+
+Anchoring (issue 15): a garment with a support (a skirt's waistband) hangs from the customer's waist plane
+(:func:`~torchgarment.sim.support.waist_height`, the minimum torso girth's level). That level is a flat
+minimum: between similar bodies it moves by centimetres, and a linear blend of the basis drapes cannot follow
+it (on 20 held-out anny bodies the waist plane is up to 32 mm from that of the body's rank-3 projection, and
+the whole skirt with it). :meth:`OnlineFitter.anchors` measures it once per customer, like the weights, and
+:meth:`OnlineFitter.fit` with ``anchors=`` moves each supported garment vertically so that its band sits over
+the customer's waist plane as the mean drape's band sits over the mean body's.
 :func:`~torchgarment.datadriven.basis.refine` (re-exported here) continues from the prediction with the
 simulator for a few iterations (the continuum between the guess and a full drape).
 """
@@ -84,6 +92,8 @@ class OnlineFitter:
         self.frame = BasisFrame.resolve(frame)
         self.pca = pca.to(device=device, dtype=dtype)
         self.tri: torch.Tensor | None = None  # (Vt,) attachment triangles in the body frame
+        band_heights = {n: float(b.mean.detach().cpu()[b.support.indices.long().cpu(), 1].mean())
+                        for n, b in bases.items() if b.support is not None}  # the mean drapes' bands, metres
         if self.frame is BasisFrame.BODY:
             relative = {n: _relative_basis(b, pca) for n, b in bases.items()}
             bases = {n: r[0] for n, r in relative.items()}
@@ -100,6 +110,14 @@ class OnlineFitter:
         self.delta_minus = torch.cat(gm, dim=1).to(device=device, dtype=dtype).reshape(self.k, n3)
         self.linear = self.interpolation is Interpolation.LINEAR
         self.garments = {n: bases[n].garment for n in self.names}
+        # supported garments' bands (indices into the stacked vertices) and their mean-drape height (metres)
+        self._bands = []
+        for j, n in enumerate(self.names):
+            if bases[n].support is not None:
+                band = bases[n].support.indices.long().cpu()
+                self._bands.append((self.offsets[j], self.offsets[j + 1], self.offsets[j] + band,
+                                    band_heights[n]))
+        self._band_offsets: list[float] | None = None  # band height over the mean body's waist plane, lazy
         # the body model's components, flattened, for the projection
         self._components = self.pca.components[: self.k].reshape(self.k, 3 * self.pca.num_vertices)
         self._mean_body = self.pca.mean.reshape(-1)
@@ -118,11 +136,47 @@ class OnlineFitter:
         w = (v.reshape(v.shape[0], -1) - self._mean_body) @ self._components.T
         return w if vertices.ndim == 3 else w[0]
 
-    def fit_all(self, weights: torch.Tensor, chunk: int = 16, bodies: torch.Tensor | None = None
-                ) -> torch.Tensor:
+    @property
+    def anchored_garments(self) -> list[str]:
+        """Names of the garments with a support, which :meth:`fit` can anchor at the customer's waist."""
+        lo = {b[0] for b in self._bands}
+        return [n for j, n in enumerate(self.names) if self.offsets[j] in lo]
+
+    def anchors(self, bodies: torch.Tensor) -> torch.Tensor:
+        """Waist-plane heights of customers' bodies (once per customer, like :meth:`weights`): (V, 3) -> (),
+        (B, V, 3) -> (B,), metres (:func:`~torchgarment.sim.support.waist_height`, the level where a drape
+        puts a support's band; about 0.25 s per body).
+
+        Raises:
+            MeshError: a body of another topology. InputError: a body whose waist cannot be found.
+        """
+        from torchgarment.sim.support import waist_height
+
+        v = self.pca.check_vertices(torch.as_tensor(bodies), "customer body")
+        faces = self.pca.faces.long().cpu()
+        h = [waist_height(b.detach().cpu().double(), faces) for b in v]
+        out = torch.tensor(h, dtype=self.mean.dtype, device=self.mean.device)
+        return out if torch.as_tensor(bodies).ndim == 3 else out[0]
+
+    def _anchor_(self, out: torch.Tensor, anchors: torch.Tensor) -> None:
+        """Move every supported garment of ``out`` (B, Vt, 3) vertically, in place, so that its band's mean
+        height is ``anchors`` (B,) plus the mean drape's band height over the mean body's waist plane."""
+        if self._band_offsets is None:
+            from torchgarment.sim.support import waist_height
+
+            y0 = waist_height(self.pca.mean.detach().cpu().double(), self.pca.faces.long().cpu())
+            self._band_offsets = [band_y - y0 for *_, band_y in self._bands]
+        for (lo, hi, band, _), off in zip(self._bands, self._band_offsets, strict=True):
+            shift = anchors + off - out[:, band.to(out.device), 1].mean(dim=1)  # (B,)
+            out[:, lo:hi, 1] += shift[:, None]
+
+    def fit_all(self, weights: torch.Tensor, chunk: int = 16, bodies: torch.Tensor | None = None,
+                anchors: torch.Tensor | None = None) -> torch.Tensor:
         """Every garment for every customer: (B, k) weights -> (B, Vt, 3), garments concatenated along the
         vertex axis in :attr:`names` order (slice with :attr:`offsets`). (k,) -> (Vt, 3). In the ``"body"``
         frame the blend is decoded on ``bodies`` ((B, V, 3) or (V, 3), the customers the weights came from).
+        ``anchors``: (B,) or () waist heights from :meth:`anchors`: each garment with a support is moved
+        vertically to hang from that level (see the module docstring); the others are left as blended.
 
         One matrix product ``mean + W G`` (two for ``"piecewise"``: positive and negative weights) per chunk
         of ``chunk`` customers, written into one preallocated output: the chunks keep the written rows in
@@ -158,22 +212,30 @@ class OnlineFitter:
             if b.shape[0] != out.shape[0]:
                 raise InputError(f"{b.shape[0]} bodies for {out.shape[0]} sets of weights")
             out = decode(out, b, self.pca.faces.long().to(out.device), self.tri)
+        if anchors is not None and self._bands:
+            a = torch.as_tensor(anchors, dtype=out.dtype, device=out.device).reshape(-1)
+            if a.shape[0] != out.shape[0]:
+                raise InputError(f"{a.shape[0]} anchors for {out.shape[0]} sets of weights")
+            self._anchor_(out, a)
         return out if w.ndim == 2 else out[0]
 
     def fit(self, weights: torch.Tensor, garments: list[str] | None = None,
-            bodies: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+            bodies: torch.Tensor | None = None, anchors: torch.Tensor | None = None
+            ) -> dict[str, torch.Tensor]:
         """Garments for customers: name -> (B, Vg, 3) (or (Vg, 3) for (k,) weights).
 
         Args:
             weights: (k,) or (B, k) from :meth:`weights`.
             garments: names to return (default all); all are computed in one einsum anyway.
             bodies: the customers' bodies, (B, V, 3) or (V, 3); needed in the ``"body"`` frame.
+            anchors: (B,) or () from :meth:`anchors` to hang supported garments from the customers' waist
+                planes (None: as blended).
         """
         names = self.names if garments is None else list(garments)
         unknown = [n for n in names if n not in self.names]
         if unknown:
             raise InputError(f"unknown garment(s) {unknown}; this fitter has {', '.join(self.names)}")
-        x = self.fit_all(weights, bodies=bodies)
+        x = self.fit_all(weights, bodies=bodies, anchors=anchors)
         out = {}
         for n in names:
             i = self.names.index(n)

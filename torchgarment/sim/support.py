@@ -35,6 +35,7 @@ import torch
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
+    from torchgarment.body.measure import SectionPlane
     from torchgarment.pattern.spec import SewingPattern
     from torchgarment.structures.garment_mesh import GarmentMesh
 
@@ -103,14 +104,32 @@ def support_stiffness(weight: float, count: int, sag: float = DEFAULT_SUPPORT_SA
     return float(weight) / (int(count) * float(sag))
 
 
+def _waist_plane(vertices: torch.Tensor, faces: torch.Tensor) -> SectionPlane:
+    """The tape measure's waist plane (:func:`~torchgarment.body.measure.find_section_planes`)."""
+    from torchgarment.body.measure import find_section_planes
+
+    return find_section_planes(vertices, faces, names=("waist",))["waist"]
+
+
+def waist_height(vertices: torch.Tensor, faces: torch.Tensor) -> float:
+    """Height (metres, +Y) of the body's waist plane, where :func:`waist_band_targets` puts a band: the
+    minimum torso girth's level, a landmark that can move by centimetres between similar bodies (a flat
+    minimum). About 0.25 s for an anny body (the landmark search).
+
+    Args:
+        vertices: (B, 3) body vertices in metres (+Y up). faces: (G, 3) long body triangles.
+    """
+    return float(_waist_plane(vertices, faces).point[1])
+
+
 def _waist_hull(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[float, np.ndarray]:
     """Height of the waist plane and the convex hull (H, 2) of the torso section there, (x, z), CCW."""
     from scipy.spatial import ConvexHull
 
     # the tape measure's own section (the loop its waist girth is measured on)
-    from torchgarment.body.measure import find_section_planes, section_loop
+    from torchgarment.body.measure import section_loop
 
-    plane = find_section_planes(vertices, faces, names=("waist",))["waist"]
+    plane = _waist_plane(vertices, faces)
     p = plane.point.detach().cpu().double().numpy()
     loop = section_loop(vertices, faces, plane)
     if loop is None:
@@ -196,4 +215,4 @@ def support_metrics(x: torch.Tensor, indices: torch.Tensor, targets: torch.Tenso
 
 
 __all__ = ["DEFAULT_SUPPORT_SAG", "MIN_CLEARANCE", "support_metrics", "support_stiffness",
-           "waist_band_targets"]
+           "waist_band_targets", "waist_height"]
