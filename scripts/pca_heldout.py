@@ -11,6 +11,9 @@ anchored (``anchor`` column): moved vertically to hang from each body's measured
 does (:meth:`~torchgarment.datadriven.online.OnlineFitter.anchors`); the refine starts from the anchored
 prediction unless ``--no-anchor``.
 
+``--fit regression`` replaces the 2 kmax + 1 example drapes with cold drapes of the N training bodies and a
+least-squares linear model of them (``BasisSettings.fit``; N more drapes, cached the same way).
+
 The references' own reproducibility (``--reference-noise``): each held-out body moved by 0.1 mm along x
 (the SDF's grid samples shift; nothing a customer would notice) is draped cold again and compared with its
 reference (the translation taken back out). A drape with several equilibria lands on another one for some
@@ -59,6 +62,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(default 25 100 400; none: skip)")
     ap.add_argument("--time-cold", type=int, default=5, metavar="H",
                     help="cold drapes re-timed in this run, on the first H held-out bodies (default 5)")
+    ap.add_argument("--fit", default="examples", choices=["examples", "regression"],
+                    help="clothing basis: Gillies' example drapes (default) or a least-squares model of the "
+                         "training bodies' cold drapes (BasisSettings.fit)")
     ap.add_argument("--no-continuation", action="store_true",
                     help="basis drapes from the placed panels instead of continued from the mean drape")
     ap.add_argument("--no-support", action="store_true",
@@ -106,9 +112,12 @@ def main(argv: list[str] | None = None) -> int:
     dsettings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel,
                               support=not args.no_support)
     mesh = mesh_pattern(pattern, args.edge_length)
-    settings = BasisSettings(k=args.kmax, c=args.c, drape=dsettings, continuation=not args.no_continuation)
+    settings = BasisSettings(k=args.kmax, c=args.c, drape=dsettings, continuation=not args.no_continuation,
+                             fit=args.fit)
+    regression = args.fit == "regression"
     t1 = time.perf_counter()
-    basis = build_basis(pca, pattern, settings, name=args.garment, cache_dir=args.cache)
+    basis = build_basis(pca, pattern, settings, name=args.garment, cache_dir=args.cache,
+                        bodies=train.vertices if regression else None)
     support = basis.support  # the references and the refines hold the same support as the basis drapes
     t_basis = time.perf_counter() - t1
     reference = BodyFrame.of(pca.mean, pca.faces)
@@ -144,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
                 for i in (Interpolation.LINEAR, Interpolation.PIECEWISE) for a in (False, True)]
     anchors = None
     for frame, interp, anchored in variants:
-        if anchored and support is None:
+        if (anchored and support is None) or (not anchored and basis.needs_anchor):
             continue
         for k in range(args.kmax + 1):
             fitter = OnlineFitter(pca, {args.garment: basis}, k=k, interpolation=interp, frame=frame)
@@ -180,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
                 "anchor_ms_per_body": anchor_ms if anchored else 0.0,
             })
     ref_inside = [measured(i, refs[i]).inside_before for i in range(len(held))]
-    branch = branch_deviation(basis, pca)  # each example drape against the mean drape carried onto its body
+    # each example drape against the mean drape carried onto its body (a regression has no example drapes)
+    branch = {} if regression else branch_deviation(basis, pca)
 
     # warm-started refine (issue 15): the k = kmax piecewise prediction settled for N iterations, against the
     # cold drape; both timed here with the body's SDF built beforehand (its build is the same for both)
@@ -235,6 +245,7 @@ def main(argv: list[str] | None = None) -> int:
             refine_rows.append(row)
     result = {
         "train": args.train, "heldout": args.heldout, "garment": args.garment, "kmax": args.kmax, "c": args.c,
+        "fit": args.fit,
         "edge_length": args.edge_length, "voxel": args.voxel, "garment_vertices": basis.num_vertices,
         "k_for_95": pca.k_for_variance(0.95), "k_for_99": pca.k_for_variance(0.99),
         "basis_drapes_ok": {n: mm.get("ok") for n, mm in basis.metrics.items()},
@@ -262,9 +273,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['inside_vertices_mean']:>7.1f} {r['inside_vertices_max']:>6d} "
               f"{r['inside_after_push_out_max']:>5d} {r['body_reconstruction_mean_mm']:>8.2f} "
               f"{r['fit_ms_per_body']:>7.3f}")
-    kind = "continued from the mean drape" if settings.continuation else "cold"
-    print(f"basis drapes ({kind}) against the mean drape carried onto their bodies, mean / hem mean mm: "
-          + ", ".join(f"{n} {d['mean_mm']:.1f} / {d['hem_mean_mm']:.1f}" for n, d in branch.items()))
+    if regression:
+        print(f"clothing basis: least-squares linear model of {len(basis.metrics)} training drapes (cold)")
+    else:
+        kind = "continued from the mean drape" if settings.continuation else "cold"
+        print(f"basis drapes ({kind}) against the mean drape carried onto their bodies, mean / hem mean mm: "
+              + ", ".join(f"{n} {d['mean_mm']:.1f} / {d['hem_mean_mm']:.1f}" for n, d in branch.items()))
     if refine_rows:
         cold = statistics.median(cold_seconds) if cold_seconds else float("nan")
         kind = "" if args.no_anchor or support is None else " anchored"

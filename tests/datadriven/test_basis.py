@@ -167,6 +167,43 @@ def test_build_is_cached_resumable_and_exact_for_an_affine_simulator(small_pca, 
         assert torch.allclose(b.evaluate(small_pca.project(body, 2), interp), truth, atol=1e-12)
 
 
+def test_regression_basis_is_cached_and_exact_for_an_affine_simulator(small_pca, tmp_path, monkeypatch):
+    """``fit="regression"``: one cold drape per training body, a least-squares linear model in the weights.
+    With a simulator affine in the body and every component kept it is exact for any body, with both
+    interpolations; the drapes are cached per body and the key holds the bodies."""
+    calls: list = []
+    monkeypatch.setattr(basis_mod, "drape_on_body", fake_drape_factory(calls))
+    mesh = square_mesh(4)
+    k = small_pca.num_components
+    g = torch.Generator().manual_seed(7)
+    train = small_pca.reconstruct(torch.randn(9, k, generator=g, dtype=torch.float64) * small_pca.sigmas)
+    settings = BasisSettings(k=k, c=1.0, drape=DrapeSettings(edge_length=0.05, voxel_size=0.01),
+                             fit="regression")
+    b = build_basis(small_pca, mesh, settings, name="sq", cache_dir=tmp_path, progress=False, bodies=train)
+    assert calls == [False] * 9 and b.k == k and len(b.metrics) == 9  # cold drapes of the training bodies
+    assert torch.allclose(b.plus - b.mean, b.mean - b.minus, atol=1e-14)  # a symmetric (linear) basis
+    w = torch.randn(k, generator=g, dtype=torch.float64) * small_pca.sigmas
+    body = small_pca.reconstruct(w)
+    truth = mesh.x + 0.1 * body[: mesh.num_vertices]
+    for interp in ("linear", "piecewise"):
+        assert torch.allclose(b.evaluate(small_pca.project(body, k), interp), truth, atol=1e-10)
+    key = basis_key(small_pca, mesh, settings, bodies=train)
+    assert (tmp_path / key / "body_0008.pt").is_file()
+    assert key != basis_key(small_pca, mesh, settings, bodies=train[:8])
+    assert key != basis_key(small_pca, mesh, BasisSettings(k=2, drape=settings.drape))
+    build_basis(small_pca, mesh, settings, cache_dir=tmp_path, progress=False, bodies=train)
+    assert len(calls) == 9  # cached
+    with pytest.raises(InputError, match="training bodies"):
+        build_basis(small_pca, mesh, settings, cache_dir=tmp_path, progress=False)
+    with pytest.raises(InputError, match=f"at least {k + 2}"):
+        build_basis(small_pca, mesh, settings, cache_dir=tmp_path, progress=False, bodies=train[:3])
+    with pytest.raises(InputError, match="regression"):
+        build_basis(small_pca, mesh, BasisSettings(k=1, drape=settings.drape), cache_dir=tmp_path,
+                    progress=False, bodies=train)
+    with pytest.raises(InputError, match="fit"):
+        BasisSettings(fit="average")
+
+
 def test_build_rejects_bad_input(small_pca, tmp_path):
     with pytest.raises(InputError, match="SewingPattern or a GarmentMesh"):
         build_basis(small_pca, "skirt", BasisSettings(k=1), cache_dir=tmp_path)

@@ -110,6 +110,29 @@ def test_fit_rejects_other_topology_and_missing_model(model_dir, tmp_path):
              "--out", str(tmp_path / "o")])
 
 
+def test_build_regression_drapes_every_body_and_fits_anchored(tmp_path, monkeypatch):
+    """``pca build --fit regression``: one drape per sampled body, a symmetric (linear) basis that keeps the
+    skirt's support; ``pca fit`` hangs it from the body's waist plane."""
+    monkeypatch.setattr(basis_mod, "drape_on_body", fake_drape)
+    out = tmp_path / "model"
+    assert run(["pca", "build", "--garment", "straight_skirt", "--bodies", "5", "--k", "1", "--edge-length",
+                "0.08", "--voxel", "0.01", "--cache", str(tmp_path / "cache"), "--out", str(out),
+                "--no-progress", "--fit", "regression"]) == 0
+    info = json.loads((out / "model.json").read_text())
+    assert info["fit"] == "regression" and len(info["drapes"]) == 5 and info["k"] == 1
+    pca, basis, _ = load_model(out)
+    assert torch.allclose(basis.plus - basis.mean, basis.mean - basis.minus, atol=1e-12)
+    assert basis.support is not None
+    body = pca.reconstruct(0.5 * pca.sigmas[:1])
+    save_obj(tmp_path / "b.obj", body, pca.faces)
+    assert run(["pca", "fit", "--model", str(out), "--body", str(tmp_path / "b.obj"), "--out",
+                str(tmp_path / "fit")]) == 0
+    assert json.loads((tmp_path / "fit" / "metrics.json").read_text())["anchored"] is True
+    with pytest.raises(InputError, match="needs the anchor"):
+        run(["pca", "fit", "--model", str(out), "--body", str(tmp_path / "b.obj"), "--out",
+             str(tmp_path / "fit2"), "--no-anchor"])
+
+
 def test_build_rejects_bad_options(tmp_path):
     with pytest.raises(InputError, match="at least 3"):
         run(["pca", "build", "--garment", "straight_skirt", "--bodies", "2", "--out", str(tmp_path / "m")])

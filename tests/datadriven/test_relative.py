@@ -131,3 +131,10 @@ def test_anchor_hangs_a_supported_garment_from_the_customers_waist_plane(pca):
         assert torch.allclose(one, anchored["skirt"][0], atol=1e-12)
         with pytest.raises(InputError, match="anchors"):
             fitter.fit(w, bodies=customers, anchors=a[:1])
+    # a regression basis of a supported garment is relative to the waist plane: no fit without anchors
+    from dataclasses import replace
+
+    regression = OnlineFitter(pca, [replace(supported, fit="regression"), free])
+    with pytest.raises(InputError, match="anchors=fitter.anchors"):
+        regression.fit(regression.weights(customers))
+    assert not replace(free, fit="regression").needs_anchor

@@ -5,7 +5,8 @@ Re-exported here:
 
 * bodies: :class:`BodyDataset` (anny body samples) and :class:`BodyPCA` (the PCA body model);
 * the clothing basis (:mod:`torchgarment.datadriven.basis`): :func:`build_basis` with :class:`BasisSettings`
-  and :class:`Interpolation`, the resulting :class:`ClothingBasis`, :class:`BodyFrame` with
+  (:class:`BasisFit`: Gillies' example drapes or a regression over training drapes) and
+  :class:`Interpolation`, the resulting :class:`ClothingBasis`, :class:`BodyFrame` with
   :func:`place_for_body` (placing a garment for a body), :func:`drape_on_body` and :func:`basis_cache_dir`;
 * the online fit (:mod:`torchgarment.datadriven.online`): :class:`OnlineFitter`, :func:`push_out` with its
   :class:`PushOutResult` (vertices inside the body pushed out, exact distances) and :func:`refine` (the
@@ -15,6 +16,7 @@ The command line (``torchgarment pca build`` / ``pca fit``) is :mod:`torchgarmen
 """
 
 from torchgarment.datadriven.basis import (
+    BasisFit,
     BasisSettings,
     BodyFrame,
     ClothingBasis,
@@ -29,6 +31,7 @@ from torchgarment.datadriven.online import OnlineFitter, PushOutResult, push_out
 from torchgarment.datadriven.pca import BodyPCA
 
 __all__ = [
+    "BasisFit",
     "BasisSettings",
     "BodyDataset",
     "BodyFrame",

@@ -26,6 +26,20 @@ the basis, and every refine of a fit, holds it at that body's waist as a single 
 does not slide down by centimetres with small waist changes (``DrapeSettings(support=False)`` lets it hang by
 its tension).
 
+Regression (``BasisSettings(fit="regression")``, issue 15): a drape has several equilibria (the folds of a
+skirt sit elsewhere around the body after a tiny body change), so each of Gillies' 2k + 1 example drapes is
+one sample of them, and the blend carries that sample's folds, scaled by the customer's weights, into every
+prediction. Instead, the garment is draped cold on N training bodies (the body model's own, passed as
+``bodies``; the same protocol as a single drape) and the linear model ``g = g_0 + sum_i w_i G_i`` is fitted
+to them by least squares: its prediction is the drapes' conditional mean given the weights, which is what
+minimizes the expected distance to a drape of the customer. A garment with a support is fitted relative to
+each body's waist plane (:func:`~torchgarment.sim.support.waist_height`: its y minus that height), because
+the band hangs there and that level is not linear in the body; the fit then needs the customer's waist plane
+(:meth:`~torchgarment.datadriven.online.OnlineFitter.anchors`). The fitted model is stored as a
+:class:`ClothingBasis` whose ``plus`` / ``minus`` are the model's garments at ``+-c sigma_i`` (symmetric, so
+both interpolations give the same linear model) and whose ``mean`` is the model at the mean body. The
+continuation does not apply (every training drape is cold).
+
 Caching: every drape is saved as it finishes under ``<cache>/<key>/<sample>.pt`` (atomic writes), so an
 interrupted build resumes where it stopped, and a build for a larger k reuses the drapes of a smaller one;
 the key hashes the PCA model (:meth:`BodyPCA.fingerprint`), the garment mesh, ``c``, the drape settings,
@@ -65,6 +79,15 @@ PLACEMENT_VERSION = "1"
 """Version of the placement rule (part of the cache key)."""
 
 
+class BasisFit(OptionEnum):
+    """How a clothing basis is made from drapes (see the module docstring)."""
+
+    EXAMPLES = "examples"
+    """Gillies et al.: drapes of the mean body and of the example bodies ``mean +- c sigma_i component_i``."""
+    REGRESSION = "regression"
+    """A least-squares linear model of the cold drapes of N training bodies (``build_basis(bodies=...)``)."""
+
+
 class Interpolation(OptionEnum):
     """How the basis drapes turn into per-weight garment displacements (see the module docstring)."""
 
@@ -84,7 +107,9 @@ class BasisSettings:
         continuation: drape each example body from the mean body's drape carried onto it in body-relative
             coordinates (:mod:`torchgarment.datadriven.relative`; sewing skipped), so that every basis drape
             sits on the mean drape's equilibrium branch (a hem has several); False: each drape starts from
-            the placed panels, as Gillies et al.
+            the placed panels, as Gillies et al. (examples only).
+        fit: ``"examples"`` (Gillies: 2k + 1 example drapes) or ``"regression"`` (least squares over the cold
+            drapes of training bodies; see the module docstring).
     """
 
     k: int | None = None
@@ -92,12 +117,14 @@ class BasisSettings:
     c: float = 1.0
     drape: DrapeSettings = field(default_factory=DrapeSettings)
     continuation: bool = True
+    fit: BasisFit | str = BasisFit.EXAMPLES
 
     def __post_init__(self) -> None:
         """Validate at construction (and on ``dataclasses.replace``)."""
         self.validate()
 
     def validate(self) -> None:
+        self.fit = BasisFit.resolve(self.fit)
         if not (isinstance(self.c, (int, float)) and math.isfinite(self.c) and 0 < self.c <= 4):
             raise InputError(f"BasisSettings.c must be in (0, 4] standard deviations, got {self.c!r}")
         if self.k is not None and (not isinstance(self.k, int) or self.k < 0):
@@ -169,6 +196,9 @@ class ClothingBasis:
             min_sdf_mm, seconds, ...).
         support: the garment's support loop (a skirt's waistband), held at each example body's waist in its
             drape (and in a refine), or None (the garment hangs by its tension).
+        fit: how it was made (:class:`BasisFit` value). A regression basis of a garment with a support is
+            fitted relative to the waist plane and must be fitted with the customers' ``anchors``
+            (:attr:`needs_anchor`).
     """
 
     mean: torch.Tensor
@@ -181,6 +211,13 @@ class ClothingBasis:
     name: str = ""
     metrics: dict = field(default_factory=dict)
     support: SupportLoop | None = None
+    fit: str = BasisFit.EXAMPLES.value
+
+    @property
+    def needs_anchor(self) -> bool:
+        """True when the blend is relative to the waist plane: an online fit must move it there
+        (:meth:`~torchgarment.datadriven.online.OnlineFitter.anchors`)."""
+        return self.fit == BasisFit.REGRESSION.value and self.support is not None
 
     @property
     def k(self) -> int:
@@ -244,7 +281,7 @@ class ClothingBasis:
             "steps": self.steps.cpu(), "pca_fingerprint": self.pca_fingerprint, "key": self.key,
             "name": self.name,
             "metrics_json": json.dumps(self.metrics, default=str),
-            "support": None if self.support is None else self.support.to_dict(),
+            "support": None if self.support is None else self.support.to_dict(), "fit": self.fit,
             "garment": {"x": g.x.cpu(), "faces": g.faces.cpu(), "p": None if g.p is None else g.p.cpu(),
                         "panel_ids": None if g.panel_ids is None else g.panel_ids.cpu(),
                         "panel_names": list(g.panel_names), "seam_pairs": g.seam_pairs.cpu()},
@@ -261,7 +298,8 @@ class ClothingBasis:
         garment = GarmentMesh(gd["x"], gd["faces"], p=gd["p"], panel_ids=gd["panel_ids"],
                               panel_names=gd["panel_names"], seam_pairs=gd["seam_pairs"])
         basis = cls(p["mean"], p["plus"], p["minus"], p["steps"], garment, p["pca_fingerprint"], p["key"],
-                    p["name"], json.loads(p["metrics_json"]), SupportLoop.from_dict(p.get("support")))
+                    p["name"], json.loads(p["metrics_json"]), SupportLoop.from_dict(p.get("support")),
+                    p.get("fit", BasisFit.EXAMPLES.value))
         return basis.to(device=device, dtype=dtype)
 
 
@@ -278,7 +316,7 @@ def _as_garment_mesh(garment: SewingPattern | GarmentMesh, settings: DrapeSettin
 
 
 def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings,
-              support: SupportLoop | None = None) -> str:
+              support: SupportLoop | None = None, bodies: torch.Tensor | None = None) -> str:
     """Cache key of a basis: hash of the body model, garment, c, drape settings, placement rule and the
     support held in the drapes.
 
@@ -287,7 +325,10 @@ def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings,
     """
     desc = {"format": FORMAT, "pca": pca.fingerprint(), "garment": mesh_hash(mesh), "c": float(settings.c),
             "drape": _settings_description(settings.drape), "placement": PLACEMENT_VERSION}
-    if settings.continuation:  # (absent from the key of the cold bases built before it existed)
+    if BasisFit.resolve(settings.fit) is BasisFit.REGRESSION:  # training bodies, not examples
+        desc["fit"] = "regression"
+        desc["bodies"] = hashlib.sha256(bodies.detach().cpu().double().numpy().tobytes()).hexdigest()
+    elif settings.continuation:  # (absent from the key of the cold bases built before it existed)
         desc["continuation"] = True
     if support is not None and settings.drape.support:  # (absent from the keys of unsupported bases)
         desc["support"] = [support.name, support.indices.tolist()]
@@ -370,23 +411,29 @@ def build_basis(
     name: str = "",
     cache_dir: str | os.PathLike | None = None,
     progress: bool = True,
+    bodies: torch.Tensor | None = None,
 ) -> ClothingBasis:
-    """Fit a garment to the PCA example bodies with the simulator (resumable, cached).
+    """Fit a garment to the PCA example bodies (or, for ``fit="regression"``, to training bodies) with the
+    simulator (resumable, cached).
 
     Args:
         pca: the :class:`~torchgarment.datadriven.pca.BodyPCA` body model.
         garment: a :class:`SewingPattern` (meshed at ``settings.drape.edge_length``) or a sewn
             :class:`GarmentMesh`, placed around the mean body (e.g. drafted from its measurements).
-        settings: k (or a variance target), c and drape settings.
+        settings: k (or a variance target), c, drape settings and the fit.
         name: garment name stored in the basis.
         cache_dir: root of the cache (default :func:`basis_cache_dir`).
-        progress: tqdm bar over the 2k + 1 drapes.
+        progress: tqdm bar over the drapes.
+        bodies: (N, V, 3) training bodies in the model's topology, metres: needed by ``fit="regression"``
+            (N >= k + 2; e.g. the dataset the model was fitted on), refused otherwise.
 
     Returns:
         the :class:`ClothingBasis` (also written to ``<cache>/<key>/basis_k<k>.pt``).
 
     Raises:
-        InputError: bad settings, a garment that is not a pattern/mesh, or k larger than the model's.
+        InputError: bad settings, a garment that is not a pattern/mesh, k larger than the model's, or
+            training bodies missing, too few or given to an examples basis.
+        MeshError: training bodies of another topology.
     """
     from tqdm import tqdm
 
@@ -398,9 +445,20 @@ def build_basis(
     k = pca.k_for_variance(settings.variance) if settings.k is None else settings.k
     if k > pca.num_components:
         raise InputError(f"the body model has {pca.num_components} components, asked for k={k}")
+    regression = settings.fit is BasisFit.REGRESSION
+    if regression:
+        if bodies is None:
+            raise InputError("a regression clothing basis needs the training bodies (bodies=...)")
+        bodies = pca.check_vertices(torch.as_tensor(bodies), "training body").detach().cpu().double()
+        if bodies.shape[0] < k + 2:
+            raise InputError(f"a regression clothing basis of k={k} needs at least {k + 2} training bodies, "
+                             f"got {bodies.shape[0]}")
+    elif bodies is not None:
+        raise InputError("training bodies are for BasisSettings(fit='regression'); an examples basis drapes "
+                         "the PCA's example bodies")
     support = (SupportLoop.of(garment, mesh)
                if settings.drape.support and not isinstance(garment, GarmentMesh) else None)
-    key = basis_key(pca, mesh, settings, support)
+    key = basis_key(pca, mesh, settings, support, bodies)
     folder = Path(cache_dir) if cache_dir is not None else basis_cache_dir()
     folder = folder / key
     final = folder / f"basis_k{k}.pt"
@@ -409,25 +467,28 @@ def build_basis(
     pca64 = pca.to(device="cpu", dtype=torch.float64)
     faces = pca64.faces
     reference = BodyFrame.of(pca64.mean, faces)
-    names = sample_names(k)
+    names = [f"body_{i:04d}" for i in range(bodies.shape[0])] if regression else sample_names(k)
     results: dict[str, torch.Tensor] = {}
     metrics: dict[str, dict] = {}
-    bar = tqdm(names, desc=f"clothing basis {name or 'garment'} (k={k})", disable=not progress)
+    kind = ", regression" if regression else ""
+    bar = tqdm(names, desc=f"clothing basis {name or 'garment'} (k={k}{kind})", disable=not progress)
     tri = None  # attachment triangles of the continuation
-    for sample in bar:
+    for n_sample, sample in enumerate(bar):
         path = folder / f"{sample}.pt"
         if path.is_file():
             entry = torch.load(path, map_location="cpu", weights_only=True)
             results[sample], metrics[sample] = entry["x"], json.loads(entry["metrics_json"])
             continue
-        if sample == "mean":
+        if regression:
+            verts = bodies[n_sample]
+        elif sample == "mean":
             verts = pca64.mean
         else:
             sign, i = sample.split("_")
             verts = pca64.sample_body(int(i), settings.c if sign == "plus" else -settings.c)
         t0 = time.perf_counter()
         start = None
-        if sample != "mean" and settings.continuation:  # the mean drape carried onto this body
+        if sample != "mean" and settings.continuation and not regression:  # the mean drape carried over
             if tri is None:
                 tri = attach(results["mean"], pca64.mean, faces.long())
             start = decode(encode(results["mean"], pca64.mean, faces.long(), tri), verts, faces.long(), tri)
@@ -435,17 +496,57 @@ def build_basis(
         m = {key_: result.metrics[key_]
              for key_ in ("vertices", "iterations", "converged", "ok", "min_sdf_mm",
                                                     "inside_vertices", "max_seam_gap_mm", "residual")}
+        if regression and support is not None:
+            from torchgarment.sim.support import waist_height
+
+            m["waist_y_m"] = waist_height(verts, faces.long())
         m["seconds"] = time.perf_counter() - t0
         bar.set_postfix(last=f"{sample} {m['seconds']:.0f}s {'ok' if m['ok'] else 'NOT ok'}", refresh=False)
         with atomic_path(path) as tmp:
             torch.save({"x": result.x.detach().cpu().double(), "metrics_json": json.dumps(m)}, tmp)
         results[sample], metrics[sample] = result.x.detach().cpu().double(), m
-    plus = torch.stack([results[f"plus_{i}"] for i in range(k)]) if k else torch.zeros(0, mesh.num_vertices,
-                                                                                       3,
-                                                                                       dtype=torch.float64)
-    minus = torch.stack([results[f"minus_{i}"] for i in range(k)]) if k else torch.zeros_like(plus)
-    steps = settings.c * pca64.sigmas[:k].clone()
-    basis = ClothingBasis(results["mean"], plus, minus, steps, mesh.with_positions(results["mean"]),
-                          pca64.fingerprint(), key, name, metrics, support)
+    if regression:
+        mean, plus, minus, steps = _regression_model(pca64, bodies, k, settings.c,
+                                                     torch.stack([results[n] for n in names]),
+                                                     [metrics[n].get("waist_y_m") for n in names],
+                                                     support is not None)
+    else:
+        mean = results["mean"]
+        plus = (torch.stack([results[f"plus_{i}"] for i in range(k)]) if k
+                else torch.zeros(0, mesh.num_vertices, 3, dtype=torch.float64))
+        minus = torch.stack([results[f"minus_{i}"] for i in range(k)]) if k else torch.zeros_like(plus)
+        steps = settings.c * pca64.sigmas[:k].clone()
+    basis = ClothingBasis(mean, plus, minus, steps, mesh.with_positions(mean), pca64.fingerprint(), key, name,
+                          metrics, support, settings.fit.value)
     basis.save(final)
     return basis
+
+
+def _regression_model(pca: BodyPCA, bodies: torch.Tensor, k: int, c: float, drapes: torch.Tensor,
+                      waists: list[float | None], anchored: bool
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Least-squares linear model of training drapes (see the module docstring), as a basis's
+    ``(mean, plus, minus, steps)``.
+
+    Args:
+        pca: the body model (float64, CPU). bodies: (N, V, 3) training bodies. k: components.
+        c: the stored ``plus`` / ``minus`` sit at ``+-c sigma_i``. drapes: (N, Vg, 3) their drapes, metres.
+        waists: (N,) the bodies' waist-plane heights (metres; used when ``anchored``).
+        anchored: fit the drapes relative to their bodies' waist planes (a garment with a support).
+    """
+    n = drapes.shape[0]
+    z = drapes.clone()
+    y0 = 0.0
+    if anchored:
+        from torchgarment.sim.support import waist_height
+
+        z[:, :, 1] -= torch.tensor(waists, dtype=z.dtype)[:, None]
+        y0 = waist_height(pca.mean, pca.faces.long())
+    sig = pca.sigmas[:k]
+    w = pca.project(bodies, k) / sig if k else bodies.new_zeros(n, 0)  # (N, k), in standard deviations
+    features = torch.cat([w.new_ones(n, 1), w], dim=1)  # (N, k + 1)
+    coef = torch.linalg.lstsq(features, z.reshape(n, -1)).solution.reshape(k + 1, -1, 3)  # per sigma
+    mean = coef[0].clone()
+    mean[:, 1] += y0
+    plus, minus = mean + c * coef[1:], mean - c * coef[1:]
+    return mean, plus, minus, c * sig.clone()

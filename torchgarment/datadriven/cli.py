@@ -35,7 +35,7 @@ MODEL_FORMAT = "torchgarment.pca_garment_model/1"
 
 def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``pca`` subcommand (with ``build`` and ``fit``) to ``subparsers``."""
-    from torchgarment.datadriven.basis import Interpolation
+    from torchgarment.datadriven.basis import BasisFit, Interpolation
     from torchgarment.datadriven.relative import BasisFrame
     from torchgarment.sim.drape import DrapeSettings
 
@@ -80,6 +80,10 @@ def add_pca_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentP
     b.add_argument("--no-continuation", action="store_true",
                    help="drape every example body from the placed panels (Gillies et al.) instead of from "
                         "the mean body's drape carried onto it")
+    b.add_argument("--fit", default=BasisFit.EXAMPLES.value, choices=[m.value for m in BasisFit],
+                   help="examples (default, Gillies et al.: drapes of the mean and the +-c sigma example "
+                        "bodies) or regression (cold drapes of every sampled body and a least-squares linear "
+                        "model: the drapes' mean for a body's weights; one drape per body)")
     b.set_defaults(func=cmd_pca_build)
 
     f = sub.add_parser(
@@ -180,7 +184,7 @@ def cmd_pca_build(args: argparse.Namespace) -> int:
 
     settings = BasisSettings(k=args.k, variance=args.variance, c=args.c,
                              drape=DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel),
-                             continuation=not args.no_continuation)
+                             continuation=not args.no_continuation, fit=args.fit)
     settings.validate()
     t0 = time.perf_counter()
     dataset = _dataset(args)
@@ -192,14 +196,16 @@ def cmd_pca_build(args: argparse.Namespace) -> int:
     pattern, name, info = _garment(args, pca)
     t_pca = time.perf_counter()
     basis = build_basis(pca, pattern, settings, name=name, cache_dir=args.cache,
-                        progress=not args.no_progress)
+                        progress=not args.no_progress,
+                        bodies=dataset.vertices if settings.fit.value == "regression" else None)
     t_basis = time.perf_counter()
     ratio = pca.explained_variance_ratio
     model = {
         "format": MODEL_FORMAT, "garment": name, **info, "bodies": len(dataset), "source": dataset.source,
         "topology": dataset.topology, "seed": args.seed if args.bodies is not None else None,
         "population": args.population if args.bodies is not None else None,
-        "k": basis.k, "c": settings.c, "variance_target": settings.variance if args.k is None else None,
+        "k": basis.k, "c": settings.c, "fit": settings.fit.value,
+        "variance_target": settings.variance if args.k is None else None,
         "explained_variance": float(ratio[: basis.k].sum()) if basis.k else 0.0,
         "k_for_95": pca.k_for_variance(0.95), "k_for_99": pca.k_for_variance(0.99),
         "garment_vertices": basis.num_vertices, "basis_key": basis.key,
@@ -319,6 +325,9 @@ def fit_bodies(args: argparse.Namespace, jobs: list[tuple[str, str | Path]]) -> 
     t_load = time.perf_counter()
     w = fitter.weights(stack)
     t_w = time.perf_counter()
+    if args.no_anchor and basis.needs_anchor:
+        raise InputError(f"--no-anchor: the model's basis ({args.model}) is a regression relative to the "
+                         "waist plane, which needs the anchor")
     anchors = None if args.no_anchor or not fitter.anchored_garments else fitter.anchors(stack)
     t_a = time.perf_counter()
     x = fitter.fit(w, bodies=stack, anchors=anchors)[name]

@@ -92,6 +92,7 @@ class OnlineFitter:
         self.frame = BasisFrame.resolve(frame)
         self.pca = pca.to(device=device, dtype=dtype)
         self.tri: torch.Tensor | None = None  # (Vt,) attachment triangles in the body frame
+        self._needs_anchor = [n for n, b in bases.items() if b.needs_anchor]
         band_heights = {n: float(b.mean.detach().cpu()[b.support.indices.long().cpu(), 1].mean())
                         for n, b in bases.items() if b.support is not None}  # the mean drapes' bands, metres
         if self.frame is BasisFrame.BODY:
@@ -183,6 +184,9 @@ class OnlineFitter:
         cache (measured on 256 customers x 30K vertices: about 3.5x faster than one product over the batch).
         Weights that require grad take a differentiable einsum path instead.
         """
+        if anchors is None and self._needs_anchor:
+            raise InputError(f"clothing basis {self._needs_anchor[0]!r} is a regression relative to the "
+                             "waist plane: fit it with anchors=fitter.anchors(bodies)")
         w = torch.as_tensor(weights, device=self.mean.device, dtype=self.mean.dtype)
         if w.ndim not in (1, 2) or w.shape[-1] != self.k:
             raise InputError(f"weights must be (k,) or (B, k) with k = {self.k} (the fitter's k), got "
