@@ -35,6 +35,11 @@ if TYPE_CHECKING:
     from torchgarment.datadriven.pca import BodyPCA
 
 
+_MEAN_WAIST: dict[str, float] = {}
+"""Waist-plane height (metres) of each body model's mean body, by :meth:`BodyPCA.fingerprint` (0.25 s to
+measure; every fitter of a model needs it to anchor)."""
+
+
 def _relative_basis(basis: ClothingBasis, pca: BodyPCA) -> tuple[ClothingBasis, torch.Tensor]:
     """``basis`` with every drape in body-relative coordinates on its own example body (float64, CPU), and the
     (Vg,) attachment triangles (closest to the mean drape on the mean body)."""
@@ -78,6 +83,7 @@ class OnlineFitter:
         if not bases:
             raise InputError("no clothing bases given")
         fp = pca.fingerprint()
+        self._fingerprint = fp
         for n, b in bases.items():
             if b.pca_fingerprint != fp:
                 raise InputError(f"clothing basis {n!r} was built for another body model (fingerprint "
@@ -165,7 +171,10 @@ class OnlineFitter:
         if self._band_offsets is None:
             from torchgarment.sim.support import waist_height
 
-            y0 = waist_height(self.pca.mean.detach().cpu().double(), self.pca.faces.long().cpu())
+            y0 = _MEAN_WAIST.get(self._fingerprint)
+            if y0 is None:
+                y0 = waist_height(self.pca.mean.detach().cpu().double(), self.pca.faces.long().cpu())
+                _MEAN_WAIST[self._fingerprint] = y0
             self._band_offsets = [band_y - y0 for *_, band_y in self._bands]
         for (lo, hi, band, _), off in zip(self._bands, self._band_offsets, strict=True):
             shift = anchors + off - out[:, band.to(out.device), 1].mean(dim=1)  # (B,)
