@@ -106,6 +106,7 @@ PUBLIC = {
         "BodyPCA",
         "build_basis",
         "BasisSettings",
+        "BasisFit",
         "Interpolation",
         "ClothingBasis",
         "BodyFrame",
