@@ -7,6 +7,9 @@ product over the concatenated vertices of all garments. Garments may end slightl
 model is an approximation); :func:`push_out` moves such vertices out to a margin from the body's surface with
 exact point-mesh distances at the garment's vertices (no per-customer SDF), timed separately.
 
+:func:`~torchgarment.datadriven.basis.refine` (re-exported here) continues from the prediction with the
+simulator for a few iterations (the continuum between the guess and a full drape).
+
 Anchoring (issue 15): a garment with a support (a skirt's waistband) hangs from the customer's waist plane
 (:func:`~torchgarment.sim.support.waist_height`, the minimum torso girth's level). That level is a flat
 minimum: between similar bodies it moves by centimetres, and a linear blend of the basis drapes cannot follow
@@ -14,8 +17,6 @@ it (on 20 held-out anny bodies the waist plane is up to 32 mm from that of the b
 the whole skirt with it). :meth:`OnlineFitter.anchors` measures it once per customer, like the weights, and
 :meth:`OnlineFitter.fit` with ``anchors=`` moves each supported garment vertically so that its band sits over
 the customer's waist plane as the mean drape's band sits over the mean body's.
-:func:`~torchgarment.datadriven.basis.refine` (re-exported here) continues from the prediction with the
-simulator for a few iterations (the continuum between the guess and a full drape).
 """
 
 from __future__ import annotations
