@@ -45,6 +45,8 @@ if str(ROOT) not in sys.path:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from torchgarment.datadriven.basis import BasisFit
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--train", type=int, default=60, help="training bodies (default 60)")
     ap.add_argument("--heldout", type=int, default=20, help="held-out bodies (default 20)")
@@ -62,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
                          "(default 25 100 400; none: skip)")
     ap.add_argument("--time-cold", type=int, default=5, metavar="H",
                     help="cold drapes re-timed in this run, on the first H held-out bodies (default 5)")
-    ap.add_argument("--fit", default="examples", choices=["examples", "regression"],
+    ap.add_argument("--fit", default=BasisFit.EXAMPLES.value, choices=[m.value for m in BasisFit],
                     help="clothing basis: Gillies' example drapes (default) or a least-squares model of the "
                          "training bodies' cold drapes (BasisSettings.fit)")
     ap.add_argument("--no-continuation", action="store_true",
@@ -77,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="refine from the unanchored prediction (the table shows both; OnlineFitter.anchors)")
     ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
     args = ap.parse_args(argv)
-    if args.no_anchor and args.fit == "regression":
+    if args.no_anchor and args.fit == BasisFit.REGRESSION.value:
         ap.error("--no-anchor: a regression basis is fitted relative to the waist plane and needs the anchor")
 
     from tqdm import tqdm
@@ -116,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     mesh = mesh_pattern(pattern, args.edge_length)
     settings = BasisSettings(k=args.kmax, c=args.c, drape=dsettings, continuation=not args.no_continuation,
                              fit=args.fit)
-    regression = args.fit == "regression"
+    regression = args.fit == BasisFit.REGRESSION.value
     t1 = time.perf_counter()
     basis = build_basis(pca, pattern, settings, name=args.garment, cache_dir=args.cache,
                         bodies=train.vertices if regression else None)

@@ -190,6 +190,8 @@ def test_regression_basis_is_cached_and_exact_for_an_affine_simulator(small_pca,
     key = basis_key(small_pca, mesh, settings, bodies=train)
     assert (tmp_path / key / "body_0008.pt").is_file()
     assert key != basis_key(small_pca, mesh, settings, bodies=train[:8])
+    with pytest.raises(InputError, match="training bodies"):
+        basis_key(small_pca, mesh, settings)
     assert key != basis_key(small_pca, mesh, BasisSettings(k=2, drape=settings.drape))
     build_basis(small_pca, mesh, settings, cache_dir=tmp_path, progress=False, bodies=train)
     assert len(calls) == 9  # cached

@@ -318,7 +318,7 @@ def _as_garment_mesh(garment: SewingPattern | GarmentMesh, settings: DrapeSettin
 def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings,
               support: SupportLoop | None = None, bodies: torch.Tensor | None = None) -> str:
     """Cache key of a basis: hash of the body model, garment, c, drape settings, placement rule and the
-    support held in the drapes.
+    support held in the drapes (and, for ``fit="regression"``, of the training ``bodies``).
 
     ``k`` is not part of it: the drapes along component ``i`` do not depend on how many components are kept,
     so a basis for a larger k reuses those of a smaller one (the assembled basis is ``basis_k<k>.pt``).
@@ -326,6 +326,8 @@ def basis_key(pca: BodyPCA, mesh: GarmentMesh, settings: BasisSettings,
     desc = {"format": FORMAT, "pca": pca.fingerprint(), "garment": mesh_hash(mesh), "c": float(settings.c),
             "drape": _settings_description(settings.drape), "placement": PLACEMENT_VERSION}
     if BasisFit.resolve(settings.fit) is BasisFit.REGRESSION:  # training bodies, not examples
+        if bodies is None:
+            raise InputError("the key of a regression clothing basis needs its training bodies (bodies=...)")
         desc["fit"] = "regression"
         desc["bodies"] = hashlib.sha256(bodies.detach().cpu().double().numpy().tobytes()).hexdigest()
     elif settings.continuation:  # (absent from the key of the cold bases built before it existed)
@@ -522,6 +524,21 @@ def build_basis(
     return basis
 
 
+_MEAN_WAIST: dict[str, float] = {}
+
+
+def mean_waist_height(pca: BodyPCA) -> float:
+    """Waist-plane height (metres) of the body model's mean body
+    (:func:`~torchgarment.sim.support.waist_height`), measured once per model (cached by
+    :meth:`BodyPCA.fingerprint`; 0.25 s to measure)."""
+    from torchgarment.sim.support import waist_height
+
+    fp = pca.fingerprint()
+    if fp not in _MEAN_WAIST:
+        _MEAN_WAIST[fp] = waist_height(pca.mean.detach().cpu().double(), pca.faces.long().cpu())
+    return _MEAN_WAIST[fp]
+
+
 def _regression_model(pca: BodyPCA, bodies: torch.Tensor, k: int, c: float, drapes: torch.Tensor,
                       waists: list[float | None], anchored: bool
                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -538,10 +555,8 @@ def _regression_model(pca: BodyPCA, bodies: torch.Tensor, k: int, c: float, drap
     z = drapes.clone()
     y0 = 0.0
     if anchored:
-        from torchgarment.sim.support import waist_height
-
         z[:, :, 1] -= torch.tensor(waists, dtype=z.dtype)[:, None]
-        y0 = waist_height(pca.mean, pca.faces.long())
+        y0 = mean_waist_height(pca)
     sig = pca.sigmas[:k]
     w = pca.project(bodies, k) / sig if k else bodies.new_zeros(n, 0)  # (N, k), in standard deviations
     features = torch.cat([w.new_ones(n, 1), w], dim=1)  # (N, k + 1)

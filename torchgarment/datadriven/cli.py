@@ -177,7 +177,7 @@ def _garment(args: argparse.Namespace, pca: BodyPCA) -> tuple[SewingPattern, str
 
 def cmd_pca_build(args: argparse.Namespace) -> int:
     """Run ``torchgarment pca build``; returns the exit code."""
-    from torchgarment.datadriven.basis import BasisSettings, build_basis
+    from torchgarment.datadriven.basis import BasisFit, BasisSettings, build_basis
     from torchgarment.datadriven.pca import BodyPCA
     from torchgarment.io.staging import staged_output
     from torchgarment.sim.drape import DrapeSettings
@@ -197,7 +197,7 @@ def cmd_pca_build(args: argparse.Namespace) -> int:
     t_pca = time.perf_counter()
     basis = build_basis(pca, pattern, settings, name=name, cache_dir=args.cache,
                         progress=not args.no_progress,
-                        bodies=dataset.vertices if settings.fit.value == "regression" else None)
+                        bodies=dataset.vertices if settings.fit is BasisFit.REGRESSION else None)
     t_basis = time.perf_counter()
     ratio = pca.explained_variance_ratio
     model = {

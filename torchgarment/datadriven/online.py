@@ -28,17 +28,12 @@ from typing import TYPE_CHECKING
 import torch
 
 from torchgarment.body.frames import attach, decode, encode
-from torchgarment.datadriven.basis import ClothingBasis, Interpolation, refine
+from torchgarment.datadriven.basis import ClothingBasis, Interpolation, mean_waist_height, refine
 from torchgarment.datadriven.relative import BasisFrame
 from torchgarment.errors import InputError
 
 if TYPE_CHECKING:
     from torchgarment.datadriven.pca import BodyPCA
-
-
-_MEAN_WAIST: dict[str, float] = {}
-"""Waist-plane height (metres) of each body model's mean body, by :meth:`BodyPCA.fingerprint` (0.25 s to
-measure; every fitter of a model needs it to anchor)."""
 
 
 def _relative_basis(basis: ClothingBasis, pca: BodyPCA) -> tuple[ClothingBasis, torch.Tensor]:
@@ -84,7 +79,6 @@ class OnlineFitter:
         if not bases:
             raise InputError("no clothing bases given")
         fp = pca.fingerprint()
-        self._fingerprint = fp
         for n, b in bases.items():
             if b.pca_fingerprint != fp:
                 raise InputError(f"clothing basis {n!r} was built for another body model (fingerprint "
@@ -118,14 +112,12 @@ class OnlineFitter:
         self.delta_minus = torch.cat(gm, dim=1).to(device=device, dtype=dtype).reshape(self.k, n3)
         self.linear = self.interpolation is Interpolation.LINEAR
         self.garments = {n: bases[n].garment for n in self.names}
-        # supported garments' bands (indices into the stacked vertices) and their mean-drape height (metres)
-        self._bands = []
-        for j, n in enumerate(self.names):
-            if bases[n].support is not None:
-                band = bases[n].support.indices.long().cpu()
-                self._bands.append((self.offsets[j], self.offsets[j + 1], self.offsets[j] + band,
-                                    band_heights[n]))
-        self._band_offsets: list[float] | None = None  # band height over the mean body's waist plane, lazy
+        # supported garments: name, vertex range and band (indices into the stacked vertices), mean-drape band
+        # height (metres)
+        self._bands = [(n, self.offsets[j], self.offsets[j + 1],
+                        self.offsets[j] + bases[n].support.indices.long().cpu(), band_heights[n])
+                       for j, n in enumerate(self.names) if bases[n].support is not None]
+        self._mean_waist: float | None = None  # the mean body's waist plane, metres (lazy)
         # the body model's components, flattened, for the projection
         self._components = self.pca.components[: self.k].reshape(self.k, 3 * self.pca.num_vertices)
         self._mean_body = self.pca.mean.reshape(-1)
@@ -147,8 +139,7 @@ class OnlineFitter:
     @property
     def anchored_garments(self) -> list[str]:
         """Names of the garments with a support, which :meth:`fit` can anchor at the customer's waist."""
-        lo = {b[0] for b in self._bands}
-        return [n for j, n in enumerate(self.names) if self.offsets[j] in lo]
+        return [b[0] for b in self._bands]
 
     def anchors(self, bodies: torch.Tensor) -> torch.Tensor:
         """Waist-plane heights of customers' bodies (once per customer, like :meth:`weights`): (V, 3) -> (),
@@ -169,16 +160,11 @@ class OnlineFitter:
     def _anchor_(self, out: torch.Tensor, anchors: torch.Tensor) -> None:
         """Move every supported garment of ``out`` (B, Vt, 3) vertically, in place, so that its band's mean
         height is ``anchors`` (B,) plus the mean drape's band height over the mean body's waist plane."""
-        if self._band_offsets is None:
-            from torchgarment.sim.support import waist_height
-
-            y0 = _MEAN_WAIST.get(self._fingerprint)
-            if y0 is None:
-                y0 = waist_height(self.pca.mean.detach().cpu().double(), self.pca.faces.long().cpu())
-                _MEAN_WAIST[self._fingerprint] = y0
-            self._band_offsets = [band_y - y0 for *_, band_y in self._bands]
-        for (lo, hi, band, _), off in zip(self._bands, self._band_offsets, strict=True):
-            shift = anchors + off - out[:, band.to(out.device), 1].mean(dim=1)  # (B,)
+        if self._mean_waist is None:  # (the model's fingerprint hashes its components: once per fitter)
+            self._mean_waist = mean_waist_height(self.pca)
+        y0 = self._mean_waist
+        for _, lo, hi, band, band_y in self._bands:
+            shift = anchors + (band_y - y0) - out[:, band.to(out.device), 1].mean(dim=1)  # (B,)
             out[:, lo:hi, 1] += shift[:, None]
 
     def fit_all(self, weights: torch.Tensor, chunk: int = 16, bodies: torch.Tensor | None = None,
