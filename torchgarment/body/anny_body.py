@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import time
 from dataclasses import asdict, dataclass
 from types import ModuleType
@@ -223,35 +222,18 @@ def load_anny_model() -> anny.Anny:
 
 
 def _import_anny_quietly() -> ModuleType:
-    """Import anny without the banner its NVIDIA Warp dependency prints on stdout and stderr at import.
-
-    anny initializes Warp at import; Warp prints a version banner (stdout) and, on machines without a CUDA
-    driver, a "GPU execution will not be available" line from native code (stderr). torchgarment does not use
-    Warp (anny's skinning runs in torch here), so both are silenced: the banner through Warp's log level, the
-    native line by pointing file descriptor 2 at /dev/null for the duration of the import only. Exceptions
-    raised by the import propagate unchanged.
-    """
+    """Import anny without the banner and the CUDA-driver line its NVIDIA Warp dependency prints at import
+    (:mod:`torchgarment.warp_runtime`: Warp initialized quietly, stderr muted during the import only).
+    Exceptions raised by the import propagate unchanged."""
     import sys
 
     if "anny" in sys.modules:
         return sys.modules["anny"]
-    import logging
+    from torchgarment.warp_runtime import import_warp, muted_stderr
 
-    import warp
-
-    warp.config.log_level = logging.ERROR
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            # warp prints "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver" from its lazy
-            # init on a machine without a GPU: initialize it here, where stderr is muted (issue 17)
-            warp.init()
-            import anny
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+    import_warp()
+    with muted_stderr():
+        import anny
     return anny
 
 

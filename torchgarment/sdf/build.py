@@ -168,93 +168,50 @@ def _chunked(fn: Callable[[np.ndarray], np.ndarray], points: np.ndarray, workers
         return np.concatenate(list(ex.map(fn, parts)))
 
 
-def _scatter_rows(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
-    """(n, 3) sums of the (M, 3) ``rows`` by their (M,) ``index`` (``np.add.at``, but with bincount: fast)."""
-    return np.stack([np.bincount(index, weights=rows[:, c], minlength=n) for c in range(3)], axis=1)
-
-
 class MeshProximity:
-    """Exact closest points on a closed triangle mesh and signed distances at arbitrary points: libigl's AABB
-    tree (built once, queried many times) signed by angle-weighted pseudo-normals (Baerentzen and Aanaes
-    2005), which is exact for a closed, consistently wound manifold that does not intersect itself, not for
-    open or self-intersecting meshes (use the winding number there; on the anny chart body, whose toes touch,
-    4 of 30,000 points within 1 cm of the surface, all at the toes, get the other sign than the exact winding
-    number). Same distances and signs as ``igl.signed_distance`` with pseudo-normals, but the tree is built
-    once (22-30 ms for the 26,692-triangle anny body, normals included) instead of at every call.
+    """Exact closest points on a closed triangle mesh and signed distances at arbitrary points: a bounding
+    volume hierarchy built once and queried many times, signed by angle-weighted pseudo-normals (Baerentzen
+    and Aanaes 2005), which is exact for a closed, consistently wound manifold that does not intersect itself,
+    not for open or self-intersecting meshes (use the winding number there; on the anny chart body, whose toes
+    touch, 4 of 30,000 points within 1 cm of the surface, all at the toes, get the other sign than the exact
+    winding number). The same distances and signs as ``igl.signed_distance`` with pseudo-normals, up to
+    float32 ties between triangles that share no edge or vertex (:mod:`torchgarment.sdf.proximity`: NVIDIA
+    Warp's BVH finds the closest triangle, a kernel does the rest in float64).
 
     Args:
         vertices: (V, 3) mesh positions, metres. faces: (F, 3) vertex indices, outward winding.
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        import igl
+        from torchgarment.sdf.proximity import WarpProximity
 
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
         self.faces = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
         if self.faces.shape[0] == 0:
             raise MeshError("MeshProximity needs a mesh with faces")
-        self.tree = igl.AABB()
-        self.tree.init(self.vertices, self.faces)
-        v, f = self.vertices, self.faces
-        p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-        edges = np.stack([p1 - p0, p2 - p1, p0 - p2], axis=1)  # (F, 3, 3): edge k leaves corner k
-        cross = np.cross(edges[:, 0], -edges[:, 2])
-        self.face_normals = cross / np.linalg.norm(cross, axis=1, keepdims=True).clip(1e-300)  # (F, 3)
-        # vertex pseudo-normals: face normals weighted by the face's angle at the vertex (between the edge
-        # leaving the corner and the reversed edge arriving at it)
-        length = np.linalg.norm(edges, axis=2).clip(1e-300)  # (F, 3)
-        incoming = np.roll(edges, 1, axis=1)
-        cos = -(edges * incoming).sum(2) / (length * np.roll(length, 1, axis=1))
-        weighted = np.arccos(cos.clip(-1.0, 1.0))[:, :, None] * self.face_normals[:, None, :]  # (F, 3, 3)
-        self.vertex_normals = _scatter_rows(f.reshape(-1), weighted.reshape(-1, 3), v.shape[0])
-        # edge pseudo-normals: the sum of the two faces' normals; edge k of a face is opposite corner k
-        e = np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1).reshape(-1, 2)  # (3F, 2)
-        key = e.min(axis=1) * v.shape[0] + e.max(axis=1)
-        _, self.face_edge = np.unique(key, return_inverse=True)
-        self.face_edge = self.face_edge.reshape(-1, 3)  # (F, 3) unique edge opposite each corner
-        self.edge_normals = _scatter_rows(self.face_edge.reshape(-1), np.repeat(self.face_normals, 3, axis=0),
-                                          int(self.face_edge.max()) + 1)
+        if self.faces.min() < 0 or self.faces.max() >= self.vertices.shape[0]:
+            raise MeshError(f"face indices must lie in [0, {self.vertices.shape[0]}) for a mesh of "
+                            f"{self.vertices.shape[0]} vertices")
+        self._tree = WarpProximity(self.vertices, self.faces)
 
     def closest_triangles(self, points: np.ndarray) -> np.ndarray:
         """(P,) int64 index of the triangle closest to each point (P, 3)."""
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         if p.shape[0] == 0:
             return np.zeros(0, dtype=np.int64)
-        return np.asarray(self.tree.squared_distance(self.vertices, self.faces, p)[1], dtype=np.int64)
+        return self._tree.query(p, 1e-9)[1]
 
     def query(self, points: np.ndarray, feature_tol: float = 1e-9
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signed distances (P,) (negative inside), closest points (P, 3) and unit outward directions (P, 3)
         (from the closest point towards the point when outside, away from it when inside; the feature's
-        pseudo-normal for a point on the surface) at ``points`` (P, 3), metres."""
+        pseudo-normal for a point on the surface) at ``points`` (P, 3), metres. A closest point with a
+        barycentric coordinate below ``feature_tol`` lies on that edge or vertex (its pseudo-normal signs)."""
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         if p.shape[0] == 0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))
-        sq, tri, c = self.tree.squared_distance(self.vertices, self.faces, p)
-        f = self.faces[tri]
-        a, b, cc = self.vertices[f[:, 0]], self.vertices[f[:, 1]], self.vertices[f[:, 2]]
-        # barycentric coordinates of the closest point; the feature it lies on picks the pseudo-normal
-        v0, v1, v2 = b - a, cc - a, c - a
-        d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
-        d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
-        den = (d00 * d11 - d01 * d01).clip(1e-300)
-        w1 = (d11 * d20 - d01 * d21) / den
-        w2 = (d00 * d21 - d01 * d20) / den
-        bary = np.stack([1.0 - w1 - w2, w1, w2], axis=1)  # (P, 3)
-        normal = self.face_normals[tri].copy()
-        on_edge = bary < feature_tol  # the edge opposite that corner
-        edge_rows = on_edge.sum(1) == 1
-        k = np.argmax(on_edge, axis=1)
-        normal[edge_rows] = self.edge_normals[self.face_edge[tri, k]][edge_rows]
-        vertex_rows = on_edge.sum(1) >= 2
-        corner = np.argmax(bary, axis=1)
-        normal[vertex_rows] = self.vertex_normals[f[np.arange(len(f)), corner]][vertex_rows]
-        d = p - c
-        dist = np.sqrt(sq)
-        sign = np.where((d * normal).sum(1) < 0.0, -1.0, 1.0)
-        unit_n = normal / np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-300)
-        direction = np.where(dist[:, None] > 1e-12, sign[:, None] * d / dist.clip(1e-300)[:, None], unit_n)
-        return sign * dist, c, direction
+        d, _, c, direction = self._tree.query(p, feature_tol)
+        return d, c, direction
 
 
 def exact_signed_distance(
