@@ -80,8 +80,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError
 
 from torchgarment.errors import InputError, MeshError
@@ -168,11 +166,22 @@ class _Topology:
         edges: (E, 2) int64 vertex ids, sorted within each row.
         face_edges: (F, 3) int64 edge ids of the edges (v0,v1), (v1,v2), (v2,v0) of each face.
         num_vertices: highest vertex id + 1.
+        edge_face_ptr: (E + 1,) int64, edge_face_ids: (3F,) int64: the faces of edge i are
+            ``edge_face_ids[edge_face_ptr[i]:edge_face_ptr[i + 1]]`` (CSR).
     """
 
     edges: np.ndarray
     face_edges: np.ndarray
     num_vertices: int
+    edge_face_ptr: np.ndarray
+    edge_face_ids: np.ndarray
+
+    def faces_of(self, edge_ids: np.ndarray) -> np.ndarray:
+        """Sorted unique ids of the faces that contain any of the edges ``edge_ids`` (K,)."""
+        start, stop = self.edge_face_ptr[edge_ids], self.edge_face_ptr[edge_ids + 1]
+        count = stop - start
+        offsets = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+        return np.unique(self.edge_face_ids[np.repeat(start, count) + offsets])
 
 
 _TOPOLOGY_CACHE: dict[tuple, _Topology] = {}
@@ -192,7 +201,11 @@ def _topology(faces: torch.Tensor | np.ndarray) -> _Topology:
         he = np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2)
         he.sort(axis=1)
         edges, inverse = np.unique(he, axis=0, return_inverse=True)
-        topo = _Topology(edges=edges, face_edges=inverse.reshape(-1, 3), num_vertices=int(f.max()) + 1)
+        inverse = inverse.reshape(-1)
+        order = np.argsort(inverse, kind="stable")
+        ptr = np.concatenate([[0], np.cumsum(np.bincount(inverse, minlength=len(edges)))])
+        topo = _Topology(edges=edges, face_edges=inverse.reshape(-1, 3), num_vertices=int(f.max()) + 1,
+                         edge_face_ptr=ptr, edge_face_ids=order // 3)
         if len(_TOPOLOGY_CACHE) > 8:
             _TOPOLOGY_CACHE.clear()
         _TOPOLOGY_CACHE[key] = topo
@@ -241,7 +254,33 @@ class SectionLoop:
         return float(np.linalg.norm(h - np.roll(h, 1, axis=0), axis=1).sum())
 
 
-def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.ndarray) -> list[SectionLoop]:
+def _components(seg: np.ndarray, n: int) -> tuple[int, np.ndarray]:
+    """Connected components of the graph of ``n`` nodes and the (S, 2) edges ``seg``: (count, (n,) labels),
+    labelled in the order of their smallest node (as ``scipy.sparse.csgraph.connected_components`` does,
+    without its per-call overhead: a cut takes 255 of these to find a waist).
+
+    Union by smaller label and pointer jumping: each round hooks every edge's larger root under the smaller,
+    then flattens the trees; a section's loops take 2-4 rounds.
+    """
+    lab = np.arange(n)
+    a, b = seg[:, 0], seg[:, 1]
+    while True:
+        la, lb = lab[a], lab[b]
+        differ = la != lb
+        if not differ.any():
+            break
+        np.minimum.at(lab, np.maximum(la, lb)[differ], np.minimum(la, lb)[differ])
+        while True:
+            up = lab[lab]
+            if np.array_equal(up, lab):
+                break
+            lab = up
+    roots, labels = np.unique(lab, return_inverse=True)
+    return len(roots), labels.reshape(-1)
+
+
+def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.ndarray,
+         edge_ids: np.ndarray | None = None) -> list[SectionLoop]:
     """Cut a mesh by a plane; return its connected section loops (detached numpy).
 
     A vertex is on the positive side when its signed distance is > 0, so every face is crossed by 0 or 2 of
@@ -252,33 +291,32 @@ def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.nd
         topo: the mesh topology.
         point: (3,) a point on the plane.
         normal: (3,) plane normal.
+        edge_ids: (K,) ascending ids of exactly the edges the plane crosses, when the caller knows them
+            (:meth:`_Slicer.horizontal`); None: found here.
 
     Returns:
         The loops, each with its edge ids, points and segments; empty when the plane misses the mesh.
     """
-    d = vertices @ normal - float(point @ normal)
-    pos = d > 0
+    offset = float(point @ normal)
     e = topo.edges
-    crossing = pos[e[:, 0]] != pos[e[:, 1]]
-    fc = crossing[topo.face_edges]
-    cut_faces = np.flatnonzero(fc[:, 0] | fc[:, 1])  # 0 or 2 crossing edges per face
-    if cut_faces.size == 0:
+    if edge_ids is None:
+        pos = vertices @ normal - offset > 0
+        edge_ids = np.flatnonzero(pos[e[:, 0]] != pos[e[:, 1]])
+    if edge_ids.size == 0:
         return []
-    edge_ids = np.flatnonzero(crossing)
-    node_of_edge = np.full(len(e), -1, dtype=np.int64)
-    node_of_edge[edge_ids] = np.arange(len(edge_ids))
+    cut_faces = topo.faces_of(edge_ids)  # 0 or 2 crossing edges per face
     fe = topo.face_edges[cut_faces]
-    m = fc[cut_faces]
+    fe = np.searchsorted(edge_ids, fe).clip(max=len(edge_ids) - 1)
+    fe[edge_ids[fe] != topo.face_edges[cut_faces]] = -1  # (C, 3) node of each crossing edge, -1 elsewhere
     # the two crossing edges of each cut face, in column order
-    order = np.argsort(~m, axis=1, kind="stable")[:, :2]
-    seg = node_of_edge[np.take_along_axis(fe, order, axis=1)]
+    order = np.argsort(fe < 0, axis=1, kind="stable")[:, :2]
+    seg = np.take_along_axis(fe, order, axis=1)
     n = len(edge_ids)
-    graph = coo_matrix((np.ones(len(seg)), (seg[:, 0], seg[:, 1])), shape=(n, n))
-    ncomp, labels = connected_components(graph, directed=False)
+    ncomp, labels = _components(seg, n)
     degree = np.bincount(seg.ravel(), minlength=n)
-    d0, d1 = d[e[edge_ids, 0]], d[e[edge_ids, 1]]
-    t = d0 / (d0 - d1)
     v0, v1 = vertices[e[edge_ids, 0]], vertices[e[edge_ids, 1]]
+    d0, d1 = v0 @ normal - offset, v1 @ normal - offset
+    t = d0 / (d0 - d1)
     pts = v0 + t[:, None] * (v1 - v0)
     order_nodes = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order_nodes], np.arange(ncomp + 1))
@@ -472,6 +510,7 @@ class _Slicer:
     def __init__(self, vertices: np.ndarray, topo: _Topology) -> None:
         self.v = vertices
         self.topo = topo
+        self._lo: np.ndarray | None = None  # the horizontal cuts' edge index (built on the first cut)
         y = vertices[:, 1]
         y0, h = float(y.min()), float(np.ptp(y))
         if h <= 0:
@@ -496,7 +535,19 @@ class _Slicer:
         self.basis = np.stack([left, front])  # 2D coordinates of horizontal sections: (lateral, depth)
 
     def horizontal(self, y: float) -> list[SectionLoop]:
-        return _cut(self.v, self.topo, np.array([0.0, y, 0.0]), _UP)
+        """The loops of the horizontal cut at height ``y``: the same as ``_cut`` with the plane, but the edges
+        it crosses (one end at or below ``y``, the other above) are looked up among the few whose lower end
+        lies within the longest edge's height below ``y``, not tested one by one."""
+        if self._lo is None:
+            ye = self.v[self.topo.edges, 1]  # (E, 2)
+            lo, hi = ye.min(axis=1), ye.max(axis=1)
+            self._order = np.argsort(lo, kind="stable")
+            self._lo, self._hi = lo[self._order], hi[self._order]
+            self._span = float((hi - lo).max())
+        a = int(np.searchsorted(self._lo, y - self._span, side="left"))
+        b = int(np.searchsorted(self._lo, y, side="right"))
+        near = np.flatnonzero(self._hi[a:b] > y) + a
+        return _cut(self.v, self.topo, np.array([0.0, y, 0.0]), _UP, np.sort(self._order[near]))
 
     def lateral_range(self, loop: SectionLoop) -> tuple[float, float]:
         s = loop.points @ self.frame.left

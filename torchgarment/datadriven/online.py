@@ -263,16 +263,20 @@ class PushOutResult:
     seconds: float
 
 
+_ROUNDING = 1e-12
+"""Metres: distances this far under the push-out's margin are rounding, not a shortfall."""
+
+
 def push_out(x: torch.Tensor, body_vertices: torch.Tensor, body_faces: torch.Tensor, margin: float = 1e-3,
              iterations: int = 4) -> PushOutResult:
     """Move garment vertices that are inside a body, or closer to it than ``margin``, to ``margin`` outside
     its surface, with exact distances at the garment's vertices (no SDF grid: building one took 5.2 s per
     customer).
 
-    Each pass queries the exact closest point on the body (:class:`~torchgarment.sdf.MeshProximity`: an AABB
-    tree, pseudo-normal signs) for the vertices still to check, and puts each low vertex at ``closest +
-    margin * outward``; the next pass re-checks only the vertices just moved (in a concave place, such as the
-    crotch or an armpit, a move can bring a vertex near another part of the body).
+    Each pass queries the exact closest point on the body (:class:`~torchgarment.sdf.MeshProximity`: a BVH,
+    pseudo-normal signs) for the vertices still to check, and puts each low vertex at ``closest + margin *
+    outward``; the next pass re-checks only the vertices just moved (in a concave place, such as the crotch or
+    an armpit, a move can bring a vertex near another part of the body).
 
     Args:
         x: (V, 3) garment positions, metres (detached; the push-out is not differentiated).
@@ -298,7 +302,9 @@ def push_out(x: torch.Tensor, body_vertices: torch.Tensor, body_faces: torch.Ten
         phi[todo] = d
         if inside_before is None:
             inside_before = int((d < 0).sum())
-        low = d < margin
+        # a vertex just moved sits at the margin up to rounding (about 1e-16 m): only a real shortfall counts,
+        # or half of them would be moved again, pass after pass
+        low = d < margin - _ROUNDING
         if not low.any() or _ == iterations:
             break
         idx = todo[low]
