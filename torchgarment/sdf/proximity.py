@@ -134,7 +134,40 @@ def _kernels() -> dict[str, object]:
         tri[i] = t
         closest[i] = cp
 
+    @wp.kernel(enable_backward=False)
+    def normals(v: wp.array(dtype=wp.vec3d), f: wp.array(dtype=wp.int32, ndim=2),
+                face_edge: wp.array(dtype=wp.int32, ndim=2), face_normals: wp.array(dtype=wp.vec3d),
+                vertex_normals: wp.array(dtype=wp.vec3d), edge_normals: wp.array(dtype=wp.vec3d)) -> None:
+        t = wp.tid()
+        p0 = v[f[t, 0]]
+        p1 = v[f[t, 1]]
+        p2 = v[f[t, 2]]
+        e0 = p1 - p0  # edge k leaves corner k
+        e1 = p2 - p1
+        e2 = p0 - p2
+        c = wp.cross(e0, -e2)
+        n = c / wp.max(wp.length(c), wp.float64(1e-300))
+        face_normals[t] = n
+        tiny = wp.float64(1e-300)
+        l0 = wp.max(wp.length(e0), tiny)
+        l1 = wp.max(wp.length(e1), tiny)
+        l2 = wp.max(wp.length(e2), tiny)
+        one = wp.float64(1.0)
+        # the angle at corner k, between the edge leaving it and the reversed edge arriving at it, weights
+        # the face's normal in the vertex pseudo-normal
+        a0 = wp.acos(wp.clamp(-wp.dot(e0, e2) / (l0 * l2), -one, one))
+        a1 = wp.acos(wp.clamp(-wp.dot(e1, e0) / (l1 * l0), -one, one))
+        a2 = wp.acos(wp.clamp(-wp.dot(e2, e1) / (l2 * l1), -one, one))
+        wp.atomic_add(vertex_normals, f[t, 0], a0 * n)
+        wp.atomic_add(vertex_normals, f[t, 1], a1 * n)
+        wp.atomic_add(vertex_normals, f[t, 2], a2 * n)
+        # the edge pseudo-normal is the sum of its faces' normals
+        wp.atomic_add(edge_normals, face_edge[t, 0], n)
+        wp.atomic_add(edge_normals, face_edge[t, 1], n)
+        wp.atomic_add(edge_normals, face_edge[t, 2], n)
+
     _KERNELS["query"] = query
+    _KERNELS["normals"] = normals
     return _KERNELS
 
 
@@ -154,13 +187,9 @@ def _face_edges(faces: np.ndarray) -> np.ndarray:
     return fe
 
 
-def _scatter_rows(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
-    """(n, 3) sums of the (M, 3) ``rows`` by their (M,) ``index`` (``np.add.at``, but with bincount: fast)."""
-    return np.stack([np.bincount(index, weights=rows[:, c], minlength=n) for c in range(3)], axis=1)
-
-
 class WarpProximity:
-    """The tree, the pseudo-normals and the kernel's buffers of one mesh (see the module docstring); built by
+    """The tree, the pseudo-normals (face, edge and angle-weighted vertex normals, computed by a kernel) and
+    the query's inputs of one mesh (see the module docstring); built by
     :class:`~torchgarment.sdf.MeshProximity`.
 
     Args:
@@ -170,36 +199,21 @@ class WarpProximity:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         wp = import_warp()
         self._wp = wp
-        v, f = vertices, faces
-        self.face_edge = _face_edges(f)
-        p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-        edges = np.stack([p1 - p0, p2 - p1, p0 - p2], axis=1)  # (F, 3, 3): edge k leaves corner k
-        cross = np.cross(edges[:, 0], -edges[:, 2])
-        self.face_normals = cross / np.linalg.norm(cross, axis=1, keepdims=True).clip(1e-300)  # (F, 3)
-        # vertex pseudo-normals: face normals weighted by the face's angle at the vertex (between the edge
-        # leaving the corner and the reversed edge arriving at it)
-        length = np.linalg.norm(edges, axis=2).clip(1e-300)  # (F, 3)
-        incoming = np.roll(edges, 1, axis=1)
-        cos = -(edges * incoming).sum(2) / (length * np.roll(length, 1, axis=1))
-        weighted = np.arccos(cos.clip(-1.0, 1.0))[:, :, None] * self.face_normals[:, None, :]  # (F, 3, 3)
-        self.vertex_normals = _scatter_rows(f.reshape(-1), weighted.reshape(-1, 3), v.shape[0])
-        # edge pseudo-normals: the sum of the two faces' normals; edge k of a face is opposite corner k
-        self.edge_normals = _scatter_rows(self.face_edge.reshape(-1).astype(np.int64),
-                                          np.repeat(self.face_normals, 3, axis=0),
-                                          int(self.face_edge.max()) + 1)
         dev = "cpu"
-        f32 = f.astype(np.int32)
-        self._points = wp.array(v.astype(np.float32), dtype=wp.vec3, device=dev)
+        face_edge = _face_edges(faces)
+        f32 = faces.astype(np.int32)
+        v = wp.array(vertices, dtype=wp.vec3d, device=dev)
+        f = wp.array(f32, dtype=wp.int32, device=dev)
+        fe = wp.array(face_edge, dtype=wp.int32, device=dev)
+        face_normals = wp.empty(len(faces), dtype=wp.vec3d, device=dev)
+        vertex_normals = wp.zeros(len(vertices), dtype=wp.vec3d, device=dev)
+        edge_normals = wp.zeros(int(face_edge.max()) + 1, dtype=wp.vec3d, device=dev)
+        wp.launch(_kernels()["normals"], dim=len(faces), device=dev,
+                  inputs=[v, f, fe, face_normals, vertex_normals, edge_normals])
+        self._points = wp.array(vertices.astype(np.float32), dtype=wp.vec3, device=dev)
         self._indices = wp.array(f32.reshape(-1), dtype=wp.int32, device=dev)
         self._mesh = wp.Mesh(points=self._points, indices=self._indices)
-        self._inputs = [
-            wp.array(v, dtype=wp.vec3d, device=dev),
-            wp.array(f32, dtype=wp.int32, device=dev),
-            wp.array(self.face_normals, dtype=wp.vec3d, device=dev),
-            wp.array(self.edge_normals, dtype=wp.vec3d, device=dev),
-            wp.array(self.vertex_normals, dtype=wp.vec3d, device=dev),
-            wp.array(self.face_edge, dtype=wp.int32, device=dev),
-        ]
+        self._inputs = [v, f, face_normals, edge_normals, vertex_normals, fe]
 
     def query(self, points: np.ndarray, feature_tol: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
