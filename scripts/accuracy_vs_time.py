@@ -8,8 +8,12 @@ For ``--bodies`` held-out anny adults (sampled with seed ``--seed + 1000``, the 
 * ``pca k=<k>``: the data-driven fit (Gillies et al. 2004): weights of the body in the PCA body model, then
   ``mean garment + sum_i w_i G_i`` (piecewise interpolation) from a clothing basis draped offline on the mean
   and the +-1 sigma example bodies; ``pca k=<kmax>+push`` adds the push-out of vertices inside the body
-  (exact distances); ``pca body ...`` blends in body-relative coordinates, and ``pca body k=<kmax>+refine N``
-  settles that prediction with the simulator for N iterations;
+  (exact distances); ``pca body ...`` blends in body-relative coordinates, and ``... k=<kmax>+refine N``
+  settles a prediction with the simulator for N iterations; ``pca anchored ...`` hangs a garment with a
+  support (a skirt's waistband) from the body's waist plane (the measurement, about 0.2 s per body, is timed
+  in the row); ``pca regression ...`` uses the regression clothing basis (a least-squares model of cold
+  drapes of every training body, anchored; ``--no-regression`` leaves it out: its drapes cost about 5 s per
+  training body, once);
 * ``sim e=<edge> tol=<atol>``: the simulator (:func:`torchgarment.sim.drape.drape`) at several mesh edge
   lengths and settle tolerances (``atol_weight``: the residual force 2-norm over the garment's weight); the
   setting at the methods' edge length and the default tolerance 1e-3 is *draping the unadjusted base pattern*;
@@ -109,6 +113,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--log-dir", default="logs/accuracy_vs_time",
                     help="TensorBoard root (run = a time stamp)")
     ap.add_argument("--cache", default=None, help="cache folder (default $TORCHGARMENT_CACHE/clothing_basis)")
+    ap.add_argument("--no-regression", action="store_true",
+                    help="leave out the regression clothing basis (a cold drape of every training body)")
     ap.add_argument("--no-support", action="store_true",
                     help="drapes without the garment's support (it hangs by its tension)")
     args = ap.parse_args(argv)
@@ -261,6 +267,55 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
                        f"{'ok' if r.ok else 'NOT ok'} it={r.metrics['iterations']}")
 
     # -- data-driven PCA fit ---------------------------------------------------------------------------------
+    def pca_rows(basis: object, label: str, offline: float, anchored: bool) -> None:
+        """Rows of one clothing basis: both frames at k = 0..kmax, then push-out and refines at kmax. With
+        ``anchored`` every fit hangs the garment from the body's waist plane; the measurement is online work
+        (once per customer), so its time is in the rows'."""
+        hv = held.vertices.double()
+        dset = DrapeSettings(edge_length=args.edge, voxel_size=args.voxel, support=held_up)
+        for frame in ("absolute", "body"):
+            tag = label + ("" if frame == "absolute" else " body")
+            for k in range(kmax + 1):
+                fitter = OnlineFitter(pca, {args.garment: basis}, k=k, frame=frame)
+                sec_anchor, anchors = 0.0, None
+                if anchored:
+                    t = time.perf_counter()
+                    anchors = fitter.anchors(hv)
+                    sec_anchor = (time.perf_counter() - t) / len(cases)
+                fitter.fit(fitter.weights(hv[:1]), bodies=hv[:1],
+                           anchors=None if anchors is None else anchors[:1])  # warm-up (allocations)
+                reps = 20
+                t = time.perf_counter()
+                for _ in range(reps):
+                    xs = fitter.fit(fitter.weights(hv), bodies=hv, anchors=anchors)[args.garment]
+                sec = (time.perf_counter() - t) / (reps * len(cases)) + sec_anchor
+                note = f"anchor {sec_anchor * 1e3:.0f} ms" if anchored else ""
+                for case in cases:
+                    x = xs[case.index]
+                    wv, wf = welded_surface(x, mesh)
+                    record("pca", f"{tag} k={k}", case, sec, offline, x, wv, wf, note)
+                if k != kmax:
+                    continue
+                for case in cases:
+                    t = time.perf_counter()
+                    po = push_out(xs[case.index], case.vertices, case.faces)
+                    sec_po = time.perf_counter() - t
+                    wv, wf = welded_surface(po.x, mesh)
+                    record("pca", f"{tag} k={k}+push", case, sec + sec_po, offline, po.x, wv, wf,
+                           f"push-out {sec_po * 1e3:.1f} ms (exact distances)")
+                for n in (25, 100):  # warm-started refine: the prediction settled for n iterations
+                    for case in cases:
+                        body = Body(vertices=case.vertices.double(), faces=case.faces.long())
+                        sdf = BodySDF.cached(body.vertices, body.faces, SDFSettings(voxel_size=args.voxel))
+                        t = time.perf_counter()
+                        placed = place_for_body(mesh.x, mean_frame, case.frame)
+                        r = refine(mesh, xs[case.index], body, dset, iterations=n, sdf=sdf,
+                                   support=basis.support, support_reference=placed)
+                        sec_r = time.perf_counter() - t
+                        wv, wf = welded_surface(r.x, mesh)
+                        record("pca", f"{tag} k={k}+refine {n}", case, sec + sec_r, offline, r.x, wv, wf,
+                               f"refine {r.metrics['iterations']} it, SDF prebuilt")
+
     if "pca" not in args.skip:
         try:
             t = time.perf_counter()
@@ -271,46 +326,19 @@ def main(argv: list[str] | None = None) -> int:  # noqa: C901, PLR0915 - a linea
             offline = sum(float(mm.get("seconds", 0.0)) for mm in basis.metrics.values())
             print(f"clothing basis: {2 * kmax + 1} drapes, {offline:.0f} s of drapes ({t_basis:.0f} s this "
                   "run)")
-            hv = held.vertices.double()
-            for frame in ("absolute", "body"):
-                tag = "" if frame == "absolute" else " body"
-                for k in range(kmax + 1):
-                    fitter = OnlineFitter(pca, {args.garment: basis}, k=k, frame=frame)
-                    fitter.fit(fitter.weights(hv[:1]), bodies=hv[:1])  # warm-up (first-call allocations)
-                    reps = 20
-                    t = time.perf_counter()
-                    for _ in range(reps):
-                        xs = fitter.fit(fitter.weights(hv), bodies=hv)[args.garment]
-                    sec = (time.perf_counter() - t) / (reps * len(cases))
-                    for case in cases:
-                        x = xs[case.index]
-                        wv, wf = welded_surface(x, mesh)
-                        record("pca", f"pca{tag} k={k}", case, sec, offline, x, wv, wf)
-                    if k != kmax:
-                        continue
-                    for case in cases:
-                        t = time.perf_counter()
-                        po = push_out(xs[case.index], case.vertices, case.faces)
-                        sec_po = time.perf_counter() - t
-                        wv, wf = welded_surface(po.x, mesh)
-                        record("pca", f"pca{tag} k={k}+push", case, sec + sec_po, offline, po.x, wv, wf,
-                               f"push-out {sec_po * 1e3:.1f} ms (exact distances)")
-                    if frame != "body":
-                        continue
-                    for n in (25, 100):  # warm-started refine: the prediction settled for n iterations
-                        dset = DrapeSettings(edge_length=args.edge, voxel_size=args.voxel, support=held_up)
-                        for case in cases:
-                            body = Body(vertices=case.vertices.double(), faces=case.faces.long())
-                            sdf = BodySDF.cached(body.vertices, body.faces,
-                                                 SDFSettings(voxel_size=args.voxel))
-                            t = time.perf_counter()
-                            placed = place_for_body(mesh.x, mean_frame, case.frame)
-                            r = refine(mesh, xs[case.index], body, dset, iterations=n, sdf=sdf,
-                                       support=basis.support, support_reference=placed)
-                            sec_r = time.perf_counter() - t
-                            wv, wf = welded_surface(r.x, mesh)
-                            record("pca", f"pca{tag} k={k}+refine {n}", case, sec + sec_r, offline, r.x, wv,
-                                   wf, f"refine {r.metrics['iterations']} it, SDF prebuilt")
+            pca_rows(basis, "pca", offline, anchored=False)
+            if basis.support is not None:  # a garment with a support can hang from the waist plane
+                pca_rows(basis, "pca anchored", offline, anchored=True)
+            if not args.no_regression:
+                t = time.perf_counter()
+                reg = build_basis(pca, pattern, BasisSettings(k=kmax, fit="regression", drape=DrapeSettings(
+                    edge_length=args.edge, voxel_size=args.voxel, support=held_up)), name=args.garment,
+                    cache_dir=cache, bodies=train.vertices)
+                t_reg = time.perf_counter() - t
+                offline_reg = sum(float(mm.get("seconds", 0.0)) for mm in reg.metrics.values())
+                print(f"regression basis: {len(reg.metrics)} drapes, {offline_reg:.0f} s of drapes "
+                      f"({t_reg:.0f} s this run)")
+                pca_rows(reg, "pca regression", offline_reg, anchored=reg.needs_anchor)
         except Exception as exc:  # noqa: BLE001 - skip the method with its reason, never fake it
             skipped["pca"] = f"{type(exc).__name__}: {exc}"
             traceback.print_exc()

@@ -208,3 +208,37 @@ def test_breast_growth_moves_bust_landmarks_continuously(garmentcode_dir):
     assert dy.max() < 0.008, dy
     assert np.all(dg[:, 0] > 0) and dg[:, 0].max() < 0.015, dg
     assert np.abs(dg[:, 1]).max() < 0.01, dg
+
+
+def test_horizontal_cuts_match_the_general_cut():
+    """The slicer's indexed horizontal cut gives exactly the loops of the general plane cut (edge ids, points,
+    segments, closedness), at random heights and exactly at vertex heights, and the union-find labels are
+    scipy's."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from torchgarment.body.measure import _UP, _components, _cut, _Slicer, _topology
+
+    m = trimesh.creation.torus(major_radius=0.3, minor_radius=0.1, major_sections=48, minor_sections=24)
+    v = np.asarray(m.vertices) @ np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])  # ring standing up
+    v = v + 0.002 * np.random.default_rng(0).normal(size=v.shape)
+    topo = _topology(torch.as_tensor(np.asarray(m.faces)))
+    sl = _Slicer.__new__(_Slicer)  # the cut index only (a torus has no feet for the body frame)
+    sl.v, sl.topo, sl._lo = v, topo, None
+    heights = np.concatenate([np.linspace(v[:, 1].min() - 0.01, v[:, 1].max() + 0.01, 60), v[::50, 1]])
+    counts = set()
+    for y in heights:
+        fast, ref = sl.horizontal(float(y)), _cut(v, topo, np.array([0.0, y, 0.0]), _UP)
+        counts.add(len(ref))
+        assert len(fast) == len(ref)
+        for a, b in zip(fast, ref):
+            assert np.array_equal(a.edge_ids, b.edge_ids) and np.array_equal(a.points, b.points)
+            assert np.array_equal(a.segments, b.segments) and a.closed == b.closed
+    assert {0, 2} <= counts and len(counts) > 3  # missed, both sides of the ring, bumpy crests' islands
+    rng = np.random.default_rng(1)
+    for n in (1, 5, 40, 300):
+        seg = rng.integers(0, n, size=(max(1, n // 2), 2))
+        graph = coo_matrix((np.ones(len(seg)), (seg[:, 0], seg[:, 1])), shape=(n, n))
+        ncomp, labels = connected_components(graph, directed=False)
+        got = _components(seg, n)
+        assert got[0] == ncomp and np.array_equal(got[1], labels)
