@@ -144,6 +144,7 @@ PUBLIC = {
         "SignType",
         "build_sdf_grid",
         "cached_sdf",
+        "closest_points_on_triangles",
         "exact_signed_distance",
         "sdf_cache_dir",
         "sdf_cache_key",

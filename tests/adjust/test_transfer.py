@@ -10,7 +10,6 @@ import torch
 
 from torchgarment.adjust.transfer import (
     level_support,
-    point_triangle_closest,
     transfer_deformation,
     two_minimum_triangles,
 )
@@ -55,11 +54,13 @@ def two_planes(gap: float = 0.1, lift: float = 0.0, n: int = 3) -> Body:
     return Body(torch.as_tensor(v, dtype=torch.float64), torch.as_tensor(faces, dtype=torch.long))
 
 
-def test_point_triangle_closest_matches_dense_sampling():
+def test_closest_points_on_triangles_match_dense_sampling():
+    from torchgarment.sdf import closest_points_on_triangles
+
     g = np.random.default_rng(1)
     a, b, c = (g.normal(size=(200, 3)) for _ in range(3))
     x = 2.0 * g.normal(size=(200, 3))
-    cp = point_triangle_closest(x, a, b, c)
+    cp = closest_points_on_triangles(x, a, b, c)
     u, v = np.meshgrid(np.linspace(0, 1, 201), np.linspace(0, 1, 201))
     keep = (u + v) <= 1.0
     u, v = u[keep], v[keep]

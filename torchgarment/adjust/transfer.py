@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 from torchgarment.body.body import Body
 from torchgarment.errors import InputError
 from torchgarment.options import OptionEnum
+from torchgarment.sdf import closest_points_on_triangles
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -56,49 +57,6 @@ class OffsetScaling(OptionEnum):
 
     SCALED = "scaled"
     DISTANCE = "distance"
-
-
-def point_triangle_closest(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Closest points on triangles (Ericson's region test), vectorized.
-
-    Args:
-        x: (N, 3) points. a, b, c: (N, 3) triangle corners.
-
-    Returns:
-        (N, 3) closest points.
-    """
-    ab, ac, ap = b - a, c - a, x - a
-    d1, d2 = (ab * ap).sum(1), (ac * ap).sum(1)
-    bp = x - b
-    d3, d4 = (ab * bp).sum(1), (ac * bp).sum(1)
-    cp = x - c
-    d5, d6 = (ab * cp).sum(1), (ac * cp).sum(1)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = va + vb + vc
-        v = vb / denom
-        w = vc / denom
-        out = a + ab * v[:, None] + ac * w[:, None]  # interior
-        # edge regions
-        t_ab = d1 / (d1 - d3)
-        t_ac = d2 / (d2 - d6)
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-    m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    out[m] = a[m] + ab[m] * t_ab[m, None]
-    m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    out[m] = a[m] + ac[m] * t_ac[m, None]
-    m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    out[m] = b[m] + (c[m] - b[m]) * t_bc[m, None]
-    # vertex regions (last, they take precedence)
-    m = (d1 <= 0) & (d2 <= 0)
-    out[m] = a[m]
-    m = (d3 >= 0) & (d4 <= d3)
-    out[m] = b[m]
-    m = (d6 >= 0) & (d5 <= d6)
-    out[m] = c[m]
-    return out
 
 
 def _frames(v: np.ndarray,
@@ -179,7 +137,7 @@ def _second(x: np.ndarray, idx: np.ndarray, cand: np.ndarray, a: np.ndarray, b: 
     n, k = cand.shape
     owner = np.repeat(idx, k)
     tri = cand.reshape(-1)
-    cp = point_triangle_closest(x[owner], a[tri], b[tri], c[tri])
+    cp = closest_points_on_triangles(x[owner], a[tri], b[tri], c[tri])
     d = np.linalg.norm(x[owner] - cp, axis=1)
     # local minimum among the candidates of the same point: no vertex-adjacent candidate strictly closer.
     # Neighbours outside the candidate set are ignored; a false minimum at the rim of the set is a triangle
@@ -200,7 +158,7 @@ def _second(x: np.ndarray, idx: np.ndarray, cand: np.ndarray, a: np.ndarray, b: 
     closer = np.zeros(m, dtype=bool)
     np.logical_or.at(closer, rep, dn < d[rep] - 1e-12)
     # not t0's basin: the closest point differs from t0's
-    cp0 = point_triangle_closest(x[idx], a[t0[idx]], b[t0[idx]], c[t0[idx]])
+    cp0 = closest_points_on_triangles(x[idx], a[t0[idx]], b[t0[idx]], c[t0[idx]])
     other = np.linalg.norm(cp - np.repeat(cp0, k, axis=0), axis=1) > 1e-9
     ok = ~closer & other & (tri != t0[owner]) & (d < d0[owner] + 2.0 * band)
     d = np.where(ok, d, np.inf).reshape(n, k)

@@ -3,7 +3,8 @@
 Re-exports :class:`BodySDF` (the sampled field, ``BodySDF.from_body`` / ``BodySDF.cached``) with its
 :class:`SDFSettings` and :class:`SDFSampling`, the grid builder :func:`build_sdf_grid` (:class:`SDFGridData`,
 :class:`SignType`), the exact queries :func:`exact_signed_distance`, :func:`winding_number` and
-:class:`MeshProximity` (closest points and signed distances, the tree built once), and the disk cache
+:class:`MeshProximity` (closest points and signed distances, the tree built once) with
+:func:`closest_points_on_triangles` (point-triangle pairs), and the disk cache
 :func:`cached_sdf`, :func:`sdf_cache_dir`, :func:`sdf_cache_key`, :func:`sdf_cache_path`.
 """
 
@@ -18,6 +19,7 @@ from torchgarment.sdf.build import (
 )
 from torchgarment.sdf.cache import cached_sdf, sdf_cache_dir, sdf_cache_key, sdf_cache_path
 from torchgarment.sdf.grid import BodySDF, SDFSampling
+from torchgarment.sdf.proximity import closest_points_on_triangles
 
 __all__ = [
     "BodySDF",
@@ -28,6 +30,7 @@ __all__ = [
     "SignType",
     "build_sdf_grid",
     "cached_sdf",
+    "closest_points_on_triangles",
     "exact_signed_distance",
     "sdf_cache_dir",
     "sdf_cache_key",

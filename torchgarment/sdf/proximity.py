@@ -166,9 +166,31 @@ def _kernels() -> dict[str, object]:
         wp.atomic_add(edge_normals, face_edge[t, 1], n)
         wp.atomic_add(edge_normals, face_edge[t, 2], n)
 
+    @wp.kernel(enable_backward=False)
+    def pairs(x: wp.array(dtype=wp.vec3d), a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d),
+              c: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)) -> None:
+        i = wp.tid()
+        out[i] = closest_on_triangle(x[i], a[i], b[i], c[i])
+
     _KERNELS["query"] = query
     _KERNELS["normals"] = normals
+    _KERNELS["pairs"] = pairs
     return _KERNELS
+
+
+def closest_points_on_triangles(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(N, 3) closest point of each point ``x[i]`` on the triangle ``(a[i], b[i], c[i])`` (Ericson's region
+    tests in float64, the kernel :class:`WarpProximity` uses); all arguments (N, 3), metres."""
+    wp = import_warp()
+    n = x.shape[0]
+    if n == 0:
+        return np.zeros((0, 3))
+    dev = "cpu"
+    arrays = [wp.array(np.ascontiguousarray(t, dtype=np.float64), dtype=wp.vec3d, device=dev)
+              for t in (x, a, b, c)]
+    out = wp.empty(n, dtype=wp.vec3d, device=dev)
+    wp.launch(_kernels()["pairs"], dim=n, device=dev, inputs=[*arrays, out])
+    return out.numpy()
 
 
 def _face_edges(faces: np.ndarray) -> np.ndarray:
