@@ -1,5 +1,5 @@
-"""NVIDIA Warp, initialized once and quietly (Warp comes with anny; torchgarment runs its mesh proximity
-queries, :mod:`torchgarment.sdf.proximity`, on Warp's CPU BVH).
+"""NVIDIA Warp, initialized once and quietly (a dependency: anny uses it, and torchgarment runs its mesh
+proximity queries, :mod:`torchgarment.sdf.proximity`, on Warp's CPU BVH).
 
 Warp prints a version banner (stdout) when it initializes and, on machines without a CUDA driver, a "Warp
 CUDA warning: Could not find or load the NVIDIA CUDA driver" line from native code (stderr, issue 17). The

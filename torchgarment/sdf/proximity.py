@@ -1,7 +1,7 @@
 """Closest points and pseudo-normal signed distances on a triangle mesh: NVIDIA Warp's BVH for the closest
 triangle, float64 geometry for the rest, in one CPU kernel.
 
-Warp (a dependency of anny, so always installed with torchgarment) builds a bounding volume hierarchy of the
+Warp (a dependency of torchgarment, and of anny) builds a bounding volume hierarchy of the
 mesh in float32 and finds each point's closest triangle; the kernel then computes, in float64 on that
 triangle, the closest point (Ericson, *Real-Time Collision Detection*, 5.1.5), the feature it lies on (face,
 edge or vertex, by its barycentric coordinates), that feature's angle-weighted pseudo-normal (Baerentzen and
@@ -11,8 +11,9 @@ coordinates' magnitude: a point on the medial axis of a crease) the float32 sear
 distance is then within about 1e-7 m of libigl's and the closest point may be the other one.
 
 Measured on the 26,692-triangle anny chart body and 30,000 points within 2 cm of it (1 thread, the slower
-2-core box of issue 15): the tree builds in 14 ms against libigl's 31-38 ms, and the query takes about 60 ms
-against libigl's 85 ms plus 28 ms of numpy for the signs (``scripts/bench_pca_fit.py``).
+2-core box of issue 15): the tree and the pseudo-normals take 16 ms against 44-49 ms with libigl's tree, and
+the query about 50-60 ms against libigl's 85 ms plus 28 ms of numpy for the signs
+(``scripts/bench_pca_fit.py``).
 
 Shapes: ``vertices`` (V, 3) float64 metres, ``faces`` (F, 3) int, ``points`` (P, 3) float64 metres.
 """
