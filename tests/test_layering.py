@@ -4,7 +4,7 @@ Layers, lowest first (a module may import from its own layer and the layers belo
 
 | layer | packages and modules | what they hold |
 |---|---|---|
-| 0 foundations | errors, options, logging | error classes, option enums, TensorBoard + tqdm run logger |
+| 0 foundations | errors, options, logging, warp_runtime | errors, option enums, run logger, quiet Warp init |
 | 1 linalg | linalg | sparse factorization, PCG, line search, CSR assembly |
 | 2 data | structures, io | GarmentMesh and mesh checks, files |
 | 3 domain | body, sdf, pattern | bodies, body distance fields, sewing patterns and meshing |
@@ -30,6 +30,7 @@ LAYERS: dict[str, int] = {
     "errors": 0,
     "options": 0,
     "logging": 0,
+    "warp_runtime": 0,
     "testing": 4,
     "linalg": 1,
     "structures": 2,
