@@ -151,8 +151,9 @@ def test_resume_after_an_interrupted_batch_runs_only_the_missing_jobs(tmp_path):
             proc.send_signal(signal.SIGINT)
             break
         time.sleep(0.05)
-    _, stderr = proc.communicate(timeout=120)
-    assert proc.returncode == 130, stderr[-2000:]
+    stdout, stderr = proc.communicate(timeout=120)
+    # on failure: what the batch printed and which jobs had finished (was it interrupted at all?)
+    assert proc.returncode == 130, (stdout[-2000:], stderr[-2000:], sorted(_records(out)))
     finished = {k: r for k, r in _records(out).items() if r["status"] == "ok"}
     assert 1 <= len(finished) < 4
     assert {r["status"] for r in _summary(out)} <= {"ok", "not run"}  # the summary of the jobs done
