@@ -89,11 +89,26 @@ def test_a_malformed_input_fails_alone(tmp_path):
     assert not (out / "jobs" / failed["job"]).exists()  # no partial job folder
 
 
+def _as_from_a_terminal() -> None:
+    """In the child before exec: SIGINT delivered and handled by default, as when a user starts the command
+    from a shell. A child inherits its parent's blocked and ignored signals; this test process may have them
+    changed by the libraries earlier tests ran in it."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _signal_state() -> str:
+    """This process's blocked / ignored / caught signal masks (for failure messages)."""
+    with open("/proc/self/status") as f:
+        return " ".join(ln.strip() for ln in f if ln.startswith(("SigBlk", "SigIgn", "SigCgt")))
+
+
 def _batch_process(manifest: Path, out: Path, mark: str, *extra: str) -> subprocess.Popen:
     env = {**os.environ, "TORCHGARMENT_BATCH_TEST_MARK": mark}
     return subprocess.Popen([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out", str(out),
                              "--no-progress", *extra], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_as_from_a_terminal if os.name == "posix" else None)
 
 
 def _running_job_workers(mark: str) -> list[int]:
@@ -153,7 +168,8 @@ def test_resume_after_an_interrupted_batch_runs_only_the_missing_jobs(tmp_path):
         time.sleep(0.05)
     stdout, stderr = proc.communicate(timeout=120)
     # on failure: what the batch printed and which jobs had finished (was it interrupted at all?)
-    assert proc.returncode == 130, (stdout[-2000:], stderr[-2000:], sorted(_records(out)))
+    assert proc.returncode == 130, (stdout[-2000:], stderr[-2000:], sorted(_records(out)),
+                                    _signal_state() if os.name == "posix" else "")
     finished = {k: r for k, r in _records(out).items() if r["status"] == "ok"}
     assert 1 <= len(finished) < 4
     assert {r["status"] for r in _summary(out)} <= {"ok", "not run"}  # the summary of the jobs done
