@@ -136,6 +136,8 @@ def test_push_out_leaves_no_vertex_inside():
     d0 = MeshProximity(bv, bf).query(x.numpy())[0]
     far = torch.as_tensor(d0 > 1e-3)
     assert torch.equal(res.x[far], x[far])  # vertices beyond the margin do not move
+    after = MeshProximity(bv, bf).query(res.x.numpy())[0]  # the result's distances are the exact ones
+    assert abs(res.min_phi - after.min()) <= 1e-7 and res.inside_after == int((after < 0).sum())
     assert res.moved == int((~far).sum())
     # a vertex left at the margin up to rounding stays; only a real shortfall (a concave place) moves again
     again = push_out(res.x, body.vertices, body.faces, margin=1e-3)
@@ -145,3 +147,26 @@ def test_push_out_leaves_no_vertex_inside():
     assert torch.equal(measured.x, x) and measured.moved == 0 and measured.inside_before == res.inside_before
     with pytest.raises(InputError):
         push_out(x, body.vertices, body.faces, margin=-1.0)
+
+
+def test_push_out_settles_vertices_in_a_gap_narrower_than_twice_the_margin():
+    """Between two bodies 0.4 mm apart, a 1 mm margin cannot hold: each move lands inside the other side's
+    margin, or inside it; the settled vertex ends outside both, at a quarter of the gap or more."""
+    import numpy as np
+    import trimesh
+
+    from torchgarment.sdf import SignType, winding_number
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
+    gap = 4e-4
+    v = np.concatenate([sphere.vertices - [0.1 + gap / 2, 0, 0], sphere.vertices + [0.1 + gap / 2, 0, 0]])
+    f = np.concatenate([sphere.faces, sphere.faces + len(sphere.vertices)])
+    rng = np.random.default_rng(0)
+    yz = rng.uniform(-2e-3, 2e-3, (200, 2))
+    x = np.concatenate([np.column_stack([rng.uniform(-gap, gap, 200), yz]),  # in the gap, or just inside
+                        np.column_stack([rng.uniform(-3e-3, -gap / 2, 200), yz])])  # inside the left one
+    bv, bf = torch.as_tensor(v), torch.as_tensor(f)
+    res = push_out(torch.as_tensor(x), bv, bf, margin=1e-3)
+    inside = np.abs(winding_number(res.x.numpy(), v, f, SignType.WINDING_NUMBER)) > 0.5
+    assert res.inside_before > 200 and res.inside_after == 0 and inside.sum() == 0
+    assert res.min_phi >= gap / 4

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import gc
+
 import igl
 import numpy as np
 import pytest
 import trimesh
 
-from torchgarment.errors import MeshError
+from torchgarment.errors import InputError, MeshError
 from torchgarment.sdf import MeshProximity, SignType, exact_signed_distance, winding_number
 
 
@@ -54,3 +56,38 @@ def test_points_on_the_surface_and_refusals(blob):
     assert MeshProximity(v, f).query(np.zeros((0, 3)))[0].shape == (0,)
     with pytest.raises(MeshError):
         MeshProximity(v, np.zeros((0, 3), dtype=np.int64))
+
+
+def test_near_is_the_exact_distance_within_the_radius(blob):
+    v, f = blob
+    p = np.random.default_rng(1).uniform(-1.4, 1.4, (4000, 3))
+    ref = np.sqrt(igl.point_mesh_squared_distance(p, v, f)[0])
+    r = 0.08
+    near = MeshProximity(v, f).near(p, r)
+    within = ref <= r
+    assert within.sum() > 200 and (~within).sum() > 200
+    assert np.allclose(near[within], ref[within], rtol=0, atol=1e-12)  # the exact minimum, no float32 tie
+    assert np.all(near[~within] > r) and np.all(near >= ref - 1e-12)  # beyond r: an upper bound above r
+    assert MeshProximity(v, f).near(np.zeros((0, 3)), r).shape == (0,)
+    with pytest.raises(InputError):
+        MeshProximity(v, f).near(p, -1.0)
+
+
+def test_a_released_tree_is_refitted_for_the_next_mesh_and_never_shared(blob):
+    v, f = blob
+    f = np.ascontiguousarray(f[:, [1, 2, 0]])  # the same mesh, a topology no other test has pooled
+    p = np.random.default_rng(2).uniform(-1.5, 1.5, (2000, 3))
+    meshes = [v, 1.3 * v + 0.1, 0.7 * v[:, [1, 0, 2]]]
+
+    def reference(w: np.ndarray) -> np.ndarray:
+        return igl.signed_distance(p, w, f, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)[0]
+
+    a, b = MeshProximity(meshes[0], f), MeshProximity(meshes[1], f)
+    assert a._tree._tree is not b._tree._tree  # two live instances, two trees
+    first = a._tree._tree
+    del a
+    gc.collect()
+    c = MeshProximity(meshes[2], f)
+    assert c._tree._tree is first  # the released tree, refitted
+    for tree, w in ((b, meshes[1]), (c, meshes[2])):
+        assert np.all(np.abs(tree.query(p)[0] - reference(w)) <= 1e-7 * (1 + np.abs(w).max()))

@@ -265,6 +265,9 @@ class PushOutResult:
 
 _ROUNDING = 1e-12
 """Metres: distances this far under the push-out's margin are rounding, not a shortfall."""
+_SETTLE_STEPS = 13
+"""Clearances the push-out tries for a vertex in a gap narrower than twice its margin: the margin halved
+12 times (0.24 um for 1 mm)."""
 
 
 def push_out(x: torch.Tensor, body_vertices: torch.Tensor, body_faces: torch.Tensor, margin: float = 1e-3,
@@ -276,13 +279,25 @@ def push_out(x: torch.Tensor, body_vertices: torch.Tensor, body_faces: torch.Ten
     Each pass queries the exact closest point on the body (:class:`~torchgarment.sdf.MeshProximity`: a BVH,
     pseudo-normal signs) for the vertices still to check, and puts each low vertex at ``closest + margin *
     outward``; the next pass re-checks only the vertices just moved (in a concave place, such as the crotch or
-    an armpit, a move can bring a vertex near another part of the body).
+    an armpit, a move can bring a vertex near another part of the body), and only against the triangles within
+    ``margin`` of them (:meth:`~torchgarment.sdf.MeshProximity.near`): a moved vertex is ``margin`` from its
+    closest triangle, so it is short of the margin, or inside the body, only if another triangle is nearer
+    than that; those few get the full signed query and move again. Vertices still short after
+    ``iterations`` passes sit in a gap narrower than twice the margin (between the thighs, the buttocks,
+    touching toes), where moves only swap sides: each is put at the largest clearance along its outward
+    direction, among clearances halving from the margin, so it ends outside wherever the gap is open (on
+    30,000 points near each chart body, 4 passes alone left 0-3 vertices inside). The signs are
+    pseudo-normal signs (:class:`~torchgarment.sdf.MeshProximity`): exact unless the body intersects itself
+    (anny's toes do: there 0-1 of 30,000 points, outside by these signs, are inside by the winding
+    number). The body's tree is a refit of the previous
+    customer's when the bodies share a topology (a body model's bodies do).
 
     Args:
         x: (V, 3) garment positions, metres (detached; the push-out is not differentiated).
         body_vertices: (B, 3) the body's vertices; body_faces: (G, 3) its faces (closed, outward wound).
         margin: target clearance, metres (>= 0).
-        iterations: at most this many passes of moves (0: only measure the distances).
+        iterations: at most this many passes of moves, then the settling of the vertices still short
+            (0: only measure the distances).
     """
     import numpy as np
 
@@ -293,26 +308,44 @@ def push_out(x: torch.Tensor, body_vertices: torch.Tensor, body_faces: torch.Ten
     t0 = time.perf_counter()
     body = MeshProximity(body_vertices.detach().cpu().double().numpy(), body_faces.detach().cpu().numpy())
     y = x.detach().cpu().double().numpy().copy()
-    phi = np.empty(y.shape[0])
-    todo = np.arange(y.shape[0])
     moved = np.zeros(y.shape[0], dtype=bool)
-    inside_before = None
-    for _ in range(iterations + 1):
-        d, c, out = body.query(y[todo])
-        phi[todo] = d
-        if inside_before is None:
-            inside_before = int((d < 0).sum())
-        # a vertex just moved sits at the margin up to rounding (about 1e-16 m): only a real shortfall counts,
-        # or half of them would be moved again, pass after pass
-        low = d < margin - _ROUNDING
-        if not low.any() or _ == iterations:
+    phi, c, out = body.query(y)
+    inside_before = int((phi < 0).sum())
+    # a vertex just moved sits at the margin up to rounding (about 1e-16 m): only a real shortfall counts,
+    # or half of them would be moved again, pass after pass
+    low = phi < margin - _ROUNDING
+    todo, c, out = np.flatnonzero(low), c[low], out[low]
+    for _ in range(iterations):
+        if todo.size == 0:
             break
-        idx = todo[low]
-        y[idx] = c[low] + margin * out[low]
-        moved[idx] = True
-        todo = idx
+        y[todo] = c + margin * out
+        moved[todo] = True
+        # the re-check: a moved vertex is ``margin`` from its closest triangle; it is short (or inside the
+        # body, whose surface is then nearer than that too) only if another triangle is nearer
+        near = body.near(y[todo], margin)
+        phi[todo] = near
+        todo = todo[near < margin - _ROUNDING]
+        if todo.size:
+            d, c, out = body.query(y[todo])
+            phi[todo] = d
+            low = d < margin - _ROUNDING
+            todo, c, out = todo[low], c[low], out[low]
+    if todo.size and iterations > 0:
+        # still short after the passes: in a gap narrower than twice the margin (between the thighs or the
+        # buttocks, touching toes) each move lands inside the other side's margin, or inside it; put each at
+        # the largest clearance along its outward direction, over clearances halving from the margin (>= a
+        # quarter of a parallel gap, outside wherever the gap is open)
+        s = margin * 0.5 ** np.arange(_SETTLE_STEPS)  # (S,) metres
+        candidates = c[:, None, :] + s[None, :, None] * out[:, None, :]  # (T, S, 3)
+        d = body.query(candidates.reshape(-1, 3))[0].reshape(todo.size, s.size)  # (T, S)
+        best = d.argmax(axis=1)
+        d_best = d[np.arange(todo.size), best]
+        better = d_best > phi[todo]
+        y[todo[better]] = candidates[better, best[better]]
+        phi[todo[better]] = d_best[better]
+        moved[todo[better]] = True
     result = torch.as_tensor(y, dtype=x.dtype, device=x.device)
-    return PushOutResult(result, int(moved.sum()), int(inside_before or 0), int((phi < 0).sum()),
+    return PushOutResult(result, int(moved.sum()), inside_before, int((phi < 0).sum()),
                          float(phi.min()) if phi.size else 0.0, time.perf_counter() - t0)
 
 

@@ -213,6 +213,18 @@ class MeshProximity:
         d, _, c, direction = self._tree.query(p, feature_tol)
         return d, c, direction
 
+    def near(self, points: np.ndarray, radius: float) -> np.ndarray:
+        """(P,) unsigned distance (metres) from each of ``points`` (P, 3) to the mesh: exact where the mesh is
+        within ``radius`` of the point; elsewhere some number above ``radius`` (the distance to a triangle in
+        the point's ``radius`` box, or ``1e150``). Checks only the triangles near each point, so
+        a small radius costs a fraction of :meth:`query` (a push-out's re-check of vertices just moved)."""
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        if p.shape[0] == 0:
+            return np.zeros(0)
+        if not radius >= 0:
+            raise InputError(f"radius must be >= 0, got {radius}")
+        return self._tree.near(p, radius)
+
 
 def exact_signed_distance(
     points: np.ndarray,
