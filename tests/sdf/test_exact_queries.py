@@ -91,3 +91,24 @@ def test_a_released_tree_is_refitted_for_the_next_mesh_and_never_shared(blob):
     assert c._tree._tree is first  # the released tree, refitted
     for tree, w in ((b, meshes[1]), (c, meshes[2])):
         assert np.all(np.abs(tree.query(p)[0] - reference(w)) <= 1e-7 * (1 + np.abs(w).max()))
+
+
+def test_pooled_trees_under_threads(blob):
+    """Threads that build, query and release meshes of one topology at once each get their own tree."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    v, f = blob
+    f = np.ascontiguousarray(f[:, [2, 0, 1]])  # a topology of this test only
+    p = np.random.default_rng(3).uniform(-1.5, 1.5, (500, 3))
+    scales = [0.8 + 0.1 * i for i in range(4)]
+    expected = [igl.signed_distance(p, s * v, f, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)[0]
+                for s in scales]
+
+    def worst(i: int) -> float:
+        err = 0.0
+        for _ in range(10):
+            err = max(err, float(np.abs(MeshProximity(scales[i] * v, f).query(p)[0] - expected[i]).max()))
+        return err
+
+    with ThreadPoolExecutor(4) as ex:
+        assert max(ex.map(worst, range(4))) <= 1e-6

@@ -248,7 +248,7 @@ class _Tree:
 
 
 _TOPOLOGIES: dict[tuple, _Topology] = {}
-_POOL_LOCK = threading.Lock()
+_POOL_LOCK = threading.RLock()  # re-entrant: a collection inside a locked block may release an instance
 _POOL_SIZE = 4
 """Free trees kept per topology (one per thread that queries bodies of that model at the same time)."""
 
