@@ -83,6 +83,7 @@ import torch
 from scipy.spatial import ConvexHull, QhullError
 
 from torchgarment.errors import InputError, MeshError
+from torchgarment.structures.mesh_checks import edge_table
 
 GIRTH_NAMES = ("bust", "underbust", "waist", "hips", "thigh", "upper_arm", "neck", "wrist")
 
@@ -198,13 +199,10 @@ def _topology(faces: torch.Tensor | np.ndarray) -> _Topology:
     if topo is None:
         if f.min() < 0:
             raise MeshError("faces contain negative vertex indices")
-        he = np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2)
-        he.sort(axis=1)
-        edges, inverse = np.unique(he, axis=0, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        order = np.argsort(inverse, kind="stable")
-        ptr = np.concatenate([[0], np.cumsum(np.bincount(inverse, minlength=len(edges)))])
-        topo = _Topology(edges=edges, face_edges=inverse.reshape(-1, 3), num_vertices=int(f.max()) + 1,
+        edges, face_edges, counts = (t.numpy() for t in edge_table(torch.tensor(f)))
+        order = np.argsort(face_edges.reshape(-1), kind="stable")  # (3F,) face-major sides grouped by edge
+        ptr = np.concatenate([[0], np.cumsum(counts)])
+        topo = _Topology(edges=edges, face_edges=face_edges, num_vertices=int(f.max()) + 1,
                          edge_face_ptr=ptr, edge_face_ids=order // 3)
         if len(_TOPOLOGY_CACHE) > 8:
             _TOPOLOGY_CACHE.clear()

@@ -25,7 +25,9 @@ import hashlib
 import threading
 
 import numpy as np
+import torch
 
+from torchgarment.structures.mesh_checks import edge_table
 from torchgarment.warp_runtime import import_warp
 
 _KERNELS: dict[str, object] = {}
@@ -219,12 +221,10 @@ class _Topology:
 
     def __init__(self, faces: np.ndarray) -> None:
         wp = import_warp()
-        n = int(faces.max()) + 1
-        e = np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1).reshape(-1, 2)  # (3F, 2)
-        _, fe = np.unique(e.min(axis=1) * n + e.max(axis=1), return_inverse=True)
-        fe = fe.reshape(-1, 3).astype(np.int32)
+        edges, sides, _ = edge_table(torch.tensor(faces))
+        fe = sides.numpy()[:, [1, 2, 0]].astype(np.int32)  # the side opposite corner k starts at corner k + 1
         f32 = faces.astype(np.int32)
-        self.num_edges = int(fe.max()) + 1
+        self.num_edges = int(edges.shape[0])
         self.faces = wp.array(f32, dtype=wp.int32, device="cpu")  # (F, 3)
         self.face_edges = wp.array(fe, dtype=wp.int32, device="cpu")  # (F, 3), edge opposite corner k
         self.indices = f32.reshape(-1)  # (3F,) the tree's flat triangle list

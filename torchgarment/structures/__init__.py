@@ -2,14 +2,16 @@
 
 Re-exports :class:`GarmentMesh` (sewn or plain 3D garment mesh with lazily derived topology and geometry),
 :class:`MeshLayout` (the (panel, edge) -> vertices table of a mesh made by ``mesh_pattern``) and the
-triangle-mesh checks of :mod:`torchgarment.structures.mesh_checks`: :func:`check_mesh`, :func:`face_areas`,
-:func:`find_boundary_edges`, :func:`find_degenerate_faces`, :func:`find_misoriented_edges`,
-:func:`find_nonmanifold_edges`, :func:`find_unreferenced_vertices` and :func:`weld_vertices`.
+triangle-mesh checks of :mod:`torchgarment.structures.mesh_checks`: :func:`check_mesh`, :func:`edge_table`,
+:func:`face_areas`, :func:`find_boundary_edges`, :func:`find_degenerate_faces`,
+:func:`find_misoriented_edges`, :func:`find_nonmanifold_edges`, :func:`find_unreferenced_vertices` and
+:func:`weld_vertices`.
 """
 
 from torchgarment.structures.garment_mesh import GarmentMesh, MeshLayout
 from torchgarment.structures.mesh_checks import (
     check_mesh,
+    edge_table,
     face_areas,
     find_boundary_edges,
     find_degenerate_faces,
@@ -23,6 +25,7 @@ __all__ = [
     "GarmentMesh",
     "MeshLayout",
     "check_mesh",
+    "edge_table",
     "face_areas",
     "find_boundary_edges",
     "find_degenerate_faces",

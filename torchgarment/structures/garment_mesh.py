@@ -28,7 +28,12 @@ import numpy as np
 import torch
 
 from torchgarment.errors import MeshError
-from torchgarment.structures.mesh_checks import DEFAULT_AREA_TOL, check_mesh, find_degenerate_faces
+from torchgarment.structures.mesh_checks import (
+    DEFAULT_AREA_TOL,
+    check_mesh,
+    edge_table,
+    find_degenerate_faces,
+)
 
 
 def _as_tensor(a: Any, dtype: torch.dtype, device: torch.device | str | None, what: str) -> torch.Tensor:
@@ -313,17 +318,13 @@ class GarmentMesh:
     # ------------------------------------------------------------------------------------ topology
     def _edge_table(self) -> None:
         """Fill edges, face_edges, edge_counts and the sorted occurrence table."""
-        F = self.num_faces
         f = self.faces
-        directed = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], dim=0)  # (3F, 2); row k*F + i
-        lo = directed.min(dim=1).values
-        hi = directed.max(dim=1).values
-        key = lo * max(self.num_vertices, 1) + hi
-        uniq, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
-        V = max(self.num_vertices, 1)
-        self._topo["edges"] = torch.stack([uniq // V, uniq % V], dim=1)
-        self._topo["face_edges"] = inverse.view(3, F).T.contiguous()
+        edges, face_edges, counts = edge_table(f)
+        self._topo["edges"] = edges
+        self._topo["face_edges"] = face_edges
         self._topo["edge_counts"] = counts
+        directed = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], dim=0)  # (3F, 2); row k*F + i
+        inverse = face_edges.T.reshape(-1)  # (3F,) edge of each row of `directed`
         # occurrences (rows of `directed`) grouped by edge; start offset of each edge's group
         order = torch.argsort(inverse, stable=True)
         start = torch.cumsum(counts, 0) - counts

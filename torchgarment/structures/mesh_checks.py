@@ -65,13 +65,22 @@ def find_degenerate_faces(
     return torch.nonzero(repeated | small, as_tuple=False).flatten()
 
 
-def _undirected_edge_counts(faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Unique undirected edges (E, 2) sorted per row, how many faces use each, and the inverse map (3F,)."""
+def edge_table(faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The unique undirected edges of a triangle mesh, the one edge table of the package (garment meshes,
+    body sections, the distance queries' pseudo-normals).
+
+    Args:
+        faces: (F, 3) integer vertex indices.
+
+    Returns:
+        ``(edges, face_edges, counts)``: (E, 2) long vertex pairs, smaller index first, sorted
+        lexicographically; (F, 3) long, ``face_edges[f, k]`` indexes ``edges`` for the side ``faces[f, k]``
+        -> ``faces[f, (k + 1) % 3]``; (E,) long number of faces using each edge.
+    """
     f = faces.long()
-    directed = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], dim=0)
-    undirected = torch.sort(directed, dim=1).values
-    edges, inverse, counts = _unique_pairs(undirected)
-    return edges, counts, inverse
+    directed = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], dim=0)  # (3F, 2); row k * F + i
+    edges, inverse, counts = _unique_pairs(torch.sort(directed, dim=1).values)
+    return edges, inverse.view(3, f.shape[0]).T.contiguous(), counts
 
 
 def _unique_pairs(pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -94,7 +103,7 @@ def find_nonmanifold_edges(faces: torch.Tensor) -> torch.Tensor:
     """
     if faces.numel() == 0:
         return torch.zeros(0, 2, dtype=torch.long, device=faces.device)
-    edges, counts, _ = _undirected_edge_counts(faces)
+    edges, _, counts = edge_table(faces)
     return edges[counts > 2]
 
 
@@ -109,7 +118,7 @@ def find_boundary_edges(faces: torch.Tensor) -> torch.Tensor:
     """
     if faces.numel() == 0:
         return torch.zeros(0, 2, dtype=torch.long, device=faces.device)
-    edges, counts, _ = _undirected_edge_counts(faces)
+    edges, _, counts = edge_table(faces)
     return edges[counts == 1]
 
 
