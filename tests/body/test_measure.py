@@ -227,14 +227,25 @@ def test_horizontal_cuts_match_the_general_cut():
     sl.v, sl.topo, sl._lo = v, topo, None
     heights = np.concatenate([np.linspace(v[:, 1].min() - 0.01, v[:, 1].max() + 0.01, 60), v[::50, 1]])
     counts = set()
-    for y in heights:
+    batched = sl.horizontal_many(heights)  # all levels at once: the same loops, in the same order
+    assert len(batched) == len(heights)
+    for y, many in zip(heights, batched):
         fast, ref = sl.horizontal(float(y)), _cut(v, topo, np.array([0.0, y, 0.0]), _UP)
         counts.add(len(ref))
-        assert len(fast) == len(ref)
-        for a, b in zip(fast, ref):
-            assert np.array_equal(a.edge_ids, b.edge_ids) and np.array_equal(a.points, b.points)
-            assert np.array_equal(a.segments, b.segments) and a.closed == b.closed
+        assert len(fast) == len(ref) == len(many)
+        for a, b, c in zip(fast, ref, many):
+            for x in (a, c):
+                assert np.array_equal(x.edge_ids, b.edge_ids) and np.array_equal(x.points, b.points)
+                assert np.array_equal(x.segments, b.segments) and x.closed == b.closed
     assert {0, 2} <= counts and len(counts) > 3  # missed, both sides of the ring, bumpy crests' islands
+    assert sl.horizontal_many(np.array([v[:, 1].max() + 1.0])) == [[]]
+    # the scan's levels are summed one step at a time, as a `y += step` loop's
+    scan = sl.scan_up(-0.05, 0.003, chunk=4)
+    y = -0.05
+    for _ in range(10):
+        y += 0.003
+        level, loops = next(scan)
+        assert level == y and len(loops) == len(sl.horizontal(y))
     rng = np.random.default_rng(1)
     for n in (1, 5, 40, 300):
         seg = rng.integers(0, n, size=(max(1, n // 2), 2))

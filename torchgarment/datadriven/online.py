@@ -144,7 +144,7 @@ class OnlineFitter:
     def anchors(self, bodies: torch.Tensor) -> torch.Tensor:
         """Waist-plane heights of customers' bodies (once per customer, like :meth:`weights`): (V, 3) -> (),
         (B, V, 3) -> (B,), metres (:func:`~torchgarment.sim.support.waist_height`, the level where a drape
-        puts a support's band; about 0.25 s per body).
+        puts a support's band; about 0.1 s per body on one slow core).
 
         Raises:
             MeshError: a body of another topology. InputError: a body whose waist cannot be found.
