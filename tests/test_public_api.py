@@ -185,6 +185,7 @@ PUBLIC = {
         "GarmentMesh",
         "MeshLayout",
         "check_mesh",
+        "edge_table",
         "face_areas",
         "find_boundary_edges",
         "find_degenerate_faces",
