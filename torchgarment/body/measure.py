@@ -280,6 +280,42 @@ def _components(seg: np.ndarray, n: int) -> tuple[int, np.ndarray]:
     return len(roots), labels.reshape(-1)
 
 
+def _graph_loops(fe: np.ndarray, edge_ids: np.ndarray, v0: np.ndarray, v1: np.ndarray, d0: np.ndarray,
+                 d1: np.ndarray) -> list[tuple[int, SectionLoop]]:
+    """The loops of a section graph: a node per crossed edge, a segment per cut face.
+
+    Args:
+        fe: (C, 3) node of each cut face's crossing sides, -1 on the side it does not cross.
+        edge_ids: (n,) the mesh edge of each node. v0, v1: (n, 3) its end points; d0, d1: (n,) their signed
+            distances to the cutting plane (of opposite signs).
+
+    Returns:
+        ``(first node, loop)`` per connected component, in the order of their smallest node.
+    """
+    # the two crossing edges of each cut face, in column order
+    order = np.argsort(fe < 0, axis=1, kind="stable")[:, :2]
+    seg = np.take_along_axis(fe, order, axis=1)
+    n = len(edge_ids)
+    ncomp, labels = _components(seg, n)
+    degree = np.bincount(seg.ravel(), minlength=n)
+    t = d0 / (d0 - d1)
+    pts = v0 + t[:, None] * (v1 - v0)
+    order_nodes = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order_nodes], np.arange(ncomp + 1))
+    local = np.empty(n, dtype=np.int64)
+    seg_label = labels[seg[:, 0]]
+    seg_order = np.argsort(seg_label, kind="stable")
+    seg_bounds = np.searchsorted(seg_label[seg_order], np.arange(ncomp + 1))
+    loops = []
+    for c in range(ncomp):
+        nodes = order_nodes[bounds[c] : bounds[c + 1]]
+        local[nodes] = np.arange(len(nodes))
+        segs = local[seg[seg_order[seg_bounds[c] : seg_bounds[c + 1]]]]
+        loops.append((int(nodes[0]), SectionLoop(edge_ids=edge_ids[nodes], points=pts[nodes],
+                                                 closed=bool(np.all(degree[nodes] == 2)), segments=segs)))
+    return loops
+
+
 def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.ndarray,
          edge_ids: np.ndarray | None = None) -> list[SectionLoop]:
     """Cut a mesh by a plane; return its connected section loops (detached numpy).
@@ -309,35 +345,8 @@ def _cut(vertices: np.ndarray, topo: _Topology, point: np.ndarray, normal: np.nd
     fe = topo.face_edges[cut_faces]
     fe = np.searchsorted(edge_ids, fe).clip(max=len(edge_ids) - 1)
     fe[edge_ids[fe] != topo.face_edges[cut_faces]] = -1  # (C, 3) node of each crossing edge, -1 elsewhere
-    # the two crossing edges of each cut face, in column order
-    order = np.argsort(fe < 0, axis=1, kind="stable")[:, :2]
-    seg = np.take_along_axis(fe, order, axis=1)
-    n = len(edge_ids)
-    ncomp, labels = _components(seg, n)
-    degree = np.bincount(seg.ravel(), minlength=n)
     v0, v1 = vertices[e[edge_ids, 0]], vertices[e[edge_ids, 1]]
-    d0, d1 = v0 @ normal - offset, v1 @ normal - offset
-    t = d0 / (d0 - d1)
-    pts = v0 + t[:, None] * (v1 - v0)
-    order_nodes = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[order_nodes], np.arange(ncomp + 1))
-    local = np.empty(n, dtype=np.int64)
-    seg_label = labels[seg[:, 0]]
-    seg_order = np.argsort(seg_label, kind="stable")
-    seg_bounds = np.searchsorted(seg_label[seg_order], np.arange(ncomp + 1))
-    loops = []
-    for c in range(ncomp):
-        nodes = order_nodes[bounds[c] : bounds[c + 1]]
-        local[nodes] = np.arange(len(nodes))
-        segs = local[seg[seg_order[seg_bounds[c] : seg_bounds[c + 1]]]]
-        loops.append(
-            SectionLoop(
-                edge_ids=edge_ids[nodes],
-                points=pts[nodes],
-                closed=bool(np.all(degree[nodes] == 2)),
-                segments=segs,
-            )
-        )
+    loops = [lp for _, lp in _graph_loops(fe, edge_ids, v0, v1, v0 @ normal - offset, v1 @ normal - offset)]
     return loops
 
 
@@ -595,27 +604,10 @@ class _Slicer:
         sides = cut_lev[:, None] * num_edges + topo.face_edges[cut_face]  # (C, 3) node keys of the sides
         fe = np.searchsorted(node_key, sides).clip(max=n - 1)
         fe[node_key[fe] != sides] = -1  # (C, 3) node of each crossing side, -1 elsewhere
-        order = np.argsort(fe < 0, axis=1, kind="stable")[:, :2]
-        seg = np.take_along_axis(fe, order, axis=1)
-        ncomp, labels = _components(seg, n)
-        degree = np.bincount(seg.ravel(), minlength=n)
         e = topo.edges
         v0, v1 = v[e[eid, 0]], v[e[eid, 1]]
-        d0, d1 = v0 @ _UP - ys[lev], v1 @ _UP - ys[lev]
-        t = d0 / (d0 - d1)
-        pts = v0 + t[:, None] * (v1 - v0)
-        order_nodes = np.argsort(labels, kind="stable")
-        bounds = np.searchsorted(labels[order_nodes], np.arange(ncomp + 1))
-        local = np.empty(n, dtype=np.int64)
-        seg_label = labels[seg[:, 0]]
-        seg_order = np.argsort(seg_label, kind="stable")
-        seg_bounds = np.searchsorted(seg_label[seg_order], np.arange(ncomp + 1))
-        for c in range(ncomp):
-            nodes = order_nodes[bounds[c] : bounds[c + 1]]
-            local[nodes] = np.arange(len(nodes))
-            out[int(lev[nodes[0]])].append(SectionLoop(
-                edge_ids=eid[nodes], points=pts[nodes], closed=bool(np.all(degree[nodes] == 2)),
-                segments=local[seg[seg_order[seg_bounds[c] : seg_bounds[c + 1]]]]))
+        for first, loop in _graph_loops(fe, eid, v0, v1, v0 @ _UP - ys[lev], v1 @ _UP - ys[lev]):
+            out[int(lev[first])].append(loop)
         return out
 
     def lateral_range(self, loop: SectionLoop) -> tuple[float, float]:
