@@ -391,6 +391,50 @@ def test_barrier_hessian_blocks_include_the_curvature(sign):
         assert torch.allclose(proj, exact, atol=1e-9 * scale)
 
 
+class CountingBallSDF(BallSDF):
+    """A :class:`BallSDF` that counts the points its gradient is asked for."""
+
+    def __init__(self, radius: float, sign: float) -> None:
+        super().__init__(radius, sign)
+        self.points = 0
+
+    def value_and_gradient(self, x):
+        self.points += x.shape[0]
+        return super().value_and_gradient(x)
+
+
+def test_barrier_curvature_is_differenced_once_per_position():
+    """Projected Newton assembles the projected and the exact Hessian at one ``x``: the SDF's Hessian rows
+    are differenced once and reused, and any change of ``x`` (in place too), of ``mu`` or of ``dhat``
+    gives the same blocks as a fresh barrier."""
+    radius = 0.3
+    r = radius - torch.linspace(0.002, 0.03, 40, dtype=torch.float64)  # inside a cavity, some beyond dhat
+    x = _shell_points(40, 1.0, 1.0, seed=7) * r.unsqueeze(1)
+    sdf = CountingBallSDF(radius, -1.0)
+    term = BodyBarrier(sdf, x.shape[0], dhat=0.02)
+
+    def fresh(xx, **kw):
+        t = BodyBarrier(BallSDF(radius, -1.0), x.shape[0], dhat=kw.get("dhat", 0.02), mu=kw.get("mu", 0.01))
+        return t.hessian_blocks(xx, project_psd=False).values, t.hessian_blocks(xx, project_psd=True).values
+
+    proj = term.hessian_blocks(x, project_psd=True).values
+    n_first = sdf.points
+    exact = term.hessian_blocks(x, project_psd=False).values
+    assert sdf.points == n_first  # the second assembly at the same x queries nothing
+    ref_exact, ref_proj = fresh(x)
+    assert float(sdf(x).min()) > 0 and float(ref_exact.abs().amax()) > 0
+    assert torch.equal(exact, ref_exact) and torch.equal(proj, ref_proj)
+    x.mul_(1.01)  # in place: the cache must see it
+    n = sdf.points
+    exact = term.hessian_blocks(x, project_psd=False).values
+    assert sdf.points > n
+    assert torch.equal(exact, fresh(x)[0])
+    term.mu = 0.05  # the curvature scales with b', recomputed from the cached Hess(phi)
+    assert torch.equal(term.hessian_blocks(x, project_psd=False).values, fresh(x, mu=0.05)[0])
+    term.dhat = 0.01  # fewer active rows: differenced again
+    assert torch.equal(term.hessian_blocks(x, project_psd=False).values, fresh(x, mu=0.05, dhat=0.01)[0])
+
+
 def test_barrier_infeasible_is_inf_not_nan():
     sdf = PlaneSDF(normal=(0.0, 1.0, 0.0), c=0.0)
     x = torch.tensor([[0.0, 0.1, 0.0], [0.2, 0.0, 0.0], [0.0, -0.1, 0.3]], dtype=torch.float64)

@@ -160,6 +160,10 @@ class BodyBarrier(EnergyTerm):
         self._cache_x: torch.Tensor | None = None
         self._cache_key: tuple | None = None
         self._cache_val: tuple[torch.Tensor, torch.Tensor] | None = None
+        # the last SDF Hessian rows (_sdf_hessian_rows): the x they are of (held), its key, (act, Hess phi)
+        self._hess_x: torch.Tensor | None = None
+        self._hess_key: tuple | None = None
+        self._hess_val: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def reset_cache(self) -> None:
         """Forget each vertex's last sample (:meth:`_phi_grad_lazy`) and the last query: the next evaluation
@@ -168,6 +172,7 @@ class BodyBarrier(EnergyTerm):
         solves before it without this."""
         self._ref_x = self._ref_phi = None
         self._cache_x = self._cache_key = self._cache_val = None
+        self._hess_x = self._hess_key = self._hess_val = None
 
     # ------------------------------------------------------------------ sampling
     def _phi(self, x: torch.Tensor) -> torch.Tensor:
@@ -373,6 +378,17 @@ class BodyBarrier(EnergyTerm):
         act = torch.nonzero(d1 != 0, as_tuple=False).flatten()
         if act.numel() == 0:
             return act, x.new_zeros(0, 3, 3)
+        return act, self._sdf_hessian_rows(x, act) * d1.index_select(0, act)[:, None, None]
+
+    def _sdf_hessian_rows(self, x: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """(A, 3, 3) symmetrized ``Hess(phi)`` at the vertices ``act`` (A,) of ``x`` (see
+        :meth:`curvature_blocks`), reusing the last result when ``x`` is the same, unmodified tensor and
+        ``act`` the same rows: projected Newton assembles the projected and the exact Hessian at one ``x``,
+        and each would otherwise difference the SDF six times."""
+        key = (self._key(x), id(self.sdf))
+        if (self._hess_x is not None and self._hess_key == key and self._hess_val is not None
+                and torch.equal(self._hess_val[0], act)):
+            return self._hess_val[1]
         xa = x.index_select(0, act)
         step = torch.finfo(x.dtype).eps ** (1.0 / 3.0) * 1e-2
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
@@ -383,7 +399,8 @@ class BodyBarrier(EnergyTerm):
             cols.append((gp - gm) / (2.0 * step))
         hphi = torch.stack(cols, dim=2)  # (A, 3, 3): column a = d grad / d x_a
         hphi = 0.5 * (hphi + hphi.transpose(1, 2))
-        return act, hphi * d1.index_select(0, act)[:, None, None]
+        self._hess_x, self._hess_key, self._hess_val = x, key, (act, hphi)
+        return hphi
 
     def hessian_blocks(self, x: torch.Tensor, project_psd: bool = True) -> HessianBlocks:
         """The V diagonal blocks (the barrier couples no two vertices): ``b'' g g^T + b' Hess(phi)``, or with
