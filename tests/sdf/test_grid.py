@@ -294,27 +294,11 @@ def _reference_sample(sdf, x):
     return phi, grad
 
 
-def _mixed_points(sdf, n, seed):
-    """Band points, far-field points, points outside the box and points exactly on grid nodes and box
-    faces."""
-    rng = np.random.default_rng(seed)
-    lo, hi = sdf.bounds.double().numpy()
-    dirs = rng.normal(size=(n, 3))
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    band = dirs * (R + rng.uniform(-0.03, 0.03, size=(n, 1)))
-    box = rng.uniform(lo, hi, size=(n, 3))
-    out = rng.uniform(lo - 0.2, hi + 0.2, size=(n, 3))
-    o, h = sdf.origin.double().numpy(), sdf.voxel_size
-    nodes = o + np.round((band[: n // 4] - o) / h) * h
-    faces = np.array([lo, hi, [lo[0], 0.0, hi[2]], [hi[0], 0.0, 0.0]])
-    return np.concatenate([band, box, out, nodes, faces])
-
-
 @pytest.mark.parametrize("brick", [4, 3])
-def test_fast_sampler_matches_reference(sphere, sphere_sdf, brick):
+def test_fast_sampler_matches_reference(sphere, sphere_sdf, brick, mixed_points):
     sdf = sphere_sdf if brick == 4 else BodySDF.from_mesh(*sphere, SDFSettings(voxel_size=0.005, brick=3))
     assert sdf.num_bricks < np.prod(sdf.shape)  # both fine and coarse cells are sampled
-    pts = _mixed_points(sdf, 3000, 8)
+    pts = mixed_points(sdf, 3000, 8)
     for dtype, tol in ((torch.float64, 1e-15), (torch.float32, 1e-6)):
         s = BodySDF(sdf.to_data(), dtype=dtype)
         x = torch.as_tensor(pts, dtype=dtype)
@@ -331,10 +315,10 @@ def test_fast_sampler_matches_reference(sphere, sphere_sdf, brick):
         torch.testing.assert_close(s.value_and_gradient(inner)[1], grad_ref[:3000], rtol=0, atol=tol * 100)
 
 
-def test_blocked_queries(sphere_sdf, monkeypatch):
+def test_blocked_queries(sphere_sdf, monkeypatch, mixed_points):
     from torchgarment.sdf import grid
 
-    x = torch.as_tensor(_mixed_points(sphere_sdf, 1000, 11))
+    x = torch.as_tensor(mixed_points(sphere_sdf, 1000, 11))
     phi, grad = sphere_sdf.value_and_gradient(x)
     monkeypatch.setattr(grid, "_BLOCK", 700)  # 3250 points -> 5 blocks, the last one partial
     phi_b, grad_b = sphere_sdf.value_and_gradient(x)
@@ -381,7 +365,7 @@ def test_buffers_move_and_state(sphere_sdf):
 
 
 # ---------------------------------------------------------------------------------------------- disk cache
-def test_sdf_cache(sphere, tmp_path, monkeypatch):
+def test_sdf_cache(sphere, tmp_path, monkeypatch, mixed_points):
     from torchgarment.sdf import cache as sdf_cache
 
     v, f = sphere
@@ -394,7 +378,7 @@ def test_sdf_cache(sphere, tmp_path, monkeypatch):
     # the entry's path, as the batch runner ships it to other machines
     entry = sdf_cache.sdf_cache_path(v, torch.as_tensor(f), SMALL, cache_dir=tmp_path)
     assert [entry] == list(tmp_path.glob("*.npz"))
-    x = _mixed_points(a, 500, 10)
+    x = mixed_points(a, 500, 10)
     x = torch.as_tensor(x)
     assert torch.equal(a(x), b(x)) and torch.equal(a.value_and_gradient(x)[1], b.value_and_gradient(x)[1])
     fresh = BodySDF.from_mesh(v, f, SMALL)

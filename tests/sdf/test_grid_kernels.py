@@ -13,7 +13,7 @@ import trimesh
 
 from torchgarment.sdf import BodySDF, SDFSettings, grid_kernels
 
-R = 0.1
+R = 0.1  # sphere radius, metres: the SPHERE_RADIUS that tests/sdf/conftest.py's points probe
 
 
 @pytest.fixture(scope="module")
@@ -21,20 +21,6 @@ def sphere_data():
     m = trimesh.creation.icosphere(subdivisions=4, radius=R)
     return BodySDF.from_mesh(np.asarray(m.vertices), np.asarray(m.faces),
                              SDFSettings(voxel_size=0.005, brick=4)).to_data()
-
-
-def _points(sdf: BodySDF, n: int, seed: int) -> torch.Tensor:
-    """Points in the fine band, in the coarse cells of the box, outside the box, and exactly on nodes."""
-    rng = np.random.default_rng(seed)
-    lo, hi = sdf.bounds.double().numpy()
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    band = d * (R + rng.uniform(-0.03, 0.03, size=(n, 1)))
-    box = rng.uniform(lo, hi, size=(n, 3))
-    out = rng.uniform(lo - 0.3, hi + 0.3, size=(n, 3))
-    o, h = sdf.origin.double().numpy(), sdf.voxel_size
-    nodes = o + np.round((band[: n // 4] - o) / h) * h
-    return torch.as_tensor(np.concatenate([band, box, out, nodes]), dtype=sdf.dtype)
 
 
 def _pair(data, dtype, sampling):
@@ -46,13 +32,13 @@ def _pair(data, dtype, sampling):
 
 @pytest.mark.parametrize("sampling", ["trilinear", "quadratic"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_kernels_match_the_torch_path(sphere_data, dtype, sampling):
+def test_kernels_match_the_torch_path(sphere_data, dtype, sampling, mixed_points):
     """Values and gradients of the kernels equal the torch path's: bit for bit for trilinear float64 in the
     grid box, within a few units in the last place otherwise (torch groups its sums over the 8 quadratic
     samples and the far field's distance differently depending on the batch; see the module docstring)."""
     sdf, ref = _pair(sphere_data, dtype, sampling)
     assert grid_kernels.supported(sdf, sdf.origin) and sdf.num_bricks < np.prod(sdf.shape)
-    x = _points(sdf, 2000, 3)
+    x = torch.as_tensor(mixed_points(sdf, 2000, 3), dtype=dtype)
     phi, grad = sdf.value_and_gradient(x)
     phi_ref, grad_ref = ref.value_and_gradient(x)
     assert phi.dtype == dtype and grad.shape == (x.shape[0], 3) and grad.is_contiguous()
@@ -75,11 +61,11 @@ def test_kernels_match_the_torch_path(sphere_data, dtype, sampling):
 
 
 @pytest.mark.parametrize("sampling", ["trilinear", "quadratic"])
-def test_kernels_are_batch_invariant(sphere_data, sampling):
+def test_kernels_are_batch_invariant(sphere_data, sampling, mixed_points):
     """A point's value does not depend on the points queried with it (the lazy barrier queries changing
     subsets of a garment's vertices)."""
     sdf, _ = _pair(sphere_data, torch.float64, sampling)
-    x = _points(sdf, 300, 5)
+    x = torch.as_tensor(mixed_points(sdf, 300, 5))
     phi, grad = sdf.value_and_gradient(x)
     for i in (0, 7, 301, 650, x.shape[0] - 1):
         p1, g1 = sdf.value_and_gradient(x[i:i + 1])
@@ -88,14 +74,14 @@ def test_kernels_are_batch_invariant(sphere_data, sampling):
     assert torch.equal(p2, phi[5:38]) and torch.equal(g2, grad[5:38])
 
 
-def test_kernels_empty_pickled_moved_and_unsupported(sphere_data):
+def test_kernels_empty_pickled_moved_and_unsupported(sphere_data, mixed_points):
     """An empty query; a queried SDF pickles and deep-copies (without its Warp arrays) and queries the same
     afterwards; a dtype move rebuilds the kernels' constants; grids the kernels do not serve (a brick edge
     that is not a power of two) take the torch path."""
     sdf, _ = _pair(sphere_data, torch.float64, "quadratic")
     phi, grad = sdf.value_and_gradient(torch.zeros(0, 3, dtype=torch.float64))
     assert phi.shape == (0,) and grad.shape == (0, 3)
-    x = _points(sdf, 100, 6)
+    x = torch.as_tensor(mixed_points(sdf, 100, 6))
     before = sdf.value_and_gradient(x)[0]
     for twin in (pickle.loads(pickle.dumps(sdf)), copy.deepcopy(sdf)):
         assert twin.sampling is sdf.sampling and torch.equal(twin.value_and_gradient(x)[0], before)
@@ -110,11 +96,11 @@ def test_kernels_empty_pickled_moved_and_unsupported(sphere_data):
     assert odd.value_and_gradient(odd.origin[None])[0].shape == (1,)
 
 
-def test_kernels_under_threads(sphere_data):
+def test_kernels_under_threads(sphere_data, mixed_points):
     """Two views of one SDF (sharing its recorded launches) queried from 4 threads give the serial results."""
     tri, _ = _pair(sphere_data, torch.float64, "trilinear")
     quad = tri.with_sampling("quadratic")
-    xs = [_points(tri, 200, 10 + k) for k in range(4)]
+    xs = [torch.as_tensor(mixed_points(tri, 200, 10 + k)) for k in range(4)]
     expect = [(tri.value_and_gradient(x), quad.value_and_gradient(x)) for x in xs]
     errors: list[str] = []
 
