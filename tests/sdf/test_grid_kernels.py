@@ -85,6 +85,9 @@ def test_kernels_empty_pickled_moved_and_unsupported(sphere_data, mixed_points):
     before = sdf.value_and_gradient(x)[0]
     for twin in (pickle.loads(pickle.dumps(sdf)), copy.deepcopy(sdf)):
         assert twin.sampling is sdf.sampling and torch.equal(twin.value_and_gradient(x)[0], before)
+    old = copy.copy(sdf)  # an SDF pickled before the kernels existed has no use_kernels of its own
+    old.__dict__ = {k: v for k, v in sdf.__dict__.items() if k not in ("use_kernels", "_warp_constants")}
+    assert old.use_kernels and torch.equal(old.value_and_gradient(x)[0], before)
     sdf.to(dtype=torch.float32)
     after = sdf.value_and_gradient(x.float())[0]
     assert after.dtype == torch.float32

@@ -174,6 +174,7 @@ class BodySDF(torch.nn.Module):
     cell_max: torch.Tensor
     brick_strides: torch.Tensor
     node_strides: torch.Tensor
+    use_kernels: bool = True  # (a class default: SDFs pickled before the kernels existed load with it)
 
     def __init__(self, data: SDFGridData, *, device: torch.device | str | None = None,
                  dtype: torch.dtype = torch.float64) -> None:
