@@ -151,8 +151,9 @@ class BodySDF(torch.nn.Module):
         voxel_size: fine spacing in metres.
         sampling: the :class:`SDFSampling` of queries (``TRILINEAR`` on construction; see
             :meth:`with_sampling`).
-        use_kernels: CPU queries run as one Warp kernel each (:mod:`torchgarment.sdf.grid_kernels`, the same
-            bits as the torch path, several times faster at a drape's sizes); False: the torch path.
+        use_kernels: CPU queries run as one Warp kernel each (:mod:`torchgarment.sdf.grid_kernels`: the torch
+            path's arithmetic, equal to it within a few units in the last place, several times faster at a
+            drape's sizes); False: the torch path.
         brick: brick edge in voxels (coarse spacing is ``brick * voxel_size``).
         band: narrow-band half-width in metres.
         origin: buffer (3,), position of node (0, 0, 0).
@@ -353,8 +354,8 @@ class BodySDF(torch.nn.Module):
         """Interpolated distance (N,) and, when ``with_grad``, its gradient (N, 3) at checked points x (N, 3).
 
         Large queries run in blocks of ``_BLOCK`` points: the temporaries stay small enough to be cached
-        (about 1.5x faster at 100K points than one block). On the CPU one Warp kernel computes the same bits
-        (:mod:`torchgarment.sdf.grid_kernels`) unless ``use_kernels`` is False.
+        (about 1.5x faster at 100K points than one block). On the CPU one Warp kernel computes the same
+        arithmetic instead (:mod:`torchgarment.sdf.grid_kernels`) unless ``use_kernels`` is False.
         """
         if self.use_kernels and grid_kernels.supported(self, x):
             phi, grad = grid_kernels.query(self, x, self.sampling is SDFSampling.QUADRATIC)

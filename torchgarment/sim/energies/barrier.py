@@ -385,7 +385,7 @@ class BodyBarrier(EnergyTerm):
         :meth:`curvature_blocks`), reusing the last result when ``x`` is the same, unmodified tensor and
         ``act`` the same rows: projected Newton assembles the projected and the exact Hessian at one ``x``,
         and each would otherwise difference the SDF six times."""
-        key = (self._key(x), id(self.sdf))
+        key = (self._key(x), self.sdf)  # (the SDF itself, compared by identity, held with the key)
         if (self._hess_x is not None and self._hess_key == key and self._hess_val is not None
                 and torch.equal(self._hess_val[0], act)):
             return self._hess_val[1]
