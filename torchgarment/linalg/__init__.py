@@ -1,11 +1,12 @@
 """The linear-algebra layer: sparse factorizations, conjugate gradients, Armijo backtracking, CSR assembly.
 
-It depends on torch, numpy and scipy only (and on :mod:`torchgarment.errors` and :mod:`torchgarment.options`);
-every solver and optimizer of the package builds on it.
+It depends on torch, numpy, scipy and pymetis only (and on :mod:`torchgarment.errors` and
+:mod:`torchgarment.options`); every solver and optimizer of the package builds on it.
 
 * :func:`factorize` -> :class:`Factorization` (``solve(b)``), backends :class:`SparseBackend` (SuperLU by
-  default); :class:`FactorizationCache` keeps one factorization per key (a state); :class:`FactorCache` keeps
-  the last one as the preconditioner of :func:`pcg` for nearby systems (inexact Newton).
+  default, in the nested-dissection order of :func:`fill_reducing_permutation` for symmetric matrices);
+  :class:`FactorizationCache` keeps one factorization per key (a state); :class:`FactorCache` keeps the last
+  one as the preconditioner of :func:`pcg` for nearby systems (inexact Newton).
 * :func:`pcg`: preconditioned conjugate gradients on torch tensors (or numpy arrays); :func:`minres`:
   preconditioned MINRES for symmetric indefinite systems.
 * :func:`armijo_backtracking`: the sufficient-decrease line search.
@@ -26,6 +27,7 @@ from torchgarment.linalg.sparse import (
     SparseBackend,
     csr_matvec,
     factorize,
+    fill_reducing_permutation,
 )
 
 __all__ = [
@@ -37,6 +39,7 @@ __all__ = [
     "armijo_backtracking",
     "csr_matvec",
     "factorize",
+    "fill_reducing_permutation",
     "minres",
     "pcg",
 ]
