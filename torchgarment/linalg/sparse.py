@@ -125,9 +125,9 @@ def fill_reducing_permutation(matrix: scipy.sparse.spmatrix) -> np.ndarray:
     n = int(matrix.shape[0])
     a = matrix.tocsr()
     a.sort_indices()
-    key = (n, int(a.nnz), hashlib.blake2b(np.ascontiguousarray(a.indptr, dtype=np.int64).tobytes()
-                                          + np.ascontiguousarray(a.indices, dtype=np.int64).tobytes(),
-                                          digest_size=16).digest())
+    h = hashlib.blake2b(np.ascontiguousarray(a.indptr).data, digest_size=16)
+    h.update(np.ascontiguousarray(a.indices).data)
+    key = (n, int(a.nnz), a.indptr.dtype.str, a.indices.dtype.str, h.digest())
     with _ORDERINGS_LOCK:
         hit = _ORDERINGS.get(key)
         if hit is not None:
