@@ -110,6 +110,20 @@ def test_fill_reducing_permutation_of_tiny_matrices() -> None:
         assert np.array_equal(fill_reducing_permutation(scipy.sparse.identity(n, format="csr")), np.arange(n))
 
 
+def test_fill_reducing_permutation_leaves_an_unsorted_input_alone() -> None:
+    """The pattern is hashed in sorted form without sorting the caller's matrix in place (its index arrays
+    may be shared, e.g. with :class:`CSRAssembler`'s cached pattern)."""
+    a = _grid_laplacian(6, 3)
+    rev = scipy.sparse.csr_matrix((a.data.copy(), a.indices.copy(), a.indptr.copy()), shape=a.shape)
+    for r in range(a.shape[0]):  # each row's entries in reverse order: the same matrix, unsorted
+        lo, hi = rev.indptr[r], rev.indptr[r + 1]
+        rev.indices[lo:hi], rev.data[lo:hi] = rev.indices[lo:hi][::-1].copy(), rev.data[lo:hi][::-1].copy()
+    rev.has_sorted_indices = False
+    indices, data = rev.indices.copy(), rev.data.copy()
+    assert fill_reducing_permutation(rev) is fill_reducing_permutation(a)
+    assert np.array_equal(rev.indices, indices) and np.array_equal(rev.data, data)
+
+
 def test_cholmod_backend_matches_a_dense_solve_and_rejects_what_it_cannot_factorize() -> None:
     pytest.importorskip("cvxopt")
     a = _spd(60, seed=5)

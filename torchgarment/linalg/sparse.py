@@ -124,7 +124,8 @@ def fill_reducing_permutation(matrix: scipy.sparse.spmatrix) -> np.ndarray:
     """
     n = int(matrix.shape[0])
     a = matrix.tocsr()
-    a.sort_indices()
+    if not a.has_sorted_indices:
+        a = a.sorted_indices()  # a copy: the caller's matrix (and index arrays it may share) stay as they are
     h = hashlib.blake2b(np.ascontiguousarray(a.indptr).data, digest_size=16)
     h.update(np.ascontiguousarray(a.indices).data)
     key = (n, int(a.nnz), a.indptr.dtype.str, a.indices.dtype.str, h.digest())
