@@ -59,6 +59,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--inner-iterations", type=int, default=2)
     ap.add_argument("--exact-interval", type=int, default=32)
+    ap.add_argument("--min-model-ratio", type=float, default=None,
+                    help="Algorithm 1's ratio test (AdjustSettings.min_model_ratio; default: the library's; "
+                         "0: the paper's rule alone)")
     ap.add_argument("--inner-solver", default="newton", choices=["newton", "gd-chebyshev"],
                     help="solver of the S-iteration simulations")
     ap.add_argument("--adjoint", default="direct", choices=["direct", "iterative"], help="adjoint solve")
@@ -101,8 +104,10 @@ def main() -> None:
     print(f"{args.garment}: edge length {1e3 * edge:.1f} mm -> {n} vertices")
     base = Body.from_size(args.base_size, device=device)
     target = Body.from_size(args.target_size, device=device)
+    ratio = AdjustSettings.min_model_ratio if args.min_model_ratio is None else args.min_model_ratio
     settings = AdjustSettings(edge_length=edge, voxel_size=args.voxel, iterations=args.iterations,
                               inner_iterations=args.inner_iterations, exact_interval=args.exact_interval,
+                              min_model_ratio=ratio,
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
                               adjoint_max_iterations=args.adjoint_max_iterations,
                               reuse_factorization=args.reuse_factorization,
@@ -129,7 +134,8 @@ def main() -> None:
     print(f"precomputation {t_prep:.1f} s ({setup.timings})")
     res = optimize(setup,
                    replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
-                                  exact_interval=args.exact_interval, inner_solver=args.inner_solver,
+                                  exact_interval=args.exact_interval, min_model_ratio=ratio,
+                                  inner_solver=args.inner_solver,
                                   adjoint=args.adjoint, adjoint_max_iterations=args.adjoint_max_iterations,
                                   reuse_factorization=args.reuse_factorization,
                                   sparse_backend=args.sparse_backend, linear_solver=args.linear_solver,
@@ -141,7 +147,8 @@ def main() -> None:
         "edge_length_mm": 1e3 * edge, "iterations": m["iterations"], "threads": args.threads,
         "inner_iterations": args.inner_iterations, "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
-        "exact_interval": args.exact_interval,
+        "exact_interval": args.exact_interval, "min_model_ratio": ratio,
+        "poor_model_checks": m["poor_model_checks"],
         "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
         "linear_solver": args.linear_solver,
         "exact_curvature_cg": exact_curvature_iterations(args.exact_curvature_cg,

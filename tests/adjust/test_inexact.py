@@ -84,3 +84,95 @@ def test_bad_settings_raise():
     prob, q, _ = _runner()
     with pytest.raises(InputError, match="iterations >= 1"):
         prob.simulate(prob.param(q.detach()), exact=False, iterations=0)
+
+
+class _ScriptedProblem:
+    """The interface :class:`InexactRunner` uses, with objectives read from a script (exact or not as asked):
+    the runner's decisions alone are under test."""
+
+    def __init__(self, values: list[float]) -> None:
+        from types import SimpleNamespace
+        self.values = list(values)
+        self.exact_settings = SimpleNamespace(max_iterations=10)
+        self.x = torch.zeros(4, 3, dtype=torch.float64)
+        self.last, self.last_q = None, None
+        self.best_q, self.best_x, self.best_objective = None, None, float("inf")
+
+    def reset_state(self, x: torch.Tensor) -> None:
+        self.x = x.clone()
+
+    def evaluate(self, q, exact=True, need_grad=False, max_iterations=None):
+        from types import SimpleNamespace
+        f = self.values.pop(0)
+        self.last, self.last_q = SimpleNamespace(objective=f, exact=exact), q.detach().clone()
+        if exact and f < self.best_objective:
+            self.best_q, self.best_x, self.best_objective = q.detach().clone(), self.x.clone(), f
+        return self.last
+
+    def closure(self, q, exact, iterations, need_grad):
+        def inner():
+            return torch.tensor(self.evaluate(q, exact=exact).objective)
+        inner.cacheable = False
+        return inner
+
+
+class _CountingStep(torch.optim.Optimizer):
+    """Takes no step; reports the step length ``lr`` as taken."""
+
+    def __init__(self, params, lr: float) -> None:
+        super().__init__(params, {"lr": lr})
+
+    def step(self, closure):
+        loss = closure()
+        self.last_step_length = self.param_groups[0]["lr"]
+        return loss
+
+
+@pytest.mark.parametrize(("check", "poor"), [(90.0, True), (60.0, False), (110.0, None)])
+def test_ratio_test_of_an_exact_check(check, poor):
+    """Start 100 (exact), three inexact iterations at 50, then the exact check. 90 dropped by 10 where 50 was
+    predicted (rho = 0.2 < 0.25): kept, but S doubles and the step halves. 60 (rho = 0.8): the paper's success
+    rule (S stays at its floor, the step grows). 110: no drop, the paper's backtrack."""
+    q = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    prob = _ScriptedProblem([100.0, 100.0, 50.0, 50.0, 50.0, check, 100.0])
+    opt = _CountingStep([q], lr=1.0)
+    runner = InexactRunner(prob, opt, q, InexactSettings(inner_iterations=2, exact_interval=4, max_step=4.0))
+    runner.run(5)
+    rec = runner.records[-1]
+    assert rec.exact
+    if poor is None:
+        assert rec.backtracked and not rec.accepted and rec.model_ratio is None
+        assert runner.S == 4 and runner.step_length == pytest.approx(0.5)
+        return
+    assert rec.accepted and not rec.backtracked
+    assert rec.model_ratio == pytest.approx((100.0 - check) / 50.0)
+    assert runner.checkpoint["objective"] == check
+    if poor:
+        assert runner.S == 4 and runner.step_length == pytest.approx(0.5)
+    else:
+        assert runner.S == 2 and runner.step_length == pytest.approx(1.25)
+    # the paper's rule alone (min_model_ratio = 0) treats both drops as successes
+    prob = _ScriptedProblem([100.0, 100.0, 50.0, 50.0, 50.0, check, 100.0])
+    q2 = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    paper = InexactSettings(inner_iterations=2, exact_interval=4, max_step=4.0, min_model_ratio=0.0)
+    runner = InexactRunner(prob, _CountingStep([q2], lr=1.0), q2, paper)
+    runner.run(5)
+    assert runner.S == 2 and runner.step_length == pytest.approx(1.25)
+
+
+def test_ratio_test_survives_resume():
+    """The prediction (the last inexact objective) is part of the resumable state."""
+    q = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    prob = _ScriptedProblem([100.0, 100.0, 50.0, 50.0, 50.0, 90.0, 100.0])
+    runner = InexactRunner(prob, _CountingStep([q], lr=1.0), q, InexactSettings(inner_iterations=2,
+                                                                               exact_interval=4))
+    runner.run(4)  # its finish() evaluates the last iterate exactly (the script's 90)
+    state = runner.state_dict()
+    assert state["last_inexact"] == 50.0
+    q2 = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    prob = _ScriptedProblem([90.0, 100.0])
+    resumed = InexactRunner(prob, _CountingStep([q2], lr=1.0), q2, InexactSettings(inner_iterations=2,
+                                                                                  exact_interval=4))
+    resumed.load_state_dict(state)
+    resumed.run(5)
+    assert resumed.records[-1].model_ratio == pytest.approx(0.2) and resumed.S == 4

@@ -23,9 +23,11 @@ Gauss-Newton products (a tangent solve ``K dx = -(d grad_x E / dp) dp`` with the
 ``S`` simulation iterations per outer iteration, an exact evaluation every ``M`` outer iterations (default
 32) compared with the last exact one; when the objective fails to drop, the run goes back to the last exact
 iterate (parameters, optimizer state and simulation state), doubles ``S`` and halves the step; when it drops,
-``S`` shrinks and the step grows. The result is the best *exactly evaluated* iterate, which includes the
-start: it is never worse than the start. With ``exact=True`` every evaluation is exact (the optimizers' own
-line searches then see true values) and the same best-exact rule applies.
+``S`` shrinks and the step grows. A check that drops by less than ``min_model_ratio`` of what the inexact
+iterations predicted (the last exact objective minus the last inexact one: the trust-region ratio test) is
+kept but counts as a poor model: ``S`` grows and the step shrinks. The result is the best *exactly evaluated*
+iterate, which includes the start: it is never worse than the start. With ``exact=True`` every evaluation is
+exact (the optimizers' own line searches then see true values) and the same best-exact rule applies.
 
 Example::
 
@@ -365,6 +367,15 @@ class InexactSettings:
         max_inner_iterations: largest ``S``; when a failure happens at this ``S`` and the step is below
             ``min_step`` the run stops (converged as far as the strategy can tell).
         min_step: smallest step length.
+        min_model_ratio: the ratio test of an exact check that drops,
+            ``rho = (f_last_check - f_check) / (f_last_check - f_inexact)``, with ``f_inexact`` the objective
+            of the inexact iteration just before the check (the decrease the S-iteration simulations
+            predicted). ``rho`` below this value (0.25, the usual trust-region threshold) means that the
+            inexact iterations did not track the equilibria: the check is kept, ``S`` is multiplied by
+            ``inner_increase`` and the step taken by ``step_decrease``, instead of the paper's success rule
+            (``S`` down, step up). On the 3K sheath dress with S = 2 the inexact objectives swung between 57
+            and 150 while the exact ones fell from 130 to 123, and the paper's rule then kept S = 2 and the
+            step. 0: the paper's rule alone.
         exact: evaluate exactly at every outer iteration (no S, no backtracking: the exact method).
     """
 
@@ -377,6 +388,7 @@ class InexactSettings:
     max_step: float | None = None
     max_inner_iterations: int = 256
     min_step: float = 1e-8
+    min_model_ratio: float = 0.25
     exact: bool = False
 
     def __post_init__(self) -> None:
@@ -392,6 +404,7 @@ class InexactSettings:
             (0.0 < self.step_decrease < 1.0 and self.step_increase >= 1.0, "step factors out of range"),
             (self.max_inner_iterations >= self.inner_iterations, "max_inner_iterations < inner_iterations"),
             (self.min_step > 0 and (self.max_step is None or self.max_step > 0), "step bounds must be > 0"),
+            (0.0 <= self.min_model_ratio < 1.0, "min_model_ratio must be in [0, 1)"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -416,6 +429,7 @@ class IterationRecord:
     closure_calls: int
     accepted: bool = True
     backtracked: bool = False
+    model_ratio: float | None = None
 
 
 @dataclass
@@ -457,6 +471,8 @@ class InexactRunner:
         self.backtracks = 0
         self.since_check = 0
         self.restart = True
+        #: objective of the latest inexact iteration since the last exact one (the ratio test's prediction)
+        self.last_inexact: float | None = None
         self.start_objective: float | None = None
         self.checkpoint: dict | None = None
         self.records: list[IterationRecord] = []
@@ -482,6 +498,7 @@ class InexactRunner:
                 "optimizer": copy.deepcopy(self.optimizer.state_dict()),
                 "S": self.S, "step": self.step_length, "iteration": self.iteration,
                 "backtracks": self.backtracks, "since_check": self.since_check, "restart": self.restart,
+                "last_inexact": self.last_inexact,
                 "start_objective": self.start_objective, "checkpoint": copy.deepcopy(self.checkpoint),
                 "records": [r.__dict__.copy() for r in self.records],
                 "best_q": None if p.best_q is None else p.best_q.clone(),
@@ -500,6 +517,7 @@ class InexactRunner:
                                                    int(state["backtracks"]))
         self._set_step(state["step"])
         self.since_check, self.restart = int(state["since_check"]), bool(state["restart"])
+        self.last_inexact = state.get("last_inexact")
         self.start_objective, self.checkpoint = state["start_objective"], state["checkpoint"]
         self.records = [IterationRecord(**r) for r in state["records"]]
         p.best_q, p.best_x, p.best_objective = (state["best_q"], state["best_x"],
@@ -508,6 +526,12 @@ class InexactRunner:
         self.t_start = time.perf_counter()
 
     # ------------------------------------------------------------------ run
+    def _step_taken(self) -> float:
+        """The step length actually taken last (a step capped by a trust length is shorter than ``lr``): what
+        a decrease shrinks."""
+        return min(self.step_length, float(getattr(self.optimizer, "last_step_length", math.inf))
+                   or self.step_length)
+
     def _needs_grad(self) -> bool:
         return bool(getattr(self.optimizer, "needs_gradient", True))
 
@@ -548,12 +572,21 @@ class InexactRunner:
             calls_before = getattr(self.optimizer, "closure_calls", 0)
             loss = float(self.optimizer.step(closure))
             self.iteration += 1
-            accepted, backtracked = True, False
+            accepted, backtracked, rho = True, False, None
             if compare:
                 if loss < self.checkpoint["objective"]:
+                    predicted = (None if self.last_inexact is None
+                                 else self.checkpoint["objective"] - self.last_inexact)
+                    if predicted is not None and predicted > 0.0:
+                        rho = (self.checkpoint["objective"] - loss) / predicted
                     self.checkpoint = self._snapshot(q_before, loss, first["x"], opt_before)
-                    self.S = max(st.inner_iterations, int(round(self.S * st.inner_decrease)))
-                    self._set_step(min(self.max_step, self.step_length * st.step_increase))
+                    if rho is not None and rho < st.min_model_ratio:
+                        # kept, but the inexact iterations overpromised: more accuracy, a shorter step
+                        self.S = min(st.max_inner_iterations, int(math.ceil(self.S * st.inner_increase)))
+                        self._set_step(max(st.min_step, self._step_taken() * st.step_decrease))
+                    else:
+                        self.S = max(st.inner_iterations, int(round(self.S * st.inner_decrease)))
+                        self._set_step(min(self.max_step, self.step_length * st.step_increase))
                     self.since_check = 1
                 else:  # long-range backtracking: back to the last exact iterate, more accuracy, shorter steps
                     accepted, backtracked = False, True
@@ -562,9 +595,7 @@ class InexactRunner:
                     with torch.no_grad():
                         q.copy_(self.checkpoint["q"])
                     p.reset_state(self.checkpoint["x"])
-                    # shrink the step actually taken (a step capped by a trust length is shorter than lr)
-                    s_now = min(self.step_length, float(getattr(self.optimizer, "last_step_length", math.inf))
-                                or self.step_length)
+                    s_now = self._step_taken()
                     # the optimizer's state goes back to the checkpoint; its work counters (closure calls,
                     # failed calls) and the step just taken do not
                     work = {k: getattr(self.optimizer, k) for k in _WORK_COUNTERS
@@ -583,12 +614,16 @@ class InexactRunner:
                 self.since_check = 1
             else:
                 self.since_check += 1
+            if exact_eval:
+                self.last_inexact = None
+            else:
+                self.last_inexact = loss
             step_norm = float(torch.linalg.vector_norm(q.detach() - q_before))
             s_taken = float(getattr(self.optimizer, "last_step_length", self.step_length))
             rec = IterationRecord(self.iteration, loss, exact_eval, 0 if exact_eval else self.S, s_taken,
                                   step_norm, self.seconds_before + time.perf_counter() - self.t_start,
                                   getattr(self.optimizer, "closure_calls", 0) - calls_before, accepted,
-                                  backtracked)
+                                  backtracked, rho)
             self.records.append(rec)
             if callback is not None:
                 callback(rec)

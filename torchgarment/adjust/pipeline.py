@@ -67,6 +67,9 @@ class AdjustSettings:
         inexact: run Algorithm 1 (pgd only; the other optimizers always evaluate exactly).
         inner_iterations: initial ``S`` (solver iterations per inexact outer iteration).
         exact_interval: ``M``, outer iterations between exact checks (paper: 32).
+        min_model_ratio: the ratio test of an exact check that drops
+            (:attr:`~torchgarment.adjust.inexact.InexactSettings.min_model_ratio`): below it, S grows and the
+            step shrinks although the check is kept. 0: the paper's rule alone.
         inner_solver: solver of the S-iteration simulations (``"newton"``: S Newton steps).
         solver: solver of the exact simulations.
         step: step length ``s`` (``lr``) of the optimizer; None = pgd: unbounded (every step is capped by
@@ -142,6 +145,7 @@ class AdjustSettings:
     inexact: bool = True
     inner_iterations: int = 2
     exact_interval: int = 32
+    min_model_ratio: float = 0.25
     inner_solver: SolverKind = SolverKind.NEWTON
     solver: SolverKind = SolverKind.NEWTON
     step: float | None = None
@@ -187,6 +191,7 @@ class AdjustSettings:
             (self.iterations >= 0, "iterations must be >= 0"),
             (self.inner_iterations >= 1 and self.exact_interval >= 1,
              "inner_iterations/exact_interval must be >= 1"),
+            (0.0 <= self.min_model_ratio < 1.0, "min_model_ratio must be in [0, 1)"),
             ((self.step is None or self.step > 0) and self.max_displacement > 0,
              "step and max_displacement must be > 0"),
             (self.init_iterations >= 0, "init_iterations must be >= 0"),
@@ -422,6 +427,8 @@ def _log_iteration(logger: RunLogger, rec: IterationRecord, terms: dict[str, flo
     logger.scalars(terms, k, prefix="terms/")
     logger.scalars({"step_length": rec.step, "step_norm_m": rec.step_norm, "S": rec.inner_iterations,
                     "wall_time_s": rec.seconds, "closure_calls": rec.closure_calls}, k)
+    if rec.model_ratio is not None:
+        logger.scalars({"model_ratio": rec.model_ratio}, k)
     logger.advance({"f": f"{rec.objective:.4g}", "S": rec.inner_iterations})
 
 
@@ -705,7 +712,7 @@ def optimize(
                          boundary_index=setup.param.boundary_index, x_target=setup.x_transfer)
     runner = InexactRunner(problem, opt, q, InexactSettings(
         inner_iterations=settings.inner_iterations, exact_interval=settings.exact_interval,
-        exact=not use_inexact))
+        min_model_ratio=settings.min_model_ratio, exact=not use_inexact))
     term_history: list[dict[str, float]] = []
     fingerprint = _fingerprint(setup, settings)
     if resume:
@@ -782,6 +789,8 @@ def optimize(
         "exact_evaluations": problem.exact_evaluations,
         "stage_seconds": dict(problem.stage_seconds),
         "backtracks": run.backtracks,
+        "poor_model_checks": sum(1 for r in run.records if r.model_ratio is not None
+                                 and r.model_ratio < runner.settings.min_model_ratio),
         "stopped": run.stopped,
         "base_drape_ok": bool(bd.get("ok", False)),
         "base_drape": {k: bd.get(k) for k in ("residual", "min_sdf_mm", "max_seam_gap_mm", "converged",
