@@ -68,6 +68,10 @@ def test_bad_input(tmp_path):
         with pytest.raises(InputError, match="ease|placement|guide|support_shape"):
             cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
                                "--out", str(tmp_path), flag, "nan"]))
+    for ratio in ("1.5", "-0.1", "nan"):
+        with pytest.raises(InputError, match="min_model_ratio"):
+            cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
+                               "--out", str(tmp_path), "--min-model-ratio", ratio]))
     with pytest.raises(SystemExit):
         _parse(["--garment", "straight_skirt", "--base-size", "12", "--out", str(tmp_path)])  # no target
     with pytest.raises(SystemExit):
@@ -87,6 +91,15 @@ def test_reference_edge_length_option():
     assert off.weights.reference_edge_length is None
     fine = settings_from_args(_parse(base + ["--reference-edge-length", "0.01"]))
     assert fine.weights.reference_edge_length == 0.01
+
+
+def test_min_model_ratio_option():
+    """Algorithm 1's ratio test: the library's 0.25 by default, 0 gives the paper's rule alone."""
+    from torchgarment.adjust.cli import settings_from_args
+
+    base = ["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", "o"]
+    assert settings_from_args(_parse(base)).min_model_ratio == 0.25
+    assert settings_from_args(_parse(base + ["--min-model-ratio", "0"])).min_model_ratio == 0.0
 
 
 def test_fit_scale_option(tmp_path):
