@@ -7,7 +7,7 @@ Usage:
         [--inner-solver newton|gd-chebyshev] [--adjoint direct|iterative] [--adjoint-max-iterations 50]
         [--reuse-factorization] [--linear-solver direct|jacobi-pcg] [--setup FILE] [--device cpu|cuda]
         [--sparse-backend superlu|cholmod|...] [--exact-curvature-cg N] [--min-model-ratio R]
-        [--compare-exact]
+        [--adapt-step] [--compare-exact]
 
 ``--setup FILE`` saves the precomputation (base drape, transfer, initialization: minutes at 30K vertices) on
 the first run and loads it on the next ones, so that optimizer options can be compared on one setup.
@@ -66,6 +66,9 @@ def main() -> None:
     ap.add_argument("--min-model-ratio", type=float, default=None,
                     help="Algorithm 1's ratio test (AdjustSettings.min_model_ratio; default: the library's; "
                          "0: the paper's rule alone)")
+    ap.add_argument("--adapt-step", action="store_true",
+                    help="between exact checks, halve the step after an inexact objective that rose and "
+                         "lengthen it after one that fell (AdjustSettings.adapt_step)")
     ap.add_argument("--compare-exact", action="store_true",
                     help="also run the exact method from the same precomputation and report the final "
                          "objective against it")
@@ -114,7 +117,7 @@ def main() -> None:
     ratio = AdjustSettings.min_model_ratio if args.min_model_ratio is None else args.min_model_ratio
     settings = AdjustSettings(edge_length=edge, voxel_size=args.voxel, iterations=args.iterations,
                               inner_iterations=args.inner_iterations, exact_interval=args.exact_interval,
-                              min_model_ratio=ratio,
+                              min_model_ratio=ratio, adapt_step=args.adapt_step,
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
                               adjoint_max_iterations=args.adjoint_max_iterations,
                               reuse_factorization=args.reuse_factorization,
@@ -141,6 +144,7 @@ def main() -> None:
     print(f"precomputation {t_prep:.1f} s ({setup.timings})")
     run_settings = replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
                            exact_interval=args.exact_interval, min_model_ratio=ratio,
+                           adapt_step=args.adapt_step,
                            inner_solver=args.inner_solver, adjoint=args.adjoint,
                            adjoint_max_iterations=args.adjoint_max_iterations,
                            reuse_factorization=args.reuse_factorization, sparse_backend=args.sparse_backend,
@@ -153,6 +157,7 @@ def main() -> None:
         "inner_iterations": args.inner_iterations, "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
         "exact_interval": args.exact_interval, "min_model_ratio": ratio,
+        "adapt_step": args.adapt_step,
         "poor_model_checks": m["poor_model_checks"],
         "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
         "linear_solver": args.linear_solver,

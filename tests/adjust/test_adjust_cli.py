@@ -94,12 +94,15 @@ def test_reference_edge_length_option():
 
 
 def test_min_model_ratio_option():
-    """Algorithm 1's ratio test: the library's 0.25 by default, 0 gives the paper's rule alone."""
+    """Algorithm 1's ratio test (the library's 0.25 by default, 0 gives the paper's rule alone) and the step
+    control between checks (off by default)."""
     from torchgarment.adjust.cli import settings_from_args
 
     base = ["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", "o"]
     assert settings_from_args(_parse(base)).min_model_ratio == 0.25
     assert settings_from_args(_parse(base + ["--min-model-ratio", "0"])).min_model_ratio == 0.0
+    assert settings_from_args(_parse(base)).adapt_step is False
+    assert settings_from_args(_parse(base + ["--adapt-step"])).adapt_step is True
 
 
 def test_fit_scale_option(tmp_path):

@@ -136,7 +136,8 @@ def test_ratio_test_of_an_exact_check(check, poor):
     q = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
     prob = _ScriptedProblem([100.0, 100.0, 50.0, 50.0, 50.0, check, 100.0])
     opt = _CountingStep([q], lr=1.0)
-    runner = InexactRunner(prob, opt, q, InexactSettings(inner_iterations=2, exact_interval=4, max_step=4.0))
+    runner = InexactRunner(prob, opt, q, InexactSettings(inner_iterations=2, exact_interval=4, max_step=4.0,
+                                                                     adapt_step=False))
     runner.run(5)
     rec = runner.records[-1]
     assert rec.exact
@@ -154,7 +155,8 @@ def test_ratio_test_of_an_exact_check(check, poor):
     # the paper's rule alone (min_model_ratio = 0) treats both drops as successes
     prob = _ScriptedProblem([100.0, 100.0, 50.0, 50.0, 50.0, check, 100.0])
     q2 = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
-    paper = InexactSettings(inner_iterations=2, exact_interval=4, max_step=4.0, min_model_ratio=0.0)
+    paper = InexactSettings(inner_iterations=2, exact_interval=4, max_step=4.0, min_model_ratio=0.0,
+                            adapt_step=False)
     runner = InexactRunner(prob, _CountingStep([q2], lr=1.0), q2, paper)
     runner.run(5)
     assert runner.S == 2 and runner.step_length == pytest.approx(1.25)
@@ -164,15 +166,34 @@ def test_ratio_test_survives_resume():
     """The prediction (the last inexact objective) is part of the resumable state."""
     q = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
     prob = _ScriptedProblem([100.0, 100.0, 50.0, 50.0, 50.0, 90.0, 100.0])
-    runner = InexactRunner(prob, _CountingStep([q], lr=1.0), q, InexactSettings(inner_iterations=2,
-                                                                               exact_interval=4))
+    settings = InexactSettings(inner_iterations=2, exact_interval=4, adapt_step=False)
+    runner = InexactRunner(prob, _CountingStep([q], lr=1.0), q, settings)
     runner.run(4)  # its finish() evaluates the last iterate exactly (the script's 90)
     state = runner.state_dict()
     assert state["last_inexact"] == 50.0
     q2 = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
     prob = _ScriptedProblem([90.0, 100.0])
-    resumed = InexactRunner(prob, _CountingStep([q2], lr=1.0), q2, InexactSettings(inner_iterations=2,
-                                                                                  exact_interval=4))
+    resumed = InexactRunner(prob, _CountingStep([q2], lr=1.0), q2, settings)
     resumed.load_state_dict(state)
     resumed.run(5)
     assert resumed.records[-1].model_ratio == pytest.approx(0.2) and resumed.S == 4
+
+
+def test_adapt_step_between_checks():
+    """The bold driver: an inexact objective above the previous inexact one halves the step taken, one below
+    (or equal) lengthens the step by step_increase up to max_step; an exact evaluation is never compared with
+    an inexact one. Without adapt_step the step stays until the check."""
+    values = [100.0, 100.0, 80.0, 90.0, 70.0, 60.0]
+    q = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    runner = InexactRunner(_ScriptedProblem(values + [60.0]), _CountingStep([q], lr=1.0), q,
+                           InexactSettings(inner_iterations=2, exact_interval=8, max_step=1.6,
+                                           adapt_step=True))
+    steps = []
+    runner.run(5, callback=lambda rec: steps.append(runner.step_length))
+    # iteration 1 exact (restart), 2 inexact (no previous), 3 rose -> 0.5, 4 fell -> 0.625, 5 fell -> 0.78125
+    assert steps == pytest.approx([1.0, 1.0, 0.5, 0.625, 0.78125])
+    q2 = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    fixed = InexactRunner(_ScriptedProblem(values + [60.0]), _CountingStep([q2], lr=1.0), q2,
+                          InexactSettings(inner_iterations=2, exact_interval=8, adapt_step=False))
+    fixed.run(5)
+    assert fixed.step_length == 1.0

@@ -70,6 +70,9 @@ class AdjustSettings:
         min_model_ratio: the ratio test of an exact check that drops
             (:attr:`~torchgarment.adjust.inexact.InexactSettings.min_model_ratio`): below it, S grows and the
             step shrinks although the check is kept. 0: the paper's rule alone.
+        adapt_step: halve the step after an inexact objective that rose, lengthen it after one that fell
+            (:attr:`~torchgarment.adjust.inexact.InexactSettings.adapt_step`). False (default): the paper's
+            step, changed only at the exact checks.
         inner_solver: solver of the S-iteration simulations (``"newton"``: S Newton steps).
         solver: solver of the exact simulations.
         step: step length ``s`` (``lr``) of the optimizer; None = pgd: unbounded (every step is capped by
@@ -146,6 +149,7 @@ class AdjustSettings:
     inner_iterations: int = 2
     exact_interval: int = 32
     min_model_ratio: float = 0.25
+    adapt_step: bool = False
     inner_solver: SolverKind = SolverKind.NEWTON
     solver: SolverKind = SolverKind.NEWTON
     step: float | None = None
@@ -712,7 +716,8 @@ def optimize(
                          boundary_index=setup.param.boundary_index, x_target=setup.x_transfer)
     runner = InexactRunner(problem, opt, q, InexactSettings(
         inner_iterations=settings.inner_iterations, exact_interval=settings.exact_interval,
-        min_model_ratio=settings.min_model_ratio, exact=not use_inexact))
+        min_model_ratio=settings.min_model_ratio,
+        adapt_step=settings.adapt_step, exact=not use_inexact))
     term_history: list[dict[str, float]] = []
     fingerprint = _fingerprint(setup, settings)
     if resume:
