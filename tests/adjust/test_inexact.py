@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -91,7 +92,6 @@ class _ScriptedProblem:
     the runner's decisions alone are under test."""
 
     def __init__(self, values: list[float]) -> None:
-        from types import SimpleNamespace
         self.values = list(values)
         self.exact_settings = SimpleNamespace(max_iterations=10)
         self.x = torch.zeros(4, 3, dtype=torch.float64)
@@ -102,7 +102,6 @@ class _ScriptedProblem:
         self.x = x.clone()
 
     def evaluate(self, q, exact=True, need_grad=False, max_iterations=None):
-        from types import SimpleNamespace
         f = self.values.pop(0)
         self.last, self.last_q = SimpleNamespace(objective=f, exact=exact), q.detach().clone()
         if exact and f < self.best_objective:
@@ -136,8 +135,8 @@ def test_ratio_test_of_an_exact_check(check, poor):
     q = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
     prob = _ScriptedProblem([100.0, 100.0, 50.0, 50.0, 50.0, check, 100.0])
     opt = _CountingStep([q], lr=1.0)
-    runner = InexactRunner(prob, opt, q, InexactSettings(inner_iterations=2, exact_interval=4, max_step=4.0,
-                                                                     adapt_step=False))
+    settings = InexactSettings(inner_iterations=2, exact_interval=4, max_step=4.0, adapt_step=False)
+    runner = InexactRunner(prob, opt, q, settings)
     runner.run(5)
     rec = runner.records[-1]
     assert rec.exact
