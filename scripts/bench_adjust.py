@@ -7,7 +7,7 @@ Usage:
         [--inner-solver newton|gd-chebyshev] [--adjoint direct|iterative] [--adjoint-max-iterations 50]
         [--reuse-factorization] [--linear-solver direct|jacobi-pcg] [--setup FILE] [--device cpu|cuda]
         [--sparse-backend superlu|cholmod|...] [--exact-curvature-cg N] [--min-model-ratio R]
-        [--adapt-step] [--compare-exact]
+        [--adapt-step | --no-adapt-step] [--step-window K] [--compare-exact]
 
 ``--setup FILE`` saves the precomputation (base drape, transfer, initialization: minutes at 30K vertices) on
 the first run and loads it on the next ones, so that optimizer options can be compared on one setup.
@@ -66,9 +66,13 @@ def main() -> None:
     ap.add_argument("--min-model-ratio", type=float, default=None,
                     help="Algorithm 1's ratio test (AdjustSettings.min_model_ratio; default: the library's; "
                          "0: the paper's rule alone)")
-    ap.add_argument("--adapt-step", action="store_true",
-                    help="between exact checks, halve the step after an inexact objective that rose and "
-                         "lengthen it after one that fell (AdjustSettings.adapt_step)")
+    ap.add_argument("--adapt-step", action=argparse.BooleanOptionalAction, default=None,
+                    help="between exact checks, halve the step after an inexact objective above the last "
+                         "--step-window ones and lengthen it after one below them "
+                         "(AdjustSettings.adapt_step; default: the library's)")
+    ap.add_argument("--step-window", type=int, default=None,
+                    help="inexact objectives --adapt-step compares with (AdjustSettings.step_window; "
+                         "default: the library's)")
     ap.add_argument("--compare-exact", action="store_true",
                     help="also run the exact method from the same precomputation and report the final "
                          "objective against it")
@@ -115,9 +119,11 @@ def main() -> None:
     base = Body.from_size(args.base_size, device=device)
     target = Body.from_size(args.target_size, device=device)
     ratio = AdjustSettings.min_model_ratio if args.min_model_ratio is None else args.min_model_ratio
+    adapt = AdjustSettings.adapt_step if args.adapt_step is None else args.adapt_step
+    window = AdjustSettings.step_window if args.step_window is None else args.step_window
     settings = AdjustSettings(edge_length=edge, voxel_size=args.voxel, iterations=args.iterations,
                               inner_iterations=args.inner_iterations, exact_interval=args.exact_interval,
-                              min_model_ratio=ratio, adapt_step=args.adapt_step,
+                              min_model_ratio=ratio, adapt_step=adapt, step_window=window,
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
                               adjoint_max_iterations=args.adjoint_max_iterations,
                               reuse_factorization=args.reuse_factorization,
@@ -144,7 +150,7 @@ def main() -> None:
     print(f"precomputation {t_prep:.1f} s ({setup.timings})")
     run_settings = replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
                            exact_interval=args.exact_interval, min_model_ratio=ratio,
-                           adapt_step=args.adapt_step,
+                           adapt_step=adapt, step_window=window,
                            inner_solver=args.inner_solver, adjoint=args.adjoint,
                            adjoint_max_iterations=args.adjoint_max_iterations,
                            reuse_factorization=args.reuse_factorization, sparse_backend=args.sparse_backend,
@@ -157,7 +163,7 @@ def main() -> None:
         "inner_iterations": args.inner_iterations, "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
         "exact_interval": args.exact_interval, "min_model_ratio": ratio,
-        "adapt_step": args.adapt_step,
+        "adapt_step": adapt, "step_window": window,
         "poor_model_checks": m["poor_model_checks"],
         "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
         "linear_solver": args.linear_solver,

@@ -72,6 +72,9 @@ def test_bad_input(tmp_path):
         with pytest.raises(InputError, match="min_model_ratio"):
             cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
                                "--out", str(tmp_path), "--min-model-ratio", ratio]))
+    with pytest.raises(InputError, match="step_window"):
+        cmd_adjust(_parse(["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20",
+                           "--out", str(tmp_path), "--step-window", "0"]))
     with pytest.raises(SystemExit):
         _parse(["--garment", "straight_skirt", "--base-size", "12", "--out", str(tmp_path)])  # no target
     with pytest.raises(SystemExit):
@@ -95,14 +98,19 @@ def test_reference_edge_length_option():
 
 def test_min_model_ratio_option():
     """Algorithm 1's ratio test (the library's 0.25 by default, 0 gives the paper's rule alone) and the step
-    control between checks (off by default)."""
+    control between checks (``--adapt-step`` / ``--no-adapt-step``, ``--step-window``)."""
     from torchgarment.adjust.cli import settings_from_args
 
     base = ["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", "o"]
     assert settings_from_args(_parse(base)).min_model_ratio == 0.25
     assert settings_from_args(_parse(base + ["--min-model-ratio", "0"])).min_model_ratio == 0.0
-    assert settings_from_args(_parse(base)).adapt_step is False
+    from torchgarment.adjust.pipeline import AdjustSettings
+
+    assert settings_from_args(_parse(base)).adapt_step is AdjustSettings().adapt_step
     assert settings_from_args(_parse(base + ["--adapt-step"])).adapt_step is True
+    assert settings_from_args(_parse(base + ["--no-adapt-step"])).adapt_step is False
+    assert settings_from_args(_parse(base)).step_window == 4
+    assert settings_from_args(_parse(base + ["--step-window", "1"])).step_window == 1
 
 
 def test_fit_scale_option(tmp_path):

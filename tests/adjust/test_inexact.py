@@ -196,3 +196,48 @@ def test_adapt_step_between_checks():
                           InexactSettings(inner_iterations=2, exact_interval=8, adapt_step=False))
     fixed.run(5)
     assert fixed.step_length == 1.0
+
+
+@pytest.mark.parametrize(("window", "expected"), [
+    # iteration 3: 90 above 80 -> 0.5; 4: 85 between 80 and 90 -> kept; 5: 95 above all -> 0.25;
+    # 6: 70 below all -> 0.3125
+    (4, [1.0, 1.0, 0.5, 0.5, 0.25, 0.3125]),
+    # the plain bold driver compares with the last value only: 85 < 90 grows, 95 > 85 shrinks, 70 < 95 grows
+    (1, [1.0, 1.0, 0.5, 0.625, 0.3125, 0.390625]),
+])
+def test_adapt_step_window(window, expected):
+    """``step_window``: a rise above the largest of the last ``step_window`` inexact objectives shortens the
+    step, a drop below the smallest lengthens it, a value between them keeps it."""
+    values = [100.0, 100.0, 80.0, 90.0, 85.0, 95.0, 70.0, 70.0]
+    q = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    runner = InexactRunner(_ScriptedProblem(values), _CountingStep([q], lr=1.0), q,
+                           InexactSettings(inner_iterations=2, exact_interval=8, max_step=1.6,
+                                           adapt_step=True, step_window=window))
+    steps = []
+    runner.run(6, callback=lambda rec: steps.append(runner.step_length))
+    assert steps == pytest.approx(expected)
+
+
+def test_adapt_step_window_survives_resume():
+    """The window of recent inexact objectives is part of the resumable state: a resumed run takes the
+    uninterrupted run's steps."""
+    values = [100.0, 100.0, 80.0, 90.0, 85.0, 95.0, 70.0]
+    settings = InexactSettings(inner_iterations=2, exact_interval=8, max_step=1.6, adapt_step=True)
+    q = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    whole = InexactRunner(_ScriptedProblem(values + [70.0]), _CountingStep([q], lr=1.0), q, settings)
+    whole.run(6)
+    q1 = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    first = InexactRunner(_ScriptedProblem(values[:5] + [85.0]), _CountingStep([q1], lr=1.0), q1, settings)
+    first.run(4)  # its finish() evaluates the last iterate exactly (the script's 85)
+    state = first.state_dict()
+    assert state["recent_inexact"] == [80.0, 90.0, 85.0]
+    q2 = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    resumed = InexactRunner(_ScriptedProblem(values[5:] + [70.0]), _CountingStep([q2], lr=1.0), q2, settings)
+    resumed.load_state_dict(state)
+    resumed.run(6)
+    assert resumed.step_length == pytest.approx(whole.step_length) == pytest.approx(0.3125)
+
+
+def test_step_window_must_be_positive():
+    with pytest.raises(InputError, match="step_window"):
+        InexactSettings(step_window=0)

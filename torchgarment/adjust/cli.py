@@ -72,9 +72,13 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-model-ratio", type=float, default=d.min_model_ratio, metavar="R",
                    help="an exact check that drops by less than R of what the inexact iterations predicted "
                         f"raises S and shortens the step (default {d.min_model_ratio}; 0: the paper's rule)")
-    p.add_argument("--adapt-step", action="store_true",
-                   help="between exact checks, halve the step after an inexact objective that rose and "
-                        "lengthen it after one that fell (AdjustSettings.adapt_step; default off)")
+    p.add_argument("--adapt-step", action=argparse.BooleanOptionalAction, default=d.adapt_step,
+                   help="between exact checks, halve the step after an inexact objective above the last "
+                        "--step-window ones and lengthen it after one below them (AdjustSettings.adapt_step; "
+                        f"default {'on' if d.adapt_step else 'off'})")
+    p.add_argument("--step-window", type=int, default=d.step_window, metavar="K",
+                   help=f"inexact objectives --adapt-step compares with (default {d.step_window}; 1: the "
+                        "plain bold driver)")
     p.add_argument("--inner-solver", default=d.inner_solver.value, choices=[k.value for k in SolverKind],
                    help=f"solver of the S-iteration simulations (default {d.inner_solver.value}; "
                         f"gd-chebyshev for large meshes)")
@@ -139,6 +143,7 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
                           voxel_size=args.voxel, inner_iterations=args.inner_iterations,
                           exact_interval=args.exact_interval, inexact=not args.exact,
                           min_model_ratio=args.min_model_ratio, adapt_step=args.adapt_step,
+                          step_window=args.step_window,
                           inner_solver=args.inner_solver, adjoint=args.adjoint,
                           init_iterations=args.init_iterations, initialize=not args.no_init, weights=weights,
                           support=not args.no_support, init_trial_iterations=args.init_trial_iterations,

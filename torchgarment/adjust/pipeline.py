@@ -70,9 +70,11 @@ class AdjustSettings:
         min_model_ratio: the ratio test of an exact check that drops
             (:attr:`~torchgarment.adjust.inexact.InexactSettings.min_model_ratio`): below it, S grows and the
             step shrinks although the check is kept. 0: the paper's rule alone.
-        adapt_step: halve the step after an inexact objective that rose, lengthen it after one that fell
-            (:attr:`~torchgarment.adjust.inexact.InexactSettings.adapt_step`). False (default): the paper's
-            step, changed only at the exact checks.
+        adapt_step: halve the step after an inexact objective above the last ``step_window`` ones, lengthen
+            it after one below them (:attr:`~torchgarment.adjust.inexact.InexactSettings.adapt_step`). False
+            (default): the paper's step, changed only at the exact checks.
+        step_window: how many recent inexact objectives ``adapt_step`` compares with (1: the plain bold
+            driver).
         inner_solver: solver of the S-iteration simulations (``"newton"``: S Newton steps).
         solver: solver of the exact simulations.
         step: step length ``s`` (``lr``) of the optimizer; None = pgd: unbounded (every step is capped by
@@ -150,6 +152,7 @@ class AdjustSettings:
     exact_interval: int = 32
     min_model_ratio: float = 0.25
     adapt_step: bool = False
+    step_window: int = 4
     inner_solver: SolverKind = SolverKind.NEWTON
     solver: SolverKind = SolverKind.NEWTON
     step: float | None = None
@@ -196,6 +199,7 @@ class AdjustSettings:
             (self.inner_iterations >= 1 and self.exact_interval >= 1,
              "inner_iterations/exact_interval must be >= 1"),
             (0.0 <= self.min_model_ratio < 1.0, "min_model_ratio must be in [0, 1)"),
+            (self.step_window >= 1, "step_window must be >= 1"),
             ((self.step is None or self.step > 0) and self.max_displacement > 0,
              "step and max_displacement must be > 0"),
             (self.init_iterations >= 0, "init_iterations must be >= 0"),
@@ -717,7 +721,7 @@ def optimize(
     runner = InexactRunner(problem, opt, q, InexactSettings(
         inner_iterations=settings.inner_iterations, exact_interval=settings.exact_interval,
         min_model_ratio=settings.min_model_ratio,
-        adapt_step=settings.adapt_step, exact=not use_inexact))
+        adapt_step=settings.adapt_step, step_window=settings.step_window, exact=not use_inexact))
     term_history: list[dict[str, float]] = []
     fingerprint = _fingerprint(setup, settings)
     if resume:
