@@ -55,3 +55,14 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist (the README's test command runs two workers, one per core) every worker runs torch
+    on one thread, and so do the subprocesses its tests start: two workers of two threads each would
+    oversubscribe the two cores, which slows torch several times."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ["OMP_NUM_THREADS"] = "1"
+        import torch
+
+        torch.set_num_threads(1)

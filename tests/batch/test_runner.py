@@ -38,7 +38,7 @@ def _summary(out: Path) -> list[dict]:
 
 
 def _records(out: Path) -> dict[str, dict]:
-    return {p.stem: json.loads(p.read_text()) for p in (out / "records").glob("*.json")}
+    return {p.stem: json.loads(p.read_text()) for p in (out / "records").glob("[!.]*.json")}
 
 
 def _single_command(record: dict, out: Path) -> Path:
