@@ -38,9 +38,14 @@ def test_matches_libigl_and_the_winding_number(blob):
     assert np.allclose(c[same], ref[2][same], atol=1e-12)
     assert np.allclose(np.linalg.norm(p - c, axis=1), np.abs(d), rtol=0, atol=1e-12)
     assert np.allclose(igl.signed_distance(c, v, f)[0], 0.0, atol=1e-12)  # every closest point is on the mesh
-    tri = tree.closest_triangles(p)  # the triangle each closest point lies on
+    # stable: the closest triangle in float64 among those the float32 search could return, so libigl's
+    # distance to rounding everywhere, and the triangle that closest_triangles names
+    ds, cs, _ = tree.query(p, stable=True)
+    assert np.all(np.abs(ds - ref[0]) <= 1e-12) and np.all(np.abs(ds) <= np.abs(d))
+    assert np.allclose(ds[same], d[same], rtol=0, atol=1e-12) and np.array_equal(ds < 0, d < 0)
+    tri = tree.closest_triangles(p)  # the triangle each stable closest point lies on
     on_tri = trimesh.triangles.closest_point(v[f[tri]], p)
-    assert np.allclose(on_tri, c, atol=1e-12)
+    assert np.allclose(on_tri, cs, atol=1e-12)
     inside = np.abs(winding_number(p, v, f, SignType.WINDING_NUMBER)) > 0.5
     assert np.array_equal(d < 0, inside)  # exact for a closed manifold
     assert np.allclose(np.linalg.norm(out, axis=1), 1.0)
@@ -91,6 +96,11 @@ def test_a_released_tree_is_refitted_for_the_next_mesh_and_never_shared(blob):
     assert c._tree._tree is first  # the released tree, refitted
     for tree, w in ((b, meshes[1]), (c, meshes[2])):
         assert np.all(np.abs(tree.query(p)[0] - reference(w)) <= 1e-7 * (1 + np.abs(w).max()))
+    # stable queries do not depend on the hierarchy: the refitted tree answers as a fresh one, to the bit
+    fresh = MeshProximity(meshes[2], f)  # b and c hold the pooled trees: a new one, built on this mesh
+    assert fresh._tree._tree is not c._tree._tree
+    for x, y in zip(c.query(p, stable=True), fresh.query(p, stable=True)):
+        assert np.array_equal(x, y)
 
 
 def test_pooled_trees_under_threads(blob):

@@ -180,9 +180,14 @@ class MeshProximity:
 
     Args:
         vertices: (V, 3) mesh positions, metres. faces: (F, 3) vertex indices, outward winding.
+        reuse_tree: refit a released tree of the same topology (:mod:`torchgarment.sdf.proximity`: 0.4-0.6
+            ms against 10-20 ms for a build on an anny body) instead of building one. A refitted tree's
+            hierarchy is an earlier mesh's, and at float32 near-ties the hierarchy picks the closest
+            triangle, so results can then depend on which meshes came before (``query(stable=True)`` does
+            not); False: a tree built on these vertices, reproducible whatever came before.
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, reuse_tree: bool = True) -> None:
         from torchgarment.sdf.proximity import WarpProximity
 
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
@@ -192,25 +197,34 @@ class MeshProximity:
         if self.faces.min() < 0 or self.faces.max() >= self.vertices.shape[0]:
             raise MeshError(f"face indices must lie in [0, {self.vertices.shape[0]}) for a mesh of "
                             f"{self.vertices.shape[0]} vertices")
-        self._tree = WarpProximity(self.vertices, self.faces)
+        self._tree = WarpProximity(self.vertices, self.faces, reuse_tree)
 
     def closest_triangles(self, points: np.ndarray) -> np.ndarray:
-        """(P,) int64 index of the triangle closest to each point (P, 3)."""
+        """(P,) int64 index of the triangle closest to each point (P, 3): the closest in float64, the lower
+        index on a tie (``stable``, see :meth:`query`)."""
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         if p.shape[0] == 0:
             return np.zeros(0, dtype=np.int64)
-        return self._tree.query(p, 1e-9)[1]
+        return self._tree.query(p, 1e-9, True)[1]
 
-    def query(self, points: np.ndarray, feature_tol: float = 1e-9
+    def query(self, points: np.ndarray, feature_tol: float = 1e-9, stable: bool = False
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signed distances (P,) (negative inside), closest points (P, 3) and unit outward directions (P, 3)
         (from the closest point towards the point when outside, away from it when inside; the feature's
         pseudo-normal for a point on the surface) at ``points`` (P, 3), metres. A closest point with a
-        barycentric coordinate below ``feature_tol`` lies on that edge or vertex (its pseudo-normal signs)."""
+        barycentric coordinate below ``feature_tol`` lies on that edge or vertex (its pseudo-normal signs).
+
+        ``stable=True`` makes the result independent of the tree's hierarchy: where two triangles are at the
+        same distance up to float32 rounding (a point on the medial axis of a crease, such as between the
+        thighs), the float32 search may return either, and a tree refitted from another body of the model
+        (see :mod:`torchgarment.sdf.proximity`) may return the other one than a fresh tree; with ``stable``
+        every triangle within the point's distance box is compared in float64 and the lower index wins a tie.
+        It visits those triangles, so it costs more the farther the points are from the mesh (for points
+        near the surface, such as a garment's, a few dozen)."""
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         if p.shape[0] == 0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))
-        d, _, c, direction = self._tree.query(p, feature_tol)
+        d, _, c, direction = self._tree.query(p, feature_tol, stable)
         return d, c, direction
 
     def near(self, points: np.ndarray, radius: float) -> np.ndarray:

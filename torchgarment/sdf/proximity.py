@@ -78,13 +78,30 @@ def _kernels() -> dict[str, object]:
     def query(mesh: wp.uint64, v: wp.array(dtype=wp.vec3d), f: wp.array(dtype=wp.int32, ndim=2),
               face_normals: wp.array(dtype=wp.vec3d), edge_normals: wp.array(dtype=wp.vec3d),
               vertex_normals: wp.array(dtype=wp.vec3d), face_edge: wp.array(dtype=wp.int32, ndim=2),
-              points: wp.array(dtype=wp.vec3d), feature_tol: wp.float64,
+              points: wp.array(dtype=wp.vec3d), feature_tol: wp.float64, stable: wp.int32, pad: wp.float32,
               sdist: wp.array(dtype=wp.float64), tri: wp.array(dtype=wp.int32),
               closest: wp.array(dtype=wp.vec3d), direction: wp.array(dtype=wp.vec3d)) -> None:
         i = wp.tid()
         p = points[i]
         q = wp.mesh_query_point_no_sign(mesh, wp.vec3(p), 1.0e30)
         t = q.face
+        if stable != 0:
+            # the float32 search may pick either of two triangles at nearly the same distance, and which one
+            # depends on the tree's hierarchy (a fresh tree or a refitted one); the closest in float64 among
+            # every triangle whose box meets the point's box of that distance (the lower index on a tie)
+            # does not
+            e = p - closest_on_triangle(p, v[f[t, 0]], v[f[t, 1]], v[f[t, 2]])
+            best = wp.dot(e, e)
+            r = wp.float32(wp.sqrt(best)) + pad
+            box = wp.vec3(r, r, r)
+            qa = wp.mesh_query_aabb(mesh, wp.vec3(p) - box, wp.vec3(p) + box)
+            s = int(0)
+            while wp.mesh_query_aabb_next(qa, s):
+                e = p - closest_on_triangle(p, v[f[s, 0]], v[f[s, 1]], v[f[s, 2]])
+                d2 = wp.dot(e, e)
+                if d2 < best or (d2 == best and s < t):
+                    best = d2
+                    t = s
         a = v[f[t, 0]]
         b = v[f[t, 1]]
         c = v[f[t, 2]]
@@ -280,15 +297,17 @@ class WarpProximity:
 
     Args:
         vertices: (V, 3) float64 positions, metres. faces: (F, 3) int64 vertex indices, outward winding.
+        reuse: take a released tree of this topology when there is one (False: build one; the instance's
+            tree still goes to the pool when it is released).
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, reuse: bool = True) -> None:
         wp = import_warp()
         self._wp = wp
         dev = "cpu"
         topo = _topology(faces, vertices.shape[0])
         with _POOL_LOCK:
-            tree = topo.free.pop() if topo.free else None
+            tree = topo.free.pop() if topo.free and reuse else None
         if tree is None:
             tree = _Tree(wp, vertices, topo.indices)
         else:
@@ -311,18 +330,22 @@ class WarpProximity:
                 self._topo.free.append(tree)
         self._tree = None
 
-    def query(self, points: np.ndarray, feature_tol: float
+    def query(self, points: np.ndarray, feature_tol: float, stable: bool = False
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(signed distances (P,), closest triangles (P,) int64, closest points (P, 3), outward directions
-        (P, 3)) at ``points`` (P, 3) float64, P >= 1."""
+        (P, 3)) at ``points`` (P, 3) float64, P >= 1. ``stable``: the closest triangle in float64 among all
+        that the float32 search could have returned (the lower index on a tie), the same whatever the tree's
+        hierarchy (fresh or refitted); it visits every triangle within the point's distance box, so it costs
+        more the farther the points are."""
         wp = self._wp
         dev = "cpu"
         n = points.shape[0]
         out = [wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.int32, device=dev),
                wp.empty(n, dtype=wp.vec3d, device=dev), wp.empty(n, dtype=wp.vec3d, device=dev)]
+        pad = 1e-5 * (1.0 + float(np.abs(points).max()))  # float32 rounding of boxes and points, with room
         wp.launch(_kernels()["query"], dim=n, device=dev,
                   inputs=[self._tree.mesh.id, *self._inputs, wp.array(points, dtype=wp.vec3d, device=dev),
-                          float(feature_tol), *out])
+                          float(feature_tol), int(bool(stable)), pad, *out])
         d, tri, c, direction = (a.numpy() for a in out)
         return d, tri.astype(np.int64), c, direction
 
