@@ -493,9 +493,8 @@ class InexactRunner:
         self.backtracks = 0
         self.since_check = 0
         self.restart = True
-        #: objective of the latest inexact iteration since the last exact one (the ratio test's prediction)
-        self.last_inexact: float | None = None
-        #: objectives of the latest inexact iterations since the last exact one (``adapt_step``'s window)
+        #: objectives of the latest inexact iterations since the last exact one (``adapt_step``'s window;
+        #: the last one is the ratio test's prediction)
         self.recent_inexact: list[float] = []
         self.start_objective: float | None = None
         self.checkpoint: dict | None = None
@@ -504,6 +503,12 @@ class InexactRunner:
         self.seconds_before = 0.0
 
     # ------------------------------------------------------------------ state
+    @property
+    def last_inexact(self) -> float | None:
+        """Objective of the latest inexact iteration since the last exact one (the ratio test's prediction);
+        None right after an exact one."""
+        return self.recent_inexact[-1] if self.recent_inexact else None
+
     @property
     def step_length(self) -> float:
         return float(self.optimizer.param_groups[0]["lr"])
@@ -541,8 +546,9 @@ class InexactRunner:
                                                    int(state["backtracks"]))
         self._set_step(state["step"])
         self.since_check, self.restart = int(state["since_check"]), bool(state["restart"])
-        self.last_inexact = state.get("last_inexact")
-        self.recent_inexact = list(state.get("recent_inexact", []))
+        # a checkpoint written before the window held the last inexact objective only
+        last = state.get("last_inexact")
+        self.recent_inexact = list(state.get("recent_inexact", [] if last is None else [last]))
         self.start_objective, self.checkpoint = state["start_objective"], state["checkpoint"]
         self.records = [IterationRecord(**r) for r in state["records"]]
         p.best_q, p.best_x, p.best_objective = (state["best_q"], state["best_x"],
@@ -640,7 +646,6 @@ class InexactRunner:
             else:
                 self.since_check += 1
             if exact_eval:
-                self.last_inexact = None
                 self.recent_inexact = []
             else:
                 recent = self.recent_inexact[-st.step_window:]
@@ -652,7 +657,6 @@ class InexactRunner:
                     elif loss < min(recent):
                         self._set_step(min(self.max_step, self.step_length * st.step_increase))
                 self.recent_inexact = [*recent, loss]
-                self.last_inexact = loss
             step_norm = float(torch.linalg.vector_norm(q.detach() - q_before))
             s_taken = float(getattr(self.optimizer, "last_step_length", self.step_length))
             rec = IterationRecord(self.iteration, loss, exact_eval, 0 if exact_eval else self.S, s_taken,
