@@ -248,6 +248,12 @@ class _Topology:
         self.free: list[_Tree] = []
 
 
+def _box_pad(points: np.ndarray) -> float:
+    """Metres added to a point's query box (P, 3 points): the float32 rounding of the tree's boxes and of the
+    points, with room."""
+    return 1e-5 * (1.0 + float(np.abs(points).max()))
+
+
 class _Tree:
     """Warp's BVH of one mesh and the float32 points it was built or refitted on (Warp keeps a pointer to
     them: a refit reads them in place)."""
@@ -342,7 +348,7 @@ class WarpProximity:
         n = points.shape[0]
         out = [wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.int32, device=dev),
                wp.empty(n, dtype=wp.vec3d, device=dev), wp.empty(n, dtype=wp.vec3d, device=dev)]
-        pad = 1e-5 * (1.0 + float(np.abs(points).max()))  # float32 rounding of boxes and points, with room
+        pad = _box_pad(points)
         wp.launch(_kernels()["query"], dim=n, device=dev,
                   inputs=[self._tree.mesh.id, *self._inputs, wp.array(points, dtype=wp.vec3d, device=dev),
                           float(feature_tol), int(bool(stable)), pad, *out])
@@ -358,7 +364,7 @@ class WarpProximity:
         wp = self._wp
         dev = "cpu"
         n = points.shape[0]
-        pad = 1e-5 * (1.0 + float(np.abs(points).max()))  # float32 rounding of boxes and points, with room
+        pad = _box_pad(points)
         out = wp.empty(n, dtype=wp.float64, device=dev)
         wp.launch(_kernels()["near"], dim=n, device=dev,
                   inputs=[self._tree.mesh.id, self._inputs[0], self._inputs[1],
