@@ -4,7 +4,8 @@ Usage:
     python scripts/bench_sim.py [--json FILE] [--sizes 5000 15000 30000 60000] [--garment tshirt]
                                 [--body-size 12] [--voxel-mm 2.5] [--sdf-dtype float32] [--threads 2]
                                 [--warmup 200] [--iterations 60] [--calls 60] [--rounds 6]
-                                [--diagonal-interval 4] [--device cpu|cuda] [--sweep] [--profile N]
+                                [--diagonal-interval 4] [--device cpu|cuda] [--sweep] [--parts]
+                                [--profile N]
 
 For every target size the library garment ``--garment`` (drafted for chart size ``--body-size``) is meshed at
 the edge length that gives about that many vertices, and a scene with stretch, sew, bend, gravity and the body
@@ -27,6 +28,11 @@ in the same process, with ``torch.set_num_threads(--threads)``:
   solver calls it: the step bound reuses the gradient's SDF query), with the solver's first step; and
   ``ms_saved_when_left_out``: ``ms_per_iteration`` minus the per-iteration time of the same solve without
   that effect.
+
+``--parts`` also times, at about 30K vertices on one settled state, each part of an iteration as the solver
+calls it (see :func:`parts`): the model's value and gradient, its value, gradient and diagonal with the
+elastic diagonal fresh or reused, the preconditioner's full rebuild and its update of the volatile rows, its
+application, the row clamp and the step bound; and their sum in each regime, against the bare spring pass.
 
 All measurements are interleaved over ``--rounds`` rounds so that a varying machine load affects them alike.
 Times are medians, ``*_min`` minima (the best estimate on a shared machine); ratios are against the baseline
@@ -56,7 +62,13 @@ from torchgarment.pattern.meshing import mesh_pattern
 from torchgarment.sdf import BodySDF, SDFSettings
 from torchgarment.sim.scene import Effect, Scene, SimModel
 from torchgarment.sim.solvers import Preconditioner, SolveSettings, solve
-from torchgarment.sim.solvers.chebyshev import apply_inverse, jacobi_inverse
+from torchgarment.sim.solvers.chebyshev import (
+    JacobiState,
+    apply_inverse,
+    clamp_displacement_,
+    jacobi_inverse,
+    seam_pairs,
+)
 
 if TYPE_CHECKING:
     from torchgarment.pattern.spec import SewingPattern
@@ -77,6 +89,22 @@ def call_times(fn: Callable[[torch.Tensor], object], x: torch.Tensor, calls: int
     ts = []
     for _ in range(calls):
         xc = x.clone()
+        sync(x.device)
+        t0 = time.perf_counter()
+        fn(xc)
+        sync(x.device)
+        ts.append(time.perf_counter() - t0)
+    return ts
+
+
+def evaluated_call_times(model: SimModel, fn: Callable[[torch.Tensor], object], x: torch.Tensor,
+                         calls: int) -> list[float]:
+    """Seconds of ``calls`` calls of ``fn(xc)``, each after an untimed ``model.value_and_grad(xc)`` on its own
+    copy ``xc`` of ``x``: how the solver calls the step bound (which reuses the evaluation's SDF query)."""
+    ts = []
+    for _ in range(calls):
+        xc = x.clone()
+        model.value_and_grad(xc)
         sync(x.device)
         t0 = time.perf_counter()
         fn(xc)
@@ -273,6 +301,8 @@ def main() -> None:
     ap.add_argument("--sweep", action="store_true",
                     help="also time the iteration at about 30K vertices with each SWEEP configuration (and "
                          "on a GPU the elastic terms replayed from a CUDA graph)")
+    ap.add_argument("--parts", action="store_true",
+                    help="also time each part of an iteration at about 30K vertices (see parts())")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="also print torch.profiler's table of N solver iterations at about 30K vertices")
     args = ap.parse_args()
@@ -316,6 +346,8 @@ def main() -> None:
     }
     if args.sweep:
         out["sweep"] = sweep(args, pattern, sdf, r30["target_vertices"])
+    if args.parts:
+        out["parts"] = parts(args, pattern, sdf, r30["target_vertices"])
     if args.json:
         with atomic_open(args.json, "w") as f:
             json.dump(out, f, indent=2)
@@ -416,6 +448,50 @@ def sweep(args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF, target
         print(f"  elastic terms' value_and_grad: eager {out['elastic_value_grad_eager_ms']:.3f} ms, CUDA "
               f"graph replay {out['elastic_value_grad_graph_ms']:.3f} ms (same gradient: "
               f"{out['graph_matches_eager']})")
+    return out
+
+
+def parts(args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF, target: int) -> dict:
+    """The median and minimum ms of each part of a GD-Chebyshev iteration at about ``target`` vertices, each
+    alone, called as the solver calls it on one settled state (interleaved rounds; a fresh copy of the
+    positions per call, so that no cache hits): ``value_and_grad`` of the whole model;
+    ``value_grad_hessian_diagonal`` with the elastic diagonal fresh (a full evaluation: the first iterations
+    every ``elastic_diagonal_interval``, every iteration after a restart) and reused (volatile rows only); the
+    preconditioner's full ``rebuild`` and its ``update`` of the volatile rows; ``apply_inverse``; the row
+    clamp; the step bound (``max_step`` after an untimed evaluation at the same positions, whose SDF query it
+    reuses, as in the solver); and the bare spring pass. Each part alone runs on colder caches than inside
+    the loop, so the parts may add up to more than an iteration."""
+    mesh, model, x = settled_state(args, pattern, sdf, target)
+    settings = SolveSettings(rtol=0.0, atol=0.0)
+    stretch = model.term(Effect.STRETCH.value)
+    _, g, h = model.value_grad_hessian_diagonal(x)
+    rows = model.last_volatile_rows
+    pre = JacobiState(settings, seam_pairs(model) if settings.seam_blocks else None)
+    pre.rebuild(h, rows)
+    step = apply_inverse(pre.inverse, g).mul_(-settings.step)
+    calls = max(1, args.calls // args.rounds)
+    tasks = {
+        "bare_spring": lambda: call_times(stretch.value_and_grad, x, calls),
+        "value_grad": lambda: call_times(model.value_and_grad, x, calls),
+        "value_grad_diag_fresh": lambda: call_times(model.value_grad_hessian_diagonal, x, calls),
+        "value_grad_diag_reused": lambda: call_times(
+            lambda xc: model.value_grad_hessian_diagonal(xc, reuse_elastic=True), x, calls),
+        "preconditioner_rebuild": lambda: call_times(lambda xc: pre.rebuild(h, rows), x, calls),
+        "preconditioner_update": lambda: call_times(lambda xc: pre.update(h, rows), x, calls),
+        "apply_inverse": lambda: call_times(lambda xc: apply_inverse(pre.inverse, g), x, calls),
+        "clamp_rows": lambda: call_times(
+            lambda xc: clamp_displacement_(step.clone(), settings.max_displacement), x, calls),
+        "max_step": lambda: evaluated_call_times(model, lambda xc: model.max_step(xc, step), x, calls),
+    }
+    res = run_interleaved(tasks, args.rounds)
+    out: dict = {"vertices": mesh.num_vertices, "ms": {k: v[0] for k, v in res.items()},
+                 "ms_min": {k: v[1] for k, v in res.items()}}
+    ms = out["ms"]
+    bare = ms["bare_spring"]
+    print(f"\nparts of an iteration at {mesh.num_vertices} vertices on {x.device}, {torch.get_num_threads()} "
+          f"threads (median / min ms, median / bare spring pass):")
+    for k in tasks:
+        print(f"  {k:>24} {ms[k]:8.2f} {out['ms_min'][k]:8.2f} {ms[k] / bare:7.2f}x")
     return out
 
 
