@@ -80,31 +80,20 @@ TARGET_MS_30K = 20.0
 TARGET_RATIO = 4.0
 
 
-def call_times(fn: Callable[[torch.Tensor], object], x: torch.Tensor, calls: int) -> list[float]:
+def call_times(fn: Callable[[torch.Tensor], object], x: torch.Tensor, calls: int,
+               before: Callable[[torch.Tensor], object] | None = None) -> list[float]:
     """Seconds of ``calls`` calls of ``fn(x)``.
 
     Every call gets its own copy of ``x`` (made before the clock starts), so that no term can reuse results
-    cached for the previous call's positions (the barrier caches its last SDF query).
+    cached for the previous call's positions (the barrier caches its last SDF query). ``before(copy)``, when
+    given, runs before the clock starts (``model.value_and_grad`` before the step bound, which reuses the
+    evaluation's SDF query as in the solver).
     """
     ts = []
     for _ in range(calls):
         xc = x.clone()
-        sync(x.device)
-        t0 = time.perf_counter()
-        fn(xc)
-        sync(x.device)
-        ts.append(time.perf_counter() - t0)
-    return ts
-
-
-def evaluated_call_times(model: SimModel, fn: Callable[[torch.Tensor], object], x: torch.Tensor,
-                         calls: int) -> list[float]:
-    """Seconds of ``calls`` calls of ``fn(xc)``, each after an untimed ``model.value_and_grad(xc)`` on its own
-    copy ``xc`` of ``x``: how the solver calls the step bound (which reuses the evaluation's SDF query)."""
-    ts = []
-    for _ in range(calls):
-        xc = x.clone()
-        model.value_and_grad(xc)
+        if before is not None:
+            before(xc)
         sync(x.device)
         t0 = time.perf_counter()
         fn(xc)
@@ -481,7 +470,8 @@ def parts(args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF, target
         "apply_inverse": lambda: call_times(lambda xc: apply_inverse(pre.inverse, g), x, calls),
         "clamp_rows": lambda: call_times(
             lambda xc: clamp_displacement_(step.clone(), settings.max_displacement), x, calls),
-        "max_step": lambda: evaluated_call_times(model, lambda xc: model.max_step(xc, step), x, calls),
+        "max_step": lambda: call_times(lambda xc: model.max_step(xc, step), x, calls,
+                                       before=model.value_and_grad),
     }
     res = run_interleaved(tasks, args.rounds)
     out: dict = {"vertices": mesh.num_vertices, "ms": {k: v[0] for k, v in res.items()},
