@@ -448,8 +448,8 @@ def parts(args: argparse.Namespace, pattern: SewingPattern, sdf: BodySDF, target
     every ``elastic_diagonal_interval``, every iteration after a restart) and reused (volatile rows only); the
     preconditioner's full ``rebuild`` and its ``update`` of the volatile rows; ``apply_inverse``; the row
     clamp; the step bound (``max_step`` after an untimed evaluation at the same positions, whose SDF query it
-    reuses, as in the solver); and the bare spring pass. Each part alone runs on colder caches than inside
-    the loop, so the parts may add up to more than an iteration."""
+    reuses, as in the solver); and the bare spring pass. The solver's own vector updates and energy checks
+    are not among the parts."""
     mesh, model, x = settled_state(args, pattern, sdf, target)
     settings = SolveSettings(rtol=0.0, atol=0.0)
     stretch = model.term(Effect.STRETCH.value)
