@@ -32,7 +32,8 @@ in the same process, with ``torch.set_num_threads(--threads)``:
 ``--parts`` also times, at about 30K vertices on one settled state, each part of an iteration as the solver
 calls it (see :func:`parts`): the model's value and gradient, its value, gradient and diagonal with the
 elastic diagonal fresh or reused, the preconditioner's full rebuild and its update of the volatile rows, its
-application, the row clamp and the step bound; and their sum in each regime, against the bare spring pass.
+application, the row clamp and the step bound, each against the bare spring pass (the solver's own vector
+updates and energy checks are not among them).
 
 All measurements are interleaved over ``--rounds`` rounds so that a varying machine load affects them alike.
 Times are medians, ``*_min`` minima (the best estimate on a shared machine); ratios are against the baseline
