@@ -22,7 +22,8 @@ resolution: the anny size-12 body (13,348 vertices), the GarmentCode mean bodies
 nearest vertex; skipped when the data is absent) and the procedural creatures ``creature-10k`` (6 cm) and
 ``creature-50k`` (10 m), which intersect themselves and are not closed. Drapes are cached under ``--cache``.
 ``--profile`` adds, per pair, the self seconds by stage (cProfile, so with its overhead; :data:`STAGES`): CCD
-(the collision-free step), broad phase and the avatar's culling, sparse factorization, linear solves (the
+(the collision-free step), broad phase and the avatar's culling (with the garment-avatar BVH queries and
+every Warp launch), sparse factorization, linear solves (the
 preconditioned CG's triangular solves), Hessian assembly, barrier values and gradients, line search, the rest;
 and the top functions by self time.
 """
@@ -105,7 +106,8 @@ MESSY_AVATARS = ("anny-12", "mean_female", "mean_male", "creature-10k", "creatur
 #: cProfile function-name fragments -> stage (first match wins)
 STAGES = (
     ("ccd", ("collision_free", "stepsize")),
-    ("broad_phase_and_culling", ("ipctk.build", "_recull", "_set_subset", "BroadPhase", "Candidates")),
+    ("broad_phase_and_culling", ("ipctk.build", "_recull", "_set_subset", "BroadPhase", "Candidates",
+                                 "obstacle_pairs", "ipctk.detect", "warp/_src")),
     ("factorization", ("gstrf", "splu", "factorize", "cvxopt.cholmod.numeric", "cvxopt.cholmod.symbolic")),
     ("linear_solves", ("SuperLU", "pcg", "minres", "csr_matvec", "spsolve", "cvxopt.cholmod.solve")),
     ("hessian_assembly", ("ipctk.hessian", "hessian", "unweighted_blocks", "to_sparse", "CSRAssembler")),

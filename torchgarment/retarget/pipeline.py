@@ -84,15 +84,19 @@ class RetargetSettings:
         al_lambda: initial augmented-Lagrangian stiffness per unit garment area.
         check_shrink: check that the shrunk avatar does not touch the garment (Step 1).
         curves_from_boundaries: preserve the garment boundary loops' curvature and torsion.
-        broad_phase: ipctk broad phase (:class:`~torchgarment.sim.contact.BroadPhase` or an ipctk class name).
+        broad_phase: ipctk broad phase (:class:`~torchgarment.sim.contact.BroadPhase` or an ipctk class
+            name) of the garment's own pairs and the intersection checks; the garment-avatar pairs come from
+            BVHs over the avatar queried by the garment
+            (:class:`~torchgarment.sim.obstacle_pairs.GarmentObstaclePairs`).
         stiffness_scale: IPC's adaptive barrier stiffness (ipctk.initial_barrier_stiffness) gets the mean
             garment vertex area times this as its "average mass": the lower bound of kappa grows with it.
             The energies here are areas (m^2, dimensionless densities), so kappa ~ area / dhat^2 balances
             them; 100 keeps pairs well apart (about 0.1 dhat at least under the fit's pull).
-        cull_radius: the contact's collision mesh keeps the avatar faces within this distance of the garment
-            (exact: re-culled after half of it of motion, see :class:`~torchgarment.sim.contact.
-            MovingObstacleContact`); None keeps the
-            whole avatar (slower broad phase on large or subdivided avatars).
+        cull_radius: when given, the contact's collision mesh keeps the avatar faces within this distance of
+            the garment (exact: re-culled after half of it of motion, see :class:`~torchgarment.sim.contact.
+            MovingObstacleContact`); None (default) keeps the whole avatar. Culling paid off when ipctk's
+            broad phase traversed the avatar's own overlaps; the garment-avatar BVH queries never do, and
+            re-culling then costs more than it saves (``README.md``, retargeting).
         threads: torch's intra-op threads and ipctk's threads during the run (both restored afterwards); None
             keeps the current numbers. The per-element work is many small tensor ops, for which one thread is
             fastest (measured: 2 threads were 2-3x slower on a loaded 2-core machine). With one ipctk thread a
@@ -123,7 +127,7 @@ class RetargetSettings:
     curves_from_boundaries: bool = True
     broad_phase: BroadPhase | str = BroadPhase.LBVH
     stiffness_scale: float = 100.0
-    cull_radius: float | None = 0.06
+    cull_radius: float | None = None
     threads: int | None = 1
     sparse_backend: SparseBackend | str = SparseBackend.SUPERLU
 

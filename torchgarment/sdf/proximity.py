@@ -209,6 +209,7 @@ def _kernels() -> dict[str, object]:
             best = wp.min(best, wp.dot(d, d))
         distance[i] = wp.sqrt(best)
 
+    _KERNELS["closest_on_triangle"] = closest_on_triangle  # a wp.func, shared with sim.obstacle_pairs
     _KERNELS["query"] = query
     _KERNELS["near"] = near
     _KERNELS["normals"] = normals

@@ -40,6 +40,7 @@ from scipy.sparse.csgraph import connected_components
 from torchgarment.errors import InputError, MeshError
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
+from torchgarment.sim.obstacle_pairs import GarmentObstaclePairs
 
 
 class StepBound(OptionEnum):
@@ -184,11 +185,25 @@ def _energy_or_inf(e: float) -> float:
     return math.inf if math.isnan(e) else e
 
 
+def build_collisions(
+    mesh: "ipctk.CollisionMesh", xn: np.ndarray, dhat: float, broad_phase: BroadPhase | GarmentObstaclePairs
+) -> "ipctk.NormalCollisions":
+    """ipctk's collision set of the pairs of ``mesh`` closer than ``dhat`` at positions ``xn`` (Fortran
+    (V, 3)), with candidates from ipctk's ``broad_phase`` or from a :class:`GarmentObstaclePairs` (which
+    numbers ``mesh``)."""
+    col = ipctk.NormalCollisions()
+    if isinstance(broad_phase, GarmentObstaclePairs):
+        col.build(broad_phase.candidates(xn, 0.5 * float(dhat)), mesh, xn, float(dhat), 0.0)
+    else:
+        col.build(mesh, xn, float(dhat), 0.0, broad_phase.make())
+    return col
+
+
 def minimum_distance(
     mesh: "ipctk.CollisionMesh",
     xn: np.ndarray,
     max_distance: float,
-    broad_phase: BroadPhase,
+    broad_phase: BroadPhase | GarmentObstaclePairs,
     collisions: "ipctk.NormalCollisions | None" = None,
 ) -> float:
     """Smallest distance between (non-filtered) primitives of ``mesh`` at positions ``xn`` (Fortran (V, 3)),
@@ -196,8 +211,7 @@ def minimum_distance(
     collision set already built within ``max_distance`` at ``xn`` (saves the query)."""
     col = collisions
     if col is None:
-        col = ipctk.NormalCollisions()
-        col.build(mesh, xn, float(max_distance), 0.0, broad_phase.make())
+        col = build_collisions(mesh, xn, max_distance, broad_phase)
     if len(col) == 0:
         return math.inf
     return math.sqrt(max(float(col.compute_minimum_distance(mesh, xn)), 0.0))
@@ -208,7 +222,7 @@ def collision_free_step(
     x0: np.ndarray,
     x1: np.ndarray,
     method: StepBound,
-    broad_phase: BroadPhase,
+    broad_phase: BroadPhase | GarmentObstaclePairs,
     *,
     reach: float,
     dhat: float,
@@ -222,7 +236,8 @@ def collision_free_step(
 
     Args:
         mesh: the ipctk collision mesh. x0, x1: (V, 3) Fortran-ordered positions at alpha = 0 and 1.
-        method: :class:`StepBound`. broad_phase: :class:`BroadPhase`.
+        method: :class:`StepBound`. broad_phase: :class:`BroadPhase`, or the :class:`GarmentObstaclePairs`
+            that numbers ``mesh``.
         reach: upper bound of how much the distance of any pair can shrink over the whole step (units of x):
             every point of a primitive moves by at most its vertices' largest displacement along a linear
             step, so ``2 max|dx|`` for self-contact (``M_g + max(M_g, M_a)`` with a moving obstacle); 0: no
@@ -245,15 +260,17 @@ def collision_free_step(
         else:
             d = minimum_distance(mesh, x0, r, broad_phase)
         return min(1.0, safety * min(d, r) / reach)
-    cand = ipctk.Candidates()
-    cand.build(mesh, x0, x1, 0.0, broad_phase.make())
-    if cand.empty():
-        return 1.0
     narrow = (
         ipctk.AdditiveCCD(conservative_rescaling=0.9)
         if method is StepBound.ADDITIVE
         else ipctk.TightInclusionCCD(tolerance=ccd_tolerance, conservative_rescaling=0.8)
     )
+    if isinstance(broad_phase, GarmentObstaclePairs):
+        return broad_phase.collision_free_stepsize(mesh, x0, x1, narrow)
+    cand = ipctk.Candidates()
+    cand.build(mesh, x0, x1, 0.0, broad_phase.make())
+    if cand.empty():
+        return 1.0
     return float(cand.compute_collision_free_stepsize(mesh, x0, x1, 0.0, narrow))
 
 
@@ -701,6 +718,10 @@ class MovingObstacleContact:
     energy is ``kappa * sum_k b(d_k)`` with ipctk's barrier on squared distances,
     ``b = -(d^2 - dhat^2)^2 ln(d^2 / dhat^2)`` (no area weighting), and kappa (:attr:`stiffness`) chosen
     adaptively (:meth:`initial_stiffness`, :meth:`update_stiffness`). Lengths are in the units of ``x``.
+    Candidate pairs come from a :class:`~torchgarment.sim.obstacle_pairs.GarmentObstaclePairs`
+    (:attr:`pairs`): the garment's own by ipctk's ``broad_phase``, the garment-obstacle ones by BVHs over the
+    obstacle queried by the garment, so the obstacle's own overlaps are never traversed (the barrier, the
+    step bounds, the distance queries; the intersection check keeps ipctk's broad phase).
 
     This is the numpy-level machinery (positions in, floats and arrays out); the retargeting's
     :class:`~torchgarment.retarget.objectives.Contact` is the :class:`EnergyTerm` built on it.
@@ -710,7 +731,8 @@ class MovingObstacleContact:
         obstacle_full: (A, 3) obstacle at t = 1. obstacle_faces: (G, 3) int.
         obstacle_shrunk: (A, 3) obstacle at t = 0, or None (fixed obstacle).
         dhat: activation distance. stiffness: initial kappa.
-        broad_phase: :class:`BroadPhase` (or an ipctk class name such as "LBVH").
+        broad_phase: :class:`BroadPhase` (or an ipctk class name such as "LBVH") of the garment-garment pairs
+            and of the intersection check.
         cull_radius: when given (>= 4 dhat), the collision mesh keeps only the obstacle faces that may lie
             within
             this distance of the garment (see :meth:`_recull`), re-culled whenever the garment or the obstacle
@@ -777,9 +799,12 @@ class MovingObstacleContact:
         self._full = self._full_all[verts]
         self.delta = self._delta_all[verts]
         self._shrunk = self._shrunk_all[verts]
-        allf = np.asfortranarray(np.concatenate([self._gf, af + n]), dtype=np.int32)
+        #: the candidate pairs' finder; it numbers :attr:`mesh`
+        self.pairs = GarmentObstaclePairs(
+            self._garment_rest, self._gf, af, verts.shape[0], self.broad_phase.make
+        )
         rest = np.asfortranarray(np.concatenate([self._garment_rest, self._full]))
-        self.mesh = ipctk.CollisionMesh(rest, ipctk.edges(allf), allf)
+        self.mesh = ipctk.CollisionMesh(rest, self.pairs.mesh_edges(), self.pairs.mesh_faces())
         self.mesh.can_collide = ipctk.make_static_obstacle_filter(n)
         self._faces = faces
         self._cache_key: bytes | None = None
@@ -876,8 +901,7 @@ class MovingObstacleContact:
         key = xa.tobytes()
         if self._cache_key == key:
             return self._cache_col
-        col = ipctk.NormalCollisions()
-        col.build(self.mesh, xa, self.dhat, 0.0, self.broad_phase.make())
+        col = build_collisions(self.mesh, xa, self.dhat, self.pairs)
         self._cache_key, self._cache_col = key, col
         return col
 
@@ -896,7 +920,7 @@ class MovingObstacleContact:
         n = self.num_garment
         gt = float((g[n:] * self.delta).sum()) if self.uses_t else 0.0
         self.last_stats = ContactStats(
-            len(col), minimum_distance(self.mesh, xa, self.dhat, self.broad_phase, col)
+            len(col), minimum_distance(self.mesh, xa, self.dhat, self.pairs, col)
         )
         return e, g[:n], gt
 
@@ -998,7 +1022,7 @@ class MovingObstacleContact:
             X0,
             X1,
             method,
-            self.broad_phase,
+            self.pairs,
             reach=mg + max(mg, ma),
             dhat=self.dhat,
             safety=0.8,
@@ -1010,20 +1034,12 @@ class MovingObstacleContact:
         garment fixed keep every pair at least ``min_distance`` apart?"""
         x0 = self.positions(x, t0)
         x1 = self.positions(x, t1)
-        return bool(
-            ipctk.is_step_collision_free(
-                self.mesh,
-                x0,
-                x1,
-                float(min_distance),
-                self.broad_phase.make(),
-                ipctk.TightInclusionCCD(tolerance=1e-6, conservative_rescaling=0.8),
-            )
-        )
+        ccd = ipctk.TightInclusionCCD(tolerance=1e-6, conservative_rescaling=0.8)
+        return self.pairs.is_step_collision_free(self.mesh, x0, x1, float(min_distance), ccd)
 
     def min_distance(self, x: torch.Tensor | np.ndarray, t: float, max_distance: float) -> float:
         """Smallest garment-self / garment-obstacle distance within ``max_distance`` (+inf if none)."""
-        return minimum_distance(self.mesh, self.positions(x, t), float(max_distance), self.broad_phase)
+        return minimum_distance(self.mesh, self.positions(x, t), float(max_distance), self.pairs)
 
     def has_intersections(self, x: torch.Tensor | np.ndarray, t: float) -> bool:
         """Whether garment triangles cross each other or the obstacle (obstacle-obstacle crossings
