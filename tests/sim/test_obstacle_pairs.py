@@ -146,7 +146,22 @@ def test_far_garment_has_no_pairs(sc: dict) -> None:
     x = np.asfortranarray(x)
     cand = sc["pairs"].candidates(x, DHAT / 2)
     assert all(c.vertex_id < n and c.face_id < sc["gf"].shape[0] for c in cand.fv_candidates)
+    ne = sc["pairs"].garment_edges.shape[0]
+    assert all(c.edge0_id < ne and c.edge1_id < ne for c in cand.ee_candidates)
     x1 = x.copy()
     x1[:n] += [0.01, 0.0, 0.0]
     ccd = ipctk.AdditiveCCD(conservative_rescaling=0.9)
     assert sc["pairs"].collision_free_stepsize(sc["mesh"], x, np.asfortranarray(x1), ccd) == 1.0
+
+
+def test_out_of_range_faces_are_refused() -> None:
+    """A face naming a vertex outside its mesh is one clear MeshError (the kernels do not check bounds)."""
+    from torchgarment.errors import MeshError
+
+    s = _scene()
+    bad = s["of"].copy()
+    bad[0, 0] = s["ov"].shape[0]
+    with pytest.raises(MeshError, match="obstacle faces index vertices outside"):
+        GarmentObstaclePairs(s["gv"], s["gf"], bad, s["ov"].shape[0], ipctk.LBVH)
+    with pytest.raises(MeshError, match="garment faces index vertices outside"):
+        GarmentObstaclePairs(s["gv"], s["gf"] - 1, s["of"], s["ov"].shape[0], ipctk.LBVH)

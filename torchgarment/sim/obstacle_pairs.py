@@ -41,6 +41,7 @@ from collections.abc import Callable
 import ipctk
 import numpy as np
 
+from torchgarment.errors import MeshError
 from torchgarment.sdf.proximity import _kernels as _proximity_kernels
 from torchgarment.warp_runtime import import_warp
 
@@ -243,6 +244,8 @@ class _ObstacleTree:
 class GarmentObstaclePairs:
     """Collision candidates of a garment (against itself and an obstacle) for a garment-then-obstacle mesh.
 
+    Raises :class:`~torchgarment.errors.MeshError` when a face indexes a vertex outside its mesh.
+
     Args:
         garment_rest: (N, 3) garment rest positions (the garment-only collision mesh's adjacency).
         garment_faces: (F, 3) int, garment vertex ids 0..N-1.
@@ -264,12 +267,17 @@ class GarmentObstaclePairs:
         self.num_garment = int(garment_rest.shape[0])
         self.num_obstacle = int(num_obstacle)
         self.garment_faces = np.asfortranarray(_int32(garment_faces, 3))
+        of = _int32(obstacle_faces, 3)
+        # the Warp kernels index positions without bounds checks: refuse out-of-range faces here
+        for name, f, nv in (("garment", self.garment_faces, self.num_garment),
+                            ("obstacle", of, self.num_obstacle)):
+            if f.size and (int(f.min()) < 0 or int(f.max()) >= nv):
+                raise MeshError(f"{name} faces index vertices outside [0, {nv})")
         self.garment_edges = np.asfortranarray(_int32(ipctk.edges(self.garment_faces), 2))
         #: the garment alone (its own pairs' CCD)
         self.garment_mesh = ipctk.CollisionMesh(
             np.asfortranarray(garment_rest, dtype=np.float64), self.garment_edges, self.garment_faces
         )
-        of = _int32(obstacle_faces, 3)
         oe = _int32(ipctk.edges(np.asfortranarray(of)), 2) if of.shape[0] else np.zeros((0, 2), np.int32)
         self.obstacle_faces, self.obstacle_edges = of, oe
         self.broad_phase = broad_phase
@@ -320,7 +328,8 @@ class GarmentObstaclePairs:
         self, x0: np.ndarray, x1: np.ndarray, inflation: float
     ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Garment-obstacle pairs by kind: (garment primitive ids, obstacle primitive ids), each within reach
-        (2 ``inflation``) plus twice its motion from ``x0`` to ``x1`` ((N + A, 3) each)."""
+        (2 ``inflation``) plus 1.25 times its relative vertex displacement from ``x0`` to ``x1`` ((N + A, 3)
+        each; see the module docstring)."""
         wp, k = self._wp, _kernels()
         n, cpu = self.num_garment, "cpu"
         static = x1 is x0
@@ -379,10 +388,10 @@ class GarmentObstaclePairs:
         return cand
 
     def _split_motion(
-        self, mesh: ipctk.CollisionMesh, x0: np.ndarray, x1: np.ndarray, min_distance: float
+        self, x0: np.ndarray, x1: np.ndarray, min_distance: float
     ) -> tuple[ipctk.Candidates, ipctk.Candidates, np.ndarray, np.ndarray]:
-        """The garment's own CCD candidates (on :attr:`garment_mesh`) and the garment-obstacle ones (on
-        ``mesh``), with the garment's positions."""
+        """The garment's own CCD candidates (on :attr:`garment_mesh`) and the garment-obstacle ones (on the
+        garment-then-obstacle mesh), with the garment's positions."""
         n = self.num_garment
         x0 = np.ascontiguousarray(x0, dtype=np.float64)
         x1 = np.ascontiguousarray(x1, dtype=np.float64)
@@ -399,7 +408,7 @@ class GarmentObstaclePairs:
     ) -> float:
         """ipctk's CCD step size (min over the candidates) along ``x0`` -> ``x1`` ((N + A, 3) Fortran
         positions of ``mesh``), the garment's own pairs and the garment-obstacle pairs queried apart."""
-        own, cross, g0, g1 = self._split_motion(mesh, x0, x1, 0.0)
+        own, cross, g0, g1 = self._split_motion(x0, x1, 0.0)
         alpha = 1.0
         if not own.empty():
             alpha = float(own.compute_collision_free_stepsize(self.garment_mesh, g0, g1, 0.0, narrow_phase))
@@ -417,7 +426,7 @@ class GarmentObstaclePairs:
     ) -> bool:
         """ipctk's ``is_step_collision_free`` along ``x0`` -> ``x1``: every pair stays ``min_distance``
         apart."""
-        own, cross, g0, g1 = self._split_motion(mesh, x0, x1, min_distance)
+        own, cross, g0, g1 = self._split_motion(x0, x1, min_distance)
         return bool(
             own.is_step_collision_free(self.garment_mesh, g0, g1, min_distance, narrow_phase)
             and cross.is_step_collision_free(mesh, x0, x1, min_distance, narrow_phase)
