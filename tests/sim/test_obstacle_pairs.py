@@ -124,9 +124,89 @@ def test_step_bounds_match_ipctk(sc: dict, narrow: str) -> None:
     assert min(alphas) < 0.05 and max(alphas) > 0.5  # the cases block hard and hardly
 
 
-def test_step_free_matches_ipctk(sc: dict) -> None:
-    """``is_step_collision_free`` with a minimum distance, for steps that keep it and steps that break it."""
+def test_additive_bound_is_a_lower_bound(sc: dict) -> None:
+    """Every garment-obstacle pair's rescaled first advancement is at most the time ipctk's additive CCD
+    reports for it (pairs whose bound exceeds the running minimum can be skipped), and the bound is not slack
+    by orders of magnitude (it prunes)."""
+    from torchgarment.sim.obstacle_pairs import _EDGE_EDGE, _FACE_VERTEX, _VERTEX_FACE
+
+    pairs, n = sc["pairs"], sc["n"]
+    ccd = ipctk.AdditiveCCD(conservative_rescaling=0.9)
+    x0, x1 = _moved(sc, 0.0), _moved(sc, 1.5)
+    c = pairs._cross(x0, x1, 0.0)
+    g0, g1, a0, a1 = x0[:n], x1[:n], x0[n:], x1[n:]
+    hits, ratios = 0, []
+    for kind, (ii, jj, adv) in c.items():
+        assert ii.shape[0] > 0
+        for i, j, b in zip(ii, jj, 0.9 * adv):
+            if kind == _VERTEX_FACE:
+                f = pairs.obstacle_faces[j]
+                hit, toi = ccd.point_triangle_ccd(g0[i], *a0[f], g1[i], *a1[f])
+            elif kind == _FACE_VERTEX:
+                f = pairs.garment_faces[i]
+                hit, toi = ccd.point_triangle_ccd(a0[j], *g0[f], a1[j], *g1[f])
+            else:
+                e, o = pairs.garment_edges[i], pairs.obstacle_edges[j]
+                hit, toi = ccd.edge_edge_ccd(*g0[e], *a0[o], *g1[e], *a1[o])
+            assert kind in (_VERTEX_FACE, _FACE_VERTEX, _EDGE_EDGE)
+            if hit:
+                hits += 1
+                assert toi >= b * (1.0 - 1e-12)
+                ratios.append(toi / b)
+            else:
+                assert b > 0.0
+    assert hits > 50 and np.median(ratios) < 3.0
+
+
+def test_pruned_additive_step_matches_ipctk(sc: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With small batches (several rounds of the lowest bounds) the additive step size is still ipctk's, and
+    fewer garment-obstacle pairs than found are handed to the narrow phase."""
+    import torchgarment.sim.obstacle_pairs as op
+
+    monkeypatch.setattr(op, "CCD_BATCH", 2)
     mesh, pairs = sc["mesh"], sc["pairs"]
+    queried = []
+    real = pairs._cross_candidates
+
+    def spy(c: dict, select: dict | None = None) -> tuple[list, list]:
+        ee, fv = real(c, select)
+        queried.append(len(ee) + len(fv))
+        return ee, fv
+
+    monkeypatch.setattr(pairs, "_cross_candidates", spy)
+    ccd = ipctk.AdditiveCCD(conservative_rescaling=0.9)
+    rounds = []
+    for s1 in (0.2, 1.5, 3.0):
+        x0, x1 = _moved(sc, 0.0), _moved(sc, s1)
+        ref = ipctk.Candidates()
+        ref.build(mesh, x0, x1, 0.0, ipctk.LBVH())
+        queried.clear()
+        a = pairs.collision_free_stepsize(mesh, x0, x1, ccd)
+        a_ref = ref.compute_collision_free_stepsize(mesh, x0, x1, 0.0, ccd)
+        assert a == pytest.approx(a_ref, rel=1e-12, abs=0)
+        found = sum(v[0].shape[0] for v in pairs._cross(x0, x1, 0.0).values())
+        assert sum(queried) < found
+        rounds.append(len(queried))
+    assert max(rounds) >= 2
+
+
+@pytest.mark.parametrize("batch, reverse", [(4096, False), (8, False), (8, True)])
+def test_step_free_matches_ipctk(
+    sc: dict, batch: int, reverse: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``is_step_collision_free`` with a minimum distance, for steps that keep it and steps that break it
+    (garment-obstacle pairs in one batch or in many; ``reverse``: the likeliest pairs last)."""
+    import torchgarment.sim.obstacle_pairs as op
+
+    monkeypatch.setattr(op, "CCD_BATCH", batch)
+    mesh, pairs = sc["mesh"], sc["pairs"]
+    if reverse:
+        cross = pairs._cross
+
+        def reversed_cross(*args: object) -> dict:
+            return {k: (i, j, -adv) for k, (i, j, adv) in cross(*args).items()}
+
+        monkeypatch.setattr(pairs, "_cross", reversed_cross)
     ccd = ipctk.TightInclusionCCD(tolerance=1e-6, conservative_rescaling=0.8)
     seen = set()
     cases = [(0.0, 0.03, 0.02 * DHAT), (0.0, 0.3, 0.1 * DHAT), (0.0, 0.01, 1e-4 * DHAT),
@@ -165,3 +245,55 @@ def test_out_of_range_faces_are_refused() -> None:
         GarmentObstaclePairs(s["gv"], s["gf"], bad, s["ov"].shape[0], ipctk.LBVH)
     with pytest.raises(MeshError, match="garment faces index vertices outside"):
         GarmentObstaclePairs(s["gv"], s["gf"] - 1, s["of"], s["ov"].shape[0], ipctk.LBVH)
+
+
+#: a garment edge and an avatar edge 4.2e-11 apart that pass through each other at t = 0.34 of a linear step
+#: (captured from the inflation of a layered T-shirt on creature-50k, canonical frame); ipctk's additive CCD
+#: with its default 1e7 steps drifts past the crossing and reports no collision
+_CROSSING_EDGES = np.array([
+    [[-0.09600990444098724, 1.4917722921659375, 0.0246562109769964],
+     [-0.09637109531072587, 1.513994115570442, -0.02425210608567061],
+     [-0.09082336058485568, 1.492230078734339, -0.0009545100829563107],
+     [-0.10217800234769726, 1.5112290733177496, 0.009552900095384363]],
+    [[-0.09608391148330563, 1.4917987221987183, 0.02471867349677727],
+     [-0.09644549621208785, 1.5140617057403085, -0.024280243033869435],
+     [-0.09085818124231193, 1.49220634644835, -0.0009625716601609803],
+     [-0.10221625333426775, 1.5112114586104397, 0.009546547349769077]],
+])
+
+
+def test_slow_crossing_pair_is_caught() -> None:
+    """The crossing edge pair above, each edge in its own triangle (the garment's and the avatar's, their
+    third vertices moving along): the step bound (additive CCD capped at ADDITIVE_MAX_ITERATIONS steps) stops
+    before the crossing, where ipctk's additive CCD with its default 1e7 steps does not."""
+    from torchgarment.sim.contact import ADDITIVE_MAX_ITERATIONS
+
+    (a0, a1, b0, b1), (a0e, a1e, b0e, b1e) = _CROSSING_EDGES
+    ts = np.linspace(0.0, 1.0, 2001)
+    gap = [_segment_distance(*(e + t * (f - e) for e, f in ((a0, a0e), (a1, a1e), (b0, b0e), (b1, b1e))))
+           for t in ts]
+    t_cross = float(ts[int(np.argmin(gap))])
+    assert 0.3 < t_cross < 0.4 and min(gap) < 1e-12 < 1e-11 < min(gap[0], gap[-1])
+    up = np.array([0.0, 0.0, 0.05])
+    side = np.array([0.05, 0.0, 0.0])
+    x0 = np.asfortranarray([a0, a1, (a0 + a1) / 2 + up, b0, b1, (b0 + b1) / 2 - side])
+    x1 = np.asfortranarray([a0e, a1e, (a0e + a1e) / 2 + up, b0e, b1e, (b0e + b1e) / 2 - side])
+    tri = np.array([[0, 1, 2]], np.int32)
+    pairs = GarmentObstaclePairs(x0[:3], tri, tri, 3, ipctk.LBVH)
+    mesh = ipctk.CollisionMesh(x0, pairs.mesh_edges(), pairs.mesh_faces())
+    mesh.can_collide = ipctk.make_static_obstacle_filter(3)
+    ref = ipctk.Candidates()
+    ref.build(mesh, x0, x1, 0.0, ipctk.LBVH())
+    default_additive = ipctk.AdditiveCCD(conservative_rescaling=0.9)  # 1e7 steps
+    assert ref.compute_collision_free_stepsize(mesh, x0, x1, 0.0, default_additive) > 0.99
+    additive = ipctk.AdditiveCCD(max_iterations=ADDITIVE_MAX_ITERATIONS, conservative_rescaling=0.9)
+    assert 0.0 < pairs.collision_free_stepsize(mesh, x0, x1, additive) < t_cross
+
+
+def _segment_distance(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Distance of segments pq and ab (closest points by the 2x2 normal equations, clamped; the segments here
+    are far from parallel)."""
+    d1, d2, r = q - p, b - a, p - a
+    m = np.array([[d1 @ d1, -(d1 @ d2)], [-(d1 @ d2), d2 @ d2]])
+    u, v = np.clip(np.linalg.solve(m, [-(d1 @ r), d2 @ r]), 0.0, 1.0)
+    return float(np.linalg.norm(p + u * d1 - (a + v * d2)))
