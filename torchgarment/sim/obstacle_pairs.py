@@ -31,8 +31,9 @@ by its distance over a bound on how fast that distance shrinks (the vertex displ
 largest on one primitive plus the largest on the other), so it never reports a time below that advancement
 times its rescaling (0.9). The filter computes that bound for every pair; the pairs go to ipctk lowest bound
 first, :data:`CCD_BATCH` at a time, until every bound left is above the smallest time found. A long step
-of the inflation keeps 30,000-180,000 pairs within reach, of which one batch usually decides the step, so
-most of those pairs are never made into ipctk candidate objects (about 0.7 us each from Python).
+of the inflation keeps 30,000-180,000 pairs within reach, and each ipctk candidate object costs about 0.7 us
+from Python: on a T-shirt retargeted onto a GarmentCode body, making them took 2.7 s of the run instead of
+6.6 s (cProfile).
 
 Candidates refer to a collision mesh that holds the garment first and the obstacle after it, with edges
 ``[garment edges; obstacle edges]`` and faces ``[garment faces; obstacle faces]`` (:meth:`mesh_edges`,
