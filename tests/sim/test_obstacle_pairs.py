@@ -168,8 +168,8 @@ def test_pruned_additive_step_matches_ipctk(sc: dict, monkeypatch: pytest.Monkey
     queried = []
     real = pairs._cross_candidates
 
-    def spy(c: dict, select: dict | None = None) -> tuple[list, list]:
-        ee, fv = real(c, select)
+    def spy(c: dict, rows: np.ndarray | None = None) -> tuple[list, list]:
+        ee, fv = real(c, rows)
         queried.append(len(ee) + len(fv))
         return ee, fv
 

@@ -402,10 +402,11 @@ def retarget(
         # ---------------------------------------------------------------- Step 3: fit
         t0 = time.perf_counter()
         # the input avatar: at t = 1 the subdivided one is the same surface, with more pairs
+        avatar = problem.avatar_vertices.to(dt) * k
         contact3 = Contact(
             x_src,
             faces,
-            problem.avatar_vertices.to(dt) * k,
+            avatar,
             problem.avatar_faces,
             None,
             s.dhat,
@@ -423,7 +424,7 @@ def retarget(
         if s.w_fit > 0 and bool(problem.fit_mask.any()):
             ts = time.perf_counter()
             sdf = BodySDF.cached(
-                problem.avatar_vertices.to(dt) * k,
+                avatar,
                 problem.avatar_faces,
                 SDFSettings(voxel_size=s.sdf_voxel),
                 dtype=dt,

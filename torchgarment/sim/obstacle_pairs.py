@@ -402,23 +402,39 @@ class GarmentObstaclePairs:
         return out
 
     def _cross_candidates(
-        self, c: dict[int, tuple[np.ndarray, ...]], select: dict[int, np.ndarray] | None = None
+        self, c: dict[int, tuple[np.ndarray, ...]], rows: np.ndarray | None = None
     ) -> tuple[list, list]:
         """(edge-edge, face-vertex) ipctk candidates (the mesh's numbering) of the pairs ``c`` of
-        :meth:`_cross`, or of the rows ``select[kind]`` of each kind."""
+        :meth:`_cross`, or of the ``rows`` of their concatenation in kind order (:meth:`_advance`'s order)."""
         n, ne, nf = self.num_garment, self.garment_edges.shape[0], self.garment_faces.shape[0]
-
-        def ids(kind: int) -> tuple[np.ndarray, np.ndarray]:
-            i, j = c[kind][:2]
-            return (i, j) if select is None else (i[select[kind]], j[select[kind]])
-
-        i, j = ids(_VERTEX_FACE)
-        fv = list(map(ipctk.FaceVertexCandidate, (j.astype(np.int64) + nf).tolist(), i.tolist()))
-        i, j = ids(_FACE_VERTEX)
-        fv += map(ipctk.FaceVertexCandidate, i.tolist(), (j.astype(np.int64) + n).tolist())
-        i, j = ids(_EDGE_EDGE)
-        ee = list(map(ipctk.EdgeEdgeCandidate, i.tolist(), (j.astype(np.int64) + ne).tolist()))
+        start = 0
+        ids = {}
+        for kind, (i, j, _) in c.items():
+            if rows is not None:
+                sel = rows[(rows >= start) & (rows < start + i.shape[0])] - start
+                start += i.shape[0]
+                i, j = i[sel], j[sel]
+            ids[kind] = (i.tolist(), j.astype(np.int64))
+        i, j = ids[_VERTEX_FACE]
+        fv = list(map(ipctk.FaceVertexCandidate, (j + nf).tolist(), i))
+        i, j = ids[_FACE_VERTEX]
+        fv += map(ipctk.FaceVertexCandidate, i, (j + n).tolist())
+        i, j = ids[_EDGE_EDGE]
+        ee = list(map(ipctk.EdgeEdgeCandidate, i, (j + ne).tolist()))
         return ee, fv
+
+    def _cross_batch(
+        self, c: dict[int, tuple[np.ndarray, ...]], rows: np.ndarray | None = None
+    ) -> ipctk.Candidates:
+        """ipctk candidates of the pairs ``c``, or of their ``rows`` (see :meth:`_cross_candidates`)."""
+        cand = ipctk.Candidates()
+        cand.ee_candidates, cand.fv_candidates = self._cross_candidates(c, rows)
+        return cand
+
+    @staticmethod
+    def _advance(c: dict[int, tuple[np.ndarray, ...]]) -> np.ndarray:
+        """The first advancements of the pairs ``c`` of :meth:`_cross`, concatenated in kind order."""
+        return np.concatenate([adv for _, _, adv in c.values()])
 
     def _cross_stepsize(
         self,
@@ -435,17 +451,12 @@ class GarmentObstaclePairs:
         1e-9 of the primitives' size; a skipped pair cannot come closer than a tenth of its distance before
         the minimum found, whatever ipctk's distance functions say)."""
         c = self._cross(x0, x1, 0.0)
-        kinds = list(c)
-        bound = np.concatenate([narrow_phase.conservative_rescaling * c[kind][2] for kind in kinds])
-        offsets = np.cumsum([0] + [c[kind][2].shape[0] for kind in kinds])
+        bound = narrow_phase.conservative_rescaling * self._advance(c)
         pending = np.flatnonzero(bound < alpha)
         while pending.size:
             if pending.size > CCD_BATCH:
                 pending = pending[np.argpartition(bound[pending], CCD_BATCH)[:CCD_BATCH]]
-            select = {kind: pending[(pending >= lo) & (pending < hi)] - lo
-                      for kind, lo, hi in zip(kinds, offsets[:-1], offsets[1:])}
-            cand = ipctk.Candidates()
-            cand.ee_candidates, cand.fv_candidates = self._cross_candidates(c, select)
+            cand = self._cross_batch(c, pending)
             alpha = min(alpha, float(cand.compute_collision_free_stepsize(mesh, x0, x1, 0.0, narrow_phase)))
             bound[pending] = np.inf
             pending = np.flatnonzero(bound < alpha)
@@ -470,11 +481,10 @@ class GarmentObstaclePairs:
         cand.fv_candidates = fv
         return cand
 
-    def _split_motion(
-        self, x0: np.ndarray, x1: np.ndarray, min_distance: float, cross: bool = True
-    ) -> tuple[ipctk.Candidates, ipctk.Candidates, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The garment's own CCD candidates (on :attr:`garment_mesh`) and, when ``cross``, the
-        garment-obstacle ones (on the garment-then-obstacle mesh), with the garment's positions and ``x0``,
+    def _own_motion(
+        self, x0: np.ndarray, x1: np.ndarray, min_distance: float
+    ) -> tuple[ipctk.Candidates, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The garment's own CCD candidates (on :attr:`garment_mesh`), the garment's positions and ``x0``,
         ``x1`` as contiguous float64."""
         n = self.num_garment
         x0 = np.ascontiguousarray(x0, dtype=np.float64)
@@ -482,12 +492,7 @@ class GarmentObstaclePairs:
         g0, g1 = np.asfortranarray(x0[:n]), np.asfortranarray(x1[:n])
         own = ipctk.Candidates()
         own.build(self.garment_mesh, g0, g1, 0.5 * min_distance, self.broad_phase())
-        pairs = ipctk.Candidates()
-        if cross and self.num_obstacle:
-            pairs.ee_candidates, pairs.fv_candidates = self._cross_candidates(
-                self._cross(x0, x1, 0.5 * min_distance)
-            )
-        return own, pairs, g0, g1, x0, x1
+        return own, g0, g1, x0, x1
 
     def collision_free_stepsize(
         self, mesh: ipctk.CollisionMesh, x0: np.ndarray, x1: np.ndarray, narrow_phase: ipctk.NarrowPhaseCCD
@@ -496,13 +501,15 @@ class GarmentObstaclePairs:
         positions of ``mesh``), the garment's own pairs and the garment-obstacle pairs queried apart (with
         additive CCD only the garment-obstacle pairs that could lower the minimum, see
         :meth:`_cross_stepsize`)."""
-        additive = isinstance(narrow_phase, ipctk.AdditiveCCD)
-        own, cross, g0, g1, x0, x1 = self._split_motion(x0, x1, 0.0, cross=not additive)
+        own, g0, g1, x0, x1 = self._own_motion(x0, x1, 0.0)
         alpha = 1.0
         if not own.empty():
             alpha = float(own.compute_collision_free_stepsize(self.garment_mesh, g0, g1, 0.0, narrow_phase))
-        if additive:
-            return self._cross_stepsize(mesh, x0, x1, narrow_phase, alpha) if self.num_obstacle else alpha
+        if not self.num_obstacle:
+            return alpha
+        if isinstance(narrow_phase, ipctk.AdditiveCCD):
+            return self._cross_stepsize(mesh, x0, x1, narrow_phase, alpha)
+        cross = self._cross_batch(self._cross(x0, x1, 0.0))
         if not cross.empty():
             alpha = min(alpha, float(cross.compute_collision_free_stepsize(mesh, x0, x1, 0.0, narrow_phase)))
         return alpha
@@ -519,22 +526,15 @@ class GarmentObstaclePairs:
         apart. The garment's own pairs first, then the garment-obstacle pairs :data:`CCD_BATCH` at a time,
         the lowest first advancement (distance over speed bound) first, so that a step that is not free is
         usually told by the first batch."""
-        own, _, g0, g1, x0, x1 = self._split_motion(x0, x1, min_distance, cross=False)
+        own, g0, g1, x0, x1 = self._own_motion(x0, x1, min_distance)
         if not own.is_step_collision_free(self.garment_mesh, g0, g1, min_distance, narrow_phase):
             return False
         if not self.num_obstacle:
             return True
         c = self._cross(x0, x1, 0.5 * min_distance)
-        kinds = list(c)
-        advance = np.concatenate([c[kind][2] for kind in kinds])
-        offsets = np.cumsum([0] + [c[kind][2].shape[0] for kind in kinds])
-        order = np.argsort(advance, kind="stable")
+        order = np.argsort(self._advance(c), kind="stable")
         for start in range(0, order.shape[0], CCD_BATCH):
-            rows = order[start:start + CCD_BATCH]
-            select = {kind: rows[(rows >= lo) & (rows < hi)] - lo
-                      for kind, lo, hi in zip(kinds, offsets[:-1], offsets[1:])}
-            cand = ipctk.Candidates()
-            cand.ee_candidates, cand.fv_candidates = self._cross_candidates(c, select)
+            cand = self._cross_batch(c, order[start:start + CCD_BATCH])
             if not cand.is_step_collision_free(mesh, x0, x1, min_distance, narrow_phase):
                 return False
         return True
