@@ -219,6 +219,46 @@ def test_step_free_matches_ipctk(
     assert seen == {True, False}
 
 
+def _pair_set(cand: ipctk.Candidates) -> set[tuple[str, int, int]]:
+    return ({("ee", c.edge0_id, c.edge1_id) for c in cand.ee_candidates}
+            | {("fv", c.face_id, c.vertex_id) for c in cand.fv_candidates})
+
+
+def test_line_search_trials_reuse_the_step_pairs(sc: dict) -> None:
+    """After an additive step bound that keeps the pairs within dhat of the step, the candidates at points of
+    the step (computed the way a line search does, with its round-off) come from those pairs without a BVH
+    query and are the same pairs as a fresh query's; points off the step are queried afresh. The step size
+    does not change."""
+    s = _scene()
+    kept = GarmentObstaclePairs(s["gv"], s["gf"], s["of"], s["ov"].shape[0], ipctk.LBVH)
+    mesh, fresh = sc["mesh"], sc["pairs"]
+    ccd = ipctk.AdditiveCCD(conservative_rescaling=0.9)
+    x0, x1 = _moved(sc, 0.0), _moved(sc, 1.5)
+    a = kept.collision_free_stepsize(mesh, x0, x1, ccd, keep_within=DHAT)
+    assert a == fresh.collision_free_stepsize(mesh, x0, x1, ccd) and 0.0 < a < 1.0
+    p = x1 - x0
+    sizes = []
+    for alpha in (0.0, 0.37 * a, a, 1.0):
+        xt = np.asfortranarray(x0 + alpha * p)
+        before = kept.sweep_reuses
+        got = _pair_set(kept.candidates(xt, DHAT / 2))
+        assert kept.sweep_reuses == before + 1
+        want = _pair_set(fresh.candidates(xt, DHAT / 2))
+        col = ipctk.NormalCollisions()
+        col.build(kept.candidates(xt, DHAT / 2), mesh, xt, DHAT, 0.0)
+        assert len(col) == len(_reference_collisions(mesh, xt, DHAT))
+        assert got == want
+        sizes.append(len(got))
+    assert min(sizes) > 1000
+    off = x0 + 0.5 * a * p
+    off[0] += 1e-3 * DHAT
+    off = np.asfortranarray(off)
+    before = kept.sweep_reuses
+    assert _pair_set(kept.candidates(off, DHAT / 2)) == _pair_set(fresh.candidates(off, DHAT / 2))
+    assert _pair_set(kept.candidates(x0, DHAT)) == _pair_set(fresh.candidates(x0, DHAT))  # a wider reach
+    assert kept.sweep_reuses == before
+
+
 def test_far_garment_has_no_pairs(sc: dict) -> None:
     """A garment far from the obstacle (and its trees refit there) has only its own pairs."""
     n, x = sc["n"], sc["x"].copy()

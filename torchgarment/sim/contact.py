@@ -275,7 +275,7 @@ def collision_free_step(
         else ipctk.TightInclusionCCD(tolerance=ccd_tolerance, conservative_rescaling=0.8)
     )
     if isinstance(broad_phase, GarmentObstaclePairs):
-        return broad_phase.collision_free_stepsize(mesh, x0, x1, narrow)
+        return broad_phase.collision_free_stepsize(mesh, x0, x1, narrow, keep_within=dhat)
     cand = ipctk.Candidates()
     cand.build(mesh, x0, x1, 0.0, broad_phase.make())
     if cand.empty():

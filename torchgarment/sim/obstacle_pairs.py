@@ -35,6 +35,13 @@ of the inflation keeps 30,000-180,000 pairs within reach, and each ipctk candida
 from Python: on a T-shirt retargeted onto a GarmentCode body, making them took 2.7 s of the run instead of
 6.6 s (cProfile).
 
+A line search's trial points lie on the step whose size the additive CCD bounded. With ``keep_within`` (the
+barrier's dhat) that query also keeps every garment-obstacle pair that may come within dhat anywhere on the
+step, and the collision sets at the trial points (and so at the accepted point, whose gradient and Hessian
+reuse its set) are filtered from those pairs instead of querying the BVHs again
+(:meth:`GarmentObstaclePairs._on_sweep`): one BVH traversal per Newton iteration instead of one per
+evaluation, and the same pairs.
+
 Candidates refer to a collision mesh that holds the garment first and the obstacle after it, with edges
 ``[garment edges; obstacle edges]`` and faces ``[garment faces; obstacle faces]`` (:meth:`mesh_edges`,
 :meth:`mesh_faces`); ipctk's ``NormalCollisions.build(candidates, ...)`` and CCDs do the narrow phases.
@@ -62,6 +69,10 @@ _LOCK = threading.Lock()
 #: (:meth:`GarmentObstaclePairs._cross_stepsize`)
 CCD_BATCH = 4096
 
+
+#: relative widening of a kept step's reach (:meth:`GarmentObstaclePairs.collision_free_stepsize`'s
+#: ``keep_within``): covers the round-off by which a line search's trial point leaves the step
+SWEEP_MARGIN = 1e-9
 
 #: kinds of garment-obstacle pairs: (garment primitive, obstacle primitive)
 _VERTEX_FACE, _FACE_VERTEX, _EDGE_EDGE = 0, 1, 2
@@ -339,6 +350,11 @@ class GarmentObstaclePairs:
         self._rebuild_distance = math.inf  # a tenth of the obstacle's box diagonal, set on the first build
         self._built_at: np.ndarray | None = None
         self._last_key: tuple[bytes, bytes, float] | None = None
+        #: the last additive CCD's step (x0, x1 - x0, its garment-obstacle pairs, their reach), see
+        #: :meth:`collision_free_stepsize`'s ``keep_within``
+        self._sweep: tuple[np.ndarray, np.ndarray, dict[int, tuple[np.ndarray, ...]], float] | None = None
+        #: :meth:`candidates` calls served from the last step's pairs (no BVH query)
+        self.sweep_reuses = 0
 
     def mesh_edges(self) -> np.ndarray:
         """(Eg + Ea, 2) int32 Fortran edges of the collision mesh the candidates refer to."""
@@ -367,13 +383,20 @@ class GarmentObstaclePairs:
             self._built_at = a0.copy()
         self._last_key = key
 
-    def _cross(self, x0: np.ndarray, x1: np.ndarray, inflation: float) -> dict[int, tuple[np.ndarray, ...]]:
+    def _cross(
+        self,
+        x0: np.ndarray,
+        x1: np.ndarray,
+        inflation: float,
+        hits: dict[int, tuple[np.ndarray, ...]] | None = None,
+    ) -> dict[int, tuple[np.ndarray, ...]]:
         """Garment-obstacle pairs by kind: (garment primitive ids, obstacle primitive ids, first advancement),
         each within reach (2 ``inflation``) plus 1.25 times its relative vertex
         displacement from ``x0`` to ``x1`` ((N + A, 3) each; see the module docstring). The first
         advancement (float64) is the pair's distance at ``x0`` over ipctk's additive-CCD speed bound (the
         displacements less their mean: the largest on one primitive plus the largest on the other); 0 for
-        touching pairs, 1e300 for pairs that do not move relative to each other."""
+        touching pairs, 1e300 for pairs that do not move relative to each other. ``hits``: pairs by kind (the
+        first two entries of each) to filter instead of the BVH queries' (a superset of theirs)."""
         wp, k = self._wp, _kernels()
         n, cpu = self.num_garment, "cpu"
         static = x1 is x0
@@ -382,14 +405,15 @@ class GarmentObstaclePairs:
         a0 = wp.array(x0[n:], dtype=wp.vec3d, device=cpu)
         a1 = a0 if static else wp.array(x1[n:], dtype=wp.vec3d, device=cpu)
         r = float(inflation)
-        self._refit(x0[n:], x1[n:], a0, a1, r)
+        if hits is None:
+            self._refit(x0[n:], x1[n:], a0, a1, r)
         out = {}
         for kind, tree in self._trees.items():
             gi = self._garment[kind]
             if not tree.size or not gi.shape[0]:
                 out[kind] = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0))
                 continue
-            i, j = tree.query(g0, g1, gi, r)
+            i, j = tree.query(g0, g1, gi, r) if hits is None else hits[kind][:2]
             keep = wp.empty(i.shape[0], dtype=wp.int8, device=cpu)
             advance = wp.empty(i.shape[0], dtype=wp.float64, device=cpu)
             if i.shape[0]:
@@ -443,14 +467,21 @@ class GarmentObstaclePairs:
         x1: np.ndarray,
         narrow_phase: ipctk.AdditiveCCD,
         alpha: float,
+        keep_within: float,
     ) -> float:
         """min(``alpha``, the additive CCD's step size over the garment-obstacle pairs), querying only the
         pairs whose lower bound (the rescaled first advancement) is below the running minimum, the lowest
         :data:`CCD_BATCH` first. The same minimum as all pairs: ipctk's additive CCD never reports a pair's
         time below its rescaled first advancement (computed here from the exact distance, less a relative
         1e-9 of the primitives' size; a skipped pair cannot come closer than a tenth of its distance before
-        the minimum found, whatever ipctk's distance functions say)."""
-        c = self._cross(x0, x1, 0.0)
+        the minimum found, whatever ipctk's distance functions say). With ``keep_within`` > 0 the query also
+        finds, and keeps for :meth:`candidates`, every pair that may come within ``keep_within`` on the step;
+        those extra pairs stay farther apart than 1.11 times their relative displacement, so additive CCD
+        cannot stop them and the step size is the same."""
+        r = 0.5 * keep_within * (1.0 + SWEEP_MARGIN) if keep_within > 0 else 0.0
+        c = self._cross(x0, x1, r)
+        if keep_within > 0:
+            self._sweep = (x0.copy(), x1 - x0, c, 2.0 * r)
         bound = narrow_phase.conservative_rescaling * self._advance(c)
         pending = np.flatnonzero(bound < alpha)
         while pending.size:
@@ -473,13 +504,39 @@ class GarmentObstaclePairs:
         ee = bp.detect_edge_edge_candidates()
         fv = bp.detect_face_vertex_candidates()
         if self.num_obstacle:
-            cee, cfv = self._cross_candidates(self._cross(x, x, inflation))
+            c = self._on_sweep(x, inflation)
+            cee, cfv = self._cross_candidates(self._cross(x, x, inflation) if c is None else c)
             ee += cee
             fv += cfv
         cand = ipctk.Candidates()
         cand.ee_candidates = ee
         cand.fv_candidates = fv
         return cand
+
+    def _on_sweep(self, x: np.ndarray, inflation: float) -> dict[int, tuple[np.ndarray, ...]] | None:
+        """The garment-obstacle pairs within ``2 inflation`` at ``x`` (as :meth:`_cross` of a static query),
+        filtered from the last kept step's pairs when ``x`` lies on that step (a line search's trial), else
+        None.
+
+        A point of the step, ``x0 + a (x1 - x0)`` with a in [0, 1], moves no vertex of a pair by more than
+        the pair's relative displacement over the whole step, so a pair within ``2 inflation`` there was
+        within that plus its displacement at ``x0``, which the step's query kept. ``x`` may differ from the
+        nearest point of the step by ``e`` per vertex (its round-off), which the step's wider reach covers
+        when ``2 e`` is at most the difference of the reaches.
+        """
+        if self._sweep is None:
+            return None
+        x0, d, c, reach = self._sweep
+        slack = reach - 2.0 * float(inflation)
+        if slack < 0.0 or x.shape != x0.shape:
+            return None
+        dd = float(np.einsum("ij,ij->", d, d))
+        a = 0.0 if dd == 0.0 else min(max(float(np.einsum("ij,ij->", x - x0, d)) / dd, 0.0), 1.0)
+        off = x - x0 - a * d
+        if 2.0 * math.sqrt(float(np.einsum("ij,ij->i", off, off).max(initial=0.0))) > slack:
+            return None
+        self.sweep_reuses += 1
+        return self._cross(x, x, inflation, hits=c)
 
     def _own_motion(
         self, x0: np.ndarray, x1: np.ndarray, min_distance: float
@@ -495,12 +552,22 @@ class GarmentObstaclePairs:
         return own, g0, g1, x0, x1
 
     def collision_free_stepsize(
-        self, mesh: ipctk.CollisionMesh, x0: np.ndarray, x1: np.ndarray, narrow_phase: ipctk.NarrowPhaseCCD
+        self,
+        mesh: ipctk.CollisionMesh,
+        x0: np.ndarray,
+        x1: np.ndarray,
+        narrow_phase: ipctk.NarrowPhaseCCD,
+        keep_within: float = 0.0,
     ) -> float:
         """ipctk's CCD step size (min over the candidates) along ``x0`` -> ``x1`` ((N + A, 3) Fortran
         positions of ``mesh``), the garment's own pairs and the garment-obstacle pairs queried apart (with
         additive CCD only the garment-obstacle pairs that could lower the minimum, see
-        :meth:`_cross_stepsize`)."""
+        :meth:`_cross_stepsize`).
+
+        ``keep_within`` (additive CCD; units of x): keep the garment-obstacle pairs that may come within this
+        distance anywhere on the step, so that :meth:`candidates` at points of the step (a line search's
+        trials) with ``2 inflation <= keep_within`` filters them instead of querying the BVHs; 0 keeps
+        nothing."""
         own, g0, g1, x0, x1 = self._own_motion(x0, x1, 0.0)
         alpha = 1.0
         if not own.empty():
@@ -508,7 +575,7 @@ class GarmentObstaclePairs:
         if not self.num_obstacle:
             return alpha
         if isinstance(narrow_phase, ipctk.AdditiveCCD):
-            return self._cross_stepsize(mesh, x0, x1, narrow_phase, alpha)
+            return self._cross_stepsize(mesh, x0, x1, narrow_phase, alpha, keep_within)
         cross = self._cross_batch(self._cross(x0, x1, 0.0))
         if not cross.empty():
             alpha = min(alpha, float(cross.compute_collision_free_stepsize(mesh, x0, x1, 0.0, narrow_phase)))
