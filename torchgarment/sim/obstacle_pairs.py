@@ -528,11 +528,12 @@ class GarmentObstaclePairs:
             return None
         x0, d, c, reach = self._sweep
         slack = reach - 2.0 * float(inflation)
-        if slack < 0.0 or x.shape != x0.shape:
+        if slack < 0.0:
             return None
+        off = x - x0
         dd = float(np.einsum("ij,ij->", d, d))
-        a = 0.0 if dd == 0.0 else min(max(float(np.einsum("ij,ij->", x - x0, d)) / dd, 0.0), 1.0)
-        off = x - x0 - a * d
+        a = 0.0 if dd == 0.0 else min(max(float(np.einsum("ij,ij->", off, d)) / dd, 0.0), 1.0)
+        off -= a * d
         if 2.0 * math.sqrt(float(np.einsum("ij,ij->i", off, off).max(initial=0.0))) > slack:
             return None
         self.sweep_reuses += 1
