@@ -598,3 +598,27 @@ def test_exact_curvature_cg_direction():
         SolveSettings(exact_curvature_cg=5, linear_solver="jacobi-pcg")
     with pytest.raises(InputError, match="exact_curvature_cg"):
         SolveSettings(exact_curvature_cg=-1)
+
+
+def test_energy_stall_test_restarts_when_the_model_changes() -> None:
+    """``energy_tol`` compares energies of one objective only: after ``after_step`` changes the model (IPC's
+    barrier stiffness update), the energies of the old objective leave the window. Comparing across the
+    change took the stiffer objective's higher energy for a stall and stopped far from equilibrium."""
+    from torchgarment.sim.solvers.newton import NewtonOptions, solve_newton
+
+    ref = reference(SpringNetModel(k=5000.0))
+
+    m = SpringNetModel()
+    calls = []
+
+    def stiffen(x: torch.Tensor, step: object) -> bool:
+        calls.append(step)
+        if len(calls) == 1:
+            m.k *= 100.0  # the springs dominate: the next step's energy is above the last one's
+            return True
+        return False
+
+    options = NewtonOptions(energy_tol=1e-9, energy_window=1, after_step=stiffen)
+    x, info = solve_newton(m, m.x0(), SolveSettings(rtol=1e-10), 100, options=options)
+    assert info.iterations > 2, info.message
+    assert float((x - ref).abs().max()) < 1e-5, (info.message, info.iterations)

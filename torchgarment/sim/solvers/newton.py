@@ -195,7 +195,8 @@ class NewtonOptions:
         armijo_slack: the Armijo test tolerates ``armijo_slack * eps * |E|`` (rounding of large energies).
         step_tol: stop (not converged) when the accepted step's displacement is <= this (> 0); 0 disables.
         energy_tol: stop (converged) when the energy fell by less than ``energy_tol * |E|`` over the last
-            ``energy_window`` steps; 0 disables.
+            ``energy_window`` steps; 0 disables. The window holds the energies of one objective: when
+            ``after_step`` changes the model, it starts again from the new objective's energy.
         after_step: ``after_step(x, step) -> changed``, called after every accepted step (before the
             convergence test); returning True says the model changed (e.g. a barrier stiffness update), and
             the energy and
@@ -469,8 +470,9 @@ def solve_newton(
             step = NewtonStep(k, e, gn, a, a_max, a * _displacement(o, dx))
             if o.after_step is not None and o.after_step(x, step):
                 e, g, gnt = evaluate(model, x, k, "after the step hook")
+                step_energies = []  # a new objective: the energy test compares its energies only
             gn = free_norm(g, gnt)
-            step_energies.append(step.energy)
+            step_energies.append(e)
             info.final_step = a
             info.residual_history.append(gn)
             info.energy_history.append(e)
