@@ -337,3 +337,42 @@ def _segment_distance(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray
     m = np.array([[d1 @ d1, -(d1 @ d2)], [-(d1 @ d2), d2 @ d2]])
     u, v = np.clip(np.linalg.solve(m, [-(d1 @ r), d2 @ r]), 0.0, 1.0)
     return float(np.linalg.norm(p + u * d1 - (a + v * d2)))
+
+
+def test_snap_check_skips_the_garments_own_pairs_when_it_does_not_move() -> None:
+    """A snap moves the obstacle alone: the garment's own pairs keep their distances, so two layers closer
+    than the minimum distance do not make the obstacle's move unsafe. The garment-obstacle pairs are still
+    checked, and a moving garment's own pairs too."""
+    def square(z: float, half: float, offset: int) -> tuple[np.ndarray, np.ndarray]:
+        v = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]])
+        return v, np.array([[0, 1, 2], [0, 2, 3]]) + offset
+
+    lo, flo = square(0.0, 0.05, 0)
+    hi, fhi = square(0.1 * DHAT, 0.05, 4)  # a layer 0.1 dhat above the first
+    ov, of = square(-3.0 * DHAT, 0.2, 0)
+    gv, gf = np.concatenate([lo, hi]), np.concatenate([flo, fhi]).astype(np.int32)
+    n = gv.shape[0]
+    pairs = GarmentObstaclePairs(gv, gf, of.astype(np.int32), ov.shape[0], ipctk.LBVH)
+    x0 = np.asfortranarray(np.concatenate([gv, ov]))
+    mesh = ipctk.CollisionMesh(x0, pairs.mesh_edges(), pairs.mesh_faces())
+    mesh.can_collide = ipctk.make_static_obstacle_filter(n)
+    ccd = ipctk.TightInclusionCCD(tolerance=1e-6, conservative_rescaling=0.8)
+    dmin = 0.5 * DHAT
+
+    def obstacle_to(z: float) -> np.ndarray:
+        x1 = x0.copy()
+        x1[n:, 2] = z
+        return np.asfortranarray(x1)
+
+    # the obstacle moves away: free, although the layers are 0.1 dhat < dmin apart (ipctk counts them)
+    assert pairs.is_step_collision_free(mesh, x0, obstacle_to(-4.0 * DHAT), dmin, ccd)
+    assert not ipctk.is_step_collision_free(mesh, x0, obstacle_to(-4.0 * DHAT), dmin, ipctk.LBVH(), ccd)
+    # the obstacle comes within dmin of the garment, or passes through it: not free
+    assert not pairs.is_step_collision_free(mesh, x0, obstacle_to(-0.2 * DHAT), dmin, ccd)
+    assert not pairs.is_step_collision_free(mesh, x0, obstacle_to(DHAT), dmin, ccd)
+    assert pairs.is_step_collision_free(mesh, x0, obstacle_to(-0.2 * DHAT), 0.1 * dmin, ccd)
+    # the garment moves: its own pairs are checked (the layers start closer than dmin)
+    x1 = x0.copy()
+    x1[:n, 0] += 1e-4
+    assert not pairs.is_step_collision_free(mesh, x0, np.asfortranarray(x1), dmin, ccd)
+    assert pairs.is_step_collision_free(mesh, x0, np.asfortranarray(x1), 0.1 * dmin, ccd)

@@ -1040,7 +1040,8 @@ class MovingObstacleContact:
 
     def is_step_free(self, x: torch.Tensor | np.ndarray, t0: float, t1: float, min_distance: float) -> bool:
         """Tight-Inclusion CCD (tolerance 1e-6): does moving the obstacle from ``t0`` to ``t1`` with the
-        garment fixed keep every pair at least ``min_distance`` apart?"""
+        garment fixed keep every garment-obstacle pair at least ``min_distance`` apart? (The garment's own
+        pairs do not move; they are not checked.)"""
         x0 = self.positions(x, t0)
         x1 = self.positions(x, t1)
         ccd = ipctk.TightInclusionCCD(tolerance=1e-6, conservative_rescaling=0.8)

@@ -590,13 +590,22 @@ class GarmentObstaclePairs:
         min_distance: float,
         narrow_phase: ipctk.NarrowPhaseCCD,
     ) -> bool:
-        """ipctk's ``is_step_collision_free`` along ``x0`` -> ``x1``: every pair stays ``min_distance``
-        apart. The garment's own pairs first, then the garment-obstacle pairs :data:`CCD_BATCH` at a time,
-        the lowest first advancement (distance over speed bound) first, so that a step that is not free is
-        usually told by the first batch."""
-        own, g0, g1, x0, x1 = self._own_motion(x0, x1, min_distance)
-        if not own.is_step_collision_free(self.garment_mesh, g0, g1, min_distance, narrow_phase):
-            return False
+        """ipctk's ``is_step_collision_free`` along ``x0`` -> ``x1``: every pair that moves stays
+        ``min_distance`` apart. The garment's own pairs first, then the garment-obstacle pairs
+        :data:`CCD_BATCH` at a time, the lowest first advancement (distance over speed bound) first, so that
+        a step that is not free is usually told by the first batch.
+
+        When the garment does not move (a snap of the obstacle), its own pairs keep their distances and are
+        not checked: ipctk would report a step not free for two garment layers already closer than
+        ``min_distance`` ("initial distance <= d_min, returning toi=0"), whatever the obstacle does."""
+        n = self.num_garment
+        if np.array_equal(np.asarray(x0)[:n], np.asarray(x1)[:n]):
+            x0 = np.ascontiguousarray(x0, dtype=np.float64)
+            x1 = np.ascontiguousarray(x1, dtype=np.float64)
+        else:
+            own, g0, g1, x0, x1 = self._own_motion(x0, x1, min_distance)
+            if not own.is_step_collision_free(self.garment_mesh, g0, g1, min_distance, narrow_phase):
+                return False
         if not self.num_obstacle:
             return True
         c = self._cross(x0, x1, 0.5 * min_distance)
