@@ -123,10 +123,14 @@ def test_full_objective_gradient_with_supports_matches_finite_differences(case):
         prob.reset_state(x_eq)
         return prob.evaluate(q, exact=True, need_grad=False).objective
 
-    # h = 1e-6 m: the objective bends sharply at this scale (contact), central differences at 1e-5 m are off
-    # by 2e-3 relative there, at 1e-6 m by 4e-6 and 1e-5 (measured)
-    for ad, fd in directional_derivatives(objective, q0, ev.grad, directions=2, h=1e-6, seed=5):
-        assert abs(ad - fd) <= 1e-4 * abs(fd), (ad, fd)
+    # Central differences have a truncation error growing with h (the objective bends sharply at the contact
+    # scale) and a round-off error growing as the solves' noise / h; which step balances them depends on the
+    # base drape's state. Measured: on one state 2e-3 relative at h = 1e-5 m and 4e-6 / 1e-5 at 1e-6 m; on
+    # another (a sewing stage that kept its step at its first restart) 3.3e-4 / 1.2e-4 at 1e-6 m and 1.8e-5 /
+    # 1.4e-5 at 1e-5 m, 1.2e-3 at 3e-7 m. So each direction must agree at one of the two steps.
+    pairs = [directional_derivatives(objective, q0, ev.grad, directions=2, h=h, seed=5) for h in (1e-6, 1e-5)]
+    for by_step in zip(*pairs):
+        assert min(abs(ad - fd) / abs(fd) for ad, fd in by_step) <= 1e-4, by_step
 
 
 def test_metrics_report_the_support(case):

@@ -374,9 +374,13 @@ def solve_gd_chebyshev(
                     x, e, g, gn = ckpt
                     x_prev, omega, since_restart = None, 1.0, 0
                     pre.rebuild(model.hessian_diagonal(x))
-                    alpha *= settings.step_decrease
+                    if elastic_interval > 1:
+                        # the first remedy is the approximation, not the step: with a reused (stale) elastic
+                        # diagonal, go on from the checkpoint with a fresh one every iteration, step unchanged
+                        elastic_interval = 1
+                    else:
+                        alpha *= settings.step_decrease
                     info.restarts += 1
-                    elastic_interval = 1  # a stale elastic diagonal may have caused it: fresh from now on
                     if alpha < settings.min_step:
                         info.message = (f"step fell below min_step={settings.min_step:g} "
                                         f"(energy keeps increasing)")
