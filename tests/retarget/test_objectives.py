@@ -14,6 +14,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from retarget_synth import scene  # noqa: E402
 
+from torchgarment.errors import InputError  # noqa: E402
 from torchgarment.retarget.objectives import (  # noqa: E402
     Contact,
     CurveShape,
@@ -204,6 +205,27 @@ def test_fit_gradient(sc: dict) -> None:
     check_gradient(lambda y: term.energy(y), x, rtol=1e-4, atol=1e-8, num_samples=40, eps=1e-7)
     h = _hess(term, x)
     assert np.linalg.eigvalsh(h).min() > -1e-10
+
+
+def test_fit_source_gap_targets_and_gradient(sc: dict) -> None:
+    """Per-vertex targets: each fit vertex's source gap where it exceeds the offset; FD gradient."""
+    av, af = sc["avatar_full"], sc["avatar_faces"]
+    sdf = BodySDF.from_mesh(av, af, SDFSettings(voxel_size=0.01))
+    x0, f = sc["garment_vertices"], sc["garment_faces"]
+    mask = torch.zeros(x0.shape[0], dtype=torch.bool)
+    mask[::2] = True
+    gap = torch.linspace(0.0, 0.03, x0.shape[0], dtype=x0.dtype)
+    term = Fit(sdf, x0, f, mask, fit_length=0.01, offset=0.002, source_gap=gap)
+    assert torch.equal(term.targets, gap[mask].clamp_min(0.002))
+    x = x0 * torch.tensor([1.25, 1.0, 1.25], dtype=x0.dtype)  # about 1.75 cm outside the capsule
+    check_gradient(lambda y: term.energy(y), x, rtol=1e-4, atol=1e-8, num_samples=40, eps=1e-7)
+    # the energy is the sum of area-weighted squared misses of the per-vertex targets
+    d = sdf(x[mask]) - gap[mask].clamp_min(0.002)
+    assert math.isclose(float(term.energy(x)), float((term.weights * d * d).sum()), rel_tol=1e-12)
+    with pytest.raises(InputError, match="source_gap"):
+        Fit(sdf, x0, f, mask, fit_length=0.01, source_gap=gap[:-1])
+    with pytest.raises(InputError, match="source_gap"):
+        Fit(sdf, x0, f, mask, fit_length=0.01, source_gap=torch.full_like(gap, math.nan))
 
 
 def test_contact_gradient_t_and_hessian(sc: dict) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+import igl
 import ipctk
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from torchgarment.errors import InputError
 from torchgarment.retarget.avatars import toy_case
 from torchgarment.retarget.inputs import problem_from_arrays
 from torchgarment.retarget.pipeline import (
+    FitTarget,
     RetargetSettings,
     check_result,
     layer_problem,
@@ -115,6 +117,62 @@ def test_fit_weight_controls_tightness() -> None:
     gap = lambda r: float(sdf(r.work_vertices[m]).abs().mean())  # noqa: E731
     assert gap(tight) < gap(loose)
     assert loose.metrics["intersections"] == tight.metrics["intersections"] == 0
+
+
+def test_source_gap_fit_keeps_a_layer_above_the_cloth_under_it() -> None:
+    """FitTarget: by default (a source avatar given) the fit keeps each vertex's source gap, so a band lying
+    1 cm over a close-fitting tube stays about 1 cm above it; the surface target pulls both onto the avatar
+    and squeezes the band onto the tube (the messy bench's pockets: 1.4 mm left of 4 mm)."""
+    from torchgarment.retarget.avatars import tube_mesh
+
+    c = toy_case(target_scale=1.3, target_offset=(2.0, -1.0, 0.5))
+    gv, gf = tube_mesh(0.29, 0.23, -0.2, 1.25, 24, 10)  # 1-3 cm from the source torso where it is closest
+    off = 0.01
+    bv, bf = tube_mesh(0.29 + off, 0.23 + off, 0.35, 0.75, 24, 4)  # a separate band 1 cm outside
+    n = gv.shape[0]
+    p = problem_from_arrays(torch.cat([gv, bv]), torch.cat([gf, bf + n]), c.source_skeleton,
+                            c.target_vertices, c.target_faces, c.target_skeleton,
+                            source_avatar=(c.source_vertices, c.source_faces))
+    assert float(p.fit_mask[n:].double().mean()) > 0.7  # the band is in the fit region (72 of 96)
+
+    def band_height(r: RetargetResult) -> float:
+        x = r.work_vertices.numpy()
+        sq, _, _ = igl.point_mesh_squared_distance(x[n:], x[:n], gf.numpy())
+        return float(np.median(np.sqrt(sq)))
+
+    keep = retarget(p, progress=False)
+    onto = retarget(p, RetargetSettings(fit_target="surface"), progress=False)
+    assert keep.metrics["fit_target"] == "source-gap" and onto.metrics["fit_target"] == "surface"
+    assert keep.metrics["intersections"] == onto.metrics["intersections"] == 0
+    assert 0.7 * off < band_height(keep) < 1.3 * off
+    assert band_height(onto) < 0.3 * off
+    # the fit vertices end at their targets: within a millimetre (human scale) at the median
+    assert keep.metrics["fit_gap_mm"]["miss_median"] < 1.0
+
+
+def test_fit_target_needs_a_source_avatar_for_source_gaps() -> None:
+    c = toy_case()
+    p = problem_from_arrays(c.garment_vertices, c.garment_faces, c.source_skeleton, c.target_vertices,
+                            c.target_faces, c.target_skeleton)
+    assert FitTarget.resolve("auto").for_problem(p) is FitTarget.SURFACE
+    assert FitTarget.resolve("gap") is FitTarget.SOURCE_GAP
+    with pytest.raises(InputError, match="needs the source avatar"):
+        retarget(p, RetargetSettings(fit_target="source-gap"), progress=False)
+    with pytest.raises(InputError, match="unknown fit target"):
+        RetargetSettings(fit_target="tight")
+
+
+def test_layer_problem_adds_the_inner_source_garment_to_the_source_avatar(toy_result: tuple) -> None:
+    """The outer garment's source gaps are measured to the cloth under it on the source, as its gaps on the
+    target are measured to the retargeted inner garment."""
+    p, inner, _ = toy_result
+    plain = layer_problem(p, inner.garment_vertices, inner.garment_faces)
+    assert torch.equal(plain.source_avatar_vertices, p.source_avatar_vertices)
+    lp = layer_problem(p, inner.garment_vertices, inner.garment_faces,
+                       inner_source=(p.garment_vertices, p.garment_faces))
+    a = p.source_avatar_vertices.shape[0]
+    assert torch.equal(lp.source_avatar_vertices, torch.cat([p.source_avatar_vertices, p.garment_vertices]))
+    assert torch.equal(lp.source_avatar_faces[-p.garment_faces.shape[0]:], p.garment_faces + a)
 
 
 def test_multilayer_second_garment_over_first(toy_result: tuple) -> None:

@@ -122,7 +122,8 @@ def test_cli_budget_stop_keeps_a_usable_result_and_says_so(
     assert len(err) == 1 and "iteration budget" in err[0] and f"{m['grad_norm']:.3g}" in err[0], err
 
 
-@pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_skeleton", "garment_in_mm", "gpu"])
+@pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_skeleton", "garment_in_mm", "gpu",
+                                  "source_gap_without_source_avatar"])
 def test_cli_bad_input_one_line(
     files: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
 ) -> None:
@@ -140,6 +141,8 @@ def test_cli_bad_input_one_line(
         extra = ["--fit-weight", "-1"]
     elif case == "gpu":  # ipctk has no GPU path: refused in one line, also on a machine with CUDA
         extra = ["--device", "cuda"]
+    elif case == "source_gap_without_source_avatar":  # the gaps are measured to the source avatar
+        extra = ["--fit-target", "source-gap"]
     elif case == "garment_in_mm":  # issue 17: its solve ran for minutes at seconds per iteration
         v, f = read_obj(d / "garment.obj")
         save_obj(tmp_path / "garment_mm.obj", torch.as_tensor(1000.0 * v), torch.as_tensor(f))
@@ -166,3 +169,5 @@ def test_cli_bad_input_one_line(
         assert "different units" in err and "scale the garment by 0.001" in err, err
     if case == "gpu":
         assert "runs on the CPU only" in err and "ipctk" in err, err
+    if case == "source_gap_without_source_avatar":
+        assert "source-gap" in err and "--source-avatar" in err, err

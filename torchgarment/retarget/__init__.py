@@ -32,6 +32,7 @@ from torchgarment.retarget.inputs import (
     problem_from_bodies,
 )
 from torchgarment.retarget.pipeline import (
+    FitTarget,
     RetargetError,
     RetargetResult,
     RetargetSettings,
@@ -43,6 +44,7 @@ from torchgarment.retarget.pipeline import (
 from torchgarment.retarget.shrink import ShrunkAvatar, shrink_avatar
 
 __all__ = [
+    "FitTarget",
     "RetargetError",
     "RetargetProblem",
     "RetargetResult",

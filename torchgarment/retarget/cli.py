@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 def add_retarget_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``retarget`` subcommand to ``subparsers`` (the object ``add_subparsers`` returned)."""
     from torchgarment.linalg import SparseBackend
-    from torchgarment.retarget.pipeline import RetargetSettings
+    from torchgarment.retarget.pipeline import FitTarget, RetargetSettings
     from torchgarment.sim.contact import StepBound
 
     d = RetargetSettings()
@@ -80,6 +80,14 @@ def add_retarget_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
         default=d.w_fit,
         metavar="W",
         help=f"fit weight: tightness (default {d.w_fit}; 0 keeps the garment's shape)",
+    )
+    p.add_argument(
+        "--fit-target",
+        default=FitTarget.resolve(d.fit_target).value,
+        choices=[k.value for k in FitTarget],
+        help="the gap the fit pulls the garment to: source-gap (each vertex's gap on the source avatar: "
+             "the source's tightness; needs --source-avatar), surface (dhat: onto the avatar) or auto "
+             "(source-gap with --source-avatar, else surface; the default)",
     )
     p.add_argument(
         "--pos-weight",
@@ -185,7 +193,8 @@ def cmd_retarget(args: argparse.Namespace) -> int:
         curves=args.curves,
     )
     settings = RetargetSettings(w_fit=args.fit_weight, w_pos=args.pos_weight, step_bound=args.step_bound,
-                                fit_iterations=args.fit_iterations, sparse_backend=args.sparse_backend)
+                                fit_iterations=args.fit_iterations, sparse_backend=args.sparse_backend,
+                                fit_target=args.fit_target)
     log_dir = None
     if not args.no_log:
         run = f"{Path(args.garment).stem}-on-{Path(args.target_avatar).stem}-{time.strftime('%Y%m%d-%H%M%S')}"

@@ -68,6 +68,7 @@ __all__ = [
     "read_curves",
     "read_index_list",
     "skeleton_root",
+    "source_gaps",
     "weld_garment",
     "work_similarity",
 ]
@@ -212,6 +213,36 @@ def weld_garment(
     return welded, wfaces, index_map
 
 
+def source_gaps(
+    garment_vertices: torch.Tensor,
+    avatar_vertices: torch.Tensor,
+    avatar_faces: torch.Tensor,
+) -> torch.Tensor:
+    """Each garment vertex's unsigned distance to an avatar surface: how loose the garment sits on it.
+
+    Args:
+        garment_vertices: (N, 3) garment positions in metres.
+        avatar_vertices: (A, 3) avatar positions (the source avatar, in the garment's frame).
+        avatar_faces: (G, 3) long avatar faces (any mesh: non-manifold, open, self-intersecting).
+
+    Returns:
+        (N,) distances in metres, in the garment's dtype and on its device.
+
+    Raises:
+        InputError: an avatar without faces.
+    """
+    import igl
+
+    if avatar_faces.numel() == 0:
+        raise InputError("source avatar has no faces; cannot measure the garment's gaps to it")
+    p = np.ascontiguousarray(garment_vertices.detach().cpu().numpy(), dtype=np.float64)
+    v = np.ascontiguousarray(avatar_vertices.detach().cpu().numpy(), dtype=np.float64)
+    f = np.ascontiguousarray(avatar_faces.detach().cpu().numpy(), dtype=np.int64)
+    sq, _, _ = igl.point_mesh_squared_distance(p, v, f)
+    gaps = np.sqrt(np.asarray(sq))
+    return torch.as_tensor(gaps, dtype=garment_vertices.dtype, device=garment_vertices.device)
+
+
 def automatic_fit_mask(
     garment_vertices: torch.Tensor,
     avatar_vertices: torch.Tensor,
@@ -233,17 +264,11 @@ def automatic_fit_mask(
     Raises:
         InputError: a non-positive or non-finite threshold, or an avatar without faces.
     """
-    import igl
-
     if not (math.isfinite(threshold) and threshold > 0):
         raise InputError(f"fit distance must be a positive length in metres, got {threshold}")
     if avatar_faces.numel() == 0:
         raise InputError("source avatar has no faces; cannot choose the fit region")
-    p = np.ascontiguousarray(garment_vertices.detach().cpu().numpy(), dtype=np.float64)
-    v = np.ascontiguousarray(avatar_vertices.detach().cpu().numpy(), dtype=np.float64)
-    f = np.ascontiguousarray(avatar_faces.detach().cpu().numpy(), dtype=np.int64)
-    sq, _, _ = igl.point_mesh_squared_distance(p, v, f)
-    return torch.as_tensor(np.sqrt(np.asarray(sq)) <= threshold, device=garment_vertices.device)
+    return source_gaps(garment_vertices.double(), avatar_vertices, avatar_faces) <= threshold
 
 
 # ----------------------------------------------------------------------------------------------------------

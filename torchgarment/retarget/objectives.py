@@ -531,20 +531,29 @@ class Positional(RetargetEnergy):
 
 
 class Fit(RetargetEnergy):
-    """L_fit = sum over fit vertices of A_i ((D(x_i) - offset) / ell)^2, D the avatar's signed distance.
+    """L_fit = sum over fit vertices of A_i ((D(x_i) - g_i) / ell)^2, D the avatar's signed distance.
 
     The integral of eq. 4 with lumped source vertex areas ``A_i``; divided by ``ell^2`` (``fit_length``, 1 cm
     at human scale by default in the pipeline) so that the weight reads as "one ell of gap costs like a unit
-    distortion of the same area". ``offset`` (the pipeline uses dhat) puts the fit's optimum just outside the
-    barrier's activation distance instead of on the avatar surface (the paper's D^2), so that the fit does not
-    push the garment into the barrier; the visible difference is dhat (2 mm at human scale).
+    distortion of the same area". The target gap ``g_i`` is ``offset`` (the pipeline uses dhat), or with
+    ``source_gap`` the vertex's own gap on the source avatar when that is larger. ``offset`` puts the fit's
+    optimum just outside the barrier's activation distance instead of on the avatar surface (the paper's D^2),
+    so that the fit does not push the garment into the barrier (the visible difference is dhat, 2 mm at
+    human scale); ``source_gap`` keeps the source's tightness (the paper's aim for the term, section 3.4.4):
+    loose parts stay loose, and a layer (a pocket over a shirt) keeps its height above the cloth under it
+    instead of being pulled onto it.
     Gauss-Newton Hessian ``2 A_i / ell^2 grad D grad D^T`` (PSD).
 
     Args:
         sdf: a callable with ``value_and_gradient(x) -> (D (K,), grad (K, 3))`` and differentiable ``sdf(x)``
             (a :class:`~torchgarment.sdf.grid.BodySDF`).
         source_vertices: (N, 3); faces: (F, 3) long; mask: (N,) bool fit vertices; fit_length: ell > 0.
-        offset: target signed distance (>= 0). weight: the term's weight.
+        offset: the smallest target gap (>= 0). weight: the term's weight.
+        source_gap: optional (N,) each vertex's distance to the source avatar (the pipeline's
+            ``fit_target="source-gap"``); None targets ``offset`` everywhere.
+
+    Attributes:
+        targets: (K,) the fit vertices' target gaps ``g_i``.
     """
 
     name = "fit"
@@ -558,6 +567,7 @@ class Fit(RetargetEnergy):
         fit_length: float,
         offset: float = 0.0,
         weight: float = 1.0,
+        source_gap: torch.Tensor | None = None,
     ) -> None:
         super().__init__(weight)
         if not fit_length > 0:
@@ -569,11 +579,19 @@ class Fit(RetargetEnergy):
         idx = torch.nonzero(mask.to(torch.bool), as_tuple=False).reshape(-1)
         self.register_buffer("vertices", idx)
         self.register_buffer("weights", vertex_areas(source_vertices.detach(), faces)[idx] / fit_length**2)
+        targets = torch.full((idx.numel(),), self.offset, dtype=source_vertices.dtype,
+                             device=source_vertices.device)
+        if source_gap is not None:
+            n = source_vertices.shape[0]
+            if source_gap.shape != (n,) or not bool(torch.isfinite(source_gap).all()):
+                raise InputError(f"source_gap must be a finite ({n},) tensor, got {tuple(source_gap.shape)}")
+            targets = torch.maximum(targets, source_gap.detach().to(targets)[idx])
+        self.register_buffer("targets", targets)
 
     def energy(self, x: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:  # noqa: D102
         if len(self.vertices) == 0:
             return x.sum() * 0.0
-        d = self.sdf(x[self.vertices].to(self.sdf.dtype)).to(x.dtype) - self.offset
+        d = self.sdf(x[self.vertices].to(self.sdf.dtype)).to(x.dtype) - self.targets.to(x.dtype)
         return (self.weights * d * d).sum()
 
     def unweighted_blocks(

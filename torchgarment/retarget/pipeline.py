@@ -38,7 +38,8 @@ import torch
 from torchgarment.errors import InputError, TorchGarmentError
 from torchgarment.linalg import SparseBackend
 from torchgarment.logging import RunLogger
-from torchgarment.retarget.inputs import REFERENCE_HEIGHT, RetargetProblem
+from torchgarment.options import OptionEnum
+from torchgarment.retarget.inputs import REFERENCE_HEIGHT, RetargetProblem, source_gaps
 from torchgarment.retarget.objectives import (
     Contact,
     CurveShape,
@@ -64,6 +65,41 @@ class RetargetError(TorchGarmentError):
     finished)."""
 
 
+class FitTarget(OptionEnum):
+    """The gap Step 3's fit term pulls each fit vertex to (:class:`~.objectives.Fit`).
+
+    SOURCE_GAP: the vertex's own distance to the source avatar, at least dhat: the garment keeps the
+        tightness it had on the source (loose parts stay loose; a layer keeps its height above the cloth
+        under it). Needs a source avatar.
+    SURFACE: dhat everywhere (the paper's D^2, moved just outside the barrier): the fit region is pulled onto
+        the avatar, and layers onto each other.
+    AUTO: SOURCE_GAP when the problem has a source avatar, else SURFACE (``metrics["fit_target"]`` says
+        which ran).
+    """
+
+    AUTO = "auto"
+    SOURCE_GAP = "source-gap"
+    SURFACE = "surface"
+
+    @classmethod
+    def aliases(cls) -> dict[str, str]:  # noqa: D102
+        return {"source_gap": "source-gap", "gap": "source-gap", "dhat": "surface"}
+
+    def for_problem(self, problem: RetargetProblem) -> FitTarget:
+        """The target that runs on ``problem`` (AUTO resolved).
+
+        Raises:
+            InputError: SOURCE_GAP on a problem without a source avatar.
+        """
+        has_source = problem.source_avatar_vertices is not None and problem.source_avatar_faces is not None
+        if self is FitTarget.AUTO:
+            return FitTarget.SOURCE_GAP if has_source else FitTarget.SURFACE
+        if self is FitTarget.SOURCE_GAP and not has_source:
+            raise InputError("fit_target 'source-gap' needs the source avatar (--source-avatar); "
+                             "use 'surface' without one")
+        return self
+
+
 @dataclass
 class RetargetSettings:
     """Settings of :func:`retarget`. Lengths are at human scale (metres for a 1.7 m model) and scale with it.
@@ -73,7 +109,9 @@ class RetargetSettings:
         w_pos: positional weight (paper: 10). w_surf: surface-shape weight. w_curve: curve-shape weight.
         dhat: barrier activation distance (paper: 2 mm).
         fit_length: length ``ell`` that normalises the fit term (one ``ell`` of gap costs like a unit
-            distortion of the same area). The fit targets a gap of dhat (see :class:`~.objectives.Fit`).
+            distortion of the same area).
+        fit_target: the gap the fit pulls each fit vertex to (:class:`FitTarget`): by default its gap on the
+            source avatar when the problem has one, else dhat.
         sdf_voxel: voxel size of the target avatar SDF used by the fit term.
         step_bound: collision-free step method (:class:`~torchgarment.sim.contact.StepBound`).
         max_displacement: largest vertex displacement (garment or avatar) of one Newton step.
@@ -116,6 +154,7 @@ class RetargetSettings:
     w_curve: float = 1.0
     dhat: float = 2e-3
     fit_length: float = 0.01
+    fit_target: FitTarget | str = FitTarget.AUTO
     sdf_voxel: float = 0.008
     step_bound: StepBound | str = StepBound.ADDITIVE
     max_displacement: float = 0.03
@@ -138,6 +177,7 @@ class RetargetSettings:
         self.step_bound = StepBound.resolve(self.step_bound)
         self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
         self.broad_phase = BroadPhase.resolve(self.broad_phase)
+        self.fit_target = FitTarget.resolve(self.fit_target)
         for name in ("w_fit", "w_pos", "w_surf", "w_curve"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -278,11 +318,14 @@ def retarget(
     Returns:
         :class:`RetargetResult`; ``metrics`` holds seconds (per step and total), newton_iterations, grad_norm,
         t_snap, min_distance_mm (at human scale), intersections (0), intersects_avatar / intersects_self,
-        distortion_mean / distortion_max, terms (each term's final unweighted value), weights, stiffness,
+        distortion_mean / distortion_max, fit_target (the :class:`FitTarget` that ran), fit_gap_mm (the fit
+        vertices' median gap to the avatar, median target gap and median miss |gap - target|, in mm at human
+        scale; None without a fit term), terms (each term's final unweighted value), weights, stiffness,
         vertex / face counts.
 
     Raises:
-        InputError: from Step 1 (the shrunk avatar touches the garment) or malformed settings.
+        InputError: from Step 1 (the shrunk avatar touches the garment), malformed settings, or
+            ``fit_target="source-gap"`` without a source avatar.
         RetargetError: the inflation did not reach t = 1, or the final check found an intersection.
     """
     from torchgarment.retarget.shrink import shrink_avatar
@@ -290,6 +333,7 @@ def retarget(
     from torchgarment.sdf.grid import BodySDF
 
     s = settings or RetargetSettings()
+    fit_target = FitTarget.resolve(s.fit_target).for_problem(problem)
     t_start = time.perf_counter()
     dt, dev = problem.garment_vertices.dtype, problem.garment_vertices.device
     if problem.length_scale <= 0 or not math.isfinite(problem.length_scale):
@@ -421,6 +465,7 @@ def retarget(
             )
         terms3 = [surf, pos, curve, contact3]
         sdf_s = 0.0
+        fit: Fit | None = None
         if s.w_fit > 0 and bool(problem.fit_mask.any()):
             ts = time.perf_counter()
             sdf = BodySDF.cached(
@@ -431,9 +476,13 @@ def retarget(
                 device=dev,
             )
             sdf_s = time.perf_counter() - ts
-            terms3.append(
-                Fit(sdf, x_src, faces, problem.fit_mask.to(dev), s.fit_length, s.dhat, weight=s.w_fit)
-            )
+            gap = None
+            sav, saf = problem.source_avatar_vertices, problem.source_avatar_faces
+            if fit_target is FitTarget.SOURCE_GAP and sav is not None and saf is not None:
+                gap = source_gaps(x_src, sav.to(dt) * k, saf)
+            fit = Fit(sdf, x_src, faces, problem.fit_mask.to(dev), s.fit_length, s.dhat, weight=s.w_fit,
+                      source_gap=gap)
+            terms3.append(fit)
         obj3 = retarget_model(terms3, x)
         initial_stiffness(obj3, x, 1.0, mean_area * s.stiffness_scale)
         contact3.ipc.stiffness = max(contact3.stiffness, contact.stiffness)
@@ -478,6 +527,15 @@ def retarget(
             raise RetargetError("final check failed: the garment touches the avatar or itself (distance 0)")
         vals = term_values(terms3, x, 1.0)
         distortion = surf.triangle_distortion(x)
+        fit_gaps = None
+        if fit is not None and fit.vertices.numel():
+            with torch.no_grad():  # human-scale mm: the fit vertices' gaps, their targets, the misses
+                gap_now = fit.sdf(x[fit.vertices].to(fit.sdf.dtype)).to(dt)
+            fit_gaps = {
+                "median": 1000.0 * float(gap_now.median()),
+                "target_median": 1000.0 * float(fit.targets.median()),
+                "miss_median": 1000.0 * float((gap_now - fit.targets).abs().median()),
+            }
         metrics = {
             "seconds": time.perf_counter() - t_start,
             "newton_iterations": iters2 + r3.iterations,
@@ -491,6 +549,8 @@ def retarget(
             "intersects_self": chk["intersects_self"],
             "distortion_mean": float(distortion.mean()),
             "distortion_max": float(distortion.max()),
+            "fit_target": fit_target.value,
+            "fit_gap_mm": fit_gaps,
             "terms": vals,
             "weights": {kk: weights[kk] for kk in vals},
             "stiffness": contact3.stiffness,
@@ -517,7 +577,11 @@ def retarget(
 
 
 def layer_problem(
-    problem: RetargetProblem, inner_vertices: torch.Tensor, inner_faces: torch.Tensor
+    problem: RetargetProblem,
+    inner_vertices: torch.Tensor,
+    inner_faces: torch.Tensor,
+    *,
+    inner_source: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> RetargetProblem:
     """``problem`` with an already retargeted garment added to its target avatar (multi-layer retargeting).
 
@@ -525,6 +589,11 @@ def layer_problem(
         problem: the problem of the outer garment (same target avatar and skeletons as the inner one).
         inner_vertices: (M, 3) inner garment in the TARGET frame (``RetargetResult.garment_vertices``).
         inner_faces: (K, 3) long inner garment faces.
+        inner_source: optional ``(vertices (M', 3), faces (K', 3))``, the inner garment as it lies on the
+            source avatar (its problem's ``garment_vertices`` / ``garment_faces``, the same frame as this
+            problem's garment). When ``problem`` has a source avatar it is added to it, so that the outer
+            garment's source gaps (``FitTarget.SOURCE_GAP``) are measured to the cloth under it, as its gaps
+            on the target are.
 
     Returns:
         A new problem whose avatar is the avatar plus the inner garment (work frame). Skin weights are dropped
@@ -532,6 +601,13 @@ def layer_problem(
     """
     if inner_vertices.ndim != 2 or inner_vertices.shape[1] != 3:
         raise InputError(f"inner_vertices must be (M, 3), got {tuple(inner_vertices.shape)}")
+    sav, saf = problem.source_avatar_vertices, problem.source_avatar_faces
+    if inner_source is not None and sav is not None and saf is not None:
+        isv, isf = inner_source
+        if isv.ndim != 2 or isv.shape[1] != 3:
+            raise InputError(f"inner_source vertices must be (M, 3), got {tuple(isv.shape)}")
+        saf = torch.cat([saf, isf.to(saf) + sav.shape[0]])
+        sav = torch.cat([sav, isv.to(sav)])
     iv = problem.to_work.apply(inner_vertices.to(problem.avatar_vertices.dtype))
     av = torch.cat([problem.avatar_vertices, iv])
     af = torch.cat(
@@ -549,8 +625,8 @@ def layer_problem(
         curves=problem.curves,
         to_work=problem.to_work,
         length_scale=problem.length_scale,
-        source_avatar_vertices=problem.source_avatar_vertices,
-        source_avatar_faces=problem.source_avatar_faces,
+        source_avatar_vertices=sav,
+        source_avatar_faces=saf,
         garment_index_map=problem.garment_index_map,
     )
 
@@ -566,13 +642,15 @@ def retarget_layers(
     next.
 
     Args:
-        problems: one problem per garment, innermost first, all with the same target avatar and skeletons.
+        problems: one problem per garment, innermost first, all with the same target avatar and skeletons
+            (and the same source avatar, in the same frame, for the source gaps of :class:`FitTarget`).
         settings, progress: as :func:`retarget`. log_dir: each layer logs under ``log_dir/layer<i>``.
     """
     results: list[RetargetResult] = []
     for i, p in enumerate(problems):
-        for r in results:
-            p = layer_problem(p, r.garment_vertices, r.garment_faces)
+        for inner, r in zip(problems, results):
+            p = layer_problem(p, r.garment_vertices, r.garment_faces,
+                              inner_source=(inner.garment_vertices, inner.garment_faces))
         results.append(
             retarget(
                 p,
