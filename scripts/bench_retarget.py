@@ -21,6 +21,9 @@ resolution: the anny size-12 body (13,348 vertices), the GarmentCode mean bodies
 (23,752 vertices; rigged with the skeleton and skin weights of the anny body fitted to their measurements,
 nearest vertex; skipped when the data is absent) and the procedural creatures ``creature-10k`` (6 cm) and
 ``creature-50k`` (10 m), which intersect themselves and are not closed. Drapes are cached under ``--cache``.
+Each pair also reports its mean distortion, the fit's gaps (``RetargetResult.metrics["fit_gap_mm"]``) and
+each layered part's median height above the garment under it on the source and in the result
+(``layer_heights_mm``; ``--fit-target surface`` pulls the layers onto the cloth, the default keeps them).
 ``--profile`` adds, per pair, the self seconds by stage (cProfile, so with its overhead; :data:`STAGES`): CCD
 (the collision-free step), broad phase and the avatar's culling (with the garment-avatar BVH queries and
 every Warp launch), sparse factorization, linear solves (the
@@ -176,6 +179,24 @@ def _report(summary: dict, records: list[dict], path: Path | None) -> int:
     return 0 if summary["failed"] == 0 and summary["intersecting"] == 0 else 1
 
 
+def _layer_heights(vertices: np.ndarray, faces: np.ndarray, parts: dict[str, int]) -> dict[str, float]:
+    """Median height (mm at human scale) of each layered part's vertices above the base garment (the first
+    ``parts["garment"]`` faces; then each part's faces in order): a pocket or collar that keeps its height
+    stays a layer."""
+    import igl
+
+    nb = parts["garment"]
+    base = np.ascontiguousarray(faces[:nb], dtype=np.int64)
+    x = np.ascontiguousarray(vertices, dtype=np.float64)
+    out, start = {}, nb
+    for name, n in list(parts.items())[1:]:
+        ids = np.unique(faces[start:start + n])
+        start += n
+        sq, _, _ = igl.point_mesh_squared_distance(x[ids], x, base)
+        out[name] = 1000.0 * float(np.median(np.sqrt(sq)))
+    return out
+
+
 def messy(args: argparse.Namespace) -> int:
     """The ``--messy`` bench (see the module docstring)."""
     import cProfile
@@ -184,16 +205,17 @@ def messy(args: argparse.Namespace) -> int:
 
     from torchgarment.body import Body
     from torchgarment.retarget.avatars import make_avatar
-    from torchgarment.retarget.inputs import problem_from_arrays
+    from torchgarment.retarget.inputs import REFERENCE_HEIGHT, problem_from_arrays
     from torchgarment.retarget.pipeline import RetargetSettings, retarget
 
     torch.set_num_threads(args.threads)
     source = Body.from_size("12")
-    settings = RetargetSettings(step_bound=args.step_bound, sparse_backend=args.sparse_backend)
+    settings = RetargetSettings(step_bound=args.step_bound, sparse_backend=args.sparse_backend,
+                                fit_target=args.fit_target)
     args.cache.mkdir(parents=True, exist_ok=True)
     records = []
     print(f"{'garment':>28}{'avatar':>14}{'g.verts':>8}{'a.tris':>8}{'iters':>7}{'seconds':>9}{'inter':>7}"
-          f"{'dmin mm':>9}{'inflation dmin mm':>19}")
+          f"{'dmin mm':>9}{'inflation dmin mm':>19}{'distort':>8}  layer heights mm (source->result)")
     for gname in args.messy_garments:
         gv, gf, parts = _messy_garment(gname, source, args.cache)
         v = np.asfortranarray(gv.numpy())
@@ -219,9 +241,15 @@ def messy(args: argparse.Namespace) -> int:
                 if prof is not None:
                     prof.disable()
                 m = r.metrics
+                faces = p.garment_faces.numpy()
+                k = REFERENCE_HEIGHT / p.length_scale  # human-scale millimetres
                 rec.update(seconds=time.perf_counter() - t0, newton_iterations=m["newton_iterations"],
                            intersections=m["intersections"], min_distance_mm=m["min_distance_mm"],
-                           distortion_mean=m["distortion_mean"],
+                           distortion_mean=m["distortion_mean"], fit_target=m["fit_target"],
+                           fit_gap_mm=m["fit_gap_mm"],
+                           layer_heights_mm={
+                               "source": _layer_heights(k * p.garment_vertices.numpy(), faces, parts),
+                               "result": _layer_heights(k * r.work_vertices.numpy(), faces, parts)},
                            inflation_min_distance_mm=next(s["min_distance_mm"] for s in r.steps
                                                           if s["step"] == "inflate"),
                            steps={s["step"]: s["seconds"] for s in r.steps}, ok=True)
@@ -233,7 +261,10 @@ def messy(args: argparse.Namespace) -> int:
             if rec["ok"]:
                 print(f"{gname:>28}{aname:>14}{rec['garment_vertices']:>8}{rec['avatar_triangles']:>8}"
                       f"{rec['newton_iterations']:>7}{rec['seconds']:>9.1f}{rec['intersections']:>7}"
-                      f"{rec['min_distance_mm']:>9.3f}{rec['inflation_min_distance_mm']:>19.2e}", flush=True)
+                      f"{rec['min_distance_mm']:>9.3f}{rec['inflation_min_distance_mm']:>19.2e}"
+                      f"{rec['distortion_mean']:>8.4f}  " + ", ".join(
+                          f"{kk} {rec['layer_heights_mm']['source'][kk]:.1f}->{vv:.1f}"
+                          for kk, vv in rec["layer_heights_mm"]["result"].items()), flush=True)
                 if "stages_seconds" in rec:
                     print("      stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in
                                                            rec["stages_seconds"].items()), flush=True)
@@ -247,7 +278,8 @@ def messy(args: argparse.Namespace) -> int:
                "mean_seconds": float(np.mean(secs)) if secs else None,
                "max_seconds": float(np.max(secs)) if secs else None,
                "targets": {"mean_seconds": 20.0, "max_seconds": 60.0}, "threads": args.threads,
-               "profiled": bool(args.profile), "sparse_backend": args.sparse_backend}
+               "profiled": bool(args.profile), "sparse_backend": args.sparse_backend,
+               "fit_target": settings.fit_target.value}
     return _report(summary, records, args.json)
 
 
@@ -277,6 +309,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="folder of the cached drapes (--messy)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (--messy)")
     ap.add_argument("--profile", action="store_true", help="seconds by stage per pair (--messy; cProfile)")
+    ap.add_argument("--fit-target", default=RetargetSettings().fit_target.value,
+                    help="RetargetSettings.fit_target (--messy): auto (default), source-gap or surface")
     args = ap.parse_args(argv)
     if args.messy:
         return messy(args)

@@ -150,6 +150,23 @@ def test_source_gap_fit_keeps_a_layer_above_the_cloth_under_it() -> None:
     assert keep.metrics["fit_gap_mm"]["miss_median"] < 1.0
 
 
+def test_retarget_onto_the_source_avatar_leaves_the_garment_in_place() -> None:
+    """With the source gaps as the fit's targets a garment retargeted onto its own source avatar stays where
+    it was (a retarget adds no change of its own); the surface target pulls the fit region onto the body."""
+    from torchgarment.retarget.avatars import tube_mesh
+
+    c = toy_case()
+    gv, gf = tube_mesh(0.29, 0.23, -0.2, 1.25, 24, 10)
+    p = problem_from_arrays(gv, gf, c.source_skeleton, c.source_vertices, c.source_faces, c.source_skeleton,
+                            source_avatar=(c.source_vertices, c.source_faces))
+    keep = retarget(p, progress=False)
+    onto = retarget(p, RetargetSettings(fit_target="surface"), progress=False)
+    moved = lambda r: float((r.garment_vertices - gv).norm(dim=1).max())  # noqa: E731
+    assert keep.metrics["intersections"] == onto.metrics["intersections"] == 0
+    assert moved(keep) < 1e-3  # measured 0.2 mm on a 1.45 m model
+    assert moved(onto) > 0.02  # measured 4.8 cm
+
+
 def test_fit_target_needs_a_source_avatar_for_source_gaps() -> None:
     c = toy_case()
     p = problem_from_arrays(c.garment_vertices, c.garment_faces, c.source_skeleton, c.target_vertices,
