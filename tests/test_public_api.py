@@ -45,6 +45,7 @@ PUBLIC = {
         "construction_lines",
     ],
     "torchgarment.retarget": [
+        "FitTarget",
         "retarget",
         "retarget_layers",
         "layer_problem",

@@ -191,41 +191,35 @@ def test_curve_gradient_and_invariances(sc: dict) -> None:
     assert np.linalg.eigvalsh(h).min() > -1e-10
 
 
-def test_fit_gradient(sc: dict) -> None:
+@pytest.mark.parametrize("with_gap", [False, True])
+def test_fit_gradient(sc: dict, with_gap: bool) -> None:
+    """FD gradient and PSD Hessian, with the offset as every target or with per-vertex source gaps (each fit
+    vertex's gap where it exceeds the offset)."""
     av, af = sc["avatar_full"], sc["avatar_faces"]
     sdf = BodySDF.from_mesh(av, af, SDFSettings(voxel_size=0.01))
     x0, f = sc["garment_vertices"], sc["garment_faces"]
     mask = torch.zeros(x0.shape[0], dtype=torch.bool)
     mask[::2] = True
-    term = Fit(sdf, x0, f, mask, fit_length=0.01, offset=0.002)
+    gap = torch.linspace(0.0, 0.03, x0.shape[0], dtype=x0.dtype) if with_gap else None
+    term = Fit(sdf, x0, f, mask, fit_length=0.01, offset=0.002, source_gap=gap)
+    offsets = torch.full((int(mask.sum()),), 0.002, dtype=x0.dtype)
+    targets = gap[mask].clamp_min(0.002) if gap is not None else offsets
+    assert torch.equal(term.targets, targets)
     x = x0 * torch.tensor([1.25, 1.0, 1.25], dtype=x0.dtype)  # outside the 0.17 capsule
     # distances match the capsule: ~0.1875 - 0.17 (up to the SDF's interpolation and the polygonal capsule)
     d = sdf(x[mask])
     assert float((d - (0.1875 - 0.17)).abs().max()) < 4e-3
+    # the energy is the sum of area-weighted squared misses of the targets
+    expected = float((term.weights * (d - targets) ** 2).sum())
+    assert math.isclose(float(term.energy(x)), expected, rel_tol=1e-12)
     check_gradient(lambda y: term.energy(y), x, rtol=1e-4, atol=1e-8, num_samples=40, eps=1e-7)
     h = _hess(term, x)
     assert np.linalg.eigvalsh(h).min() > -1e-10
-
-
-def test_fit_source_gap_targets_and_gradient(sc: dict) -> None:
-    """Per-vertex targets: each fit vertex's source gap where it exceeds the offset; FD gradient."""
-    av, af = sc["avatar_full"], sc["avatar_faces"]
-    sdf = BodySDF.from_mesh(av, af, SDFSettings(voxel_size=0.01))
-    x0, f = sc["garment_vertices"], sc["garment_faces"]
-    mask = torch.zeros(x0.shape[0], dtype=torch.bool)
-    mask[::2] = True
-    gap = torch.linspace(0.0, 0.03, x0.shape[0], dtype=x0.dtype)
-    term = Fit(sdf, x0, f, mask, fit_length=0.01, offset=0.002, source_gap=gap)
-    assert torch.equal(term.targets, gap[mask].clamp_min(0.002))
-    x = x0 * torch.tensor([1.25, 1.0, 1.25], dtype=x0.dtype)  # about 1.75 cm outside the capsule
-    check_gradient(lambda y: term.energy(y), x, rtol=1e-4, atol=1e-8, num_samples=40, eps=1e-7)
-    # the energy is the sum of area-weighted squared misses of the per-vertex targets
-    d = sdf(x[mask]) - gap[mask].clamp_min(0.002)
-    assert math.isclose(float(term.energy(x)), float((term.weights * d * d).sum()), rel_tol=1e-12)
-    with pytest.raises(InputError, match="source_gap"):
-        Fit(sdf, x0, f, mask, fit_length=0.01, source_gap=gap[:-1])
-    with pytest.raises(InputError, match="source_gap"):
-        Fit(sdf, x0, f, mask, fit_length=0.01, source_gap=torch.full_like(gap, math.nan))
+    if gap is not None:
+        with pytest.raises(InputError, match="source_gap"):
+            Fit(sdf, x0, f, mask, fit_length=0.01, source_gap=gap[:-1])
+        with pytest.raises(InputError, match="source_gap"):
+            Fit(sdf, x0, f, mask, fit_length=0.01, source_gap=torch.full_like(gap, math.nan))
 
 
 def test_contact_gradient_t_and_hessian(sc: dict) -> None:

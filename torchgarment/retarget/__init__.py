@@ -4,8 +4,9 @@ another without the garment crossing the target.
 Re-exported here:
 
 * the pipeline (:mod:`torchgarment.retarget.pipeline`): :func:`retarget` and :func:`retarget_layers` (several
-  garment layers, inner first), :func:`layer_problem`, :class:`RetargetSettings`, :class:`RetargetResult`,
-  :class:`RetargetError` and :func:`check_result` (the final intersection and distance check);
+  garment layers, inner first), :func:`layer_problem`, :class:`RetargetSettings` (with :class:`FitTarget`, the
+  gap the fit pulls the garment to), :class:`RetargetResult`, :class:`RetargetError` and :func:`check_result`
+  (the final intersection and distance check);
 * problems (:mod:`torchgarment.retarget.inputs`): :class:`RetargetProblem`, built by
   :func:`problem_from_arrays` (tensors), :func:`problem_from_bodies` (two rigged bodies) or
   :func:`load_problem` (files), with :class:`Similarity` (the normalization to the working frame);
