@@ -21,7 +21,8 @@ resolution: the anny size-12 body (13,348 vertices), the GarmentCode mean bodies
 (23,752 vertices; rigged with the skeleton and skin weights of the anny body fitted to their measurements,
 nearest vertex; skipped when the data is absent) and the procedural creatures ``creature-10k`` (6 cm) and
 ``creature-50k`` (10 m), which intersect themselves and are not closed. Drapes are cached under ``--cache``.
-Each pair also reports its mean distortion, the fit's gaps (``RetargetResult.metrics["fit_gap_mm"]``) and
+Each pair also reports each step's seconds and Newton iterations (``steps``, ``step_iterations``), its mean
+distortion, the fit's gaps (``RetargetResult.metrics["fit_gap_mm"]``) and
 each layered part's median height above the garment under it on the source and in the result
 (``layer_heights_mm``; ``--fit-target surface`` pulls the layers onto the cloth, the default keeps them).
 ``--profile`` adds, per pair, the self seconds by stage (cProfile, so with its overhead; :data:`STAGES`): CCD
@@ -252,7 +253,9 @@ def messy(args: argparse.Namespace) -> int:
                                "result": _layer_heights(k * r.work_vertices.numpy(), faces, parts)},
                            inflation_min_distance_mm=next(s["min_distance_mm"] for s in r.steps
                                                           if s["step"] == "inflate"),
-                           steps={s["step"]: s["seconds"] for s in r.steps}, ok=True)
+                           steps={s["step"]: s["seconds"] for s in r.steps},
+                           step_iterations={s["step"]: s["newton_iterations"] for s in r.steps
+                                            if "newton_iterations" in s}, ok=True)
                 if prof is not None:
                     rec["stages_seconds"], rec["top_functions"] = _stage_seconds(prof)
             except Exception as e:  # noqa: BLE001 - reported per pair
