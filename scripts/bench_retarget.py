@@ -291,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchgarment.io.mesh import load_mesh
     from torchgarment.linalg import SparseBackend
     from torchgarment.retarget.inputs import problem_from_arrays
-    from torchgarment.retarget.pipeline import RetargetSettings, retarget
+    from torchgarment.retarget.pipeline import FitTarget, RetargetSettings, retarget
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--garment", type=Path, help="draped garment OBJ on the source body (default: a tube)")
@@ -313,6 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (--messy)")
     ap.add_argument("--profile", action="store_true", help="seconds by stage per pair (--messy; cProfile)")
     ap.add_argument("--fit-target", default=RetargetSettings().fit_target.value,
+                    choices=[k.value for k in FitTarget],
                     help="RetargetSettings.fit_target (--messy): auto (default), source-gap or surface")
     args = ap.parse_args(argv)
     if args.messy:
