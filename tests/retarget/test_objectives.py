@@ -338,3 +338,27 @@ def test_culled_contact_matches_the_whole_avatar_and_keeps_its_mesh_when_it_can(
     culled._recull(xn + 1e-4, t)
     assert culled.num_culls == culls + 2 and len(builds) == rebuilt
     assert culled.value_grad(x, t)[0] == pytest.approx(whole.value_grad(x, t)[0], rel=1e-12)
+
+
+def test_stiffness_update_doubles_kappa_while_the_closest_pair_approaches_below_the_threshold(
+    sc: dict,
+) -> None:
+    """IPC's adaptive stiffness: kappa doubles (up to its maximum) exactly when the minimum distance, in the
+    units of x, is below ``stiffness_distance * dhat`` at both iterations and decreasing (ipctk compares
+    squared distances, so the distances handed to it are squared). Before this was so, a pair at 1e-3 of
+    dhat never raised kappa and the inflation squeezed pairs to 1e-8 m."""
+    from torchgarment.sim.contact import MovingObstacleContact
+
+    args = (sc["garment_vertices"], sc["garment_faces"], sc["avatar_full"], sc["avatar_faces"],
+            sc["avatar_shrunk"])
+    ipc = MovingObstacleContact(*args, dhat=0.03, stiffness=10.0)
+    ipc.max_stiffness = 35.0
+    below = 0.1 * 0.03  # the threshold at stiffness_distance = 0.1
+    assert not ipc.update_stiffness(0.9 * below, 0.95 * below, 0.1)  # moving apart
+    assert not ipc.update_stiffness(1.5 * below, 0.5 * below, 0.1)  # was above the threshold
+    assert not ipc.update_stiffness(0.5 * below, 0.5 * below, 0.1)  # not decreasing
+    assert ipc.stiffness == 10.0
+    assert ipc.update_stiffness(0.5 * below, 0.4 * below, 0.1) and ipc.stiffness == 20.0
+    assert ipc.update_stiffness(1e-3 * below, 1e-4 * below, 0.1) and ipc.stiffness == 35.0  # capped
+    assert not ipc.update_stiffness(0.5 * below, 0.4 * below, 0.1) and ipc.stiffness == 35.0
+    assert not ipc.update_stiffness(math.inf, 0.4 * below, 0.1)

@@ -990,12 +990,15 @@ class MovingObstacleContact:
         self, prev_min_distance: float, min_distance: float, stiffness_distance: float
     ) -> bool:
         """IPC's stiffness update (ipctk.update_barrier_stiffness): doubles kappa, up to its maximum, while
-        the minimum distance decreases below ``stiffness_distance * dhat``; returns whether kappa changed."""
+        the minimum distance decreases below ``stiffness_distance * dhat``; returns whether kappa changed.
+
+        The distances are in the units of x; ipctk compares squared distances with its squared threshold, so
+        they are squared here."""
         if not (math.isfinite(min_distance) and math.isfinite(prev_min_distance)):
             return False
         kappa = ipctk.update_barrier_stiffness(
-            prev_min_distance,
-            min_distance,
+            prev_min_distance * prev_min_distance,
+            min_distance * min_distance,
             max(self.max_stiffness, self.stiffness),
             self.stiffness,
             self.bbox_diagonal,
