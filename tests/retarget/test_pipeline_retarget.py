@@ -90,6 +90,18 @@ def test_toy_retarget_is_intersection_free(toy_result: tuple) -> None:
     assert inflate["min_distance_mm"] == 1000.0 * closest and 0 < inflate["min_distance_mm"]
 
 
+def test_adaptive_stiffness_keeps_the_closest_pairs_apart(toy_result: tuple) -> None:
+    """IPC's stiffness update fires when a pair comes within 0.1 dhat and keeps coming closer, so kappa rises
+    during the run and the result keeps its closest pair near dhat (2 mm at human scale). With the rule
+    handed unsquared distances (it compares squared ones) kappa never rose and this result's closest pair
+    was 0.001 mm."""
+    _, r, _ = toy_result
+    kappas = [h["stiffness"] for h in r.history]
+    assert max(kappas) > kappas[0]
+    assert all(b >= a for a, b in zip(kappas, kappas[1:]))  # IPC's kappa only grows
+    assert r.metrics["min_distance_mm"] > 0.2
+
+
 def test_tensorboard_scalars_written(toy_result: tuple) -> None:
     _, r, log = toy_result
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
