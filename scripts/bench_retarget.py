@@ -24,7 +24,9 @@ nearest vertex; skipped when the data is absent) and the procedural creatures ``
 Each pair also reports each step's seconds and Newton iterations (``steps``, ``step_iterations``), its mean
 distortion, the fit's gaps (``RetargetResult.metrics["fit_gap_mm"]``) and
 each layered part's median height above the garment under it on the source and in the result
-(``layer_heights_mm``; ``--fit-target surface`` pulls the layers onto the cloth, the default keeps them).
+(``layer_heights_mm``; ``--fit-target surface`` pulls the layers onto the cloth, the default keeps them), and
+how far each part's vertices are from their place on the cloth under them (``layer_slide_mm``, median; the
+attachment term holds them there, ``--w-attach 0`` lets them slide).
 ``--profile`` adds, per pair, the self seconds by stage (cProfile, so with its overhead; :data:`STAGES`): CCD
 (the collision-free step), broad phase and the avatar's culling (with the garment-avatar BVH queries and
 every Warp launch), sparse factorization, linear solves (the
@@ -198,6 +200,27 @@ def _layer_heights(vertices: np.ndarray, faces: np.ndarray, parts: dict[str, int
     return out
 
 
+def _layer_slides(source: np.ndarray, result: np.ndarray, faces: np.ndarray, parts: dict[str, int],
+                  max_distance: float) -> dict[str, float]:
+    """Median distance (mm at human scale) of each layered part's vertices from their place on the cloth
+    under them (:class:`~torchgarment.retarget.objectives.Attachment`'s residual, whatever weight the run
+    gave it): a pocket that stays where it was sewn reads about 0, one that slid around the body reads the
+    slide."""
+    from torchgarment.retarget.objectives import Attachment
+
+    f = torch.as_tensor(faces, dtype=torch.long)
+    term = Attachment(torch.as_tensor(source), f, max_distance, 1.0)
+    miss = 1000.0 * term.residuals(torch.as_tensor(result)).norm(dim=-1).numpy()
+    held = term.vertices.numpy()
+    out, start = {}, parts["garment"]
+    for name, n in list(parts.items())[1:]:
+        mine = np.isin(held, np.unique(faces[start:start + n]))
+        start += n
+        if mine.any():
+            out[name] = float(np.median(miss[mine]))
+    return out
+
+
 def messy(args: argparse.Namespace) -> int:
     """The ``--messy`` bench (see the module docstring)."""
     import cProfile
@@ -212,11 +235,12 @@ def messy(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     source = Body.from_size("12")
     settings = RetargetSettings(step_bound=args.step_bound, sparse_backend=args.sparse_backend,
-                                fit_target=args.fit_target)
+                                fit_target=args.fit_target, w_attach=args.w_attach)
     args.cache.mkdir(parents=True, exist_ok=True)
     records = []
     print(f"{'garment':>28}{'avatar':>14}{'g.verts':>8}{'a.tris':>8}{'iters':>7}{'seconds':>9}{'inter':>7}"
-          f"{'dmin mm':>9}{'inflation dmin mm':>19}{'distort':>8}  layer heights mm (source->result)")
+          f"{'dmin mm':>9}{'inflation dmin mm':>19}{'distort':>8}  layer heights mm (source->result); "
+          f"slide mm")
     for gname in args.messy_garments:
         gv, gf, parts = _messy_garment(gname, source, args.cache)
         v = np.asfortranarray(gv.numpy())
@@ -251,6 +275,9 @@ def messy(args: argparse.Namespace) -> int:
                            layer_heights_mm={
                                "source": _layer_heights(k * p.garment_vertices.numpy(), faces, parts),
                                "result": _layer_heights(k * r.work_vertices.numpy(), faces, parts)},
+                           layer_slide_mm=_layer_slides(k * p.garment_vertices.numpy(),
+                                                        k * r.work_vertices.numpy(), faces, parts,
+                                                        settings.attach_distance),
                            inflation_min_distance_mm=next(s["min_distance_mm"] for s in r.steps
                                                           if s["step"] == "inflate"),
                            steps={s["step"]: s["seconds"] for s in r.steps},
@@ -267,7 +294,8 @@ def messy(args: argparse.Namespace) -> int:
                       f"{rec['min_distance_mm']:>9.3f}{rec['inflation_min_distance_mm']:>19.2e}"
                       f"{rec['distortion_mean']:>8.4f}  " + ", ".join(
                           f"{kk} {rec['layer_heights_mm']['source'][kk]:.1f}->{vv:.1f}"
-                          for kk, vv in rec["layer_heights_mm"]["result"].items()), flush=True)
+                          for kk, vv in rec["layer_heights_mm"]["result"].items()) + "; " + ", ".join(
+                          f"{kk} {vv:.1f}" for kk, vv in rec["layer_slide_mm"].items()), flush=True)
                 if "stages_seconds" in rec:
                     print("      stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in
                                                            rec["stages_seconds"].items()), flush=True)
@@ -282,7 +310,7 @@ def messy(args: argparse.Namespace) -> int:
                "max_seconds": float(np.max(secs)) if secs else None,
                "targets": {"mean_seconds": 20.0, "max_seconds": 60.0}, "threads": args.threads,
                "profiled": bool(args.profile), "sparse_backend": args.sparse_backend,
-               "fit_target": settings.fit_target.value}
+               "fit_target": settings.fit_target.value, "w_attach": settings.w_attach}
     return _report(summary, records, args.json)
 
 
@@ -315,6 +343,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fit-target", default=RetargetSettings().fit_target.value,
                     choices=[k.value for k in FitTarget],
                     help="RetargetSettings.fit_target (--messy): auto (default), source-gap or surface")
+    ap.add_argument("--w-attach", type=float, default=RetargetSettings().w_attach,
+                    help="RetargetSettings.w_attach (--messy): what holds the layered parts on the garment; "
+                         "0 lets them slide (the objective before 2026-11-28's seventh session)")
     args = ap.parse_args(argv)
     if args.messy:
         return messy(args)

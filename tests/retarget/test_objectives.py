@@ -16,6 +16,7 @@ from retarget_synth import scene  # noqa: E402
 
 from torchgarment.errors import InputError  # noqa: E402
 from torchgarment.retarget.objectives import (  # noqa: E402
+    Attachment,
     Contact,
     CurveShape,
     Fit,
@@ -24,12 +25,14 @@ from torchgarment.retarget.objectives import (  # noqa: E402
     adjacent_triangle_pairs,
     boundary_loops,
     element_hessians,
+    layer_anchors,
+    loop_winds_around_a_bone,
     make_state,
     project_psd,
 )
 from torchgarment.sdf.build import SDFSettings  # noqa: E402
 from torchgarment.sdf.grid import BodySDF  # noqa: E402
-from torchgarment.testing import check_gradient  # noqa: E402
+from torchgarment.testing import check_gradient, fd_hessian_columns  # noqa: E402
 
 if TYPE_CHECKING:
     from torchgarment.sim.energies.base import EnergyTerm
@@ -362,3 +365,84 @@ def test_stiffness_update_doubles_kappa_while_the_closest_pair_approaches_below_
     assert ipc.update_stiffness(1e-3 * below, 1e-4 * below, 0.1) and ipc.stiffness == 35.0  # capped
     assert not ipc.update_stiffness(0.5 * below, 0.4 * below, 0.1) and ipc.stiffness == 35.0
     assert not ipc.update_stiffness(math.inf, 0.4 * below, 0.1)
+
+
+def _pocketed_tube() -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """A tube (the garment), a patch 4 mm outside its front (a pocket: a separate piece) and a ring 5 cm
+    outside it (a separate piece lying on nothing); returns vertices, faces, the tube's and the patch's vertex
+    counts."""
+    from torchgarment.retarget.avatars import tube_mesh
+
+    gv, gf = tube_mesh(0.29, 0.23, -0.2, 1.25, 24, 10)
+    pv, pf = tube_mesh(0.294, 0.234, 0.45, 0.85, 24, 5)
+    th = torch.atan2(pv[:, 2] / 0.234, pv[:, 0] / 0.294)
+    front = (th - math.pi / 2).abs() < 0.6
+    used, inv = torch.unique(pf[front[pf].all(1)], return_inverse=True)
+    pv, pf = pv[used], inv.reshape(-1, 3)
+    rv, rf = tube_mesh(0.34, 0.28, 0.0, 0.1, 24, 2)
+    n, m = gv.shape[0], pv.shape[0]
+    return torch.cat([gv, pv, rv]), torch.cat([gf, pf + n, rf + n + m]), n, m
+
+
+def test_layer_anchors_attach_the_pieces_that_lie_on_a_larger_one() -> None:
+    v, f, n, m = _pocketed_tube()
+    idx, tri, bary = layer_anchors(v, f, 0.01)
+    # every pocket vertex, nothing of the tube (the largest piece) or of the ring 5 cm out
+    assert sorted(idx.tolist()) == list(range(n, n + m))
+    assert bool((tri < n).all())  # anchored on the tube
+    assert torch.allclose(bary.sum(1), torch.ones(m, dtype=bary.dtype)) and float(bary.min()) > -1e-9
+    anchor = (bary[:, :, None] * v[tri]).sum(1)
+    assert float((v[idx] - anchor).norm(dim=1).max()) < 0.0045  # 4 mm out, the tube's chords a bit more
+    # a wider reach also takes the ring; a garment in one piece has no anchors
+    assert len(layer_anchors(v, f, 0.1)[0]) == m + 48
+    assert len(layer_anchors(v[:n], f[: 2 * 24 * 9], 0.01)[0]) == 0
+
+
+def test_attachment_holds_a_pocket_in_place_and_is_blind_to_rigid_motions() -> None:
+    v, f, n, m = _pocketed_tube()
+    term = Attachment(v, f, 0.01, 0.01, weight=3.0)
+    assert len(term.vertices) == m and float(term.energy(v)) < 1e-25
+    r = _rotation(5)
+    assert float(term.energy(v @ r.T + torch.tensor([0.3, -1.0, 2.0], dtype=v.dtype))) < 1e-25
+    # the pocket turned 5 cm around the tube's axis: held; the ring (not attached) costs nothing
+    slid = v.clone()
+    c, s_ = math.cos(0.2), math.sin(0.2)
+    turn = torch.tensor([[c, 0.0, -s_], [0.0, 1.0, 0.0], [s_, 0.0, c]], dtype=v.dtype)
+    slid[n:n + m] = v[n:n + m] @ turn.T
+    assert float(term.residuals(slid).norm(dim=1).median()) > 0.04
+    moved_ring = v.clone()
+    moved_ring[n + m:] += 0.05
+    assert float(term.energy(moved_ring)) < 1e-25
+    # the gradient by central differences, off the source shape
+    g = torch.Generator().manual_seed(2)
+    x = v + 0.003 * torch.randn(v.shape, generator=g, dtype=v.dtype)
+    check_gradient(lambda y: term.energy(y), x, rtol=1e-5, atol=1e-10, num_samples=60)
+    # Gauss-Newton Hessian: PSD; exact where the residuals vanish (the source shape)
+    h = _hess(term, x)
+    assert np.linalg.eigvalsh(h).min() > -1e-9
+    ids = torch.cat([term.vertices[:3], term.anchors[:3].reshape(-1)]).unique()
+    cols = (3 * ids[:, None] + torch.arange(3)).reshape(-1)
+
+    def grad(y: torch.Tensor) -> torch.Tensor:
+        yr = y.clone().requires_grad_(True)
+        with torch.enable_grad():
+            return torch.autograd.grad(term.energy(yr), yr)[0]
+
+    fd = fd_hessian_columns(grad, v, cols, eps=1e-6).numpy()
+    np.testing.assert_allclose(_hess(term, v)[: 3 * v.shape[0], cols.numpy()], fd, rtol=1e-5, atol=1e-4)
+    with pytest.raises(InputError, match="max_distance"):
+        Attachment(v, f, -1.0, 0.01)
+
+
+def test_a_hem_winds_around_its_bone_and_a_pocket_rim_does_not() -> None:
+    """The positional term stays on an attached piece's rims that wind around a bone (a waistband's) and
+    leaves those that lie beside one (a pocket's) to the attachment."""
+    joints = torch.tensor([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.3, 1.1, 0.0]],
+                          dtype=torch.float64)
+    bones = torch.tensor([[0, 1], [2, 3]])
+    th = torch.linspace(0, 2 * math.pi, 25, dtype=torch.float64)[:-1]
+    ring = torch.stack([0.15 * torch.cos(th), 0.4 + 0.02 * torch.sin(3 * th), 0.12 * torch.sin(th)], 1)
+    patch = torch.stack([0.03 * torch.cos(th), 0.4 + 0.03 * torch.sin(th), 0.12 + 0.0 * th], 1)
+    assert loop_winds_around_a_bone(ring, joints, bones)
+    assert loop_winds_around_a_bone(ring.flip(0), joints, bones)  # either orientation
+    assert not loop_winds_around_a_bone(patch, joints, bones)

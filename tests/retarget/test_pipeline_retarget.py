@@ -162,6 +162,39 @@ def test_source_gap_fit_keeps_a_layer_above_the_cloth_under_it() -> None:
     assert keep.metrics["fit_gap_mm"]["miss_median"] < 1.0
 
 
+def test_a_patch_pocket_stays_where_it_was_sewn() -> None:
+    """A pocket that is its own piece lies 4 mm over the front of a tube; retargeted onto a larger avatar it
+    keeps its place on the tube (Attachment). Without the term nothing holds it around the body: the shape
+    terms are blind to its rigid motions and the positional term holds only its rim's coordinate along a bone
+    (the messy bench's pockets slid 2-19 cm before it)."""
+    from torchgarment.retarget.avatars import tube_mesh
+    from torchgarment.retarget.objectives import Attachment
+
+    c = toy_case(target_scale=1.3, target_offset=(2.0, -1.0, 0.5))
+    gv, gf = tube_mesh(0.29, 0.23, -0.2, 1.25, 24, 10)
+    pv, pf = tube_mesh(0.294, 0.234, 0.45, 0.85, 24, 5)
+    th = torch.atan2(pv[:, 2] / 0.234, pv[:, 0] / 0.294)
+    front = (th - math.pi / 2).abs() < 0.6
+    used, inv = torch.unique(pf[front[pf].all(1)], return_inverse=True)
+    pv, pf = pv[used], inv.reshape(-1, 3)
+    n = gv.shape[0]
+    p = problem_from_arrays(torch.cat([gv, pv]), torch.cat([gf, pf + n]), c.source_skeleton,
+                            c.target_vertices, c.target_faces, c.target_skeleton,
+                            source_avatar=(c.source_vertices, c.source_faces))
+    place = Attachment(p.garment_vertices, p.garment_faces, 0.01, 1.0)  # the pocket's places on the tube
+    assert len(place.vertices) == pv.shape[0]
+    slide = lambda r: float(place.residuals(r.work_vertices).norm(dim=1).median())  # noqa: E731
+    held = retarget(p, progress=False)
+    free = retarget(p, RetargetSettings(w_attach=0.0), progress=False)
+    assert held.metrics["intersections"] == free.metrics["intersections"] == 0
+    assert held.metrics["attached_vertices"] == pv.shape[0] and free.metrics["attached_vertices"] == 0
+    assert free.metrics["attach_miss_mm"] is None
+    assert slide(held) < 2e-3  # measured 0.11 mm (work frame: a 1.45 m model)
+    assert slide(free) > 1e-2  # measured 2.7 cm
+    assert held.metrics["attach_miss_mm"]["median"] < 2.0
+    assert held.metrics["distortion_mean"] < 1.5 * free.metrics["distortion_mean"]  # 0.0116 against 0.0111
+
+
 def test_retarget_onto_the_source_avatar_leaves_the_garment_in_place() -> None:
     """With the source gaps as the fit's targets a garment retargeted onto its own source avatar stays where
     it was (a retarget adds no change of its own); the surface target pulls the fit region onto the body."""
@@ -242,6 +275,10 @@ def test_check_result_detects_intersection() -> None:
 def test_settings_validation() -> None:
     with pytest.raises(InputError):
         RetargetSettings(w_fit=-1.0)
+    with pytest.raises(InputError, match="w_attach"):
+        RetargetSettings(w_attach=-1.0)
+    with pytest.raises(InputError, match="attach_distance"):
+        RetargetSettings(attach_distance=0.0)
     with pytest.raises(InputError):
         RetargetSettings(step_bound="nope")
     with pytest.raises(InputError):

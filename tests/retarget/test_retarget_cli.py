@@ -122,8 +122,8 @@ def test_cli_budget_stop_keeps_a_usable_result_and_says_so(
     assert len(err) == 1 and "iteration budget" in err[0] and f"{m['grad_norm']:.3g}" in err[0], err
 
 
-@pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_skeleton", "garment_in_mm", "gpu",
-                                  "source_gap_without_source_avatar"])
+@pytest.mark.parametrize("case", ["missing", "bad_weight", "bad_attach_weight", "bad_skeleton",
+                                  "garment_in_mm", "gpu", "source_gap_without_source_avatar"])
 def test_cli_bad_input_one_line(
     files: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
 ) -> None:
@@ -139,6 +139,8 @@ def test_cli_bad_input_one_line(
         args["--target-avatar"] = str(tmp_path / "nope.obj")
     elif case == "bad_weight":
         extra = ["--fit-weight", "-1"]
+    elif case == "bad_attach_weight":
+        extra = ["--attach-weight", "nan"]
     elif case == "gpu":  # ipctk has no GPU path: refused in one line, also on a machine with CUDA
         extra = ["--device", "cuda"]
     elif case == "source_gap_without_source_avatar":  # the gaps are measured to the source avatar
@@ -169,5 +171,7 @@ def test_cli_bad_input_one_line(
         assert "different units" in err and "scale the garment by 0.001" in err, err
     if case == "gpu":
         assert "runs on the CPU only" in err and "ipctk" in err, err
+    if case == "bad_attach_weight":
+        assert "w_attach" in err, err
     if case == "source_gap_without_source_avatar":
         assert "source-gap" in err and "--source-avatar" in err, err

@@ -97,6 +97,14 @@ def add_retarget_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
         help=f"positional (boundary along bones) weight (default {d.w_pos})",
     )
     p.add_argument(
+        "--attach-weight",
+        type=float,
+        default=d.w_attach,
+        metavar="W",
+        help=f"weight that keeps the garment's separate pieces (a patch pocket, a collar) where they lie on "
+             f"the cloth under them (default {d.w_attach}; 0 lets them slide)",
+    )
+    p.add_argument(
         "--step-bound",
         default=StepBound.resolve(d.step_bound).value,
         choices=[k.value for k in StepBound],
@@ -192,7 +200,8 @@ def cmd_retarget(args: argparse.Namespace) -> int:
         no_fit=args.no_fit,
         curves=args.curves,
     )
-    settings = RetargetSettings(w_fit=args.fit_weight, w_pos=args.pos_weight, step_bound=args.step_bound,
+    settings = RetargetSettings(w_fit=args.fit_weight, w_pos=args.pos_weight, w_attach=args.attach_weight,
+                                step_bound=args.step_bound,
                                 fit_iterations=args.fit_iterations, sparse_backend=args.sparse_backend,
                                 fit_target=args.fit_target)
     log_dir = None

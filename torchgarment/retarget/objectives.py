@@ -18,6 +18,8 @@ the barrier's come from ipctk with per-pair PSD clamping:
   residual Jacobians (PSD by construction).
 * :class:`Positional` L_pos: barycentric coordinate of boundary vertices along their nearest bone; the
   skeleton joints are ``(1 - t) J_source + t J_target`` (eq. 3). Per-vertex 4 x 4 blocks over (x_i, t).
+* :class:`Attachment` L_attach: a separate piece of the garment (a pocket, a collar) keeps its place on the
+  piece under it (not in the paper, whose garments are one piece). Per-vertex 12 x 12 Gauss-Newton Hessians.
 * :class:`Fit` L_fit: squared avatar SDF at the fit vertices (eq. 4, lumped areas), Gauss-Newton Hessian.
 * :class:`CurveShape` L_curve: discrete curvature and torsion of polylines (eq. 5 and the torsion term).
 * :class:`Contact` L_contact: IPC barrier of garment-avatar and garment-self pairs, the avatar being
@@ -442,6 +444,24 @@ def _pos_vertex(z: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     return (w - c[:, 12]) ** 2
 
 
+def loop_winds_around_a_bone(points: torch.Tensor, joints: torch.Tensor, bones: torch.Tensor) -> bool:
+    """Whether a closed loop of points (L, 3) winds around the bone nearest to most of them (a cuff, a hem,
+    a waistband's rim: |winding number| >= 1/2 about the bone's line) rather than lying beside it (a patch
+    pocket's rim: about 0). Bones: (B, 2) joint pairs of positive length."""
+    nb = nearest_bone(points, joints, bones)
+    bone = int(torch.mode(nb).values)
+    a, b = joints[bones[bone, 0]], joints[bones[bone, 1]]
+    axis = (b - a) / (b - a).norm()
+    d = points - a
+    d = d - (d @ axis)[:, None] * axis
+    other = torch.eye(3, dtype=points.dtype, device=points.device)[int(axis.abs().argmin())]
+    u = torch.linalg.cross(axis, other, dim=-1)
+    u = u / u.norm()
+    ang = torch.atan2(d @ torch.linalg.cross(axis, u, dim=-1), d @ u)
+    step = torch.remainder(torch.roll(ang, -1) - ang + math.pi, 2 * math.pi) - math.pi
+    return bool(abs(float(step.sum())) >= math.pi)
+
+
 class Positional(RetargetEnergy):
     """L_pos = sum over boundary vertices of (mean source edge length) * (w_source - w)^2.
 
@@ -525,6 +545,167 @@ class Positional(RetargetEnergy):
         h[:, :4, :4] = h4
         idx = torch.stack([self.vertices, torch.full_like(self.vertices, x.shape[0])], dim=1)
         return element_blocks(h, idx)
+
+
+# ---------------------------------------------------------------------------------------------- L_attach
+
+
+def _tri_frame(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) orthonormal columns [e1, n x e1, n] of triangles (e1 along b - a, n the unit normal)."""
+    e1 = b - a
+    e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    n = torch.linalg.cross(b - a, c - a, dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    return torch.stack([e1, torch.linalg.cross(n, e1, dim=-1), n], dim=-1)
+
+
+def _attach_residual(z: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """(K, 3) residuals ``x - sum_j b_j p_j - F(p) o`` of attached vertices: z (K, 12) = x, p0, p1, p2 (the
+    anchor triangle); c (K, 6) = the barycentric coordinates b of the anchor and the offset o in the
+    triangle's frame F (:func:`_tri_frame`)."""
+    v = z.reshape(-1, 4, 3)
+    p0, p1, p2 = v[:, 1], v[:, 2], v[:, 3]
+    anchor = c[:, 0:1] * p0 + c[:, 1:2] * p1 + c[:, 2:3] * p2
+    return v[:, 0] - anchor - (_tri_frame(p0, p1, p2) @ c[:, 3:6, None])[..., 0]
+
+
+def layer_anchors(
+    vertices: torch.Tensor, faces: torch.Tensor, max_distance: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where each separate piece of a garment lies on the larger pieces: a patch pocket on the shirt, a
+    collar on the neckline, a sleeve left unwelded next to its armhole.
+
+    The pieces are the connected components of ``faces``, ranked by area. Every vertex of a piece within
+    ``max_distance`` of a larger piece is anchored to its closest point there (libigl's point-mesh query);
+    the largest piece has no anchors.
+
+    Args:
+        vertices: (N, 3) garment positions (any length unit). faces: (F, 3) long triangles.
+        max_distance: largest vertex-to-piece distance that anchors (units of ``vertices``).
+
+    Returns:
+        ``(vertex, anchor_face, barycentric)``: (K,) long anchored vertices, (K, 3) long the anchor
+        triangles' vertices and (K, 3) the anchor points' barycentric coordinates in them (K = 0 for a
+        garment in one piece).
+    """
+    import igl
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    v = vertices.detach().to("cpu", torch.float64).numpy()
+    f = faces.detach().cpu().numpy().astype(np.int64)
+    n = v.shape[0]
+    empty = (torch.zeros(0, dtype=torch.long), torch.zeros(0, 3, dtype=torch.long),
+             torch.zeros(0, 3, dtype=torch.float64))
+    if f.shape[0] == 0:
+        return empty
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    face_label = label[f[:, 0]]
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    piece_area = np.bincount(face_label, weights=area, minlength=label.max() + 1)
+    pieces = [int(c) for c in np.argsort(-piece_area, kind="stable") if piece_area[c] > 0]
+    # anchors only on triangles with a normal (a degenerate one has no frame)
+    usable = area > 1e-12 * max(float(np.median(area)), 1e-300)
+    out_v, out_f, out_b = [], [], []
+    for rank, piece in enumerate(pieces[1:], start=1):
+        base = f[np.isin(face_label, pieces[:rank]) & usable]
+        pv = np.unique(f[face_label == piece])
+        if base.shape[0] == 0 or pv.shape[0] == 0:
+            continue
+        sq, tri, closest = igl.point_mesh_squared_distance(np.ascontiguousarray(v[pv]), v, base)
+        keep = np.sqrt(np.asarray(sq)) <= max_distance
+        if not keep.any():
+            continue
+        tri_v = base[np.asarray(tri)[keep]]
+        a, b, c, p = v[tri_v[:, 0]], v[tri_v[:, 1]], v[tri_v[:, 2]], np.asarray(closest)[keep]
+        e0, e1, ep = b - a, c - a, p - a
+        d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
+        d20, d21 = (ep * e0).sum(1), (ep * e1).sum(1)
+        den = d00 * d11 - d01 * d01
+        w1 = (d11 * d20 - d01 * d21) / den
+        w2 = (d00 * d21 - d01 * d20) / den
+        out_v.append(pv[keep])
+        out_f.append(tri_v)
+        out_b.append(np.stack([1.0 - w1 - w2, w1, w2], axis=1))
+    if not out_v:
+        return empty
+    return (torch.as_tensor(np.concatenate(out_v)), torch.as_tensor(np.concatenate(out_f)),
+            torch.as_tensor(np.concatenate(out_b)))
+
+
+class Attachment(RetargetEnergy):
+    """L_attach = sum over attached vertices of A_i |x_i - a_i - F_i o_i|^2 / ell^2: the garment's separate
+    pieces stay where they lie on the larger ones.
+
+    The surface and curve terms are blind to a rigid motion of a whole piece, and the positional term holds
+    only the boundary's coordinate along a bone, so a patch pocket, a collar or a hood that is its own piece
+    could slide around the body at no cost. Each vertex ``i`` of such a layer is anchored
+    (:func:`layer_anchors`) to the closest point ``a_i`` of the piece under it (fixed barycentric coordinates
+    in one triangle, so the anchor moves with that cloth), and keeps its source offset ``o_i`` from it in the
+    triangle's orthonormal frame ``F_i`` (edge, in-plane normal to it, unit normal). Invariant to rigid
+    motions of the garment as a whole; zero at the source shape. Lumped source vertex areas ``A_i``,
+    normalised by ``ell`` (the fit's length) as the fit term is: one ell of slide costs like a unit
+    distortion of the same area. Per-vertex 12 x 12 Gauss-Newton Hessians over the vertex and its anchor
+    triangle.
+
+    Args:
+        source_vertices: (N, 3) source garment; faces: (F, 3) long; max_distance: see :func:`layer_anchors`.
+        length: ell > 0 (units of the vertices). weight: the term's weight.
+
+    Attributes:
+        vertices: (K,) attached vertices. anchors: (K, 3) their anchor triangles.
+    """
+
+    name = "attach"
+
+    def __init__(
+        self,
+        source_vertices: torch.Tensor,
+        faces: torch.Tensor,
+        max_distance: float,
+        length: float,
+        weight: float = 1.0,
+    ) -> None:
+        super().__init__(weight)
+        if not (math.isfinite(max_distance) and max_distance >= 0 and length > 0):
+            raise InputError(f"attachment: max_distance must be >= 0 and length > 0, got {max_distance}, "
+                             f"{length}")
+        vs = source_vertices.detach()
+        dev, dt = vs.device, vs.dtype
+        idx, tri, bary = layer_anchors(vs, faces, max_distance)
+        idx, tri, bary = idx.to(dev), tri.to(dev), bary.to(device=dev, dtype=dt)
+        p = vs[tri]  # (K, 3, 3)
+        anchor = (bary[:, :, None] * p).sum(1)
+        frame = _tri_frame(p[:, 0], p[:, 1], p[:, 2])
+        offset = (frame.transpose(-1, -2) @ (vs[idx] - anchor)[..., None])[..., 0]  # (K, 3) in the frame
+        self.register_buffer("vertices", idx)
+        self.register_buffer("anchors", tri)
+        self.register_buffer("consts", torch.cat([bary, offset], dim=1))
+        self.register_buffer("weights", vertex_areas(vs, faces)[idx] / length**2)
+
+    def _z(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([x[self.vertices][:, None], x[self.anchors]], dim=1).reshape(-1, 12)
+
+    def residuals(self, x: torch.Tensor) -> torch.Tensor:
+        """(K, 3) each attached vertex's miss of its place on the piece under it (units of ``x``)."""
+        return _attach_residual(self._z(x), self.consts)
+
+    def energy(self, x: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:  # noqa: D102
+        if len(self.vertices) == 0:
+            return x.sum() * 0.0
+        r = self.residuals(x)
+        return (self.weights * (r * r).sum(-1)).sum()
+
+    def unweighted_blocks(
+        self, x: torch.Tensor, t: torch.Tensor | None = None, project_psd: bool = True
+    ) -> HessianBlocks:
+        """Gauss-Newton blocks ``2 w J^T J`` over each vertex and its anchor triangle."""
+        if len(self.vertices) == 0:
+            return _empty_blocks(x)
+        h = element_gauss_newton(_attach_residual, self._z(x.detach()), self.weights, self.consts)
+        return element_blocks(h, torch.cat([self.vertices[:, None], self.anchors], dim=1))
 
 
 # ---------------------------------------------------------------------------------------------- L_fit

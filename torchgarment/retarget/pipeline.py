@@ -3,12 +3,13 @@
 ``retarget(problem)``: Step 1 shrinks the target avatar onto the source skeleton
 (:func:`~torchgarment.retarget.shrink.shrink_avatar`); Step 2 inflates it back (``t`` from 0 to 1 under an
 augmented Lagrangian) while projected Newton moves the garment, minimising
-``L_AL + w_surf L_surf + w_pos L_pos + L_contact + w_curve L_curve``; as soon as continuous collision
-detection says the move from the current ``t`` to ``t = 1`` (garment fixed) is intersection-free, ``t`` snaps
-to 1; Step 3 fits the garment to the fixed avatar with ``w_fit L_fit`` in place of ``L_AL``. Step 3's contact
-uses the input avatar mesh: Step 1's subdivision only splits triangles into fans that tile them (at
-``t = 1`` the same surface), and its T-junction vertices and slivers would add pairs (on a GarmentCode body,
-35,915 vertices and 62,432 faces instead of 23,752 and 47,500).
+``L_AL + w_surf L_surf + w_pos L_pos + L_contact + w_curve L_curve + w_attach L_attach`` (the last holds a
+garment's separate pieces, a pocket or a collar, where they lie on the cloth under them); as soon as
+continuous collision detection says the move from the current ``t`` to ``t = 1`` (garment fixed) is
+intersection-free, ``t`` snaps to 1; Step 3 fits the garment to the fixed avatar with ``w_fit L_fit`` in
+place of ``L_AL``. Step 3's contact uses the input avatar mesh: Step 1's subdivision only splits triangles
+into fans that tile them (at ``t = 1`` the same surface), and its T-junction vertices and slivers would add
+pairs (on a GarmentCode body, 35,915 vertices and 62,432 faces instead of 23,752 and 47,500).
 
 The optimisation runs in a canonical frame: the work frame scaled by ``1.7 / problem.length_scale`` (a model
 of human size in metres), so that the paper's constants (dhat = 2 mm, the fit length, the step caps) are
@@ -41,12 +42,14 @@ from torchgarment.logging import RunLogger
 from torchgarment.options import OptionEnum
 from torchgarment.retarget.inputs import REFERENCE_HEIGHT, RetargetProblem, source_gaps
 from torchgarment.retarget.objectives import (
+    Attachment,
     Contact,
     CurveShape,
     Fit,
     Positional,
     SurfaceShape,
     boundary_loops,
+    loop_winds_around_a_bone,
     vertex_areas,
 )
 from torchgarment.retarget.solver import (
@@ -107,6 +110,13 @@ class RetargetSettings:
     Attributes:
         w_fit: fit weight (tightness, paper Fig. 8); 0 skips Step 3's fit term (Step 3 still relaxes).
         w_pos: positional weight (paper: 10). w_surf: surface-shape weight. w_curve: curve-shape weight.
+        w_attach: weight of the garment's separate pieces keeping their place on the pieces under them
+            (:class:`~torchgarment.retarget.objectives.Attachment`: a patch pocket, a collar); as high as the
+            positional term's, since both hold what the shape terms cannot see. The positional term then
+            leaves the attached pieces' rims that do not wind around a bone (a pocket's) to it. 0 lets such
+            pieces slide (the objective before this term).
+        attach_distance: a separate piece's vertex within this distance of a larger piece is attached to it
+            (layers lie a few millimetres apart).
         dhat: barrier activation distance (paper: 2 mm).
         fit_length: length ``ell`` that normalises the fit term (one ``ell`` of gap costs like a unit
             distortion of the same area).
@@ -152,6 +162,8 @@ class RetargetSettings:
     w_pos: float = 10.0
     w_surf: float = 1.0
     w_curve: float = 1.0
+    w_attach: float = 10.0
+    attach_distance: float = 0.01
     dhat: float = 2e-3
     fit_length: float = 0.01
     fit_target: FitTarget | str = FitTarget.AUTO
@@ -178,7 +190,7 @@ class RetargetSettings:
         self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
         self.broad_phase = BroadPhase.resolve(self.broad_phase)
         self.fit_target = FitTarget.resolve(self.fit_target)
-        for name in ("w_fit", "w_pos", "w_surf", "w_curve"):
+        for name in ("w_fit", "w_pos", "w_surf", "w_curve", "w_attach"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"RetargetSettings.{name} must be a non-negative number, got {v}")
@@ -186,7 +198,8 @@ class RetargetSettings:
             raise InputError(
                 f"RetargetSettings.cull_radius must be None or >= 4 dhat, got {self.cull_radius}"
             )
-        for name in ("dhat", "fit_length", "sdf_voxel", "max_displacement", "al_lambda", "stiffness_scale"):
+        for name in ("dhat", "fit_length", "sdf_voxel", "max_displacement", "al_lambda", "stiffness_scale",
+                     "attach_distance"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"RetargetSettings.{name} must be positive, got {v}")
@@ -320,8 +333,10 @@ def retarget(
         t_snap, min_distance_mm (at human scale), intersections (0), intersects_avatar / intersects_self,
         distortion_mean / distortion_max, fit_target (the :class:`FitTarget` that ran), fit_gap_mm (the fit
         vertices' median gap to the avatar, median target gap and median miss |gap - target|, in mm at human
-        scale; None without a fit term), terms (each term's final unweighted value), weights, stiffness,
-        vertex / face counts.
+        scale; None without a fit term), attached_vertices and attach_miss_mm (the separate pieces' vertices
+        held by :class:`~torchgarment.retarget.objectives.Attachment`, and the median and max distance from
+        their places on the cloth under them, mm at human scale; None when the garment is one piece), terms
+        (each term's final unweighted value), weights, stiffness, vertex / face counts.
 
     Raises:
         InputError: from Step 1 (the shrunk avatar touches the garment), malformed settings, or
@@ -366,17 +381,35 @@ def retarget(
         js = problem.source_skeleton.joints.to(dt) * k
         jt = problem.target_skeleton.joints.to(dt) * k
         bones = problem.source_skeleton.bones.to(dev).long()
-        loops = boundary_loops(faces.cpu().numpy()) if s.curves_from_boundaries else []
-        curves = [torch.as_tensor(c) for c in loops] + [c.cpu() for c in problem.curves]
+        loops = boundary_loops(faces.cpu().numpy())
+        curves = ([torch.as_tensor(c) for c in loops] if s.curves_from_boundaries else []) + [
+            c.cpu() for c in problem.curves]
         surf = SurfaceShape(x_src, faces, weight=s.w_surf)
-        pos = Positional(x_src, faces, js, jt, bones, weight=s.w_pos)
+        # a separate piece lying on a larger one (a pocket, a collar) is held there by L_attach. The
+        # positional term is the paper's for cuffs and hems: it stays on the rims that wind around a bone (a
+        # waistband's), not on those that lie beside one (a pocket's), which it crumpled (README,
+        # "Retargeting")
+        attach = Attachment(x_src, faces, s.attach_distance, s.fit_length, weight=s.w_attach)
+        held = torch.zeros(x_src.shape[0], dtype=torch.bool, device=dev)
+        if s.w_attach > 0:
+            held[attach.vertices] = True
+        rim = [torch.as_tensor(lp, device=dev) for lp in loops]
+        if bool(held.any()):
+            ls = (js[bones[:, 1]] - js[bones[:, 0]]).norm(dim=-1)
+            long = bones[ls > 1e-4 * ls.max()]
+            rim = [lp for lp in rim
+                   if not bool(held[lp].all()) or loop_winds_around_a_bone(x_src[lp], js, long)]
+        rim_v = torch.unique(torch.cat(rim)) if rim else torch.zeros(0, dtype=torch.long, device=dev)
+        pos = Positional(x_src, faces, js, jt, bones, vertices=rim_v, weight=s.w_pos)
         curve = CurveShape(x_src, curves, weight=s.w_curve)
+        shape = [surf, pos, curve] + ([attach] if bool(held.any()) else [])
         area = float(vertex_areas(x_src, faces).sum())
         mean_area = area / x_src.shape[0]
         weights = {
             "surf": s.w_surf,
             "pos": s.w_pos,
             "curve": s.w_curve,
+            "attach": s.w_attach,
             "contact": 1.0,
             "al": 1.0,
             "fit": s.w_fit,
@@ -396,7 +429,7 @@ def retarget(
         )
         snap_contact = Contact(x_src, faces, full, shrunk.faces, shr, s.dhat, broad_phase=s.broad_phase)
         al = InflationPenalty(s.al_lambda * area)
-        obj = retarget_model([surf, pos, curve, contact, al], x_src)
+        obj = retarget_model(shape + [contact, al], x_src)
         x = x_src.clone()
         t = 0.0
         initial_stiffness(obj, x, t, mean_area * s.stiffness_scale)
@@ -463,10 +496,14 @@ def retarget(
                 f"{snap_contact.ipc.has_intersections(x, t_snap)} at t_snap, "
                 f"{snap_contact.ipc.has_intersections(x, 1.0)} at 1)"
             )
-        terms3 = [surf, pos, curve, contact3]
+        terms3 = shape + [contact3]
         sdf_s = 0.0
         fit: Fit | None = None
-        if s.w_fit > 0 and bool(problem.fit_mask.any()):
+        # an attached layer's gap is its offset from the cloth under it (L_attach), not a gap to the avatar:
+        # fitting both to the avatar squeezes the layer onto the cloth wherever the cloth cannot reach its own
+        fit_mask = problem.fit_mask.to(dev).clone()
+        fit_mask[held] = False
+        if s.w_fit > 0 and bool(fit_mask.any()):
             ts = time.perf_counter()
             sdf = BodySDF.cached(
                 avatar,
@@ -480,8 +517,7 @@ def retarget(
             sav, saf = problem.source_avatar_vertices, problem.source_avatar_faces
             if fit_target is FitTarget.SOURCE_GAP and sav is not None and saf is not None:
                 gap = source_gaps(x_src, sav.to(dt) * k, saf)
-            fit = Fit(sdf, x_src, faces, problem.fit_mask.to(dev), s.fit_length, s.dhat, weight=s.w_fit,
-                      source_gap=gap)
+            fit = Fit(sdf, x_src, faces, fit_mask, s.fit_length, s.dhat, weight=s.w_fit, source_gap=gap)
             terms3.append(fit)
         obj3 = retarget_model(terms3, x)
         initial_stiffness(obj3, x, 1.0, mean_area * s.stiffness_scale)
@@ -536,6 +572,11 @@ def retarget(
                 "target_median": 1000.0 * float(fit.targets.median()),
                 "miss_median": 1000.0 * float((gap_now - fit.targets).abs().median()),
             }
+        attach_miss = None
+        if bool(held.any()):  # human-scale mm: how far the attached vertices left their place
+            with torch.no_grad():
+                miss = 1000.0 * attach.residuals(x).norm(dim=-1)
+            attach_miss = {"median": float(miss.median()), "max": float(miss.max())}
         metrics = {
             "seconds": time.perf_counter() - t_start,
             "newton_iterations": iters2 + r3.iterations,
@@ -551,6 +592,8 @@ def retarget(
             "distortion_max": float(distortion.max()),
             "fit_target": fit_target.value,
             "fit_gap_mm": fit_gaps,
+            "attached_vertices": int(held.sum()),
+            "attach_miss_mm": attach_miss,
             "terms": vals,
             "weights": {kk: weights[kk] for kk in vals},
             "stiffness": contact3.stiffness,
