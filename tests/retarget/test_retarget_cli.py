@@ -172,6 +172,6 @@ def test_cli_bad_input_one_line(
     if case == "gpu":
         assert "runs on the CPU only" in err and "ipctk" in err, err
     if case == "bad_attach_weight":
-        assert "w_attach" in err, err
+        assert "--attach-weight" in err, err
     if case == "source_gap_without_source_avatar":
         assert "source-gap" in err and "--source-avatar" in err, err

@@ -168,7 +168,7 @@ def cmd_retarget(args: argparse.Namespace) -> int:
     from torchgarment.retarget.inputs import load_problem
     from torchgarment.retarget.pipeline import RetargetSettings, retarget
 
-    for name in ("fit_weight", "pos_weight"):
+    for name in ("fit_weight", "pos_weight", "attach_weight"):
         v = getattr(args, name)
         if not (math.isfinite(v) and v >= 0):
             raise InputError(f"--{name.replace('_', '-')} must be a non-negative number, got {v}")
