@@ -113,3 +113,28 @@ def synthetic_problem(
         to_work=Similarity.identity(dtype),
         length_scale=1.7,
     )
+
+
+def pocketed_tube(ring: bool = True) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """A tube (the garment, 1-3 cm around the toy avatar's torso), a patch 4 mm outside its front (a patch
+    pocket: a separate piece) and, with ``ring``, a ring 5 cm outside it (a separate piece lying on nothing).
+
+    Returns:
+        ``(vertices (N, 3), faces (F, 3), tube vertex count, patch vertex count)``; the tube's vertices come
+        first, then the patch's, then the ring's.
+    """
+    from torchgarment.retarget.avatars import tube_mesh
+
+    gv, gf = tube_mesh(0.29, 0.23, -0.2, 1.25, 24, 10)
+    pv, pf = tube_mesh(0.294, 0.234, 0.45, 0.85, 24, 5)
+    th = torch.atan2(pv[:, 2] / 0.234, pv[:, 0] / 0.294)
+    front = (th - math.pi / 2).abs() < 0.6
+    used, inv = torch.unique(pf[front[pf].all(1)], return_inverse=True)
+    pv, pf = pv[used], inv.reshape(-1, 3)
+    n, m = gv.shape[0], pv.shape[0]
+    vs, fs = [gv, pv], [gf, pf + n]
+    if ring:
+        rv, rf = tube_mesh(0.34, 0.28, 0.0, 0.1, 24, 2)
+        vs.append(rv)
+        fs.append(rf + n + m)
+    return torch.cat(vs), torch.cat(fs), n, m

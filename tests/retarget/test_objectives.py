@@ -12,7 +12,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from retarget_synth import scene  # noqa: E402
+from retarget_synth import pocketed_tube, scene  # noqa: E402
 
 from torchgarment.errors import InputError  # noqa: E402
 from torchgarment.retarget.objectives import (  # noqa: E402
@@ -367,25 +367,8 @@ def test_stiffness_update_doubles_kappa_while_the_closest_pair_approaches_below_
     assert not ipc.update_stiffness(math.inf, 0.4 * below, 0.1)
 
 
-def _pocketed_tube() -> tuple[torch.Tensor, torch.Tensor, int, int]:
-    """A tube (the garment), a patch 4 mm outside its front (a pocket: a separate piece) and a ring 5 cm
-    outside it (a separate piece lying on nothing); returns vertices, faces, the tube's and the patch's vertex
-    counts."""
-    from torchgarment.retarget.avatars import tube_mesh
-
-    gv, gf = tube_mesh(0.29, 0.23, -0.2, 1.25, 24, 10)
-    pv, pf = tube_mesh(0.294, 0.234, 0.45, 0.85, 24, 5)
-    th = torch.atan2(pv[:, 2] / 0.234, pv[:, 0] / 0.294)
-    front = (th - math.pi / 2).abs() < 0.6
-    used, inv = torch.unique(pf[front[pf].all(1)], return_inverse=True)
-    pv, pf = pv[used], inv.reshape(-1, 3)
-    rv, rf = tube_mesh(0.34, 0.28, 0.0, 0.1, 24, 2)
-    n, m = gv.shape[0], pv.shape[0]
-    return torch.cat([gv, pv, rv]), torch.cat([gf, pf + n, rf + n + m]), n, m
-
-
 def test_layer_anchors_attach_the_pieces_that_lie_on_a_larger_one() -> None:
-    v, f, n, m = _pocketed_tube()
+    v, f, n, m = pocketed_tube()
     idx, tri, bary = layer_anchors(v, f, 0.01)
     # every pocket vertex, nothing of the tube (the largest piece) or of the ring 5 cm out
     assert sorted(idx.tolist()) == list(range(n, n + m))
@@ -399,7 +382,7 @@ def test_layer_anchors_attach_the_pieces_that_lie_on_a_larger_one() -> None:
 
 
 def test_attachment_holds_a_pocket_in_place_and_is_blind_to_rigid_motions() -> None:
-    v, f, n, m = _pocketed_tube()
+    v, f, n, m = pocketed_tube()
     term = Attachment(v, f, 0.01, 0.01, weight=3.0)
     assert len(term.vertices) == m and float(term.energy(v)) < 1e-25
     r = _rotation(5)
