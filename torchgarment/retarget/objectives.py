@@ -51,6 +51,7 @@ from torchgarment.errors import InputError, MeshError
 from torchgarment.sim.contact import BroadPhase, MovingObstacleContact
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 from torchgarment.structures.garment_mesh import GarmentMesh
+from torchgarment.structures.mesh_checks import face_areas
 
 # ---------------------------------------------------------------------------------------------- mesh helpers
 
@@ -444,6 +445,16 @@ def _pos_vertex(z: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     return (w - c[:, 12]) ** 2
 
 
+def usable_bones(
+    source_joints: torch.Tensor, target_joints: torch.Tensor, bones: torch.Tensor
+) -> torch.Tensor:
+    """(U,) long indices of the bones (B, 2) of positive length in both skeletons (joints (J, 3)): a bone of
+    (near) zero length in either (e.g. a root bone) has no barycentric coordinate and no line."""
+    ls = (source_joints[bones[:, 1]] - source_joints[bones[:, 0]]).norm(dim=-1)
+    lt = (target_joints[bones[:, 1]] - target_joints[bones[:, 0]]).norm(dim=-1)
+    return torch.nonzero((ls > 1e-4 * ls.max()) & (lt > 1e-4 * lt.max())).reshape(-1)
+
+
 def loop_winds_around_a_bone(points: torch.Tensor, joints: torch.Tensor, bones: torch.Tensor) -> bool:
     """Whether a closed loop of points (L, 3) winds around the bone nearest to most of them (a cuff, a hem,
     a waistband's rim: |winding number| >= 1/2 about the bone's line) rather than lying beside it (a patch
@@ -502,10 +513,7 @@ class Positional(RetargetEnergy):
         self.register_buffer("vertices", vertices.long())
         if bones.shape[0] == 0:
             raise InputError("the skeleton has no bones")
-        # bones of (near) zero length in either skeleton (e.g. a root bone) have no barycentric coordinate
-        ls = (source_joints[bones[:, 1]] - source_joints[bones[:, 0]]).norm(dim=-1)
-        lt = (target_joints[bones[:, 1]] - target_joints[bones[:, 0]]).norm(dim=-1)
-        usable = torch.nonzero((ls > 1e-4 * ls.max()) & (lt > 1e-4 * lt.max())).reshape(-1)
+        usable = usable_bones(source_joints, target_joints, bones)
         if usable.numel() == 0:
             raise InputError("the skeletons have no bone of positive length")
         bone = (
@@ -603,7 +611,7 @@ def layer_anchors(
     graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
     face_label = label[f[:, 0]]
-    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    area = face_areas(torch.as_tensor(v), torch.as_tensor(f)).numpy()
     piece_area = np.bincount(face_label, weights=area, minlength=label.max() + 1)
     pieces = [int(c) for c in np.argsort(-piece_area, kind="stable") if piece_area[c] > 0]
     # anchors only on triangles with a normal (a degenerate one has no frame)

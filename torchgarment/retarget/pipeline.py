@@ -50,6 +50,7 @@ from torchgarment.retarget.objectives import (
     SurfaceShape,
     boundary_loops,
     loop_winds_around_a_bone,
+    usable_bones,
     vertex_areas,
 )
 from torchgarment.retarget.solver import (
@@ -395,8 +396,7 @@ def retarget(
             held[attach.vertices] = True
         rim = [torch.as_tensor(lp, device=dev) for lp in loops]
         if bool(held.any()):
-            ls = (js[bones[:, 1]] - js[bones[:, 0]]).norm(dim=-1)
-            long = bones[ls > 1e-4 * ls.max()]
+            long = bones[usable_bones(js, jt, bones)]
             rim = [lp for lp in rim
                    if not bool(held[lp].all()) or loop_winds_around_a_bone(x_src[lp], js, long)]
         rim_v = torch.unique(torch.cat(rim)) if rim else torch.zeros(0, dtype=torch.long, device=dev)
