@@ -230,15 +230,25 @@ def _ray_head(cpus: int) -> Iterator[int]:
     """A Ray cluster head on a free local port for the block (`ray start --head --block`; ending that process
     stops only what it started, unlike `ray stop`); yields the port."""
     ray_cli = shutil.which("ray") or str(Path(sys.executable).with_name("ray"))
-    port = _free_port()
-    head = subprocess.Popen([ray_cli, "start", "--head", f"--port={port}", f"--num-cpus={cpus}",
-                             "--include-dashboard=false", "--disable-usage-stats", "--block"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
+    seen: list[str] = []
+    for _ in range(3):  # the free port can be taken again before the head binds it: start on a new one
+        port = _free_port()
+        head = subprocess.Popen([ray_cli, "start", "--head", f"--port={port}", f"--num-cpus={cpus}",
+                                 "--include-dashboard=false", "--disable-usage-stats", "--block"],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         deadline = time.monotonic() + 90
+        seen = []
         for line in head.stdout:
+            seen.append(line)
             if "Ray runtime started" in line or time.monotonic() > deadline:
                 break
+        if seen and "Ray runtime started" in seen[-1]:
+            break
+        head.terminate()
+        head.wait(timeout=60)
+    else:
+        pytest.fail("`ray start --head` did not start in 3 tries; its last output:\n" + "".join(seen[-20:]))
+    try:
         yield port
     finally:
         head.terminate()
