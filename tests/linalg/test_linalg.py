@@ -183,6 +183,25 @@ def test_factor_cache_solves_nearby_systems_by_pcg() -> None:
     assert cache.pcg_solves == 1 and cache.factorizations == 1
 
 
+def test_factor_cache_takes_a_budget_stopped_solve_within_accept_rtol() -> None:
+    """A PCG solve stopped by its budget short of rtol is returned when its relative residual is at most
+    accept_rtol (an inexact Newton step), and refused (None: factorize afresh) when it is not."""
+    a = _spd()
+    near = (a + scipy.sparse.diags(np.linspace(0.0, 3.0, 30))).tocsr()  # far enough to need several updates
+    b = np.random.default_rng(2).standard_normal(30)
+    lu = factorize(a)
+    _, k, res = pcg(lambda v: near @ v, b, lu.solve, 1e-12, 2)  # the budget of maxiter=3 (see solve)
+    assert k == 2 and 1e-6 < res < 0.5  # stopped by the budget, short of 1e-12
+    cache = FactorCache()
+    cache.store(lu)
+    assert cache.solve(near, b, 1e-12, 3) is None  # without accept_rtol: a fresh factorization is needed
+    assert cache.solve(near, b, 1e-12, 3, accept_rtol=0.5 * res) is None
+    y = cache.solve(near, b, 1e-12, 3, accept_rtol=2.0 * res)
+    assert y is not None and cache.pcg_solves == 1 and cache.factorizations == 1
+    assert np.linalg.norm(near @ y - b) <= 2.0 * res * np.linalg.norm(b)
+    assert float(y @ b) > 0  # a descent direction of 1/2 y^T K y - b^T y from zero
+
+
 def test_pcg_on_numpy_reproduces_scipy_cg_bit_for_bit() -> None:
     """The numpy path of pcg runs scipy.sparse.linalg.cg's arithmetic (the reused-factorization Newton solves
     of the drape depended on it): same iterate, same convergence decision within the same budget."""

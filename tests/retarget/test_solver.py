@@ -63,6 +63,10 @@ def test_step_options_resolve() -> None:
         StepBound.resolve("bogus")
     with pytest.raises(InputError):
         NewtonSettings(max_displacement=-1.0)
+    with pytest.raises(InputError, match="pcg_accept_rtol"):
+        NewtonSettings(pcg_accept_rtol=0.001)  # below pcg_rtol
+    assert NewtonSettings().solve_settings().pcg_accept_rtol == 0.1
+    assert NewtonSettings(pcg_accept_rtol=None).solve_settings().pcg_accept_rtol is None
 
 
 @pytest.mark.parametrize("method", list(StepBound))
@@ -179,8 +183,10 @@ def test_newton_solve_reuses_its_factorization_through_pcg() -> None:
         cache: FactorCache,
         rtol: float = 1e-2,
         maxiter: int = 25,
+        accept: float | None = None,
     ) -> tuple[np.ndarray, int]:
-        st = RetargetNewtonSettings(pcg_rtol=rtol, pcg_max_iterations=maxiter).solve_settings()
+        st = RetargetNewtonSettings(pcg_rtol=rtol, pcg_max_iterations=maxiter,
+                                    pcg_accept_rtol=accept).solve_settings()
         assert st.regularization == shift
         return newton_direction(h, g, st, 1, cache, options)
 
@@ -203,3 +209,9 @@ def test_newton_solve_reuses_its_factorization_through_pcg() -> None:
     p3, _ = _solve(h3, g, 1e-8, cache, rtol=1e-10, maxiter=2)
     assert cache.factorizations == 2
     np.testing.assert_allclose(h3 @ p3, -g, rtol=1e-5, atol=1e-5)
+    # the retargeting default: a solve stopped by its budget (2 updates, short of 1e-10) on a system near
+    # the cached one is Newton's direction when within pcg_accept_rtol = 0.1, without a factorization
+    h4 = (h3 + 30.0 * sp.diags(rng.uniform(0.0, 1.0, n))).tocsr()
+    p4, _ = _solve(h4, g, 1e-8, cache, rtol=1e-10, maxiter=3, accept=0.1)
+    assert cache.factorizations == 2 and cache.pcg_solves == 2
+    assert 1e-10 < np.linalg.norm(h4 @ p4 + g) / np.linalg.norm(g) <= 0.1 and float(p4 @ g) < 0

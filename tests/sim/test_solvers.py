@@ -361,6 +361,9 @@ def test_bad_input() -> None:
         solve(m, torch.zeros(5, 3, dtype=torch.float64))
     with pytest.raises(InputError, match="chebyshev_rho"):
         solve(m, m.x0(), SolveSettings(chebyshev_rho=1.0))
+    for accept in (0.005, 1.0, math.nan):  # below pcg_rtol (0.01), not below 1, not a number
+        with pytest.raises(InputError, match="pcg_accept_rtol"):
+            SolveSettings(pcg_accept_rtol=accept)
     x0 = m.x0()
     x0[0, 0] = math.inf
     with pytest.raises(InputError, match="NaN"):

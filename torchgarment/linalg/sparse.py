@@ -368,11 +368,16 @@ class FactorCache:
         self.factorization, self.shift = factorization, float(shift)
         self.factorizations += 1
 
-    def solve(self, h: scipy.sparse.spmatrix, rhs: np.ndarray, rtol: float,
-              maxiter: int) -> np.ndarray | None:
+    def solve(self, h: scipy.sparse.spmatrix, rhs: np.ndarray, rtol: float, maxiter: int,
+              accept_rtol: float | None = None) -> np.ndarray | None:
         """``y`` (n,) with ``(H + shift I) y ~ rhs`` to relative residual ``rtol`` by PCG preconditioned with
         the stored factorization; None when there is none of this size or PCG does not get there within
-        ``maxiter`` iterations (or meets non-positive curvature)."""
+        ``maxiter`` iterations (or meets non-positive curvature).
+
+        ``accept_rtol`` (>= ``rtol``; None: ``rtol``): an iterate at which PCG stopped short of ``rtol`` (its
+        budget spent, or non-positive curvature met) is still returned when its relative residual is at most
+        this (an inexact Newton step with forcing term ``accept_rtol``), so a factorization that has become a
+        weaker preconditioner is not thrown away for a step that is already good enough."""
         n = h.shape[0]
         fact = self.factorization
         if fact is None or tuple(fact.shape) != (n, n):
@@ -386,7 +391,8 @@ class FactorCache:
                               stop_at_negative_curvature=True)
         except SingularMatrixError:
             return None
-        if not res <= rtol or not np.all(np.isfinite(out)):
+        limit = rtol if accept_rtol is None else max(rtol, accept_rtol)
+        if not res <= limit or not np.all(np.isfinite(out)):
             return None
         self.pcg_solves += 1
         return out

@@ -123,6 +123,9 @@ class SolveSettings:
             Large meshes (the drape's settle stage) spend most of a Newton iteration in the factorization.
         pcg_rtol: relative residual of those CG solves, in (0, 1).
         pcg_max_iterations: CG iterations before a fresh factorization (>= 1).
+        pcg_accept_rtol: a CG solve stopped by ``pcg_max_iterations`` short of ``pcg_rtol`` is still taken as
+            Newton's direction when its relative residual is at most this (in [``pcg_rtol``, 1); an inexact
+            Newton step with this forcing term), instead of factorizing afresh; None: ``pcg_rtol`` (never).
         exact_curvature_cg: 0 (default): Newton's direction is the projected Newton step ``-H_psd^-1 g``.
             N > 0: up to N conjugate-gradient iterations on the exact (unprojected) Hessian, preconditioned by
             the factorization of the projected one, from zero, to relative residual ``exact_curvature_rtol``
@@ -172,6 +175,7 @@ class SolveSettings:
     reuse_factorization: bool = False
     pcg_rtol: float = 1e-2
     pcg_max_iterations: int = 25
+    pcg_accept_rtol: float | None = None
     exact_curvature_cg: int = 0
     exact_curvature_rtol: float = 0.05
     sparse_backend: SparseBackend = SparseBackend.SUPERLU
@@ -213,6 +217,8 @@ class SolveSettings:
             (self.regularization > 0, "regularization must be > 0"),
             (0.0 < self.pcg_rtol < 1.0 and self.pcg_max_iterations >= 1,
              "pcg_rtol must lie in (0, 1) and pcg_max_iterations be >= 1"),
+            (self.pcg_accept_rtol is None or self.pcg_rtol <= self.pcg_accept_rtol < 1.0,
+             "pcg_accept_rtol must be None or lie in [pcg_rtol, 1)"),
             (isinstance(self.linear_solver, LinearSolver),
              f"linear_solver must be one of {[v.value for v in LinearSolver]}"),
             (0.0 < self.jacobi_pcg_rtol < 1.0 and self.jacobi_pcg_max_iterations >= 1,

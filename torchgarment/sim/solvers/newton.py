@@ -294,7 +294,7 @@ def newton_direction(
             # from zero every CG iterate before a non-positive curvature is a descent direction
             return (y if its > 0 and float(g @ y) < 0.0 else dx), 0
     elif cache is not None:
-        dx = cache.solve(h, -g, settings.pcg_rtol, settings.pcg_max_iterations)
+        dx = cache.solve(h, -g, settings.pcg_rtol, settings.pcg_max_iterations, settings.pcg_accept_rtol)
         if dx is not None and float(g @ dx) < 0.0:
             return dx, 0
 
