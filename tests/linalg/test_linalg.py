@@ -185,7 +185,8 @@ def test_factor_cache_solves_nearby_systems_by_pcg() -> None:
 
 def test_factor_cache_takes_a_budget_stopped_solve_within_accept_rtol() -> None:
     """A PCG solve stopped by its budget short of rtol is returned when its relative residual is at most
-    accept_rtol (an inexact Newton step), and refused (None: factorize afresh) when it is not."""
+    accept_rtol (an inexact Newton step), and refused (None: factorize afresh) when it is not. Taking it drops
+    the factorization, so the next system is factorized afresh; a solve that reaches rtol keeps it."""
     a = _spd()
     near = (a + scipy.sparse.diags(np.linspace(0.0, 3.0, 30))).tocsr()  # far enough to need several updates
     b = np.random.default_rng(2).standard_normal(30)
@@ -200,6 +201,11 @@ def test_factor_cache_takes_a_budget_stopped_solve_within_accept_rtol() -> None:
     assert y is not None and cache.pcg_solves == 1 and cache.factorizations == 1
     assert np.linalg.norm(near @ y - b) <= 2.0 * res * np.linalg.norm(b)
     assert float(y @ b) > 0  # a descent direction of 1/2 y^T K y - b^T y from zero
+    assert cache.factorization is None  # the drifted preconditioner is dropped
+    assert cache.solve(a, b, 1e-8, 3, accept_rtol=0.5) is None  # even for its own matrix: factorize afresh
+    cache.store(lu)
+    y = cache.solve(a, b, 1e-8, 3, accept_rtol=0.5)  # reaches rtol: taken, and the factorization kept
+    assert y is not None and cache.factorization is lu and cache.pcg_solves == 2
 
 
 def test_pcg_on_numpy_reproduces_scipy_cg_bit_for_bit() -> None:

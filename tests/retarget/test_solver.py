@@ -215,3 +215,7 @@ def test_newton_solve_reuses_its_factorization_through_pcg() -> None:
     p4, _ = _solve(h4, g, 1e-8, cache, rtol=1e-10, maxiter=3, accept=0.1)
     assert cache.factorizations == 2 and cache.pcg_solves == 2
     assert 1e-10 < np.linalg.norm(h4 @ p4 + g) / np.linalg.norm(g) <= 0.1 and float(p4 @ g) < 0
+    # that step dropped the factorization: the next system is factorized afresh and solved exactly
+    p5, _ = _solve(h4, g, 1e-8, cache, rtol=1e-10, maxiter=3, accept=0.1)
+    assert cache.factorizations == 3 and cache.pcg_solves == 2
+    np.testing.assert_allclose(h4 @ p5, -g, rtol=1e-5, atol=1e-5)

@@ -348,7 +348,8 @@ class FactorizationCache:
 class FactorCache:
     """The last factorization of a sequence of nearby systems (Newton iterations), reused as the
     preconditioner of :func:`~torchgarment.linalg.pcg` on the next ones (inexact Newton): a fresh
-    factorization is needed only when PCG does not reach its tolerance within its budget.
+    factorization is needed only when PCG does not reach its tolerance within its budget (or, with
+    ``accept_rtol``, on the system after one where it did not).
 
     Attributes:
         factorization: the stored :class:`Factorization` (or anything with ``solve(b)`` and ``shape``), or
@@ -376,8 +377,10 @@ class FactorCache:
 
         ``accept_rtol`` (>= ``rtol``; None: ``rtol``): an iterate at which PCG stopped short of ``rtol`` (its
         budget spent, or non-positive curvature met) is still returned when its relative residual is at most
-        this (an inexact Newton step with forcing term ``accept_rtol``), so a factorization that has become a
-        weaker preconditioner is not thrown away for a step that is already good enough."""
+        this (an inexact Newton step with forcing term ``accept_rtol``), so the work already spent on a step
+        that is good enough is not thrown away. The factorization is then dropped: it has become a weak
+        preconditioner, and the next system would spend about a factorization's time in CG for a worse
+        step, so it factorizes afresh instead."""
         n = h.shape[0]
         fact = self.factorization
         if fact is None or tuple(fact.shape) != (n, n):
@@ -394,6 +397,8 @@ class FactorCache:
         limit = rtol if accept_rtol is None else max(rtol, accept_rtol)
         if not res <= limit or not np.all(np.isfinite(out)):
             return None
+        if not res <= rtol:  # taken within accept_rtol: the next system gets a fresh factorization
+            self.factorization = None
         self.pcg_solves += 1
         return out
 

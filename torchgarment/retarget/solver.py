@@ -144,10 +144,11 @@ class NewtonSettings:
         pcg_max_iterations: CG iterations before a fresh factorization.
         pcg_accept_rtol: a CG solve that used up ``pcg_max_iterations`` short of ``pcg_rtol`` is still
             Newton's direction when its relative residual is at most this (an inexact Newton step; 0.1, a
-            textbook forcing term), and the factorization is kept; only a worse one is factorized afresh. On
-            the messy bench most budget-stopped solves ended at relative residuals of 0.01-0.1, each then
-            followed by a fresh factorization (README, "Retargeting"). None: factorize after every
-            budget-stopped solve.
+            textbook forcing term); only a worse one is factorized afresh at once. On the messy bench most
+            budget-stopped solves ended at relative residuals of 0.01-0.1, each then followed by a fresh
+            factorization (README, "Retargeting"). A solve taken this way also drops the factorization, so
+            the next iteration factorizes afresh instead of spending another whole budget on a drifted
+            preconditioner. None: factorize after every budget-stopped solve.
         sparse_backend: the sparse direct solver of the Newton systems
             (:class:`~torchgarment.linalg.SparseBackend`).
     """

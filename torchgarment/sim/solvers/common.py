@@ -125,7 +125,8 @@ class SolveSettings:
         pcg_max_iterations: CG iterations before a fresh factorization (>= 1).
         pcg_accept_rtol: a CG solve stopped by ``pcg_max_iterations`` short of ``pcg_rtol`` is still taken as
             Newton's direction when its relative residual is at most this (in [``pcg_rtol``, 1); an inexact
-            Newton step with this forcing term), instead of factorizing afresh; None: ``pcg_rtol`` (never).
+            Newton step with this forcing term), instead of factorizing afresh, and the next system is then
+            factorized afresh; None: ``pcg_rtol`` (never).
         exact_curvature_cg: 0 (default): Newton's direction is the projected Newton step ``-H_psd^-1 g``.
             N > 0: up to N conjugate-gradient iterations on the exact (unprojected) Hessian, preconditioned by
             the factorization of the projected one, from zero, to relative residual ``exact_curvature_rtol``
