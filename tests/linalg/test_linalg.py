@@ -144,6 +144,33 @@ def test_cholmod_backend_matches_a_dense_solve_and_rejects_what_it_cannot_factor
         factorize(a, backend="cholmod", symmetric=False)
 
 
+def test_cholmod_reuses_an_analysis_only_once_its_factorization_is_gone() -> None:
+    """A CHOLMOD factorization of a sparsity pattern seen before reuses the analysis of one that nobody holds
+    any more, and its answers are the same to the bit as with a fresh analysis; a factorization still held is
+    never overwritten by a later one of the same pattern."""
+    pytest.importorskip("cvxopt")
+    import gc
+
+    from torchgarment.linalg import sparse as sparse_mod
+
+    a = _spd(80, seed=11)
+    b = np.random.default_rng(12).standard_normal(80)
+    sparse_mod._CHOLMOD_ANALYSES.clear()
+    fresh = [factorize(s * a, backend="cholmod").solve(b) for s in (1.0, 3.0)]  # each freed at once
+    gc.collect()
+    assert len(sparse_mod._CHOLMOD_ANALYSES) == 1  # one pattern, one analysis kept
+    kept = factorize(a, backend="cholmod")  # takes the kept analysis
+    assert len(sparse_mod._CHOLMOD_ANALYSES) == 0
+    y = kept.solve(b)
+    assert np.array_equal(y, fresh[0])
+    later = factorize(3.0 * a, backend="cholmod")  # kept is alive: a new analysis, kept's factor untouched
+    assert np.array_equal(later.solve(b), fresh[1]) and np.array_equal(kept.solve(b), y)
+    del kept, later
+    gc.collect()
+    assert len(sparse_mod._CHOLMOD_ANALYSES) == 1  # bounded: one per pattern
+    np.testing.assert_allclose(fresh[0], np.linalg.solve(a.toarray(), b), rtol=1e-10, atol=1e-12)
+
+
 def test_singular_matrix_raises() -> None:
     a = scipy.sparse.csr_matrix(np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
     with pytest.raises(SingularMatrixError, match="stiffness matrix is singular"):
