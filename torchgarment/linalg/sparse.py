@@ -139,9 +139,14 @@ def fill_reducing_permutation(matrix: scipy.sparse.spmatrix) -> np.ndarray:
     Newton iterations of one solve, whose Hessians share a pattern, compute it once. METIS is deterministic:
     the same pattern always gives the same ordering.
     """
-    n = int(matrix.shape[0])
     a = _sorted_csr(matrix)
-    key = _pattern_key(a)
+    return _nested_dissection(a, _pattern_key(a))
+
+
+def _nested_dissection(a: scipy.sparse.csr_matrix, key: tuple) -> np.ndarray:
+    """:func:`fill_reducing_permutation` of ``a`` (CSR, sorted indices) whose :func:`_pattern_key` is
+    ``key``."""
+    n = int(a.shape[0])
     with _ORDERINGS_LOCK:
         hit = _ORDERINGS.get(key)
         if hit is not None:
@@ -269,12 +274,14 @@ def _cholmod(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
     # than CHOLMOD's own AMD order at 30K vertices) depends on the sparsity pattern only. numeric() overwrites
     # its factor in place, so a factor is reused only once the factorization that held it is gone (then the
     # result is the same to the bit as a fresh analysis; about a fifth of a factorization at 30K vertices)
-    key = _pattern_key(_sorted_csr(a))
+    pattern = _sorted_csr(a)
+    key = _pattern_key(pattern)
     with _CHOLMOD_LOCK:
         factor = _CHOLMOD_ANALYSES.pop(key, None)
     try:
         if factor is None:
-            factor = cholmod.symbolic(m, p=cvxopt.matrix(fill_reducing_permutation(a).tolist(), tc="i"))
+            order = _nested_dissection(pattern, key)
+            factor = cholmod.symbolic(m, p=cvxopt.matrix(order.tolist(), tc="i"))
         cholmod.numeric(m, factor)
     except ArithmeticError as exc:  # "not positive definite"
         raise RuntimeError(f"not positive definite ({exc})") from exc
@@ -284,7 +291,7 @@ def _cholmod(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
         cholmod.solve(factor, out)
         return np.asarray(out).reshape(b.shape)
 
-    weakref.finalize(solve, _release_analysis, key, factor)
+    weakref.finalize(solve, _release_analysis, key, factor).atexit = False  # nothing to keep at exit
     return solve
 
 
