@@ -26,11 +26,19 @@ def assert_one_line_error(proc: subprocess.CompletedProcess, needle: str) -> Non
     assert needle in lines[0], lines[0]
 
 
-def test_every_subcommand_has_help():
-    for cmd in ("body", "pattern", "measure", "demo"):
-        proc = run_cli(cmd, "--help")
-        assert proc.returncode == 0
-        assert "usage: torchgarment " + cmd in proc.stdout
+def test_every_subcommand_has_help(capsys):
+    """``python -m torchgarment --help`` lists the subcommands (one process, as a user would start it); each
+    subcommand's ``--help`` prints its usage and exits 0 (in this process: the same parser, without a Python
+    start and a torch import per subcommand)."""
+    proc = run_cli("--help")
+    assert proc.returncode == 0, proc.stderr
+    commands = ("body", "pattern", "measure", "drape", "adjust", "grade", "retarget", "pca", "batch", "demo")
+    assert "{" + ",".join(commands) + "}" in proc.stdout
+    for cmd in commands:
+        with pytest.raises(SystemExit) as stop:
+            main([cmd, "--help"])
+        assert stop.value.code == 0
+        assert "usage: torchgarment " + cmd in capsys.readouterr().out
 
 
 def test_list_sizes_and_garments(capsys):

@@ -47,46 +47,39 @@ def _single_command(record: dict, out: Path) -> Path:
     return out
 
 
-def test_six_drape_jobs_run_to_completion(tmp_path):
-    manifest = _manifest(tmp_path, {"cross": [{"method": "drape",
-                                               "garments": ["straight_skirt", "aline_skirt"],
-                                               "sizes": ["6", "10", "12"],
-                                               "settings": {"edge_length": EDGE}}]})
+def test_six_drape_jobs_run_to_completion_and_a_malformed_input_fails_alone(tmp_path):
+    """A cross of six drape jobs and one job whose pattern file is malformed, in one batch (one Ray start):
+    the six are written with their key metrics and a contact sheet; the malformed one fails alone, after its
+    retry, with a one-line error and no job folder; the exit code says that a job failed."""
+    bad = tmp_path / "broken.json"
+    bad.write_text('{"pattern": {"panels": ')
+    settings = {"edge_length": EDGE}
+    manifest = _manifest(tmp_path, {
+        "cross": [{"method": "drape", "garments": ["straight_skirt", "aline_skirt"],
+                   "sizes": ["6", "10", "12"], "settings": settings}],
+        "jobs": [{"method": "drape", "pattern": "broken.json", "body": "6", "settings": settings}]})
     out = tmp_path / "out"
-    assert main(["batch", str(manifest), "--out", str(out), "--workers", "2", "--no-progress"]) == 0
+    assert main(["batch", str(manifest), "--out", str(out), "--workers", "2", "--retries", "1",
+                 "--no-progress"]) == 1
     rows = _summary(out)
-    assert len(rows) == 6 and {r["status"] for r in rows} == {"ok"}
+    assert len(rows) == 7
     assert {"job", "method", "garment", "body", "status", "seconds", "error"} <= set(rows[0])
-    assert {(r["garment"], r["body"]) for r in rows} == {(g, s) for g in ("straight_skirt", "aline_skirt")
-                                                        for s in ("6", "10", "12")}
-    for r in rows:
+    ok = [r for r in rows if r["garment"] != "broken"]
+    assert {r["status"] for r in ok} == {"ok"}
+    assert {(r["garment"], r["body"]) for r in ok} == {(g, s) for g in ("straight_skirt", "aline_skirt")
+                                                      for s in ("6", "10", "12")}
+    for r in ok:
         folder = out / r["folder"]
         assert {"garment.obj", "drape.png", "metrics.json", "job.log"} <= {p.name for p in folder.iterdir()}
         assert r["converged"] == "True" and float(r["min_sdf_mm"]) > 0  # key metrics in the summary
-    assert (out / "contact_sheet.png").stat().st_size > 10_000
-    report = json.loads((out / "batch.json").read_text())
-    assert (report["ok"], report["failed"], report["workers"]) == (6, 0, 2)
-    assert not list((out / "jobs").glob(".*"))  # no staging leftovers
-
-
-def test_a_malformed_input_fails_alone(tmp_path):
-    bad = tmp_path / "broken.json"
-    bad.write_text('{"pattern": {"panels": ')
-    manifest = _manifest(tmp_path, {"jobs": [
-        {"method": "drape", "garment": "straight_skirt", "size": "6", "settings": {"edge_length": EDGE}},
-        {"method": "drape", "pattern": "broken.json", "body": "6", "settings": {"edge_length": EDGE}}]})
-    out = tmp_path / "out"
-    # the exit code says that a job failed; the others' results are written
-    assert main(["batch", str(manifest), "--out", str(out), "--workers", "2", "--retries", "1",
-                 "--no-progress"]) == 1
-    report = json.loads((out / "batch.json").read_text())
-    assert (report["ok"], report["failed"], report["retried"]) == (1, 1, 1)
-    rows = {r["garment"]: r for r in _summary(out)}
-    assert rows["straight_skirt"]["status"] == "ok"
-    failed = rows["broken"]
+    (failed,) = [r for r in rows if r["garment"] == "broken"]
     assert failed["status"] == "failed" and failed["attempts"] == "2" and failed["folder"] == ""
     assert "broken.json" in failed["error"] and "\n" not in failed["error"]
     assert not (out / "jobs" / failed["job"]).exists()  # no partial job folder
+    assert (out / "contact_sheet.png").stat().st_size > 10_000
+    report = json.loads((out / "batch.json").read_text())
+    assert (report["ok"], report["failed"], report["retried"], report["workers"]) == (6, 1, 1, 2)
+    assert not list((out / "jobs").glob(".*"))  # no staging leftovers
 
 
 def _as_from_a_terminal() -> None:
@@ -255,36 +248,32 @@ def _ray_head(cpus: int) -> Iterator[int]:
         head.wait(timeout=60)
 
 
-def test_batch_joins_a_running_ray_cluster_by_its_address(tmp_path):
+def test_batch_joins_a_running_ray_cluster_by_its_address_and_ignores_it_without(tmp_path):
     """`--address` joins a cluster started with `ray start --head` (here on this machine, on a free local
-    port); a wrong address is refused in one line and leaves no output folder."""
+    port); without it the batch starts its own Ray even while that cluster runs (a plain `ray.init()` would
+    join it and refuse the CPU count); a wrong address is refused in one line and leaves no output folder."""
     manifest = _manifest(tmp_path, {"cross": [{"method": "drape", "garments": ["straight_skirt"],
                                                "sizes": ["6", "12"], "settings": {"edge_length": EDGE}}]})
+    (tmp_path / "one").mkdir()
+    one = _manifest(tmp_path / "one", {"jobs": [{"method": "drape", "garment": "straight_skirt", "size": "6",
+                                                 "settings": {"edge_length": EDGE}}]})
     out = tmp_path / "out"
     with _ray_head(cpus=2) as port:
         proc = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
                                str(out), "--address", f"127.0.0.1:{port}", "--no-progress", "--no-sheet"],
                               capture_output=True, text=True, timeout=300)
+        embedded = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(one), "--out",
+                                   str(tmp_path / "embedded"), "--no-progress", "--no-sheet"],
+                                  capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert {r["status"] for r in _summary(out)} == {"ok"} and len(_summary(out)) == 2
+    assert embedded.returncode == 0, embedded.stderr[-2000:]
+    assert "1 jobs: 1 ok, 0 failed" in embedded.stdout
     bad = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
                           str(tmp_path / "bad"), "--address", f"127.0.0.1:{_free_port()}", "--no-progress"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "cannot join the Ray cluster" in bad.stderr.splitlines()[-1]
     assert not (tmp_path / "bad").exists()
-
-
-def test_the_embedded_batch_ignores_a_cluster_running_on_the_machine(tmp_path):
-    """Without --address the batch starts its own Ray even while a cluster runs here (a plain `ray.init()`
-    would join it and refuse the CPU count)."""
-    manifest = _manifest(tmp_path, {"jobs": [{"method": "drape", "garment": "straight_skirt", "size": "6",
-                                              "settings": {"edge_length": EDGE}}]})
-    with _ray_head(cpus=1):
-        proc = subprocess.run([sys.executable, "-m", "torchgarment", "batch", str(manifest), "--out",
-                               str(tmp_path / "out"), "--no-progress", "--no-sheet"],
-                              capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "1 jobs: 1 ok, 0 failed" in proc.stdout
 
 
 def test_the_shared_preparation_ships_the_body_and_its_sdf_to_another_machines_cache(tmp_path, monkeypatch):
