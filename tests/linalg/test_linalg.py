@@ -354,6 +354,33 @@ def test_assembler_matches_a_dense_sum() -> None:
     assert np.count_nonzero(one[3:]) == 0
 
 
+def test_assembler_pattern_is_canonical_and_shared_across_assemblers() -> None:
+    """Random blocks (duplicates, empty block rows) give the dense sum in canonical CSR (sorted, no
+    duplicate entries); a second assembler with the same block rows and columns takes the first one's pattern
+    (the same read-only arrays) instead of sorting again, and other blocks get their own."""
+    gen = torch.Generator().manual_seed(5)
+    nv, k = 40, 300
+    rows = torch.randint(0, nv - 5, (k,), generator=gen)  # the last 5 block rows stay empty
+    cols = torch.randint(0, nv, (k,), generator=gen)
+    vals = torch.randn(k, 3, 3, dtype=torch.float64, generator=gen)
+    dense = torch.zeros(3 * nv, 3 * nv, dtype=torch.float64)
+    for r, c, v in zip(rows.tolist(), cols.tolist(), vals):
+        dense[3 * r:3 * r + 3, 3 * c:3 * c + 3] += v
+    first = CSRAssembler(nv)
+    a = first.assemble(_Blocks(rows, cols, vals))
+    np.testing.assert_allclose(a.toarray(), dense.numpy(), rtol=1e-14, atol=1e-15)
+    assert a.has_canonical_format and a.nnz == 9 * len(set(zip(rows.tolist(), cols.tolist())))
+    second = CSRAssembler(nv)
+    b = second.assemble(_Blocks(rows.clone(), cols.clone(), vals))
+    assert np.array_equal(b.data, a.data)
+    assert all(getattr(second, k) is getattr(first, k) for k in ("_indices", "_indptr", "_slot"))
+    assert np.shares_memory(b.indices, a.indices) and not b.indices.flags.writeable
+    transposed = CSRAssembler(nv)
+    other = transposed.assemble(_Blocks(cols, rows, vals.transpose(1, 2)))  # the transpose: another pattern
+    assert transposed._indices is not first._indices
+    np.testing.assert_allclose(other.toarray(), dense.numpy().T, rtol=1e-14, atol=1e-15)
+
+
 def test_missing_backend_is_an_input_error(monkeypatch: pytest.MonkeyPatch) -> None:
     import importlib
 

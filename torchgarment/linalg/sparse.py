@@ -476,12 +476,50 @@ class BlockMatrix(Protocol):
     values: torch.Tensor
 
 
+_PATTERNS: "OrderedDict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]]" = OrderedDict()
+_PATTERNS_LOCK = threading.Lock()
+_PATTERNS_KEPT = 4
+
+
+def _block_pattern(n: int, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(slot, indices, indptr)`` of 3x3 blocks at block ``rows``, ``cols`` (K,) int64 in an (n, n) CSR
+    matrix: ``indptr`` (n + 1,) and ``indices`` (nnz,) the CSR pattern (sorted, duplicates merged), ``slot``
+    (9K,) the data position of every block entry in (K, 3, 3) order. All three are read-only.
+
+    Sorts the K block keys only: the entries of a block row ``r`` with ``m`` distinct blocks fill the scalar
+    rows ``3r + a`` in the same block order, 3 columns per block, so each entry's position follows from its
+    block's rank."""
+    nv = n // 3
+    ub, inv = np.unique(rows * nv + cols, return_inverse=True)
+    br, bc = ub // nv, ub % nv
+    cnt = np.bincount(br, minlength=nv)  # distinct blocks per block row
+    start = np.zeros(nv + 1, dtype=np.int64)
+    np.cumsum(cnt, out=start[1:])
+    ar = np.arange(3, dtype=np.int64)
+    itype = np.int32 if n < 2**31 else np.int64
+    indptr = np.empty(n + 1, dtype=itype)
+    indptr[:-1] = (9 * start[:-1, None] + 3 * cnt[:, None] * ar[None, :]).reshape(-1)
+    indptr[-1] = 9 * ub.shape[0]
+    rank = np.arange(ub.shape[0], dtype=np.int64) - start[br]  # a block's place in its block row
+    pos = ((9 * start[br] + 3 * rank)[:, None, None] + (3 * cnt[br])[:, None, None] * ar[None, :, None]
+           + ar[None, None, :])  # (U, 3, 3): block entry (a, b) -> data position
+    indices = np.empty(9 * ub.shape[0], dtype=itype)
+    col = 3 * bc[:, None, None] + ar[None, None, :]  # (U, 1, 3): the columns of a block's entries
+    indices[pos.reshape(-1)] = np.broadcast_to(col, pos.shape).reshape(-1)
+    slot = pos.reshape(-1, 9)[inv.reshape(-1)].reshape(-1)
+    for a in (slot, indices, indptr):
+        a.setflags(write=False)
+    return slot, indices, indptr
+
+
 class CSRAssembler:
     """Assembles 3x3 blocks (a :class:`BlockMatrix`) into a scipy CSR matrix (3V, 3V), float64, on the CPU.
 
     The COO -> CSR permutation is computed once per sparsity pattern and reused while the block rows and
     columns stay the same (they do for the elastic terms; contact terms may change them), so assembly is one
-    ``np.bincount`` per iteration.
+    ``np.bincount`` per iteration. The last few patterns are also kept across assemblers, keyed by a hash of
+    the block rows and columns: the solves of an adjustment's outer iterations, each with its own
+    assemblers, then sort the garment's pattern once.
     """
 
     def __init__(self, num_vertices: int) -> None:
@@ -493,18 +531,22 @@ class CSRAssembler:
         self._indices: np.ndarray | None = None
 
     def _build_pattern(self, rows: torch.Tensor, cols: torch.Tensor) -> None:
-        r = rows.detach().cpu().numpy().astype(np.int64)
-        c = cols.detach().cpu().numpy().astype(np.int64)
-        ar = np.arange(3, dtype=np.int64)
-        rr = (3 * r[:, None, None] + ar[None, :, None]).repeat(3, axis=2).reshape(-1)
-        cc = (3 * c[:, None, None] + ar[None, None, :]).repeat(3, axis=1).reshape(-1)
-        key = rr * self.n + cc
-        uniq, slot = np.unique(key, return_inverse=True)
-        self._slot = slot.reshape(-1)
-        urow = uniq // self.n
-        self._indices = (uniq % self.n).astype(np.int32 if self.n < 2**31 else np.int64)
-        self._indptr = np.zeros(self.n + 1, dtype=self._indices.dtype)
-        np.cumsum(np.bincount(urow, minlength=self.n), out=self._indptr[1:])
+        r = np.ascontiguousarray(rows.detach().cpu().numpy(), dtype=np.int64)
+        c = np.ascontiguousarray(cols.detach().cpu().numpy(), dtype=np.int64)
+        h = hashlib.blake2b(r.data, digest_size=16)
+        h.update(c.data)
+        key = (self.n, r.shape[0], h.digest())
+        with _PATTERNS_LOCK:
+            hit = _PATTERNS.get(key)
+            if hit is not None:
+                _PATTERNS.move_to_end(key)
+        if hit is None:
+            hit = _block_pattern(self.n, r, c)
+            with _PATTERNS_LOCK:
+                _PATTERNS[key] = hit
+                while len(_PATTERNS) > _PATTERNS_KEPT:
+                    _PATTERNS.popitem(last=False)
+        self._slot, self._indices, self._indptr = hit
         self._rows, self._cols = rows.detach().clone(), cols.detach().clone()
 
     def assemble(self, blocks: BlockMatrix) -> scipy.sparse.csr_matrix:
