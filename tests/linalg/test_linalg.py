@@ -171,6 +171,35 @@ def test_cholmod_reuses_an_analysis_only_once_its_factorization_is_gone() -> Non
     np.testing.assert_allclose(fresh[0], np.linalg.solve(a.toarray(), b), rtol=1e-10, atol=1e-12)
 
 
+def test_cholmod_reuses_its_input_matrix_per_pattern() -> None:
+    """CHOLMOD's input (cvxopt's sparse lower triangle, sorted from triplets) is built once per sparsity
+    pattern; later matrices of the pattern (another format, an explicit zero, after a failed factorization)
+    only write their values into it, with the same answers to the bit as a freshly built input."""
+    pytest.importorskip("cvxopt")
+    from torchgarment.linalg import sparse as sparse_mod
+
+    a = _spd(90, seed=21).tocsr()
+    b = np.random.default_rng(22).standard_normal(90)
+    z = a.copy()  # the same pattern with one off-diagonal pair stored as explicit zeros
+    rows = np.repeat(np.arange(90), np.diff(z.indptr))
+    i, j = next((r, c) for r, c in zip(rows, z.indices) if r < c)
+    z.data[((rows == i) & (z.indices == j)) | ((rows == j) & (z.indices == i))] = 0.0
+    matrices = [a, 2.0 * a.tocsc(), z, a.tocoo()]
+    fresh = []
+    for m in matrices:
+        sparse_mod._CHOLMOD_INPUTS.clear()
+        fresh.append(factorize(m, backend="cholmod").solve(b))
+    sparse_mod._CHOLMOD_INPUTS.clear()
+    reused = [factorize(m, backend="cholmod").solve(b) for m in matrices]
+    assert len(sparse_mod._CHOLMOD_INPUTS) == 1
+    assert all(np.array_equal(x, y) for x, y in zip(fresh, reused))
+    with pytest.raises(SingularMatrixError, match="not positive definite"):
+        factorize(a - 100.0 * scipy.sparse.identity(90, format="csr"), backend="cholmod")
+    assert np.array_equal(factorize(a, backend="cholmod").solve(b), fresh[0])  # the pool survives a failure
+    np.testing.assert_allclose(fresh[1], np.linalg.solve(2.0 * a.toarray(), b), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(fresh[2], np.linalg.solve(z.toarray(), b), rtol=1e-10, atol=1e-12)
+
+
 def test_singular_matrix_raises() -> None:
     a = scipy.sparse.csr_matrix(np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
     with pytest.raises(SingularMatrixError, match="stiffness matrix is singular"):
