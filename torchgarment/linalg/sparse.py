@@ -365,7 +365,9 @@ def factorize(matrix: scipy.sparse.spmatrix, *, backend: "str | SparseBackend" =
     n = int(matrix.shape[0])
     a = matrix if matrix.dtype == np.float64 else matrix.astype(np.float64)
     if shift != 0.0:
-        a = a.tocsc() + float(shift) * scipy.sparse.identity(n, format="csc", dtype=np.float64)
+        # in CSR, the assembler's format and the backends' input (SuperLU permutes rows first, CHOLMOD reads
+        # sorted CSR): no round trip through CSC
+        a = a.tocsr() + float(shift) * scipy.sparse.identity(n, format="csr", dtype=np.float64)
     try:
         solve = _BACKENDS[kind](a, symmetric)
     except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"; a Cholesky: not positive definite
