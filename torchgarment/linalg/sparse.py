@@ -277,9 +277,12 @@ def _cholmod_input(cvxopt: ModuleType, pattern: scipy.sparse.csr_matrix,
     rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(pattern.indptr))
     cols = pattern.indices.astype(np.int64)
     low = np.flatnonzero(rows >= cols)  # CHOLMOD reads one triangle of a symmetric matrix
-    gather = low[np.lexsort((rows[low], cols[low]))]  # column-major, as cvxopt stores it
-    m = cvxopt.spmatrix(cvxopt.matrix(pattern.data[gather]), cvxopt.matrix(rows[gather]),
-                        cvxopt.matrix(cols[gather]), (n, n))
+    # column-major, as cvxopt stores it: scipy's counting sort to CSC keeps the row order within a column
+    # (positions + 1 as the values, so that none is a zero)
+    csc = scipy.sparse.coo_matrix((low + 1, (rows[low], cols[low])), shape=(n, n)).tocsc()
+    gather = csc.data - 1
+    m = cvxopt.spmatrix(cvxopt.matrix(pattern.data[gather]), cvxopt.matrix(csc.indices.astype(np.int64)),
+                        cvxopt.matrix(np.repeat(np.arange(n, dtype=np.int64), np.diff(csc.indptr))), (n, n))
     return m, gather
 
 
