@@ -109,17 +109,60 @@ Solve = Callable[[np.ndarray, bool], np.ndarray]
 """``(b, transpose) -> A^-1 b`` (or ``A^-T b``)."""
 
 
-_ORDERINGS: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
-_ORDERINGS_LOCK = threading.Lock()
-_ORDERINGS_KEPT = 8
+class _Kept:
+    """The last ``kept`` values by key (least recently used dropped first), shared by threads under a
+    re-entrant lock (a garbage collection inside it may put a value back, see :func:`_release_analysis`)."""
+
+    def __init__(self, kept: int) -> None:
+        self.kept = int(kept)
+        self._items: OrderedDict = OrderedDict()
+        self._lock = threading.RLock()
+
+    def get(self, key: tuple) -> object | None:
+        """The value of ``key`` (now the most recently used), or None."""
+        with self._lock:
+            hit = self._items.get(key)
+            if hit is not None:
+                self._items.move_to_end(key)
+            return hit
+
+    def pop(self, key: tuple) -> object | None:
+        """Take the value of ``key`` out (the caller owns it until it puts it back), or None."""
+        with self._lock:
+            return self._items.pop(key, None)
+
+    def put(self, key: tuple, value: object) -> None:
+        """Keep ``value`` as the most recently used; drop the oldest beyond ``kept``."""
+        with self._lock:
+            self._items[key] = value
+            self._items.move_to_end(key)
+            while len(self._items) > self.kept:
+                self._items.popitem(last=False)
+
+    def clear(self) -> None:  # noqa: D102
+        with self._lock:
+            self._items.clear()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+def _digest(*arrays: np.ndarray) -> bytes:
+    """A 16-byte hash of the bytes of ``arrays`` (a cache key's part)."""
+    h = hashlib.blake2b(digest_size=16)
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).data)
+    return h.digest()
+
+
+_ORDERINGS = _Kept(8)
 
 
 def _pattern_key(a: scipy.sparse.csr_matrix) -> tuple:
     """A key of the sparsity pattern of ``a`` (CSR with sorted indices): its size and a hash of its index
     arrays."""
-    h = hashlib.blake2b(np.ascontiguousarray(a.indptr).data, digest_size=16)
-    h.update(np.ascontiguousarray(a.indices).data)
-    return (int(a.shape[0]), int(a.nnz), a.indptr.dtype.str, a.indices.dtype.str, h.digest())
+    return (int(a.shape[0]), int(a.nnz), a.indptr.dtype.str, a.indices.dtype.str,
+            _digest(a.indptr, a.indices))
 
 
 def _sorted_csr(matrix: scipy.sparse.spmatrix) -> scipy.sparse.csr_matrix:
@@ -148,11 +191,9 @@ def _nested_dissection(a: scipy.sparse.csr_matrix, key: tuple) -> np.ndarray:
     """:func:`fill_reducing_permutation` of ``a`` (CSR, sorted indices) whose :func:`_pattern_key` is
     ``key``."""
     n = int(a.shape[0])
-    with _ORDERINGS_LOCK:
-        hit = _ORDERINGS.get(key)
-        if hit is not None:
-            _ORDERINGS.move_to_end(key)
-            return hit
+    hit = _ORDERINGS.get(key)
+    if hit is not None:
+        return hit
     b = 3 if n % 3 == 0 else 1
     m = n // b
     if m <= 1:
@@ -170,10 +211,7 @@ def _nested_dissection(a: scipy.sparse.csr_matrix, key: tuple) -> np.ndarray:
         order = np.asarray(order, dtype=np.int64)
         perm = (b * order[:, None] + np.arange(b, dtype=np.int64)[None, :]).reshape(-1)
     perm.setflags(write=False)
-    with _ORDERINGS_LOCK:
-        _ORDERINGS[key] = perm
-        while len(_ORDERINGS) > _ORDERINGS_KEPT:
-            _ORDERINGS.popitem(last=False)
+    _ORDERINGS.put(key, perm)
     return perm
 
 
@@ -244,33 +282,24 @@ def _cholespy(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
     return solve
 
 
-_CHOLMOD_ANALYSES: "OrderedDict[tuple, object]" = OrderedDict()
-_CHOLMOD_LOCK = threading.RLock()  # re-entrant: a garbage collection inside it may run _release_analysis
-_CHOLMOD_KEPT = 2
+_CHOLMOD_ANALYSES = _Kept(2)
+_CHOLMOD_INPUTS = _Kept(2)
 
 
 def _release_analysis(key: tuple, factor: object) -> None:
     """Keep the CHOLMOD factor of a factorization that nobody uses any more, for the next factorization of
-    the same sparsity pattern (its analysis is what it saves); at most :data:`_CHOLMOD_KEPT` are kept."""
-    with _CHOLMOD_LOCK:
-        _CHOLMOD_ANALYSES[key] = factor
-        _CHOLMOD_ANALYSES.move_to_end(key)
-        while len(_CHOLMOD_ANALYSES) > _CHOLMOD_KEPT:
-            _CHOLMOD_ANALYSES.popitem(last=False)
-
-
-_CHOLMOD_INPUTS: "OrderedDict[tuple, tuple[object, np.ndarray]]" = OrderedDict()
+    the same sparsity pattern (its analysis is what it saves); at most 2 are kept."""
+    _CHOLMOD_ANALYSES.put(key, factor)
 
 
 def _cholmod_input(cvxopt: ModuleType, pattern: scipy.sparse.csr_matrix,
                    key: tuple) -> tuple[object, np.ndarray]:
     """``(m, gather)``: a cvxopt sparse matrix of the lower triangle of ``pattern`` (CSR, sorted indices)
     whose :func:`_pattern_key` is ``key``, and the positions in ``pattern.data`` of its values in ``m``'s
-    column-major order. The caller owns ``m`` until it hands it back with :func:`_keep_cholmod_input`; a
+    column-major order. The caller owns ``m`` until it puts it back into :data:`_CHOLMOD_INPUTS`; a
     matrix of the same pattern then needs only ``m.V = pattern.data[gather]``, not cvxopt's triplet sort (29
     of a factorization's 190 ms at 10K vertices)."""
-    with _CHOLMOD_LOCK:
-        hit = _CHOLMOD_INPUTS.pop(key, None)
+    hit = _CHOLMOD_INPUTS.pop(key)
     if hit is not None:
         return hit
     n = int(pattern.shape[0])
@@ -284,13 +313,6 @@ def _cholmod_input(cvxopt: ModuleType, pattern: scipy.sparse.csr_matrix,
     m = cvxopt.spmatrix(cvxopt.matrix(pattern.data[gather]), cvxopt.matrix(csc.indices.astype(np.int64)),
                         cvxopt.matrix(np.repeat(np.arange(n, dtype=np.int64), np.diff(csc.indptr))), (n, n))
     return m, gather
-
-
-def _keep_cholmod_input(key: tuple, entry: tuple[object, np.ndarray]) -> None:
-    with _CHOLMOD_LOCK:
-        _CHOLMOD_INPUTS[key] = entry
-        while len(_CHOLMOD_INPUTS) > _CHOLMOD_KEPT:
-            _CHOLMOD_INPUTS.popitem(last=False)
 
 
 def _cholmod(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
@@ -309,8 +331,7 @@ def _cholmod(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
     # than CHOLMOD's own AMD order at 30K vertices) depends on the sparsity pattern only. numeric() overwrites
     # its factor in place, so a factor is reused only once the factorization that held it is gone (then the
     # result is the same to the bit as a fresh analysis; about a fifth of a factorization at 30K vertices)
-    with _CHOLMOD_LOCK:
-        factor = _CHOLMOD_ANALYSES.pop(key, None)
+    factor = _CHOLMOD_ANALYSES.pop(key)
     try:
         if factor is None:
             order = _nested_dissection(pattern, key)
@@ -319,7 +340,7 @@ def _cholmod(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
     except ArithmeticError as exc:  # "not positive definite"
         raise RuntimeError(f"not positive definite ({exc})") from exc
     finally:
-        _keep_cholmod_input(key, entry)
+        _CHOLMOD_INPUTS.put(key, entry)
 
     def solve(b: np.ndarray, transpose: bool) -> np.ndarray:  # A is symmetric: A^-T = A^-1
         out = cvxopt.matrix(np.ascontiguousarray(b.reshape(n, -1), dtype=np.float64))
@@ -513,9 +534,7 @@ class BlockMatrix(Protocol):
     values: torch.Tensor
 
 
-_PATTERNS: "OrderedDict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]]" = OrderedDict()
-_PATTERNS_LOCK = threading.Lock()
-_PATTERNS_KEPT = 4
+_PATTERNS = _Kept(4)
 
 
 def _block_pattern(n: int, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -570,19 +589,11 @@ class CSRAssembler:
     def _build_pattern(self, rows: torch.Tensor, cols: torch.Tensor) -> None:
         r = np.ascontiguousarray(rows.detach().cpu().numpy(), dtype=np.int64)
         c = np.ascontiguousarray(cols.detach().cpu().numpy(), dtype=np.int64)
-        h = hashlib.blake2b(r.data, digest_size=16)
-        h.update(c.data)
-        key = (self.n, r.shape[0], h.digest())
-        with _PATTERNS_LOCK:
-            hit = _PATTERNS.get(key)
-            if hit is not None:
-                _PATTERNS.move_to_end(key)
+        key = (self.n, r.shape[0], _digest(r, c))
+        hit = _PATTERNS.get(key)
         if hit is None:
             hit = _block_pattern(self.n, r, c)
-            with _PATTERNS_LOCK:
-                _PATTERNS[key] = hit
-                while len(_PATTERNS) > _PATTERNS_KEPT:
-                    _PATTERNS.popitem(last=False)
+            _PATTERNS.put(key, hit)
         self._slot, self._indices, self._indptr = hit
         self._rows, self._cols = rows.detach().clone(), cols.detach().clone()
 
