@@ -190,8 +190,11 @@ def test_cholmod_reuses_its_input_matrix_per_pattern() -> None:
         sparse_mod._CHOLMOD_INPUTS.clear()
         fresh.append(factorize(m, backend="cholmod").solve(b))
     sparse_mod._CHOLMOD_INPUTS.clear()
-    reused = [factorize(m, backend="cholmod").solve(b) for m in matrices]
+    reused = [factorize(matrices[0], backend="cholmod").solve(b)]
+    (built,) = sparse_mod._CHOLMOD_INPUTS._items.values()  # the input the first factorization built
+    reused += [factorize(m, backend="cholmod").solve(b) for m in matrices[1:]]
     assert len(sparse_mod._CHOLMOD_INPUTS) == 1
+    assert next(iter(sparse_mod._CHOLMOD_INPUTS._items.values())) is built  # taken again, not rebuilt
     assert all(np.array_equal(x, y) for x, y in zip(fresh, reused))
     with pytest.raises(SingularMatrixError, match="not positive definite"):
         factorize(a - 100.0 * scipy.sparse.identity(90, format="csr"), backend="cholmod")
