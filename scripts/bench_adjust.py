@@ -1,11 +1,13 @@
 """Benchmark of pattern adjustment: a ~30K-vertex garment, 256 outer iterations of Algorithm 1, total seconds
-(target: at most 115 s on 2 CPU cores, the paper's total for its 34K-vertex dress on a GTX Titan X).
+(target: at most 230 s on 2 CPU cores, issue 14's: twice the paper's 115 s for its 34K-vertex dress on a GTX
+Titan X).
 
 Usage:
     python scripts/bench_adjust.py --json FILE [--vertices 30000] [--iterations 256] [--garment sheath_dress]
         [--base-size 12] [--target-size 20] [--voxel 0.005] [--threads 2] [--inner-iterations 2]
         [--inner-solver newton|gd-chebyshev] [--adjoint direct|iterative] [--adjoint-max-iterations 50]
-        [--reuse-factorization] [--linear-solver direct|jacobi-pcg] [--setup FILE] [--device cpu|cuda]
+        [--reuse-factorization [--pcg-accept-rtol R]] [--linear-solver direct|jacobi-pcg] [--setup FILE]
+        [--device cpu|cuda]
         [--sparse-backend superlu|cholmod|...] [--exact-curvature-cg N] [--min-model-ratio R]
         [--adapt-step | --no-adapt-step] [--step-window K] [--compare-exact]
 
@@ -18,7 +20,10 @@ that its speed must not buy: within 2 %).
 The garment is meshed at the edge length that gives about ``--vertices`` vertices (measured on a coarse mesh
 and scaled by the square root of the vertex ratio). As in the paper's Table 1, the timed total excludes the
 precomputation (base drape, transfer, factorizations, initialization), which is reported separately. Reports
-total seconds, seconds per iteration, closure calls (cloth solves), simulator iterations, objective reduction.
+total seconds, seconds per iteration, closure calls (cloth solves), simulator iterations, objective reduction,
+and a per-stage breakdown (``stages``: inexact solves, exact checks, the objective and its adjoints; for each
+its seconds, sparse factorizations and substitutions with their seconds, counted by
+:func:`torchgarment.linalg.count_linalg`, and the rest).
 """
 
 from __future__ import annotations
@@ -83,6 +88,10 @@ def main() -> None:
     ap.add_argument("--reuse-factorization", action="store_true",
                     help="Newton solves reuse their LU factorization through PCG "
                          "(AdjustSettings.reuse_factorization)")
+    ap.add_argument("--pcg-accept-rtol", type=float, default=None, metavar="R",
+                    help="with --reuse-factorization, a CG step stopped by its budget is still taken within "
+                         "this relative residual (AdjustSettings.pcg_accept_rtol; 0: never; default: the "
+                         "library's)")
     ap.add_argument("--sparse-backend", default="superlu",
                     choices=[k.value for k in SparseBackend],
                     help="sparse direct solver of Newton systems, adjoints and tangents "
@@ -119,6 +128,10 @@ def main() -> None:
     base = Body.from_size(args.base_size, device=device)
     target = Body.from_size(args.target_size, device=device)
     ratio = AdjustSettings.min_model_ratio if args.min_model_ratio is None else args.min_model_ratio
+    if args.pcg_accept_rtol is None:
+        args.pcg_accept_rtol = AdjustSettings.pcg_accept_rtol
+    elif args.pcg_accept_rtol == 0:
+        args.pcg_accept_rtol = None
     adapt = AdjustSettings.adapt_step if args.adapt_step is None else args.adapt_step
     window = AdjustSettings.step_window if args.step_window is None else args.step_window
     settings = AdjustSettings(edge_length=edge, voxel_size=args.voxel, iterations=args.iterations,
@@ -127,6 +140,7 @@ def main() -> None:
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
                               adjoint_max_iterations=args.adjoint_max_iterations,
                               reuse_factorization=args.reuse_factorization,
+                              pcg_accept_rtol=args.pcg_accept_rtol,
                               sparse_backend=args.sparse_backend, linear_solver=args.linear_solver,
                               exact_curvature_cg=args.exact_curvature_cg)
     t0 = time.perf_counter()
@@ -153,7 +167,8 @@ def main() -> None:
                            adapt_step=adapt, step_window=window,
                            inner_solver=args.inner_solver, adjoint=args.adjoint,
                            adjoint_max_iterations=args.adjoint_max_iterations,
-                           reuse_factorization=args.reuse_factorization, sparse_backend=args.sparse_backend,
+                           reuse_factorization=args.reuse_factorization,
+                           pcg_accept_rtol=args.pcg_accept_rtol, sparse_backend=args.sparse_backend,
                            linear_solver=args.linear_solver, exact_curvature_cg=args.exact_curvature_cg)
     res = optimize(setup, run_settings, progress=True)
     m = res.metrics
@@ -166,6 +181,7 @@ def main() -> None:
         "adapt_step": adapt, "step_window": window,
         "poor_model_checks": m["poor_model_checks"],
         "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
+        "reuse_factorization": args.reuse_factorization, "pcg_accept_rtol": args.pcg_accept_rtol,
         "linear_solver": args.linear_solver,
         "exact_curvature_cg": exact_curvature_iterations(args.exact_curvature_cg,
                                                          LinearSolver.resolve(args.linear_solver)),
@@ -173,10 +189,11 @@ def main() -> None:
         "adjoint_max_iterations": args.adjoint_max_iterations,
         "adjoint_factorizations": m["factorizations"],
         "total_seconds": m["seconds"], "seconds_per_iteration": m["seconds_per_iteration"],
-        "target_seconds": 115.0, "meets_target": bool(m["seconds"] <= 115.0),
+        "target_seconds": TARGET_SECONDS, "meets_target": bool(m["seconds"] <= TARGET_SECONDS),
         "closure_calls": m["closure_calls"], "sim_iterations": m["sim_iterations"],
         "exact_evaluations": m["exact_evaluations"], "backtracks": m["backtracks"],
         "stage_seconds": m["stage_seconds"],
+        "stages": stage_breakdown(m),
         "objective_initial": m["objective_initial"], "objective_final": m["objective_final"],
         "reduction_percent": m["reduction_percent"], "precomputation_seconds": t_prep,
         "timings": setup.timings,
@@ -186,6 +203,7 @@ def main() -> None:
         ref = optimize(setup, replace(run_settings, inexact=False), progress=True).metrics
         out["exact_reference"] = {k: ref[k] for k in ("objective_final", "seconds", "sim_iterations",
                                                        "closure_calls", "stage_seconds")}
+        out["exact_reference"]["stages"] = stage_breakdown(ref)
         out["objective_vs_exact_percent"] = 100.0 * (m["objective_final"] / ref["objective_final"] - 1.0)
         out["within_2_percent_of_exact"] = bool(m["objective_final"] <= 1.02 * ref["objective_final"])
     print(json.dumps(out, indent=2))
@@ -197,12 +215,44 @@ def main() -> None:
     print(f"\n{'run':<32} {'objective':>22} {'seconds':>9}")
     for name, f, sec in rows:
         print(f"{name:<32} {m['objective_initial']:>10.4g} -> {f:<8.4g} {sec:>9.1f}")
+    print_stages(out["stages"], m["seconds"])
     if args.compare_exact:
         print(f"timed against exact: {out['objective_vs_exact_percent']:+.2f} % (target <= +2 %)")
     if args.json:
         with atomic_open(args.json, "w") as f:
             json.dump(out, f, indent=2)
             f.write("\n")
+
+
+TARGET_SECONDS = 230.0
+"""Issue 14's target for 30K vertices x 256 iterations on 2 CPU cores (twice the paper's GPU time)."""
+
+STAGE_NAMES = {"inexact_solves": "inexact solves", "exact_solves": "exact checks",
+               "objective_and_adjoints": "objective and adjoints"}
+
+
+def stage_breakdown(metrics: dict) -> dict[str, dict[str, float]]:
+    """Per stage of the loop (``metrics["stage_seconds"]`` and ``["stage_linalg"]`` of
+    :func:`~torchgarment.adjust.optimize`): seconds, factorizations and substitutions (counts and seconds),
+    and the seconds outside them."""
+    out = {}
+    for stage, seconds in metrics["stage_seconds"].items():
+        la = metrics["stage_linalg"][stage]
+        out[stage] = {"seconds": seconds, **la,
+                      "other_seconds": seconds - la["factorization_seconds"] - la["solve_seconds"]}
+    return out
+
+
+def print_stages(stages: dict[str, dict[str, float]], total: float) -> None:
+    """The breakdown as a table (the loop's remainder, the optimizer's own work, as the last row)."""
+    print(f"\n{'stage':<24} {'seconds':>9} {'factorizations':>15} {'(s)':>8} {'solves':>7} {'(s)':>8} "
+          f"{'other (s)':>10}")
+    for stage, r in stages.items():
+        print(f"{STAGE_NAMES.get(stage, stage):<24} {r['seconds']:9.1f} {r['factorizations']:15d} "
+              f"{r['factorization_seconds']:8.1f} {r['solves']:7d} {r['solve_seconds']:8.1f} "
+              f"{r['other_seconds']:10.1f}")
+    rest = total - sum(r["seconds"] for r in stages.values())
+    print(f"{'optimizer (the rest)':<24} {rest:9.1f}")
 
 
 if __name__ == "__main__":

@@ -27,6 +27,8 @@ each layered part's median height above the garment under it on the source and i
 (``layer_heights_mm``; ``--fit-target surface`` pulls the layers onto the cloth, the default keeps them), and
 how far each part's vertices are from their place on the cloth under them (``layer_slide_mm``, median; the
 attachment term holds them there, ``--w-attach 0`` lets them slide).
+Each pair also reports its sparse direct work (``linalg``: factorizations and substitutions, counts and
+seconds, by :func:`torchgarment.linalg.count_linalg`, without cProfile's overhead).
 ``--profile`` adds, per pair, the self seconds by stage (cProfile, so with its overhead; :data:`STAGES`): CCD
 (the collision-free step), broad phase and the avatar's culling (with the garment-avatar BVH queries and
 every Warp launch), sparse factorization, linear solves (the
@@ -228,6 +230,7 @@ def messy(args: argparse.Namespace) -> int:
     import ipctk
 
     from torchgarment.body import Body
+    from torchgarment.linalg import count_linalg
     from torchgarment.retarget.avatars import make_avatar
     from torchgarment.retarget.inputs import REFERENCE_HEIGHT, problem_from_arrays
     from torchgarment.retarget.pipeline import RetargetSettings, retarget
@@ -262,7 +265,8 @@ def messy(args: argparse.Namespace) -> int:
                                         source_avatar=(source.vertices, source.faces))
                 if prof is not None:
                     prof.enable()
-                r = retarget(p, settings, progress=False)
+                with count_linalg() as work:
+                    r = retarget(p, settings, progress=False)
                 if prof is not None:
                     prof.disable()
                 m = r.metrics
@@ -282,7 +286,7 @@ def messy(args: argparse.Namespace) -> int:
                                                           if s["step"] == "inflate"),
                            steps={s["step"]: s["seconds"] for s in r.steps},
                            step_iterations={s["step"]: s["newton_iterations"] for s in r.steps
-                                            if "newton_iterations" in s}, ok=True)
+                                            if "newton_iterations" in s}, linalg=work.as_dict(), ok=True)
                 if prof is not None:
                     rec["stages_seconds"], rec["top_functions"] = _stage_seconds(prof)
             except Exception as e:  # noqa: BLE001 - reported per pair
@@ -296,6 +300,10 @@ def messy(args: argparse.Namespace) -> int:
                           f"{kk} {rec['layer_heights_mm']['source'][kk]:.1f}->{vv:.1f}"
                           for kk, vv in rec["layer_heights_mm"]["result"].items()) + "; " + ", ".join(
                           f"{kk} {vv:.1f}" for kk, vv in rec["layer_slide_mm"].items()), flush=True)
+                la = rec["linalg"]
+                print(f"      sparse direct: {la['factorizations']} factorizations "
+                      f"{la['factorization_seconds']:.1f} s, {la['solves']} solves "
+                      f"{la['solve_seconds']:.1f} s", flush=True)
                 if "stages_seconds" in rec:
                     print("      stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in
                                                            rec["stages_seconds"].items()), flush=True)
@@ -311,6 +319,11 @@ def messy(args: argparse.Namespace) -> int:
                "targets": {"mean_seconds": 20.0, "max_seconds": 60.0}, "threads": args.threads,
                "profiled": bool(args.profile), "sparse_backend": args.sparse_backend,
                "fit_target": settings.fit_target.value, "w_attach": settings.w_attach}
+    done = [r for r in records if r["ok"]]
+    if done:  # the share of the pairs' time spent in sparse factorizations and substitutions
+        summary["linalg_share"] = {
+            key: float(sum(r["linalg"][key] for r in done) / sum(r["seconds"] for r in done))
+            for key in ("factorization_seconds", "solve_seconds")}
     return _report(summary, records, args.json)
 
 

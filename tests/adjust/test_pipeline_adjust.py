@@ -312,6 +312,29 @@ def test_metrics_break_the_time_down_by_stage(skirt_case):
     assert set(st) == {"exact_solves", "inexact_solves", "objective_and_adjoints"}
     assert st["exact_solves"] > 0 and st["inexact_solves"] > 0 and st["objective_and_adjoints"] > 0
     assert sum(st.values()) <= result.metrics["seconds"] + 1e-6
+    # the sparse direct work inside each stage: Newton's factorizations in the solves, the adjoints' (one per
+    # gradient, the count the differentiable solver keeps) in the last, each within its stage's time
+    la = result.metrics["stage_linalg"]
+    assert set(la) == set(st)
+    assert la["exact_solves"]["factorizations"] > 0 and la["inexact_solves"]["factorizations"] > 0
+    assert la["objective_and_adjoints"]["factorizations"] == result.metrics["factorizations"] > 0
+    for stage, work in la.items():
+        assert work["solves"] >= work["factorizations"] > 0
+        assert 0 < work["factorization_seconds"] + work["solve_seconds"] <= st[stage] + 1e-6
+
+
+def test_pcg_accept_rtol_reaches_the_exact_solves_and_is_validated(skirt_case):
+    """AdjustSettings.pcg_accept_rtol is the forcing term of the reused factorization's budget-stopped CG steps
+    (SolveSettings.pcg_accept_rtol, tested in tests/sim/test_solvers.py), passed to every simulation."""
+    _, setup, _ = skirt_case
+    assert AdjustSettings().pcg_accept_rtol == 0.3
+    for accept in (0.3, None):
+        st = replace(setup.settings, reuse_factorization=True, pcg_accept_rtol=accept)
+        problem = setup.new_problem(settings=st)
+        assert problem.exact_settings.reuse_factorization and problem.exact_settings.pcg_accept_rtol == accept
+    for bad in (0.0, 1.0, 0.005):
+        with pytest.raises(InputError, match="pcg_accept_rtol"):
+            replace(SETTINGS, pcg_accept_rtol=bad)
 
 
 def test_manufactured_solution_a_scaled_body_gets_the_scaled_pattern():

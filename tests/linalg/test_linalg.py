@@ -19,6 +19,7 @@ from torchgarment.linalg import (
     FactorizationCache,
     SparseBackend,
     armijo_backtracking,
+    count_linalg,
     factorize,
     fill_reducing_permutation,
     minres,
@@ -210,6 +211,33 @@ def test_singular_matrix_raises() -> None:
     assert issubclass(SingularMatrixError, NonConvergenceError)
     with pytest.raises(InputError, match="expected one of"):
         factorize(a, backend="umfpack")
+
+
+def test_count_linalg_counts_factorizations_and_solves_in_nested_blocks() -> None:
+    a = _spd()
+    singular = scipy.sparse.csr_matrix(np.array([[1.0, 1.0], [1.0, 1.0]]))
+    with count_linalg() as outer:
+        fact = factorize(a)
+        with count_linalg() as inner:
+            fact.solve(np.ones(30))
+            fact.solve(np.ones((30, 4)))  # a block of right-hand sides is one solve
+            with pytest.raises(SingularMatrixError):
+                factorize(singular)  # a failed factorization is work done too
+        cache = FactorCache()
+        cache.store(fact)
+        with count_linalg() as preconditioned:  # PCG applies the stored factorization once per iteration
+            assert cache.solve((a + scipy.sparse.diags(0.01 * np.ones(30))).tocsr(), np.ones(30), 1e-10,
+                               50) is not None
+    factorize(a).solve(np.ones(30))  # outside every block: not counted
+    assert (inner.factorizations, inner.solves) == (1, 2)
+    assert preconditioned.factorizations == 0 and preconditioned.solves >= 2
+    # the outer block also counts the inner blocks' work
+    assert outer.factorizations == 2 and outer.solves == 2 + preconditioned.solves
+    assert outer.factorization_seconds >= inner.factorization_seconds > 0
+    assert outer.solve_seconds >= inner.solve_seconds > 0
+    total = inner.as_dict()
+    inner.add(inner)
+    assert inner.as_dict() == {k: 2 * v for k, v in total.items()}
 
 
 def test_cache_refactorizes_only_on_a_new_key() -> None:

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from torchgarment.errors import InputError
-from torchgarment.linalg import CSRAssembler, FactorCache, factorize
+from torchgarment.linalg import CSRAssembler, FactorCache, factorize, pcg
 from torchgarment.sim.energies.base import HessianBlocks
 from torchgarment.sim.solvers import (
     NonFiniteError,
@@ -597,6 +597,25 @@ def test_exact_curvature_cg_direction():
             fresh, _ = newton_direction(h, g, short, 1, cache, exact=lambda he=he: he)
             np.testing.assert_allclose(fresh, one, rtol=1e-10, atol=1e-12 * np.abs(one).max())
             assert (cache.factorizations, cache.pcg_solves) == (2, 1)
+            # pcg_accept_rtol: a budget-stopped CG step within it is taken (here 2 iterations reach 0.082),
+            # the stale factorization is then dropped, so the next system is factorized afresh
+            near = factorize(asm.assemble(model.hessian_blocks(xn, project_psd=True)))
+            two, its, res = pcg(lambda v, he=he: he @ v, -g, near.solve, 1e-12, 2,
+                                stop_at_negative_curvature=True)
+            assert its == 2 and 0.05 < res < 0.1
+            for accept, taken in ((0.1, True), (0.05, False)):
+                cache = FactorCache()
+                cache.store(near)
+                st = SolveSettings(exact_curvature_cg=2, exact_curvature_rtol=1e-12, reuse_factorization=True,
+                                   pcg_accept_rtol=accept)
+                d, _ = newton_direction(h, g, st, 1, cache, exact=lambda he=he: he)
+                assert (cache.factorizations, cache.pcg_solves) == ((1, 1) if taken else (2, 0))
+                if taken:
+                    np.testing.assert_allclose(d, two, rtol=1e-12, atol=1e-14 * np.abs(two).max())
+                    assert cache.factorization is None
+                else:
+                    assert cache.factorization is not near
+                    assert np.abs(d - two).max() > 1e-6 * np.abs(two).max()
     with pytest.raises(InputError, match="exact_curvature_cg"):
         SolveSettings(exact_curvature_cg=5, linear_solver="jacobi-pcg")
     with pytest.raises(InputError, match="exact_curvature_cg"):

@@ -52,6 +52,7 @@ from dataclasses import dataclass, field
 import torch
 
 from torchgarment.errors import InputError
+from torchgarment.linalg import LinalgCounters, count_linalg
 from torchgarment.sim.diff import AdjointLinearSolver, DifferentiableSolver, NonConvergenceError
 from torchgarment.sim.solvers import NonFiniteError, SolveInfo, SolverKind, SolveSettings
 
@@ -147,6 +148,9 @@ class AdjustProblem:
         #: wall seconds by stage of :meth:`evaluate`: ``exact_solves`` and ``inexact_solves`` (the forward
         #: simulations), ``objective_and_adjoints`` (the costs and ``f.backward()``: the adjoint solves)
         self.stage_seconds = {"exact_solves": 0.0, "inexact_solves": 0.0, "objective_and_adjoints": 0.0}
+        #: the sparse direct work inside each of those stages (:class:`~torchgarment.linalg.LinalgCounters`):
+        #: the Newton systems' factorizations and substitutions in the solves, the adjoints' in the last
+        self.stage_linalg = {stage: LinalgCounters() for stage in self.stage_seconds}
         self.last: Evaluation | None = None
         self.last_q: torch.Tensor | None = None
         self.last_p: torch.Tensor | None = None
@@ -244,19 +248,24 @@ class AdjustProblem:
             qr.grad = None
         else:
             qr = q.detach().clone().requires_grad_(need_grad)
+        stage = "exact_solves" if exact else "inexact_solves"
         with torch.enable_grad():
             p = self.param(qr)
-            x = self.solver({self.parameter: p.to(self.model.dtype)},
-                            iterations=None if exact else int(iterations),
-                            max_iterations=max_iterations if exact else None)
+            with count_linalg() as work:
+                x = self.solver({self.parameter: p.to(self.model.dtype)},
+                                iterations=None if exact else int(iterations),
+                                max_iterations=max_iterations if exact else None)
+            self.stage_linalg[stage].add(work)
             t_solved = time.perf_counter()
-            self.stage_seconds["exact_solves" if exact else "inexact_solves"] += t_solved - t0
-            f = self.objective(x, p)
-            fval = float(f.detach())
-            if not math.isfinite(fval):
-                raise NonConvergenceError(f"the objective is not finite ({fval}) at the current pattern")
-            if need_grad:
-                f.backward(retain_graph=self.retain_graph)
+            self.stage_seconds[stage] += t_solved - t0
+            with count_linalg() as work:
+                f = self.objective(x, p)
+                fval = float(f.detach())
+                if not math.isfinite(fval):
+                    raise NonConvergenceError(f"the objective is not finite ({fval}) at the current pattern")
+                if need_grad:
+                    f.backward(retain_graph=self.retain_graph)
+            self.stage_linalg["objective_and_adjoints"].add(work)
         self.stage_seconds["objective_and_adjoints"] += time.perf_counter() - t_solved
         gq = qr.grad.detach().clone() if need_grad else None
         if need_grad and self.retain_graph:

@@ -11,6 +11,8 @@ It depends on torch, numpy, scipy and pymetis only (and on :mod:`torchgarment.er
   preconditioned MINRES for symmetric indefinite systems.
 * :func:`armijo_backtracking`: the sufficient-decrease line search.
 * :class:`CSRAssembler`: 3x3 vertex blocks -> scipy CSR; :func:`csr_matvec`: its products on a device.
+* :func:`count_linalg`: counts the factorizations and solves (and their seconds) made inside a ``with``
+  block (:class:`LinalgCounters`), for benchmarks' per-stage breakdowns.
 
 Example:
     >>> fact = factorize(hessian, what="simulation Hessian")
@@ -24,7 +26,9 @@ from torchgarment.linalg.sparse import (
     FactorCache,
     Factorization,
     FactorizationCache,
+    LinalgCounters,
     SparseBackend,
+    count_linalg,
     csr_matvec,
     factorize,
     fill_reducing_permutation,
@@ -35,8 +39,10 @@ __all__ = [
     "FactorCache",
     "Factorization",
     "FactorizationCache",
+    "LinalgCounters",
     "SparseBackend",
     "armijo_backtracking",
+    "count_linalg",
     "csr_matvec",
     "factorize",
     "fill_reducing_permutation",

@@ -126,7 +126,9 @@ class SolveSettings:
         pcg_accept_rtol: a CG solve stopped by ``pcg_max_iterations`` short of ``pcg_rtol`` is still taken as
             Newton's direction when its relative residual is at most this (in [``pcg_rtol``, 1); an inexact
             Newton step with this forcing term), instead of factorizing afresh, and the next system is then
-            factorized afresh; None: ``pcg_rtol`` (never).
+            factorized afresh; None: ``pcg_rtol`` (never). The same holds for the exact-curvature CG below
+            when it is preconditioned by the last factorization and uses up its ``exact_curvature_cg``
+            iterations short of ``exact_curvature_rtol``.
         exact_curvature_cg: 0 (default): Newton's direction is the projected Newton step ``-H_psd^-1 g``.
             N > 0: up to N conjugate-gradient iterations on the exact (unprojected) Hessian, preconditioned by
             the factorization of the projected one, from zero, to relative residual ``exact_curvature_rtol``
@@ -135,8 +137,8 @@ class SolveSettings:
             model 6-12x stiffer than the energy along the Newton direction of a settling garment (measured on
             the 3K sheath dress), which costs projected Newton hundreds of full but short steps. With
             ``reuse_factorization`` the preconditioner is the last factorization while CG reaches
-            ``exact_curvature_rtol`` (or non-positive curvature) within N iterations, else a fresh one, which
-            is then kept. Not with ``"jacobi-pcg"``.
+            ``exact_curvature_rtol`` (or non-positive curvature) within N iterations, or within
+            ``pcg_accept_rtol`` after N, else a fresh one, which is then kept. Not with ``"jacobi-pcg"``.
         exact_curvature_rtol: relative residual of those CG iterations, in (0, 1).
         sparse_backend: the sparse direct solver of Newton's systems
             (:class:`~torchgarment.linalg.SparseBackend`; ``"superlu"``, always installed and deterministic,

@@ -279,8 +279,15 @@ def newton_direction(
                 y, its, res = exact_cg(stale.solve)
             except SingularMatrixError:
                 its = 0
-            if its > 0 and (res <= rtol or its < budget) and np.all(np.isfinite(y)) and float(g @ y) < 0.0:
+            good = its > 0 and np.all(np.isfinite(y)) and float(g @ y) < 0.0
+            if good and (res <= rtol or its < budget):
                 cache.pcg_solves += 1
+                return y, 0
+            if good and settings.pcg_accept_rtol is not None and res <= settings.pcg_accept_rtol:
+                # the budget spent short of rtol, but within the accepted forcing term: take the step and
+                # factorize the next system afresh (the preconditioner has gone stale), as FactorCache.solve
+                cache.pcg_solves += 1
+                cache.factorization = None
                 return y, 0
         try:
             fact = factorize(h, backend=settings.sparse_backend, what="Newton system")
