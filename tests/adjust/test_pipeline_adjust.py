@@ -324,8 +324,8 @@ def test_metrics_break_the_time_down_by_stage(skirt_case):
 
 
 def test_pcg_accept_rtol_reaches_the_exact_solves_and_is_validated(skirt_case):
-    """AdjustSettings.pcg_accept_rtol is the forcing term of the reused factorization's budget-stopped CG steps
-    (SolveSettings.pcg_accept_rtol, tested in tests/sim/test_solvers.py), passed to every simulation."""
+    """AdjustSettings.pcg_accept_rtol, the forcing term of the reused factorization's budget-stopped CG
+    steps (SolveSettings.pcg_accept_rtol, tested in tests/sim/test_solvers.py), reaches every simulation."""
     _, setup, _ = skirt_case
     assert AdjustSettings().pcg_accept_rtol == 0.3
     for accept in (0.3, None):
