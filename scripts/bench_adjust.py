@@ -23,7 +23,10 @@ precomputation (base drape, transfer, factorizations, initialization), which is 
 total seconds, seconds per iteration, closure calls (cloth solves), simulator iterations, objective reduction,
 and a per-stage breakdown (``stages``: inexact solves, exact checks, the objective and its adjoints; for each
 its seconds, sparse factorizations and substitutions with their seconds, counted by
-:func:`torchgarment.linalg.count_linalg`, and the rest).
+:func:`torchgarment.linalg.count_linalg`, and the rest), and each exact evaluation (``exact_checks``: its
+simulator iterations, seconds, and how far the garment moved in it, from the inexact iterations' state to the
+equilibrium). ``meets_target`` is true only for a run at the target's scale (``--vertices 30000`` or more,
+256 iterations or more) within ``target_seconds``.
 """
 
 from __future__ import annotations
@@ -189,11 +192,15 @@ def main() -> None:
         "adjoint_max_iterations": args.adjoint_max_iterations,
         "adjoint_factorizations": m["factorizations"],
         "total_seconds": m["seconds"], "seconds_per_iteration": m["seconds_per_iteration"],
-        "target_seconds": TARGET_SECONDS, "meets_target": bool(m["seconds"] <= TARGET_SECONDS),
+        "target_seconds": TARGET_SECONDS,
+        # the target is for the paper's scale: a smaller run says nothing about it
+        "meets_target": bool(args.vertices >= 30_000 and m["iterations"] >= 256
+                             and m["seconds"] <= TARGET_SECONDS),
         "closure_calls": m["closure_calls"], "sim_iterations": m["sim_iterations"],
         "exact_evaluations": m["exact_evaluations"], "backtracks": m["backtracks"],
         "stage_seconds": m["stage_seconds"],
         "stages": stage_breakdown(m),
+        "exact_checks": m["exact_checks"],
         "objective_initial": m["objective_initial"], "objective_final": m["objective_final"],
         "reduction_percent": m["reduction_percent"], "precomputation_seconds": t_prep,
         "timings": setup.timings,
@@ -216,6 +223,7 @@ def main() -> None:
     for name, f, sec in rows:
         print(f"{name:<32} {m['objective_initial']:>10.4g} -> {f:<8.4g} {sec:>9.1f}")
     print_stages(out["stages"], m["seconds"])
+    print_checks(m["exact_checks"])
     if args.compare_exact:
         print(f"timed against exact: {out['objective_vs_exact_percent']:+.2f} % (target <= +2 %)")
     if args.json:
@@ -253,6 +261,19 @@ def print_stages(stages: dict[str, dict[str, float]], total: float) -> None:
               f"{r['other_seconds']:10.1f}")
     rest = total - sum(r["seconds"] for r in stages.values())
     print(f"{'optimizer (the rest)':<24} {rest:9.1f}")
+
+
+def print_checks(checks: list[dict]) -> None:
+    """The exact evaluations as a table: how long each took and how far the garment moved in it (from the
+    inexact iterations' state to the equilibrium)."""
+    if not checks:
+        return
+    print(f"\n{'exact check':<12} {'objective':>10} {'sim its':>8} {'seconds':>9} {'moved max (mm)':>15} "
+          f"{'mean (mm)':>10}")
+    for c in checks:
+        name = f"{c['iteration']}{' (final)' if c.get('final') else ''}"
+        print(f"{name:<12} {c['objective']:10.4g} {c['sim_iterations']:8d} {c['seconds']:9.1f} "
+              f"{c['displacement_max_mm']:15.2f} {c['displacement_mean_mm']:10.2f}")
 
 
 if __name__ == "__main__":

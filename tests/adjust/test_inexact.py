@@ -97,12 +97,14 @@ class _ScriptedProblem:
         self.x = torch.zeros(4, 3, dtype=torch.float64)
         self.last, self.last_q = None, None
         self.best_q, self.best_x, self.best_objective = None, None, float("inf")
+        self.sim_iterations = 0  # one per evaluation
 
     def reset_state(self, x: torch.Tensor) -> None:
         self.x = x.clone()
 
     def evaluate(self, q, exact=True, need_grad=False, max_iterations=None):
         f = self.values.pop(0)
+        self.sim_iterations += 1
         self.last, self.last_q = SimpleNamespace(objective=f, exact=exact), q.detach().clone()
         if exact and f < self.best_objective:
             self.best_q, self.best_x, self.best_objective = q.detach().clone(), self.x.clone(), f

@@ -323,6 +323,29 @@ def test_metrics_break_the_time_down_by_stage(skirt_case):
         assert 0 < work["factorization_seconds"] + work["solve_seconds"] <= st[stage] + 1e-6
 
 
+def test_metrics_list_each_exact_check_with_how_far_the_garment_moved(skirt_case):
+    """metrics["exact_checks"]: one entry per exactly evaluated iteration (and the final evaluation after an
+    inexact last iterate), with its simulator iterations and the garment's displacement in it, which agree
+    with the iteration records; a check after inexact iterations moves the garment (its state was not the
+    equilibrium), by a mean below the maximum."""
+    _, _, result = skirt_case
+    checks = result.metrics["exact_checks"]
+    exact_records = [r for r in result.records if r.exact]
+    assert [c["iteration"] for c in checks if not c.get("final")] == [r.iteration for r in exact_records]
+    for c, r in zip(checks, exact_records):
+        assert (c["sim_iterations"], c["displacement_max_mm"]) == (r.sim_iterations, r.displacement_max_mm)
+    after_inexact = [c for c in checks if c["iteration"] > 1]
+    assert after_inexact, checks
+    for c in after_inexact:
+        assert c["sim_iterations"] > 2 and c["seconds"] > 0
+        assert 0 < c["displacement_mean_mm"] < c["displacement_max_mm"]
+    inexact = [r for r in result.records if not r.exact]
+    assert inexact and all(r.sim_iterations >= 1 and r.displacement_max_mm > 0 for r in inexact)
+    assert result.metrics["sim_iterations"] >= sum(r.sim_iterations for r in result.records)
+    if not result.records[-1].exact:
+        assert checks[-1]["final"] and checks[-1]["iteration"] == result.records[-1].iteration
+
+
 def test_pcg_accept_rtol_reaches_the_exact_solves_and_is_validated(skirt_case):
     """AdjustSettings.pcg_accept_rtol, the forcing term of the reused factorization's budget-stopped CG
     steps (SolveSettings.pcg_accept_rtol, tested in tests/sim/test_solvers.py), reaches every simulation."""

@@ -448,7 +448,14 @@ _WORK_COUNTERS = ("closure_calls", "failed_calls", "last_step_length")
 
 @dataclass
 class IterationRecord:
-    """What one outer iteration did (for logs, TensorBoard and metrics)."""
+    """What one outer iteration did (for logs, TensorBoard and metrics).
+
+    ``sim_iterations`` counts the simulator iterations of the iteration's solves (all its closure calls);
+    ``displacement_max_mm`` and ``displacement_mean_mm`` say how far the simulated garment moved over them
+    (largest and mean vertex displacement, in millimetres, from the warm start to the state after the
+    iteration). At an exact check they measure how far the inexact iterations' state was from the pattern's
+    equilibrium.
+    """
 
     iteration: int
     objective: float
@@ -461,11 +468,19 @@ class IterationRecord:
     accepted: bool = True
     backtracked: bool = False
     model_ratio: float | None = None
+    sim_iterations: int = 0
+    displacement_max_mm: float = 0.0
+    displacement_mean_mm: float = 0.0
 
 
 @dataclass
 class RunResult:
-    """Outcome of :meth:`InexactRunner.run`: the best exact iterate."""
+    """Outcome of :meth:`InexactRunner.run`: the best exact iterate.
+
+    ``final_check``: when the run ended on an inexact iterate, its exact evaluation in
+    :meth:`InexactRunner.finish` (iteration, objective, simulator iterations, seconds, ``displacement_max_mm``
+    and ``displacement_mean_mm`` as in :class:`IterationRecord`); None otherwise or when that solve failed.
+    """
 
     q: torch.Tensor
     x: torch.Tensor
@@ -475,6 +490,7 @@ class RunResult:
     backtracks: int
     records: list[IterationRecord] = field(default_factory=list)
     stopped: str = ""
+    final_check: dict | None = None
 
 
 class InexactRunner:
@@ -610,8 +626,10 @@ class InexactRunner:
 
             closure.cacheable = inner.cacheable  # type: ignore[attr-defined]
             calls_before = getattr(self.optimizer, "closure_calls", 0)
+            x_start, sims_before = p.x.detach().clone(), p.sim_iterations
             loss = float(self.optimizer.step(closure))
             self.iteration += 1
+            moved_max, moved_mean = _moved_mm(x_start, p.x)
             accepted, backtracked, rho = True, False, None
             if compare:
                 if loss < self.checkpoint["objective"]:
@@ -671,7 +689,7 @@ class InexactRunner:
             rec = IterationRecord(self.iteration, loss, exact_eval, 0 if exact_eval else self.S, s_taken,
                                   step_norm, self.seconds_before + time.perf_counter() - self.t_start,
                                   getattr(self.optimizer, "closure_calls", 0) - calls_before, accepted,
-                                  backtracked, rho)
+                                  backtracked, rho, p.sim_iterations - sims_before, moved_max, moved_mean)
             self.records.append(rec)
             if callback is not None:
                 callback(rec)
@@ -682,14 +700,29 @@ class InexactRunner:
     def finish(self, stopped: str = "") -> RunResult:
         """Evaluate the current iterate exactly and return the best exact iterate."""
         p, q = self.problem, self.q
+        final = None
         if (p.last_q is None or not torch.equal(p.last_q, q.detach())
                 or not (p.last is not None and p.last.exact)):
             # after inexact iterations the state can be far from equilibrium: a larger budget for this solve
+            x_start, sims_before, t0 = p.x.detach().clone(), p.sim_iterations, time.perf_counter()
             try:
-                p.evaluate(q, exact=True, need_grad=False, max_iterations=4 * p.exact_settings.max_iterations)
+                ev = p.evaluate(q, exact=True, need_grad=False,
+                                max_iterations=4 * p.exact_settings.max_iterations)
+                moved_max, moved_mean = _moved_mm(x_start, p.x)
+                final = {"iteration": self.iteration, "objective": ev.objective,
+                         "sim_iterations": p.sim_iterations - sims_before,
+                         "seconds": time.perf_counter() - t0,
+                         "displacement_max_mm": moved_max, "displacement_mean_mm": moved_mean}
             except (NonConvergenceError, NonFiniteError):
                 stopped = f"{stopped}; the last iterate could not be solved exactly".lstrip("; ")
         assert p.best_q is not None and p.best_x is not None
         return RunResult(q=p.best_q.clone(), x=p.best_x.clone(), objective=p.best_objective,
                          objective_start=float(self.start_objective), iterations=self.iteration,
-                         backtracks=self.backtracks, records=list(self.records), stopped=stopped)
+                         backtracks=self.backtracks, records=list(self.records), stopped=stopped,
+                         final_check=final)
+
+
+def _moved_mm(x_start: torch.Tensor, x: torch.Tensor) -> tuple[float, float]:
+    """Largest and mean vertex displacement (mm) from ``x_start`` to ``x`` (both (V, 3), metres)."""
+    moved = torch.linalg.vector_norm(x.detach() - x_start, dim=1)
+    return (1e3 * float(moved.max()), 1e3 * float(moved.mean())) if moved.numel() else (0.0, 0.0)

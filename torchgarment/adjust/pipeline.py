@@ -435,6 +435,26 @@ def _check_fingerprint(saved: dict | None, now: dict, path: Path) -> None:
                              "same inputs and settings, or run without --resume")
 
 
+def exact_checks(records: list[IterationRecord], final: dict | None = None) -> list[dict]:
+    """One entry per outer iteration evaluated exactly (Algorithm 1's checks and restarts; every iteration of
+    the exact optimizers): its iteration, objective, whether it was accepted, its simulator iterations and
+    seconds, and how far the garment moved in its solves (``displacement_max_mm``, ``displacement_mean_mm``:
+    at a check, the distance of the inexact iterations' state from the equilibrium); and last, with
+    ``"final": True``, the exact evaluation of the last iterate when the run ended on an inexact one
+    (:attr:`~torchgarment.adjust.inexact.RunResult.final_check`)."""
+    out, before = [], 0.0
+    for r in records:
+        if r.exact:
+            out.append({"iteration": r.iteration, "objective": r.objective, "accepted": r.accepted,
+                        "sim_iterations": r.sim_iterations, "seconds": r.seconds - before,
+                        "displacement_max_mm": r.displacement_max_mm,
+                        "displacement_mean_mm": r.displacement_mean_mm})
+        before = r.seconds
+    if final is not None:
+        out.append({**final, "accepted": True, "final": True})
+    return out
+
+
 def _log_iteration(logger: RunLogger, rec: IterationRecord, terms: dict[str, float]) -> None:
     """TensorBoard scalars of one outer iteration and the progress bar's step."""
     k = rec.iteration
@@ -442,7 +462,9 @@ def _log_iteration(logger: RunLogger, rec: IterationRecord, terms: dict[str, flo
                     "objective_exact" if rec.exact else "objective_inexact": rec.objective}, k)
     logger.scalars(terms, k, prefix="terms/")
     logger.scalars({"step_length": rec.step, "step_norm_m": rec.step_norm, "S": rec.inner_iterations,
-                    "wall_time_s": rec.seconds, "closure_calls": rec.closure_calls}, k)
+                    "wall_time_s": rec.seconds, "closure_calls": rec.closure_calls,
+                    "sim_iterations": rec.sim_iterations, "displacement_max_mm": rec.displacement_max_mm,
+                    "displacement_mean_mm": rec.displacement_mean_mm}, k)
     if rec.model_ratio is not None:
         logger.scalars({"model_ratio": rec.model_ratio}, k)
     logger.advance({"f": f"{rec.objective:.4g}", "S": rec.inner_iterations})
@@ -811,6 +833,7 @@ def optimize(
         "backtracks": run.backtracks,
         "poor_model_checks": sum(1 for r in run.records if r.model_ratio is not None
                                  and r.model_ratio < runner.settings.min_model_ratio),
+        "exact_checks": exact_checks(run.records, run.final_check),
         "stopped": run.stopped,
         "base_drape_ok": bool(bd.get("ok", False)),
         "base_drape": {k: bd.get(k) for k in ("residual", "min_sdf_mm", "max_seam_gap_mm", "converged",
