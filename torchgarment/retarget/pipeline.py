@@ -131,9 +131,10 @@ class RetargetSettings:
         fit_iterations: Newton iterations of Step 3 at most.
         rtol: Step 3 stops when |g| <= rtol * |g_0|.
         energy_tol: ... or when its energy fell by less than this fraction over the last 3 iterations. Where
-            the garment slides slowly these two rules stop short of convergence: on the messy bench the T-shirt
-            on a GarmentCode body stopped within 1.3 mm of the shape 120 iterations reach, the trousers and the
-            T-shirt on the creatures 7-23 mm (mean) and 34-117 mm (largest) from it (README, "Retargeting").
+            the garment slides slowly these two rules stop short of convergence: on the messy bench the
+            T-shirt on a GarmentCode body stopped within 1.3 mm of the shape 120 iterations reach, the
+            trousers and the T-shirt on the creatures 7-23 mm (mean) and 34-117 mm (largest) from it (README,
+            "Retargeting").
         snap_min_distance: the snap CCD keeps every pair at least this far apart (fraction of dhat).
         al_lambda: initial augmented-Lagrangian stiffness per unit garment area.
         check_shrink: check that the shrunk avatar does not touch the garment (Step 1).
