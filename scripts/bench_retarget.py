@@ -286,7 +286,9 @@ def messy(args: argparse.Namespace) -> int:
                                                           if s["step"] == "inflate"),
                            steps={s["step"]: s["seconds"] for s in r.steps},
                            step_iterations={s["step"]: s["newton_iterations"] for s in r.steps
-                                            if "newton_iterations" in s}, linalg=work.as_dict(), ok=True)
+                                            if "newton_iterations" in s}, linalg=work.as_dict(),
+                           fit_stop={k: v for s in r.steps if s["step"] == "fit" for k, v in s.items()
+                                     if k in ("newton_iterations", "reason", "final_motion_mm")}, ok=True)
                 if prof is not None:
                     rec["stages_seconds"], rec["top_functions"] = _stage_seconds(prof)
             except Exception as e:  # noqa: BLE001 - reported per pair
@@ -300,6 +302,9 @@ def messy(args: argparse.Namespace) -> int:
                           f"{kk} {rec['layer_heights_mm']['source'][kk]:.1f}->{vv:.1f}"
                           for kk, vv in rec["layer_heights_mm"]["result"].items()) + "; " + ", ".join(
                           f"{kk} {vv:.1f}" for kk, vv in rec["layer_slide_mm"].items()), flush=True)
+                print(f"      fit: {rec['fit_stop']['newton_iterations']} iterations, stopped on "
+                      f"{rec['fit_stop']['reason']}, its last 3 steps moved a vertex up to "
+                      f"{rec['fit_stop']['final_motion_mm']:.2f} mm", flush=True)
                 la = rec["linalg"]
                 print(f"      sparse direct: {la['factorizations']} factorizations "
                       f"{la['factorization_seconds']:.1f} s, {la['solves']} solves "

@@ -91,6 +91,11 @@ def test_toy_retarget_is_intersection_free(toy_result: tuple) -> None:
     inflate = next(s for s in r.steps if s["step"] == "inflate")
     closest = min((h["min_distance"] for h in r.history if h["stage"] == "inflate"), default=math.inf)
     assert inflate["min_distance_mm"] == 1000.0 * closest and 0 < inflate["min_distance_mm"]
+    # how far the fit's last steps moved the garment: the largest step of its last 3 (human scale, mm)
+    fit = next(s for s in r.steps if s["step"] == "fit")
+    moves = [h["max_displacement"] for h in r.history if h["stage"] == "fit"]
+    assert len(moves) == fit["newton_iterations"] > 3
+    assert fit["final_motion_mm"] == 1000.0 * max(moves[-3:]) and fit["final_motion_mm"] < 1000.0 * max(moves)
 
 
 def test_adaptive_stiffness_keeps_the_closest_pairs_apart(toy_result: tuple) -> None:

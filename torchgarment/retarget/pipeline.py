@@ -234,7 +234,8 @@ class RetargetResult:
         garment_faces: (F, 3) long (the problem's welded garment).
         work_vertices: (N, 3) the garment in the work frame.
         distortion: (F,) per-triangle L_surf distortion (mean unweighted pair value, dimensionless).
-        steps: per-step stats (name, newton iterations, seconds, final t, grad norm, reason).
+        steps: per-step stats (name, newton iterations, seconds, final t, grad norm, reason; the fit's
+            ``final_motion_mm``, the largest vertex motion of its last 3 steps at human scale).
         history: per-iteration stats of both steps.
         metrics: summary (see :func:`retarget`).
     """
@@ -552,6 +553,10 @@ def retarget(
                 "sdf_seconds": sdf_s,
                 "step_bound_seconds": r3.step_bound_seconds,
                 "culls": contact3.ipc.num_culls,
+                # the largest vertex motion of the last 3 steps (human scale): a fit stopped while its garment
+                # still slides moves millimetres a step (README, "On the creatures the fit stops short")
+                "final_motion_mm": 1000.0 * max((h["max_displacement"] for h in r3.history[-3:]),
+                                                default=0.0),
             }
         )
 
