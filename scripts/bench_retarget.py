@@ -270,6 +270,7 @@ def messy(args: argparse.Namespace) -> int:
                 if prof is not None:
                     prof.disable()
                 m = r.metrics
+                fit = next(s for s in r.steps if s["step"] == "fit")
                 faces = p.garment_faces.numpy()
                 k = REFERENCE_HEIGHT / p.length_scale  # human-scale millimetres
                 rec.update(seconds=time.perf_counter() - t0, newton_iterations=m["newton_iterations"],
@@ -287,8 +288,8 @@ def messy(args: argparse.Namespace) -> int:
                            steps={s["step"]: s["seconds"] for s in r.steps},
                            step_iterations={s["step"]: s["newton_iterations"] for s in r.steps
                                             if "newton_iterations" in s}, linalg=work.as_dict(),
-                           fit_stop={k: v for s in r.steps if s["step"] == "fit" for k, v in s.items()
-                                     if k in ("newton_iterations", "reason", "final_motion_mm")}, ok=True)
+                           fit_stop={k: fit[k] for k in ("newton_iterations", "reason", "final_motion_mm")},
+                           ok=True)
                 if prof is not None:
                     rec["stages_seconds"], rec["top_functions"] = _stage_seconds(prof)
             except Exception as e:  # noqa: BLE001 - reported per pair
