@@ -116,12 +116,15 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
+    from torchgarment.benchmarking import MachineWatch
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.io.atomic import atomic_open, atomic_path
     from torchgarment.options import resolve_device
     from torchgarment.pattern.library import draft
     from torchgarment.sim.solvers import LinearSolver, exact_curvature_iterations
+
+    watch = MachineWatch()
 
     device = resolve_device(args.device)
 
@@ -204,7 +207,7 @@ def main() -> None:
         "objective_initial": m["objective_initial"], "objective_final": m["objective_final"],
         "reduction_percent": m["reduction_percent"], "precomputation_seconds": t_prep,
         "timings": setup.timings,
-        "machine": platform.processor() or platform.machine(), "torch": torch.__version__,
+        "machine": watch.finish(), "torch": torch.__version__,
     }
     if args.compare_exact:
         ref = optimize(setup, replace(run_settings, inexact=False), progress=True).metrics
@@ -226,6 +229,7 @@ def main() -> None:
     print_checks(m["exact_checks"])
     if args.compare_exact:
         print(f"timed against exact: {out['objective_vs_exact_percent']:+.2f} % (target <= +2 %)")
+    print(MachineWatch.describe(out["machine"]))
     if args.json:
         with atomic_open(args.json, "w") as f:
             json.dump(out, f, indent=2)

@@ -34,6 +34,10 @@ seconds, by :func:`torchgarment.linalg.count_linalg`, without cProfile's overhea
 every Warp launch), sparse factorization, linear solves (the
 preconditioned CG's triangular solves), Hessian assembly, barrier values and gradients, line search, the rest;
 and the top functions by self time.
+
+Both modes print and write (``summary["machine"]``) the machine's load average and a speed reference
+measured at the start and end of the run (:class:`torchgarment.benchmarking.MachineWatch`): the machines'
+speed varies by 2x from hour to hour, and a pair's seconds are comparable across runs only beside it.
 """
 
 from __future__ import annotations
@@ -229,6 +233,7 @@ def messy(args: argparse.Namespace) -> int:
 
     import ipctk
 
+    from torchgarment.benchmarking import MachineWatch
     from torchgarment.body import Body
     from torchgarment.linalg import count_linalg
     from torchgarment.retarget.avatars import make_avatar
@@ -236,6 +241,7 @@ def messy(args: argparse.Namespace) -> int:
     from torchgarment.retarget.pipeline import RetargetSettings, retarget
 
     torch.set_num_threads(args.threads)
+    watch = MachineWatch()
     source = Body.from_size("12")
     settings = RetargetSettings(step_bound=args.step_bound, sparse_backend=args.sparse_backend,
                                 fit_target=args.fit_target, w_attach=args.w_attach)
@@ -324,7 +330,9 @@ def messy(args: argparse.Namespace) -> int:
                "max_seconds": float(np.max(secs)) if secs else None,
                "targets": {"mean_seconds": 20.0, "max_seconds": 60.0}, "threads": args.threads,
                "profiled": bool(args.profile), "sparse_backend": args.sparse_backend,
-               "fit_target": settings.fit_target.value, "w_attach": settings.w_attach}
+               "fit_target": settings.fit_target.value, "w_attach": settings.w_attach,
+               "machine": watch.finish()}
+    print(MachineWatch.describe(summary["machine"]))
     done = [r for r in records if r["ok"]]
     if done:  # the share of the pairs' time spent in sparse factorizations and substitutions
         summary["linalg_share"] = {
@@ -334,6 +342,7 @@ def messy(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from torchgarment.benchmarking import MachineWatch
     from torchgarment.body import Body
     from torchgarment.io.mesh import load_mesh
     from torchgarment.linalg import SparseBackend
@@ -371,6 +380,9 @@ def main(argv: list[str] | None = None) -> int:
 
     source = Body.from_size(args.source_size)
     settings = RetargetSettings(step_bound=args.step_bound, sparse_backend=args.sparse_backend)
+    if settings.threads is not None:  # retarget()'s threads, for the speed reference too
+        torch.set_num_threads(settings.threads)
+    watch = MachineWatch()
     if args.garment is not None:
         gv0, gf0 = load_mesh(args.garment, weld=True, dtype=torch.float64)
         gv0, gf0 = gv0.numpy(), gf0.numpy()
@@ -437,7 +449,9 @@ def main(argv: list[str] | None = None) -> int:
         "step_bound": args.step_bound,
         "sparse_backend": args.sparse_backend,
         "torch_threads": settings.threads,
+        "machine": watch.finish(),
     }
+    print(MachineWatch.describe(summary["machine"]))
     return _report(summary, records, args.json)
 
 

@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from torchgarment.benchmarking import MachineWatch
 from torchgarment.body import Body
 from torchgarment.body.size_chart import chart_row
 from torchgarment.io.atomic import atomic_open
@@ -298,6 +299,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
+    watch = MachineWatch()
 
     body = Body.from_size(args.body_size)
     pattern = draft(args.garment, chart_row(args.body_size))
@@ -317,6 +319,8 @@ def main() -> None:
           f"evaluation (target <= {TARGET_RATIO}x); after a restart "
           f"{r30['ms_per_iteration_after_restart']:.2f} ms/iteration, "
           f"{r30['ratio_after_restart_to_spring']:.2f}x")
+    machine = watch.finish()
+    print(MachineWatch.describe(machine))
     out = {
         "threads": args.threads,
         "device": str(device),
@@ -329,7 +333,7 @@ def main() -> None:
         "timed_iterations": args.iterations,
         "calls": args.calls,
         "torch": torch.__version__,
-        "machine": platform.processor() or platform.machine(),
+        "machine": machine,
         "targets": {"vertices": 30_000, "ms_per_iteration": TARGET_MS_30K,
                     "ratio_to_bare_spring": TARGET_RATIO},
         "sizes": rows,

@@ -1,0 +1,68 @@
+"""The benches' machine record (torchgarment.benchmarking): the reference grid, the speed reference and the
+JSON block."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from torchgarment.benchmarking import (
+    MachineWatch,
+    grid_springs,
+    load_average,
+    machine_record,
+    speed_reference,
+)
+from torchgarment.errors import InputError
+
+
+def test_grid_springs_is_a_triangulated_grid_in_tension() -> None:
+    springs, x = grid_springs(100)  # 10 x 10
+    n = 10
+    assert x.shape == (n * n, 3)
+    # horizontal + vertical + one diagonal per cell
+    assert springs.edges.shape[0] == 2 * n * (n - 1) + (n - 1) ** 2
+    assert len({tuple(e) for e in springs.edges.tolist()}) == springs.edges.shape[0]
+    i, j = springs.edges[:, 0], springs.edges[:, 1]
+    length = torch.linalg.vector_norm(x[i] - x[j], dim=1)
+    assert bool((length > springs.rest_lengths()).all())  # every spring stretched
+    E, g = springs.value_and_grad(x)
+    assert float(E) > 0 and bool(torch.isfinite(g).all())
+    # the same state on every call (a fixed seed)
+    assert torch.equal(grid_springs(100)[1], x)
+    with pytest.raises(InputError):
+        grid_springs(3)
+
+
+def test_speed_reference_times_both_workloads() -> None:
+    r = speed_reference(spring_vertices=400, factor_vertices=100, spring_repeats=3, factor_repeats=1)
+    assert set(r) == {"spring_pass_ms", "spring_pass_min_ms", "spring_vertices", "factorization_ms",
+                      "factorization_min_ms", "factor_vertices", "torch_threads"}
+    assert r["spring_vertices"] == 400 and r["factor_vertices"] == 100
+    for key in ("spring_pass_ms", "spring_pass_min_ms", "factorization_ms", "factorization_min_ms"):
+        assert math.isfinite(r[key]) and r[key] > 0
+    assert r["spring_pass_min_ms"] <= r["spring_pass_ms"]
+    assert r["torch_threads"] == torch.get_num_threads()
+    with pytest.raises(InputError):
+        speed_reference(spring_repeats=0)
+
+
+def test_machine_watch_block_is_json_and_described() -> None:
+    a = load_average()
+    assert len(a) == 3 and all(isinstance(v, float) for v in a)
+    rec = machine_record()
+    assert rec["cpus"] >= 1 and rec["torch"] == torch.__version__ and len(rec["load_average"]) == 3
+    block = MachineWatch(reference=False).finish()
+    assert block["speed_reference"] == {"start": None, "end": None}
+    assert len(block["load_average_end"]) == 3
+    json.dumps(block)
+    line = MachineWatch.describe(block)
+    assert "load average" in line and "speed reference" not in line
+    block = MachineWatch().finish()  # the default sizes: about half a second at each end
+    json.dumps(block)
+    for end in ("start", "end"):
+        assert block["speed_reference"][end]["spring_vertices"] == 173 * 173
+    assert "spring pass" in MachineWatch.describe(block)

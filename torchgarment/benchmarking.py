@@ -1,0 +1,180 @@
+"""What a benchmark script records besides its own figures: the machine, its load, and its speed in the run.
+
+The project's benchmarks run on shared 2-core machines whose speed changes from hour to hour and from
+machine to machine by 2x or more. The same messy retargeting bench (``scripts/bench_retarget.py --messy``,
+the same code and cached drapes) took a mean of 36.5 s per pair on 2026-11-29 in a slow hour and 17.4-19.2 s
+on a quiet machine on 2026-12-01 (``README.md``, "Retargeting"). A figure held against an absolute target
+(seconds per pair) is only comparable across runs together with the machine's speed in the same run, so the
+benches record it at their start and end:
+
+* :func:`machine_record`: platform, processor, CPU count, Python and torch versions, torch's threads, and the
+  load average (1, 5 and 15 minutes);
+* :func:`speed_reference`: two fixed workloads that stand for the two kinds of work in the benches, timed in
+  the current torch threads:
+
+  - ``spring_pass_ms``: the bare spring pass (:meth:`PlanarSprings.value_and_grad`) on a triangulated square
+    grid of about ``spring_vertices`` vertices (default 30K, 3 springs per vertex): torch's elementwise
+    operations and CSR products, as in ``scripts/bench_sim.py``'s baseline;
+  - ``factorization_ms``: one sparse factorization (:func:`torchgarment.linalg.factorize`, the SuperLU
+    default, its nested-dissection order cached after a first call) of the springs' projected Hessian plus a
+    small diagonal shift on a grid of about ``factor_vertices`` vertices (default 5K, a retargeted garment's
+    size): the direct solver's share.
+
+Both are medians over repeats (``*_min_ms``: the minima). :class:`MachineWatch` takes both at a bench's
+start and end and gives the JSON block and a printed line. Two runs on different machines or hours compare
+through the ratio of their references (the messy bench's seconds per pair against the factorization and
+spring pass of the same run). The grids are generated; nothing is read from disk.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+import scipy.sparse
+import torch
+
+from torchgarment.errors import InputError
+from torchgarment.linalg import CSRAssembler, factorize
+from torchgarment.sim import PlanarSprings
+
+__all__ = ["MachineWatch", "grid_springs", "load_average", "machine_record", "speed_reference"]
+
+
+def load_average() -> tuple[float, float, float]:
+    """The system's 1, 5 and 15 minute load averages (NaN where the platform has none)."""
+    try:
+        a, b, c = os.getloadavg()
+    except (AttributeError, OSError):  # Windows has no load average
+        return (math.nan, math.nan, math.nan)
+    return (float(a), float(b), float(c))
+
+
+def machine_record() -> dict:
+    """Platform, processor, CPU count, Python and torch versions, torch's intra-op threads and the load
+    average (a JSON-ready dict)."""
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor(),
+        "cpus": os.cpu_count(),
+        "python": sys.version.split()[0],
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "load_average": list(load_average()),
+    }
+
+
+def grid_springs(vertices: int, *, spacing: float = 0.01,
+                 dtype: torch.dtype = torch.float64) -> tuple[PlanarSprings, torch.Tensor]:
+    """Springs on a triangulated ``n x n`` grid (``n = round(sqrt(vertices))``, at least 2) and a deformed
+    state.
+
+    The springs are the grid's horizontal, vertical and one diagonal edges (3 per vertex inside, as in a
+    triangle mesh) with rest positions ``spacing`` (metres) apart; the state is the grid stretched by 2 % in
+    its plane and lifted by a fixed pseudo-random height of up to ``spacing / 4``, so every spring is in
+    tension.
+
+    Returns:
+        ``(springs, x)``: the :class:`PlanarSprings` (default stiffness) and the (n^2, 3) state in metres.
+    """
+    if not vertices >= 4:
+        raise InputError(f"grid_springs needs at least 4 vertices, got {vertices}")
+    n = max(2, round(math.sqrt(vertices)))
+    idx = torch.arange(n * n).view(n, n)
+    edges = torch.cat([
+        torch.stack([idx[:, :-1].reshape(-1), idx[:, 1:].reshape(-1)], 1),
+        torch.stack([idx[:-1, :].reshape(-1), idx[1:, :].reshape(-1)], 1),
+        torch.stack([idx[:-1, :-1].reshape(-1), idx[1:, 1:].reshape(-1)], 1),
+    ])
+    u = torch.arange(n, dtype=dtype) * spacing
+    p = torch.stack(torch.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2)
+    gen = torch.Generator().manual_seed(0)
+    z = (torch.rand(n * n, generator=gen, dtype=dtype) - 0.5) * (0.5 * spacing)
+    x = torch.cat([1.02 * p, z.unsqueeze(1)], 1)
+    return PlanarSprings(edges, p), x
+
+
+def _median_ms(fn: object, repeats: int) -> tuple[float, float]:
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(ts), 1e3 * min(ts)
+
+
+def speed_reference(*, spring_vertices: int = 30_000, factor_vertices: int = 5_000, spring_repeats: int = 40,
+                    factor_repeats: int = 3) -> dict:
+    """Time the two reference workloads (see the module docstring) in the current torch threads.
+
+    Args:
+        spring_vertices: about how many vertices the spring pass's grid has.
+        factor_vertices: about how many vertices the factorized grid has (its matrix is 3x that size).
+        spring_repeats, factor_repeats: timed repeats (after one untimed call each).
+
+    Returns:
+        ``{"spring_pass_ms", "spring_pass_min_ms", "spring_vertices", "factorization_ms",
+        "factorization_min_ms", "factor_vertices", "torch_threads"}``.
+    """
+    if spring_repeats < 1 or factor_repeats < 1:
+        raise InputError("speed_reference needs at least one repeat of each workload")
+    springs, x = grid_springs(spring_vertices)
+    springs.value_and_grad(x)  # builds the CSR incidence matrices
+    spring_ms, spring_min = _median_ms(lambda: springs.value_and_grad(x), spring_repeats)
+
+    fsprings, fx = grid_springs(factor_vertices)
+    h = CSRAssembler(fx.shape[0]).assemble(fsprings.hessian_blocks(fx))
+    h = h + 1e-3 * float(h.diagonal().mean()) * scipy.sparse.identity(h.shape[0], format="csr",
+                                                                          dtype=np.float64)
+    factorize(h, what="reference grid Hessian")  # the nested-dissection order, cached per pattern
+    fact_ms, fact_min = _median_ms(lambda: factorize(h, what="reference grid Hessian"), factor_repeats)
+    return {
+        "spring_pass_ms": spring_ms,
+        "spring_pass_min_ms": spring_min,
+        "spring_vertices": int(x.shape[0]),
+        "factorization_ms": fact_ms,
+        "factorization_min_ms": fact_min,
+        "factor_vertices": int(fx.shape[0]),
+        "torch_threads": torch.get_num_threads(),
+    }
+
+
+class MachineWatch:
+    """The ``machine`` block of a bench's JSON: :func:`machine_record` and :func:`speed_reference` when made
+    (call it after setting torch's threads, before the timed work), the load average and the reference again
+    at :meth:`finish`.
+
+    Args:
+        reference: also time the speed reference (about half a second at each end); False records the machine
+            and its load only.
+    """
+
+    def __init__(self, reference: bool = True) -> None:
+        self.start = machine_record()
+        self.reference_start = speed_reference() if reference else None
+
+    def finish(self) -> dict:
+        """The JSON-ready block: the start's machine record, ``load_average_end`` and ``speed_reference``
+        (``{"start": ..., "end": ...}``, None without ``reference``)."""
+        end = speed_reference() if self.reference_start is not None else None
+        return self.start | {"load_average_end": list(load_average()),
+                             "speed_reference": {"start": self.reference_start, "end": end}}
+
+    @staticmethod
+    def describe(block: dict) -> str:
+        """One line of a :meth:`finish` block: the load averages and the speed references, start -> end."""
+        a, b = block["load_average"][0], block["load_average_end"][0]
+        line = f"machine: {block['cpus']} CPUs, load average {a:.2f} -> {b:.2f}"
+        ref = block["speed_reference"]
+        if ref["start"] is None:
+            return line
+        s, e = ref["start"], ref["end"]
+        return (line + f"; speed reference ({s['torch_threads']} thread(s)): {s['spring_vertices']:,}-vertex "
+                f"spring pass {s['spring_pass_ms']:.2f} -> {e['spring_pass_ms']:.2f} ms, "
+                f"{s['factor_vertices']:,}-vertex factorization {s['factorization_ms']:.0f} -> "
+                f"{e['factorization_ms']:.0f} ms")
