@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
@@ -32,6 +30,7 @@ def main() -> None:
     from torchgarment.adjust.cli import write_outputs
     from torchgarment.adjust.grade import format_table, grade
     from torchgarment.adjust.pipeline import AdjustSettings
+    from torchgarment.benchmarking import machine_record
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.pattern.library import draft
@@ -69,8 +68,7 @@ def main() -> None:
                "mean_seconds_per_size": m["total_seconds"] / n, "base_drape_once": m["base_drape_once"],
                "base_drape_seconds": m["base_drape_seconds"], "load_seconds": load_seconds,
                "failed": result.failed, "acceptance": m["acceptance"],
-               "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                           "loadavg": os.getloadavg()}}
+               "machine": machine_record()}
         Path(args.json).write_text(json.dumps(out, indent=2, default=str) + "\n", encoding="utf-8")
 
 

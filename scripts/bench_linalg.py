@@ -29,7 +29,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import statistics
 import time
 
@@ -55,6 +54,7 @@ def main() -> None:
     import numpy as np
     import torch
 
+    from torchgarment.benchmarking import machine_record
     from torchgarment.body.size_chart import chart_row
     from torchgarment.errors import InputError
     from torchgarment.linalg import CSRAssembler, SparseBackend, factorize
@@ -122,13 +122,13 @@ def main() -> None:
             print(f"  pcg ({row['device']}, 3x3 block Jacobi): " + ", ".join(
                 f"rtol {t}: {r['iterations']} iterations {r['seconds']:.3f} s"
                 for t, r in row["rtol"].items()))
-    load = os.getloadavg()
+    machine = machine_record()
+    load = machine["load_average"]
     print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, {args.threads} threads")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"garment": args.garment, "size": args.size, "threads": args.threads,
-                       "repeats": args.repeats, "load_average": load, "machine": platform.platform(),
-                       "processor": platform.processor(), "cpus": os.cpu_count(), "rows": rows}, f, indent=1)
+                       "repeats": args.repeats, "machine": machine, "rows": rows}, f, indent=1)
 
 
 def draped_system(mesh, size: str):  # noqa: ANN001, ANN201 (imports are local to main)
