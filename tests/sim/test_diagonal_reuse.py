@@ -185,6 +185,65 @@ def test_spd_inverse_3x3_against_linalg():
     assert bool(torch.isfinite(out).all())
 
 
+def _adjugate_inverse_elementwise(blocks, shift=0.0):
+    """The adjugate inverse written entry by entry on strided columns (the implementation before
+    2026-12-01): spd_inverse_3x3's selection products must give the same bits."""
+    n = blocks.shape[0]
+    hv = blocks.reshape(n, 9)
+    a00, a11, a22 = hv[:, 0] + shift, hv[:, 4] + shift, hv[:, 8] + shift
+    a01 = (hv[:, 1] + hv[:, 3]).mul_(0.5)
+    a02 = (hv[:, 2] + hv[:, 6]).mul_(0.5)
+    a12 = (hv[:, 5] + hv[:, 7]).mul_(0.5)
+    c00 = torch.mul(a11, a22).addcmul_(a12, a12, value=-1.0)
+    c01 = torch.mul(a02, a12).addcmul_(a01, a22, value=-1.0)
+    c02 = torch.mul(a01, a12).addcmul_(a02, a11, value=-1.0)
+    c11 = torch.mul(a00, a22).addcmul_(a02, a02, value=-1.0)
+    c12 = torch.mul(a01, a02).addcmul_(a00, a12, value=-1.0)
+    c22 = torch.mul(a00, a11).addcmul_(a01, a01, value=-1.0)
+    det = (a00 * c00).addcmul_(a01, c01).addcmul_(a02, c02)
+    tiny = 1e3 * torch.finfo(blocks.dtype).eps
+    m2 = a00 * a11
+    pd = (a00 > 0) & (c22 > tiny * m2) & (det > m2.mul_(a22).mul_(tiny))
+    inv_det = torch.where(pd, det, torch.ones_like(det)).reciprocal_()
+    inv = torch.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], dim=1).mul_(inv_det.unsqueeze(1))
+    return inv.view(n, 3, 3), pd
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_spd_inverse_3x3_equals_the_elementwise_adjugate_bit_for_bit(dtype):
+    gen = torch.Generator().manual_seed(1)
+    a = torch.randn(3000, 3, 3, dtype=torch.float64, generator=gen)
+    blocks = (a @ a.transpose(1, 2) + 0.1 * torch.eye(3, dtype=torch.float64)).to(dtype)
+    blocks[::7, 0, 1] += 1e-3  # not quite symmetric: the symmetric part is inverted
+    blocks[::5, 2, 1] -= 0.25
+    blocks[::11] *= -1.0  # not positive definite
+    blocks[::13] *= 1e6  # large and small scales
+    blocks[::17] *= 1e-6
+    for shift in (0.0, 0.5):
+        inv, pd = spd_inverse_3x3(blocks, shift=shift)
+        ref, pd_ref = _adjugate_inverse_elementwise(blocks, shift=shift)
+        assert torch.equal(pd, pd_ref) and 0 < int(pd.sum()) < blocks.shape[0]
+        assert torch.equal(inv[pd], ref[pd])
+        assert inv.is_contiguous() and inv.dtype == dtype
+
+
+def test_spring_diagonal_is_the_sum_of_the_spring_blocks():
+    """PlanarSprings' fused diagonal (seven sums per vertex, assembled by one product) against the diagonal
+    blocks of its block-COO Hessian, projected and not."""
+    from torchgarment.benchmarking import grid_springs
+
+    springs, x = grid_springs(400)
+    x = x.clone()
+    x[::3, :2] *= 0.97  # some springs compressed: the projection clamps them
+    for project in (True, False):
+        _, _, h = springs.value_grad_hessian_diagonal(x, project_psd=project)
+        blocks = springs.hessian_blocks(x, project_psd=project)
+        ref = torch.zeros_like(h).index_add_(0, blocks.rows[blocks.rows == blocks.cols],
+                                             blocks.values[blocks.rows == blocks.cols])
+        torch.testing.assert_close(h, ref, rtol=1e-12, atol=1e-9)
+        assert torch.equal(h, h.transpose(1, 2))
+
+
 def test_elastic_reuse_does_not_change_the_converged_drape():
     """Reusing the elastic diagonal changes the path, not the equilibrium: both settings converge to the same
     positions within the tolerance's displacement scale."""

@@ -199,17 +199,9 @@ class PlanarSprings(EnergyTerm):
         torch.mul(cd[:, 0], d[:, 2], out=cols[:, 5])  # xz
         cols[:, 6] = a
         sums = self._ops.scatter_both(cols)  # (V, 7)
-        V = sums.shape[0]
-        h = torch.empty(V, 3, 3, dtype=d.dtype, device=d.device)
-        hv = h.view(V, 9)
-        torch.add(sums[:, 0:3], sums[:, 6:7], out=hv[:, 0::4])
-        hv[:, 1] = sums[:, 3]
-        hv[:, 3] = sums[:, 3]
-        hv[:, 5] = sums[:, 4]
-        hv[:, 7] = sums[:, 4]
-        hv[:, 2] = sums[:, 5]
-        hv[:, 6] = sums[:, 5]
-        return h
+        # the (V, 9) blocks by one exact product (entries 0 and 1: each result is one sum, or the diagonal's
+        # sum plus a): eight strided column copies cost 0.8-0.9 ms at 30K vertices, the product 0.06-0.14 ms
+        return (sums @ _blocks_from_sums(d.dtype, d.device)).view(-1, 3, 3)
 
     def _blocks(self, k: torch.Tensor, rl: torch.Tensor, d: torch.Tensor, lsafe: torch.Tensor,
                 project_psd: bool) -> torch.Tensor:
@@ -237,6 +229,24 @@ class PlanarSprings(EnergyTerm):
 
     def extra_repr(self) -> str:
         return f"springs={self.edges.shape[0]}, stiffness={self.stiffness} N"
+
+
+_FROM_SUMS: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
+
+
+def _blocks_from_sums(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(7, 9) map of :meth:`PlanarSprings._diagonal`'s per-vertex sums ``(xx, yy, zz, xy, yz, xz, a)`` to the
+    row-major 3x3 block ``c d d^T + a I`` (cached per dtype and device)."""
+    key = (dtype, device)
+    m = _FROM_SUMS.get(key)
+    if m is None:
+        m = torch.zeros(7, 9, dtype=dtype)
+        for row, (i, j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (0, 2))):
+            m[row, 3 * i + j] = 1.0
+            m[row, 3 * j + i] = 1.0
+        m[6, 0::4] = 1.0
+        m = _FROM_SUMS[key] = m.to(device)
+    return m
 
 
 # ---------------------------------------------------------------------------------------- shared helpers
