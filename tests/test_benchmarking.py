@@ -11,30 +11,41 @@ import torch
 
 from torchgarment.benchmarking import (
     MachineWatch,
-    grid_springs,
+    _spring_pass,
     load_average,
     machine_record,
+    reference_grid,
     speed_reference,
 )
 from torchgarment.errors import InputError
+from torchgarment.sim import PlanarSprings
 
 
-def test_grid_springs_is_a_triangulated_grid_in_tension() -> None:
-    springs, x = grid_springs(100)  # 10 x 10
+def test_reference_grid_is_a_triangulated_grid_in_tension() -> None:
+    edges, p, x = reference_grid(100)  # 10 x 10
     n = 10
-    assert x.shape == (n * n, 3)
+    assert x.shape == (n * n, 3) and p.shape == (n * n, 2)
     # horizontal + vertical + one diagonal per cell
-    assert springs.edges.shape[0] == 2 * n * (n - 1) + (n - 1) ** 2
-    assert len({tuple(e) for e in springs.edges.tolist()}) == springs.edges.shape[0]
-    i, j = springs.edges[:, 0], springs.edges[:, 1]
-    length = torch.linalg.vector_norm(x[i] - x[j], dim=1)
-    assert bool((length > springs.rest_lengths()).all())  # every spring stretched
-    E, g = springs.value_and_grad(x)
-    assert float(E) > 0 and bool(torch.isfinite(g).all())
-    # the same state on every call (a fixed seed)
-    assert torch.equal(grid_springs(100)[1], x)
+    assert edges.shape[0] == 2 * n * (n - 1) + (n - 1) ** 2
+    assert len({tuple(e) for e in edges.tolist()}) == edges.shape[0]
+    i, j = edges[:, 0], edges[:, 1]
+    rest = torch.linalg.vector_norm(p[i] - p[j], dim=1)
+    assert bool((torch.linalg.vector_norm(x[i] - x[j], dim=1) > rest).all())  # every edge stretched
+    assert torch.equal(reference_grid(100)[2], x)  # a fixed seed
     with pytest.raises(InputError):
-        grid_springs(3)
+        reference_grid(3)
+
+
+def test_reference_spring_pass_is_the_library_springs_energy_and_gradient() -> None:
+    """The reference pass (plain torch) computes what PlanarSprings does: the same workload."""
+    edges, p, x = reference_grid(400)
+    springs = PlanarSprings(edges, p, stiffness=25.0)
+    i, j = edges[:, 0].contiguous(), edges[:, 1].contiguous()
+    rest = torch.linalg.vector_norm(p[i] - p[j], dim=1)
+    E, g = _spring_pass(x, i, j, rest, 25.0 / rest)
+    E_ref, g_ref = springs.value_and_grad(x)
+    torch.testing.assert_close(E, E_ref, rtol=1e-12, atol=0.0)
+    torch.testing.assert_close(g, g_ref, rtol=1e-10, atol=1e-12)
 
 
 def test_speed_reference_times_both_workloads() -> None:

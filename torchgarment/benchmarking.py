@@ -12,13 +12,16 @@ benches record it at their start and end:
 * :func:`speed_reference`: two fixed workloads that stand for the two kinds of work in the benches, timed in
   the current torch threads:
 
-  - ``spring_pass_ms``: the bare spring pass (:meth:`PlanarSprings.value_and_grad`) on a triangulated square
-    grid of about ``spring_vertices`` vertices (default 30K, 3 springs per vertex): torch's elementwise
-    operations and CSR products, as in ``scripts/bench_sim.py``'s baseline;
-  - ``factorization_ms``: one sparse factorization (:func:`torchgarment.linalg.factorize`, the SuperLU
-    default, its nested-dissection order cached after a first call) of the springs' projected Hessian plus a
-    small diagonal shift on a grid of about ``factor_vertices`` vertices (default 5K, a retargeted garment's
-    size): the direct solver's share.
+  - ``spring_pass_ms``: the energy and gradient of springs on a triangulated square grid of about
+    ``spring_vertices`` vertices (default 30K, 3 springs per vertex; :func:`reference_grid`), the textbook
+    gather / scatter pass in torch: elementwise operations and index scatters, the kind of work of
+    ``scripts/bench_sim.py``'s baseline;
+  - ``factorization_ms``: one scipy SuperLU factorization (scipy's default ordering and pivoting) of the
+    grid's spring Laplacian times the 3x3 identity, slightly shifted, at about ``factor_vertices`` vertices
+    (default 5K, a retargeted garment's size): the direct solver's share.
+
+  Both are written with torch and scipy alone, not with the library's springs or factorizations, so that the
+  reference stays the same workload when the library gets faster.
 
 Both are medians over repeats (``*_min_ms``: the minima). :class:`MachineWatch` takes both at a bench's
 start and end and gives the JSON block and a printed line. Two runs on different machines or hours compare
@@ -37,13 +40,12 @@ import time
 
 import numpy as np
 import scipy.sparse
+import scipy.sparse.linalg
 import torch
 
 from torchgarment.errors import InputError
-from torchgarment.linalg import CSRAssembler, factorize
-from torchgarment.sim import PlanarSprings
 
-__all__ = ["MachineWatch", "grid_springs", "load_average", "machine_record", "speed_reference"]
+__all__ = ["MachineWatch", "load_average", "machine_record", "reference_grid", "speed_reference"]
 
 
 def load_average() -> tuple[float, float, float]:
@@ -69,21 +71,21 @@ def machine_record() -> dict:
     }
 
 
-def grid_springs(vertices: int, *, spacing: float = 0.01,
-                 dtype: torch.dtype = torch.float64) -> tuple[PlanarSprings, torch.Tensor]:
-    """Springs on a triangulated ``n x n`` grid (``n = round(sqrt(vertices))``, at least 2) and a deformed
-    state.
+def reference_grid(vertices: int, *,
+                   spacing: float = 0.01) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A triangulated ``n x n`` grid (``n = round(sqrt(vertices))``, at least 2) and a deformed state
+    (float64).
 
-    The springs are the grid's horizontal, vertical and one diagonal edges (3 per vertex inside, as in a
+    The edges are the grid's horizontal, vertical and one diagonal edges (3 per vertex inside, as in a
     triangle mesh) with rest positions ``spacing`` (metres) apart; the state is the grid stretched by 2 % in
-    its plane and lifted by a fixed pseudo-random height of up to ``spacing / 4``, so every spring is in
+    its plane and lifted by a fixed pseudo-random height of up to ``spacing / 4``, so every edge is in
     tension.
 
     Returns:
-        ``(springs, x)``: the :class:`PlanarSprings` (default stiffness) and the (n^2, 3) state in metres.
+        ``(edges, p, x)``: (E, 2) long vertex pairs, (n^2, 2) rest positions and (n^2, 3) positions in metres.
     """
     if not vertices >= 4:
-        raise InputError(f"grid_springs needs at least 4 vertices, got {vertices}")
+        raise InputError(f"reference_grid needs at least 4 vertices, got {vertices}")
     n = max(2, round(math.sqrt(vertices)))
     idx = torch.arange(n * n).view(n, n)
     edges = torch.cat([
@@ -91,12 +93,24 @@ def grid_springs(vertices: int, *, spacing: float = 0.01,
         torch.stack([idx[:-1, :].reshape(-1), idx[1:, :].reshape(-1)], 1),
         torch.stack([idx[:-1, :-1].reshape(-1), idx[1:, 1:].reshape(-1)], 1),
     ])
-    u = torch.arange(n, dtype=dtype) * spacing
+    u = torch.arange(n, dtype=torch.float64) * spacing
     p = torch.stack(torch.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2)
     gen = torch.Generator().manual_seed(0)
-    z = (torch.rand(n * n, generator=gen, dtype=dtype) - 0.5) * (0.5 * spacing)
-    x = torch.cat([1.02 * p, z.unsqueeze(1)], 1)
-    return PlanarSprings(edges, p), x
+    z = (torch.rand(n * n, generator=gen, dtype=torch.float64) - 0.5) * (0.5 * spacing)
+    return edges, p, torch.cat([1.02 * p, z.unsqueeze(1)], 1)
+
+
+def _spring_pass(x: torch.Tensor, i: torch.Tensor, j: torch.Tensor, rest: torch.Tensor,
+                 k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Energy and gradient (V, 3) of springs ``(i, j)`` with rest lengths ``rest`` and stiffness ``k`` (N/m):
+    the textbook gather / scatter pass, written here with torch alone so that the reference does not change
+    when the library's own springs get faster."""
+    d = x.index_select(0, i) - x.index_select(0, j)
+    length = torch.linalg.vector_norm(d, dim=1)
+    s = length - rest
+    f = d * (k * s / length).unsqueeze(1)
+    g = torch.zeros_like(x).index_add_(0, i, f).index_add_(0, j, f, alpha=-1.0)
+    return 0.5 * torch.dot(k * s, s), g
 
 
 def _median_ms(fn: object, repeats: int) -> tuple[float, float]:
@@ -123,23 +137,34 @@ def speed_reference(*, spring_vertices: int = 30_000, factor_vertices: int = 5_0
     """
     if spring_repeats < 1 or factor_repeats < 1:
         raise InputError("speed_reference needs at least one repeat of each workload")
-    springs, x = grid_springs(spring_vertices)
-    springs.value_and_grad(x)  # builds the CSR incidence matrices
-    spring_ms, spring_min = _median_ms(lambda: springs.value_and_grad(x), spring_repeats)
+    edges, p, x = reference_grid(spring_vertices)
+    i, j = edges[:, 0].contiguous(), edges[:, 1].contiguous()
+    rest = torch.linalg.vector_norm(p[i] - p[j], dim=1)
+    k = 25.0 / rest
+    _spring_pass(x, i, j, rest, k)
+    spring_ms, spring_min = _median_ms(lambda: _spring_pass(x, i, j, rest, k), spring_repeats)
 
-    fsprings, fx = grid_springs(factor_vertices)
-    h = CSRAssembler(fx.shape[0]).assemble(fsprings.hessian_blocks(fx))
-    h = h + 1e-3 * float(h.diagonal().mean()) * scipy.sparse.identity(h.shape[0], format="csr",
-                                                                          dtype=np.float64)
-    factorize(h, what="reference grid Hessian")  # the nested-dissection order, cached per pattern
-    fact_ms, fact_min = _median_ms(lambda: factorize(h, what="reference grid Hessian"), factor_repeats)
+    fedges, fp, _ = reference_grid(factor_vertices)
+    n = fp.shape[0]
+    e = fedges.numpy()
+    w = 25.0 / np.linalg.norm(fp.numpy()[e[:, 0]] - fp.numpy()[e[:, 1]], axis=1)
+    adj = scipy.sparse.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    adj = adj + adj.T
+    lap = scipy.sparse.diags(np.asarray(adj.sum(axis=1)).ravel() * (1.0 + 1e-3)) - adj
+    mat = scipy.sparse.kron(lap, scipy.sparse.identity(3), format="csc")
+
+    def factor() -> None:
+        scipy.sparse.linalg.splu(mat)  # scipy's defaults (COLAMD, partial pivoting): fixed by scipy alone
+
+    factor()
+    fact_ms, fact_min = _median_ms(factor, factor_repeats)
     return {
         "spring_pass_ms": spring_ms,
         "spring_pass_min_ms": spring_min,
         "spring_vertices": int(x.shape[0]),
         "factorization_ms": fact_ms,
         "factorization_min_ms": fact_min,
-        "factor_vertices": int(fx.shape[0]),
+        "factor_vertices": int(n),
         "torch_threads": torch.get_num_threads(),
     }
 

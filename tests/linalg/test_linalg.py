@@ -19,6 +19,7 @@ from torchgarment.linalg import (
     FactorizationCache,
     SparseBackend,
     armijo_backtracking,
+    compact_csr,
     count_linalg,
     factorize,
     fill_reducing_permutation,
@@ -465,3 +466,23 @@ def test_csr_matvec_is_the_matrix_product():
     v = torch.from_numpy(rng.standard_normal(40))
     y = csr_matvec(h, torch.device("cpu"))(v)
     assert y.dtype == torch.float64 and torch.allclose(y, torch.from_numpy(h.tocsr() @ v.numpy()), atol=1e-14)
+
+
+def test_compact_csr_gives_the_same_products_with_32_bit_indices():
+    import warnings
+
+    gen = torch.Generator().manual_seed(0)
+    dense = torch.randn(40, 30, dtype=torch.float64, generator=gen)
+    dense[dense.abs() < 1.0] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "sparse CSR support is in beta"
+        wide = dense.to_sparse_csr()
+    small = compact_csr(wide)
+    assert wide.crow_indices().dtype == torch.int64
+    assert small.crow_indices().dtype == torch.int32 and small.col_indices().dtype == torch.int32
+    for rhs in (torch.randn(30, 3, dtype=torch.float64, generator=gen),
+                torch.randn(30, 7, dtype=torch.float64, generator=gen)):
+        assert torch.equal(small @ rhs, wide @ rhs)
+    assert compact_csr(small) is small
+    with pytest.raises(InputError):
+        compact_csr(dense)

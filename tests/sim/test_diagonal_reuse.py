@@ -230,10 +230,11 @@ def test_spd_inverse_3x3_equals_the_elementwise_adjugate_bit_for_bit(dtype):
 def test_spring_diagonal_is_the_sum_of_the_spring_blocks():
     """PlanarSprings' fused diagonal (seven sums per vertex, assembled by one product) against the diagonal
     blocks of its block-COO Hessian, projected and not."""
-    from torchgarment.benchmarking import grid_springs
+    from torchgarment.benchmarking import reference_grid
+    from torchgarment.sim import PlanarSprings
 
-    springs, x = grid_springs(400)
-    x = x.clone()
+    edges, p, x = reference_grid(400)
+    springs = PlanarSprings(edges, p)
     x[::3, :2] *= 0.97  # some springs compressed: the projection clamps them
     for project in (True, False):
         _, _, h = springs.value_grad_hessian_diagonal(x, project_psd=project)

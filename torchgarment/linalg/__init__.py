@@ -10,7 +10,8 @@ It depends on torch, numpy, scipy and pymetis only (and on :mod:`torchgarment.er
 * :func:`pcg`: preconditioned conjugate gradients on torch tensors (or numpy arrays); :func:`minres`:
   preconditioned MINRES for symmetric indefinite systems.
 * :func:`armijo_backtracking`: the sufficient-decrease line search.
-* :class:`CSRAssembler`: 3x3 vertex blocks -> scipy CSR; :func:`csr_matvec`: its products on a device.
+* :class:`CSRAssembler`: 3x3 vertex blocks -> scipy CSR; :func:`csr_matvec`: its products on a device;
+  :func:`compact_csr`: a constant torch CSR with 32-bit indices (faster products).
 * :func:`count_linalg`: counts the factorizations and solves (and their seconds) made inside a ``with``
   block (:class:`LinalgCounters`), for benchmarks' per-stage breakdowns.
 
@@ -28,6 +29,7 @@ from torchgarment.linalg.sparse import (
     FactorizationCache,
     LinalgCounters,
     SparseBackend,
+    compact_csr,
     count_linalg,
     csr_matvec,
     factorize,
@@ -42,6 +44,7 @@ __all__ = [
     "LinalgCounters",
     "SparseBackend",
     "armijo_backtracking",
+    "compact_csr",
     "count_linalg",
     "csr_matvec",
     "factorize",

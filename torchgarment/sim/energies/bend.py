@@ -39,6 +39,7 @@ import warnings
 import torch
 
 from torchgarment.errors import InputError, MeshError
+from torchgarment.linalg import compact_csr
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 from torchgarment.sim.energies.stretch import check_positions
 from torchgarment.structures.garment_mesh import GarmentMesh
@@ -179,7 +180,7 @@ class QuadraticBending(EnergyTerm):
                 coo = torch.sparse_coo_tensor(self.q_indices.to(device),
                                               self.q_values.to(device=device, dtype=dtype),
                                               (V, V), is_coalesced=True)
-                self._csr[key] = coo.to_sparse_csr()
+                self._csr[key] = compact_csr(coo.to_sparse_csr())
         return self._csr[key]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -32,6 +32,7 @@ import warnings
 import torch
 
 from torchgarment.errors import InputError, MeshError
+from torchgarment.linalg import compact_csr
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 from torchgarment.structures.garment_mesh import GarmentMesh
 
@@ -287,7 +288,8 @@ class PairOperator:
                 # the transpose: row s holds +1 at i_s and -1 at j_s
                 diff = torch.sparse_coo_tensor(torch.stack([cols, rows]), torch.cat([one, -one]), (E, V),
                                                check_invariants=False).coalesce()
-                self._mats[key] = (signed.to_sparse_csr(), unsigned.to_sparse_csr(), diff.to_sparse_csr())
+                self._mats[key] = (compact_csr(signed.to_sparse_csr()), compact_csr(unsigned.to_sparse_csr()),
+                                   compact_csr(diff.to_sparse_csr()))
         return self._mats[key]
 
     @staticmethod
