@@ -13,9 +13,10 @@ benches record it at their start and end:
   the current torch threads:
 
   - ``spring_pass_ms``: the energy and gradient of springs on a triangulated square grid of about
-    ``spring_vertices`` vertices (default 30K, 3 springs per vertex; :func:`reference_grid`), the textbook
-    gather / scatter pass in torch: elementwise operations and index scatters, the kind of work of
-    ``scripts/bench_sim.py``'s baseline;
+    ``spring_vertices`` vertices (default 30K, 3 springs per vertex; :func:`reference_grid`): differences
+    and scatters as torch CSR products, norms and elementwise products, the kind of work of
+    ``scripts/bench_sim.py``'s baseline (a first version gathered and scattered with index operations, whose
+    speed varied by 20 % with where the grid's tensors lay in memory);
   - ``factorization_ms``: one scipy SuperLU factorization (scipy's default ordering and pivoting) of the
     grid's spring Laplacian times the 3x3 identity, slightly shifted, at about ``factor_vertices`` vertices
     (default 5K, a retargeted garment's size): the direct solver's share.
@@ -37,6 +38,7 @@ import platform
 import statistics
 import sys
 import time
+import warnings
 
 import numpy as np
 import scipy.sparse
@@ -100,17 +102,29 @@ def reference_grid(vertices: int, *,
     return edges, p, torch.cat([1.02 * p, z.unsqueeze(1)], 1)
 
 
-def _spring_pass(x: torch.Tensor, i: torch.Tensor, j: torch.Tensor, rest: torch.Tensor,
+def _incidence(edges: torch.Tensor, num_vertices: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(D, S)``: torch sparse CSR (64-bit indices) with ``D x = x[i] - x[j]`` (E, V) and ``S = D^T``."""
+    E = edges.shape[0]
+    ar = torch.arange(E)
+    one = torch.ones(E, dtype=torch.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "sparse CSR support is in beta"
+        d = torch.sparse_coo_tensor(torch.stack([torch.cat([ar, ar]), torch.cat([edges[:, 0], edges[:, 1]])]),
+                                    torch.cat([one, -one]), (E, num_vertices)).coalesce()
+        s = torch.sparse_coo_tensor(d.indices().flip(0), d.values(), (num_vertices, E)).coalesce()
+        return d.to_sparse_csr(), s.to_sparse_csr()
+
+
+def _spring_pass(x: torch.Tensor, D: torch.Tensor, S: torch.Tensor, rest: torch.Tensor,
                  k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Energy and gradient (V, 3) of springs ``(i, j)`` with rest lengths ``rest`` and stiffness ``k`` (N/m):
-    the textbook gather / scatter pass, written here with torch alone so that the reference does not change
-    when the library's own springs get faster."""
-    d = x.index_select(0, i) - x.index_select(0, j)
+    """Energy and gradient (V, 3) of springs with incidence ``D`` (:func:`_incidence`), rest lengths ``rest``
+    and stiffness ``k`` (N/m): differences and scatters as CSR products, norms and elementwise products,
+    written here with torch alone so that the reference does not change when the library's own springs get
+    faster."""
+    d = D @ x
     length = torch.linalg.vector_norm(d, dim=1)
     s = length - rest
-    f = d * (k * s / length).unsqueeze(1)
-    g = torch.zeros_like(x).index_add_(0, i, f).index_add_(0, j, f, alpha=-1.0)
-    return 0.5 * torch.dot(k * s, s), g
+    return 0.5 * torch.dot(k * s, s), S @ (d * (k * s / length).unsqueeze(1))
 
 
 def _median_ms(fn: object, repeats: int) -> tuple[float, float]:
@@ -129,7 +143,8 @@ def speed_reference(*, spring_vertices: int = 30_000, factor_vertices: int = 5_0
     Args:
         spring_vertices: about how many vertices the spring pass's grid has.
         factor_vertices: about how many vertices the factorized grid has (its matrix is 3x that size).
-        spring_repeats, factor_repeats: timed repeats (after one untimed call each).
+        spring_repeats, factor_repeats: timed repeats (after 3 untimed spring passes and one untimed
+            factorization).
 
     Returns:
         ``{"spring_pass_ms", "spring_pass_min_ms", "spring_vertices", "factorization_ms",
@@ -138,11 +153,12 @@ def speed_reference(*, spring_vertices: int = 30_000, factor_vertices: int = 5_0
     if spring_repeats < 1 or factor_repeats < 1:
         raise InputError("speed_reference needs at least one repeat of each workload")
     edges, p, x = reference_grid(spring_vertices)
-    i, j = edges[:, 0].contiguous(), edges[:, 1].contiguous()
-    rest = torch.linalg.vector_norm(p[i] - p[j], dim=1)
+    D, S = _incidence(edges, x.shape[0])
+    rest = torch.linalg.vector_norm(D @ p, dim=1)
     k = 25.0 / rest
-    _spring_pass(x, i, j, rest, k)
-    spring_ms, spring_min = _median_ms(lambda: _spring_pass(x, i, j, rest, k), spring_repeats)
+    for _ in range(3):
+        _spring_pass(x, D, S, rest, k)
+    spring_ms, spring_min = _median_ms(lambda: _spring_pass(x, D, S, rest, k), spring_repeats)
 
     fedges, fp, _ = reference_grid(factor_vertices)
     n = fp.shape[0]
