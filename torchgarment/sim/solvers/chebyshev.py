@@ -41,6 +41,7 @@ from torchgarment.sim.solvers.common import (
     SolveSettings,
     Timer,
     checked_max_step,
+    energy_float64,
     evaluate,
     evaluate_with_diagonal,
     supports_elastic_reuse,
@@ -308,14 +309,6 @@ def chebyshev_weight(iteration: int, omega: float, rho: float, delay: int) -> fl
     return 4.0 / (4.0 - rho * rho * omega)
 
 
-def _energy_float64(model: SolverModel, x: torch.Tensor) -> float:
-    """The model's energy at ``x`` evaluated in float64 (``model.energy`` when it has one, else
-    ``value_and_grad``); the terms cast their buffers to the positions' dtype."""
-    x64 = x.detach().to(torch.float64)
-    energy = getattr(model, "energy", None)
-    return float(energy(x64) if energy is not None else model.value_and_grad(x64)[0])
-
-
 def solve_gd_chebyshev(
     model: SolverModel,
     x0: torch.Tensor,
@@ -347,7 +340,7 @@ def solve_gd_chebyshev(
     slack = 16.0 * torch.finfo(torch.float64).eps
 
     def check_energy(xc: torch.Tensor, ec: float) -> float:
-        return _energy_float64(model, xc) if low_precision else ec
+        return energy_float64(model, xc) if low_precision else ec
 
     with torch.no_grad():
         x = x0.detach().clone()

@@ -337,6 +337,16 @@ def evaluate(model: SolverModel, x: torch.Tensor, iteration: int,
     return ef, g, gn
 
 
+def energy_float64(model: SolverModel, x: torch.Tensor) -> float:
+    """The model's energy at ``x`` evaluated in float64 (``model.energy`` when it has one, else
+    ``value_and_grad``); the terms cast their buffers to the positions' dtype. The solvers compare a
+    float32 solve's energies with it: float32 energies carry round-off (about eps times the terms) at or above
+    the decrease of a step near convergence."""
+    x64 = x.detach().to(torch.float64)
+    energy = getattr(model, "energy", None)
+    return float(energy(x64) if energy is not None else model.value_and_grad(x64)[0])
+
+
 def evaluate_with_diagonal(
     model: SolverModel, x: torch.Tensor, iteration: int, what: str = "", *, reuse_elastic: bool = False
 ) -> tuple[float, torch.Tensor, float, torch.Tensor]:

@@ -54,6 +54,7 @@ from torchgarment.sim.solvers.common import (
     SolveSettings,
     Timer,
     checked_max_step,
+    energy_float64,
     evaluate,
     tolerance,
 )
@@ -361,7 +362,12 @@ def solve_newton(
     o = options or NewtonOptions()
     timer = Timer()
     info = SolveInfo(solver=SolverKind.NEWTON.value)
-    eps = torch.finfo(x0.dtype).eps
+    # a float32 solve's line search compares energies in float64, as GD-Chebyshev's checkpoints do: near
+    # convergence a full Newton step lowers the energy by about as much as float32 round-off moves it, and
+    # whether Armijo accepted the step depended on the CPU's rounding (a float32 sliver sheet stalled at 22x
+    # the tolerance on one machine and converged on others)
+    low_precision = x0.dtype != torch.float64
+    eps = torch.finfo(torch.float64).eps
     # one list of cached assemblers (one per block group) for the projected and one for the exact Hessian
     # (exact_curvature_cg), so that alternating between the two never rebuilds a sparsity pattern
     assemblers: dict[bool, list[CSRAssembler]] = {True: [], False: []}
@@ -449,14 +455,16 @@ def solve_newton(
                     xt = x + a * dx
                     state["x"] = xt
                     if o.value_only_line_search:
-                        return float(model.energy(xt))
+                        return energy_float64(model, xt) if low_precision else float(model.energy(xt))
                     state["e_g_gn"] = evaluate(model, xt, k, f"line search, step {a:.3g}")
-                    return state["e_g_gn"][0]
+                    return energy_float64(model, xt) if low_precision else state["e_g_gn"][0]
 
                 if a_max > 0.0:
+                    e_ref = energy_float64(model, x) if low_precision else e
                     a, et, accepted = armijo_backtracking(
-                        energy_at, e, slope, a_max, armijo_c=settings.armijo_c, backtrack=settings.backtrack,
-                        max_backtracks=settings.max_backtracks, slack=o.armijo_slack * eps * abs(e))
+                        energy_at, e_ref, slope, a_max, armijo_c=settings.armijo_c,
+                        backtrack=settings.backtrack, max_backtracks=settings.max_backtracks,
+                        slack=o.armijo_slack * eps * abs(e_ref))
                 if not accepted:
                     trial += 1
                     if o.levenberg:
