@@ -104,6 +104,19 @@ def _batch_process(manifest: Path, out: Path, mark: str, *extra: str) -> subproc
                             preexec_fn=_as_from_a_terminal if os.name == "posix" else None)
 
 
+def _drape_difference(batch: Path, single: Path) -> str:
+    """The two drape folders' solver metrics and first differing OBJ line (a failure message)."""
+    keys = ("iterations", "residual", "energy", "converged", "message", "vertices", "voxel_size")
+    rows = []
+    for name, folder in (("batch", batch), ("single", single)):
+        m = json.loads((folder / "metrics.json").read_text()) if (folder / "metrics.json").exists() else {}
+        rows.append(f"{name}: " + ", ".join(f"{k}={m.get(k)}" for k in keys))
+    lines = zip((batch / "garment.obj").read_text().splitlines(),
+                (single / "garment.obj").read_text().splitlines())
+    first = next(((i, a, b) for i, (a, b) in enumerate(lines) if a != b), None)
+    return "; ".join(rows) + f"; first differing OBJ line: {first}"
+
+
 def _running_job_workers(mark: str) -> list[int]:
     """Pids of this test's Ray workers that are running a job (Ray titles them ``ray::batch_job``)."""
     pids = []
@@ -143,7 +156,9 @@ def test_a_killed_worker_is_retried_and_the_result_is_the_single_commands(tmp_pa
     assert len(retried) == 1, [r["attempts"] for r in records.values()]
     assert "1 retried attempt" in stdout
     single = _single_command(retried[0], tmp_path / "single")
-    assert (out / retried[0]["folder"] / "garment.obj").read_bytes() == (single / "garment.obj").read_bytes()
+    batch_obj, single_obj = out / retried[0]["folder"] / "garment.obj", single / "garment.obj"
+    # on a mismatch, say how the two drapes differ (seen in full-suite runs only, 2026-12-01; see README)
+    assert batch_obj.read_bytes() == single_obj.read_bytes(), _drape_difference(batch_obj.parent, single)
     assert not list((out / "jobs").glob(".*"))
 
 
