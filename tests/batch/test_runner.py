@@ -106,11 +106,13 @@ def _batch_process(manifest: Path, out: Path, mark: str, *extra: str) -> subproc
 
 def _drape_difference(batch: Path, single: Path) -> str:
     """The two drape folders' solver metrics and first differing OBJ line (a failure message)."""
-    keys = ("iterations", "residual", "energy", "converged", "message", "vertices", "voxel_size")
+    keys = ("iterations", "residual", "energy", "energy_start", "converged", "message", "vertices")
     rows = []
     for name, folder in (("batch", batch), ("single", single)):
         m = json.loads((folder / "metrics.json").read_text()) if (folder / "metrics.json").exists() else {}
-        rows.append(f"{name}: " + ", ".join(f"{k}={m.get(k)}" for k in keys))
+        stages = [(st.get("name"), st.get("iterations"), (st.get("residual_history") or [None])[0])
+                  for st in m.get("stages", [])]
+        rows.append(f"{name}: " + ", ".join(f"{k}={m.get(k)}" for k in keys) + f", stages={stages}")
     lines = zip((batch / "garment.obj").read_text().splitlines(),
                 (single / "garment.obj").read_text().splitlines())
     first = next(((i, a, b) for i, (a, b) in enumerate(lines) if a != b), None)
