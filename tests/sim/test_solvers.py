@@ -340,6 +340,29 @@ def test_float32(solver: str) -> None:
     assert float(x[:, 1].min()) > 0
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_newton_line_search_compares_float64_energies(dtype: torch.dtype, monkeypatch) -> None:
+    """A float32 Newton solve's Armijo test sees float64 energies (float32 round-off is about the size of a
+    converging step's decrease); a float64 solve evaluates no extra energy."""
+    from torchgarment.sim.solvers import newton as newton_mod
+
+    seen = []
+    real = newton_mod.energy_float64
+
+    def spy(model, x):
+        seen.append(x.dtype)
+        return real(model, x)
+
+    monkeypatch.setattr(newton_mod, "energy_float64", spy)
+    m = SpringNetModel(dtype=dtype)
+    x, info = solve(m, m.x0(), SolveSettings(rtol=1e-4, max_iterations=200), solver="newton")
+    assert info.converged, info.message
+    if dtype == torch.float64:
+        assert seen == []
+    else:  # the reference energy and at least one trial point per Newton iteration
+        assert len(seen) >= 2 * info.iterations and set(seen) == {torch.float32}
+
+
 @pytest.mark.parametrize("solver", ["gd-chebyshev", "newton"])
 def test_non_finite_model_output_raises(solver: str) -> None:
     m = NaNAfter(bad_call=4)

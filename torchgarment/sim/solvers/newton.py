@@ -193,7 +193,8 @@ class NewtonOptions:
         value_only_line_search: the line search evaluates energies only (``model.energy``) and the gradient
             once after the step is accepted; False: ``model.value_and_grad`` per trial (a non-finite energy
             raises).
-        armijo_slack: the Armijo test tolerates ``armijo_slack * eps * |E|`` (rounding of large energies).
+        armijo_slack: the Armijo test tolerates ``armijo_slack * eps * |E|`` (rounding of large energies;
+            ``eps`` of float64: a float32 solve's line search compares float64 energies).
         step_tol: stop (not converged) when the accepted step's displacement is <= this (> 0); 0 disables.
         energy_tol: stop (converged) when the energy fell by less than ``energy_tol * |E|`` over the last
             ``energy_window`` steps; 0 disables. The window holds the energies of one objective: when
@@ -431,6 +432,7 @@ def solve_newton(
 
             accepted = False
             trial = 0
+            e_ref = energy_float64(model, x) if low_precision else e  # the line search's reference energy
             while not accepted and trial <= (LEVENBERG_RETRIES if o.levenberg else 0):
                 hk = h if damping == 0.0 else (h + scipy.sparse.diags(damping * diag, format="csr")).tocsr()
                 dxf, retries = newton_direction(hk, g64, settings, k, cache if damping == 0.0 else None, o,
@@ -460,7 +462,6 @@ def solve_newton(
                     return energy_float64(model, xt) if low_precision else state["e_g_gn"][0]
 
                 if a_max > 0.0:
-                    e_ref = energy_float64(model, x) if low_precision else e
                     a, et, accepted = armijo_backtracking(
                         energy_at, e_ref, slope, a_max, armijo_c=settings.armijo_c,
                         backtrack=settings.backtrack, max_backtracks=settings.max_backtracks,
