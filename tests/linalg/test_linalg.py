@@ -3,6 +3,10 @@ against a dense solve and at negative curvature, Armijo backtracking, CSR assemb
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
 import types
 from dataclasses import dataclass
 
@@ -368,6 +372,24 @@ def test_minres_solves_indefinite_systems_where_cg_meets_negative_curvature() ->
         minres(lambda v: a @ v, b, lambda r: -r, 1e-10, 10)
 
 
+def test_minres_meets_rtol_on_the_true_residual_with_a_badly_scaled_preconditioner() -> None:
+    """MINRES's recurrences track the preconditioned residual; with a diagonal preconditioner over scales of
+    e^-4..e^4 they reached their target at a true residual 60-300x above rtol (the skirt's adjoint, 2.5x on
+    another machine); the solve now restarts from its iterate until the true residual meets rtol."""
+    base = _indefinite()
+    b = np.random.default_rng(2).standard_normal(base.shape[0])
+    for seed in range(3):
+        d = np.exp(np.random.default_rng(seed).uniform(-4.0, 4.0, base.shape[0]))
+        a = d[:, None] * base * d[None, :]
+        inv = 1.0 / np.abs(np.diag(a))
+        for array in (np.asarray, torch.from_numpy):
+            mat, rhs, pre = array(a), array(b), array(inv)
+            y, k, res = minres(lambda v: mat @ v, rhs, lambda r: pre * r, 1e-10, 2000)
+            true = float(np.linalg.norm(a @ np.asarray(y) - b) / np.linalg.norm(b))
+            assert res <= 1e-10 and k < 2000, (seed, res, k)
+            assert res == pytest.approx(true, rel=1e-3)  # the returned residual is the true one
+
+
 def test_armijo_accepts_and_shrinks() -> None:
     f = lambda a: (a - 0.1) ** 2  # noqa: E731 - f(0) = 0.01, slope -0.2
     ls = {"armijo_c": 1e-4, "backtrack": 0.5}
@@ -453,9 +475,74 @@ def test_missing_backend_is_an_input_error(monkeypatch: pytest.MonkeyPatch) -> N
         return real(name, package)
 
     monkeypatch.setattr(importlib, "import_module", fake)
+    monkeypatch.delenv("MKL_CBWR", raising=False)
     for backend in ("pardiso", "cholespy", "cholmod"):
         with pytest.raises(InputError, match="pip install"):
             factorize(_spd(), backend=backend)
+    # the pardiso path once set MKL_CBWR here, before the import: every later child process of the test run
+    # (a batch's Ray workers) inherited it, and torch's MKL rounded differently in them
+    assert "MKL_CBWR" not in os.environ
+
+
+class _FakeMKL:
+    """``MKL_CBWR_Get`` / ``MKL_CBWR_Set`` of an MKL library, recording the calls."""
+
+    def __init__(self, branch: int, status: int = 0) -> None:
+        self.branch, self.status, self.sets = branch, status, []
+
+        def get(option: int) -> int:
+            assert option == 1  # MKL_CBWR_BRANCH
+            return self.branch
+
+        def put(branch: int) -> int:
+            self.sets.append(branch)
+            if self.status == 0:
+                self.branch = branch
+            return self.status
+
+        self.MKL_CBWR_Get, self.MKL_CBWR_Set = get, put
+
+
+def test_mkl_reproducible_sets_the_compatible_branch_through_the_library(monkeypatch: pytest.MonkeyPatch):
+    from torchgarment.linalg.sparse import mkl_reproducible
+
+    monkeypatch.delenv("MKL_CBWR", raising=False)
+    off = _FakeMKL(branch=1)  # MKL_CBWR_BRANCH_OFF
+    assert mkl_reproducible(off) == 3 and off.sets == [3]
+    assert mkl_reproducible(off) == 3 and off.sets == [3]  # already set: no second call
+    assert "MKL_CBWR" not in os.environ
+    used = _FakeMKL(branch=1, status=-8)  # MKL ran before: the mode can no longer change
+    with pytest.warns(RuntimeWarning, match="MKL_CBWR=COMPATIBLE"):
+        assert mkl_reproducible(used) == 1
+    monkeypatch.setenv("MKL_CBWR", "AUTO")  # the user's choice stands
+    chosen = _FakeMKL(branch=2)
+    assert mkl_reproducible(chosen) == 2 and chosen.sets == []
+
+
+def test_pardiso_solves_in_the_compatible_branch_and_leaves_the_environment_alone(tmp_path):
+    """With pypardiso installed: a fresh process factorizes with pardiso at 2 threads, twice with the same
+    bits, in MKL's COMPATIBLE branch, with no MKL_CBWR in its environment afterwards."""
+    pytest.importorskip("pypardiso")
+    script = tmp_path / "pardiso.py"
+    script.write_text(textwrap.dedent("""
+        import os, numpy as np, scipy.sparse, torch
+        from torchgarment.linalg import factorize
+        import pypardiso
+        torch.set_num_threads(2)
+        n = 3000
+        rng = np.random.default_rng(0)
+        a = scipy.sparse.random(n, n, density=2e-3, random_state=rng, format="csr")
+        a = (a + a.T + 20.0 * scipy.sparse.identity(n)).tocsr()
+        b = rng.standard_normal(n)
+        y = [factorize(a, backend="pardiso").solve(b) for _ in range(2)]
+        lib = pypardiso.PyPardisoSolver().libmkl
+        print(lib.MKL_CBWR_Get(1), "MKL_CBWR" in os.environ, np.array_equal(y[0], y[1]),
+              float(np.linalg.norm(a @ y[0] - b) / np.linalg.norm(b)) < 1e-10)
+    """))
+    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+    out = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["3", "False", "True", "True"], out.stdout
 
 
 def test_csr_matvec_is_the_matrix_product():

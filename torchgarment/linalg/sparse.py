@@ -11,18 +11,19 @@ then factorized in that order with no partial pivoting in SuperLU's symmetric mo
 
 (nested dissection suits the meshes' planar graphs: factorizations of draped Newton systems 2.1x faster than
 in SuperLU's own minimum-degree order at 30K vertices, 2.0x at 15K, 1.3x at 3K), and with scipy's defaults
-(COLAMD ordering, partial pivoting) for ``symmetric=False``. The optional backends
-``"pardiso"`` (Intel MKL Pardiso through PyPI's ``pypardiso``, run with ``MKL_CBWR=COMPATIBLE`` so that
-results are reproducible on several threads), ``"cholespy"`` (a supernodal Cholesky, SPD
-matrices only) and ``"cholmod"`` (SuiteSparse CHOLMOD's supernodal Cholesky through ``cvxopt``, SPD matrices
-only: 3-4x faster than SuperLU on the simulation's projected Newton Hessians; the analysis of a factorization
-that nobody holds any more is reused for the next one of the same sparsity pattern, and so is its input
-matrix, whose values alone are rewritten) are imported only when
-asked for; a missing one raises :class:`~torchgarment.errors.InputError`.
+(COLAMD ordering, partial pivoting) for ``symmetric=False``. The optional backends ``"pardiso"`` (Intel MKL
+Pardiso through PyPI's ``pypardiso``, in MKL's COMPATIBLE reproducibility branch set by
+:func:`mkl_reproducible`, so that results are reproducible on several threads), ``"cholespy"`` (a supernodal
+Cholesky, SPD matrices only) and ``"cholmod"`` (SuiteSparse CHOLMOD's supernodal Cholesky through ``cvxopt``,
+SPD matrices only: 3-4x faster than SuperLU on the simulation's projected Newton Hessians; the analysis of a
+factorization that nobody holds any more is reused for the next one of the same sparsity pattern, and so is
+its input matrix, whose values alone are rewritten) are imported only when asked for; a missing one raises
+:class:`~torchgarment.errors.InputError`.
 """
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import importlib
 import os
@@ -310,12 +311,41 @@ def _superlu(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
     return solve
 
 
+_MKL_CBWR_BRANCH, _MKL_CBWR_COMPATIBLE, _MKL_CBWR_SUCCESS = 1, 3, 0  # mkl_cbwr.h
+
+
+def mkl_reproducible(lib: ctypes.CDLL) -> int:
+    """Put the MKL library ``lib`` (pypardiso's ``mkl_rt``) in conditional numerical reproducibility, branch
+    COMPATIBLE, unless the user's ``MKL_CBWR`` chose a mode: without it two pardiso factorizations of one
+    matrix on several threads differ in the last bits (2 of 8 repeated solves at 2 threads).
+
+    Set through MKL's service function on that library, never through the ``MKL_CBWR`` environment variable:
+    every child process would inherit the variable, and torch's own MKL reads it too (its dgemm rounds
+    differently under it), so a batch's Ray workers, started after a pardiso solve, draped other bits than the
+    process that started them.
+
+    Returns:
+        MKL's branch now (3: COMPATIBLE). Warns when MKL ran before in this process and can no longer change.
+    """
+    get, put = lib.MKL_CBWR_Get, lib.MKL_CBWR_Set
+    get.restype = put.restype = ctypes.c_int
+    get.argtypes = put.argtypes = [ctypes.c_int]
+    branch = get(_MKL_CBWR_BRANCH)
+    if os.environ.get("MKL_CBWR") or branch == _MKL_CBWR_COMPATIBLE:
+        return branch
+    status = put(_MKL_CBWR_COMPATIBLE)
+    if status != _MKL_CBWR_SUCCESS:
+        warnings.warn(f"MKL's reproducible mode could not be set (MKL_CBWR_Set returned {status}: MKL ran "
+                      "before in this process), so pardiso solves on several threads may differ in the last "
+                      "bits between runs; start Python with MKL_CBWR=COMPATIBLE", RuntimeWarning,
+                      stacklevel=3)
+    return get(_MKL_CBWR_BRANCH)
+
+
 def _pardiso(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
-    # MKL's conditional numerical reproducibility: without it two factorizations of one matrix on several
-    # threads differ in the last bits (measured at 2 threads). MKL reads the variable when it is loaded.
-    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
     pypardiso = _import_backend("pypardiso", SparseBackend.PARDISO)
     solver = pypardiso.PyPardisoSolver(mtype=-2 if symmetric else 11)
+    mkl_reproducible(solver.libmkl)  # before the solver's first MKL call
     # the symmetric types read the upper triangle only (CSR, sorted)
     m = scipy.sparse.triu(a, format="csr") if symmetric else a.tocsr()
     m.sort_indices()
