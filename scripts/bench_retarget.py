@@ -145,7 +145,9 @@ def _stage_seconds(prof: object, top: int = 12) -> tuple[dict[str, float], list[
 
 
 def _messy_garment(name: str, source: Body, cache: Path) -> tuple[torch.Tensor, torch.Tensor, dict]:
-    """The draped library garment (cached OBJ) with its layered parts."""
+    """The draped library garment (cached OBJ) with its layered parts. Draped with self-contact in the settle
+    stage: retargeting takes intersection-free garments only, and without it the tshirt's sleeve settled
+    through its side on one machine (2026-12-02) and not on others."""
     from torchgarment.body.size_chart import chart_row
     from torchgarment.io.mesh import load_mesh, save_obj
     from torchgarment.pattern.library import draft
@@ -153,9 +155,10 @@ def _messy_garment(name: str, source: Body, cache: Path) -> tuple[torch.Tensor, 
     from torchgarment.sim.drape import DrapeSettings, drape
 
     garment, layers = MESSY_GARMENTS[name]
-    path = cache / f"{garment}-size12-e16.obj"
+    path = cache / f"{garment}-size12-e16-sc.obj"
     if not path.is_file():
-        r = drape(draft(garment, chart_row("12")), source, settings=DrapeSettings(edge_length=0.016))
+        r = drape(draft(garment, chart_row("12")), source,
+                  settings=DrapeSettings(edge_length=0.016, self_contact=True))
         welded, _ = r.mesh.welded()
         save_obj(path, welded.x, welded.faces)
     gv, gf = load_mesh(path, weld=True, dtype=torch.float64)

@@ -32,18 +32,20 @@ if TYPE_CHECKING:
 
 
 def _drape_garment(name: str, size: str, cache: Path) -> Path:
-    """Drape a library garment on the chart body (cached OBJ)."""
+    """Drape a library garment on the chart body (cached OBJ), with self-contact in the settle stage:
+    retargeting takes intersection-free garments only."""
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.io.mesh import save_obj
     from torchgarment.pattern.library import draft
-    from torchgarment.sim.drape import drape
+    from torchgarment.sim.drape import DrapeSettings, drape
 
-    path = cache / f"{name}-size{size}.obj"
+    path = cache / f"{name}-size{size}-sc.obj"
     if path.is_file():
         return path
     body = Body.from_size(size)
-    result = drape(draft(name, chart_row(size)), body, dtype=body.dtype, device=body.device)
+    result = drape(draft(name, chart_row(size)), body, settings=DrapeSettings(self_contact=True),
+                   dtype=body.dtype, device=body.device)
     welded, _ = result.mesh.welded()
     save_obj(path, welded.x, welded.faces)
     return path

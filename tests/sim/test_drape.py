@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -49,6 +50,7 @@ def test_small_drape_end_to_end(small_drape):
     assert m["iterations"] == sum(s.info.iterations for s in r.stages)
     # the skirt's waistband is its support: held by sticking springs in the settle stage
     assert set(m["energy_terms"]) == {"stretch", "sew", "bend", "gravity", "body_barrier", "pins"}
+    assert m["self_contact"] is False and m["intersects_self"] is False  # the welded skirt, checked by ipctk
     assert r.x.shape == (m["vertices"], 3) and torch.isfinite(r.x).all()
     json.dumps(m)  # serializable
     # draped cloth is near its rest lengths (the skirt neither collapses nor blows up)
@@ -105,6 +107,48 @@ def pattern_mesh(pattern):
     from torchgarment.pattern.meshing import mesh_pattern
 
     return mesh_pattern(pattern, SMALL.edge_length)
+
+
+def test_self_contact_settle_keeps_the_garment_intersection_free(small_drape):
+    """``self_contact``: the settle stage (only) has IPC cloth-cloth contact with the seams excluded, so the
+    seams stay closed and the garment cannot pass through itself; the result stays close to the plain
+    drape's where the skirt does not touch itself."""
+    body, pattern, plain = small_drape
+    r = drape(pattern, body, settings=replace(SMALL, self_contact=True))
+    m = r.metrics
+    assert [s.name for s in r.stages] == ["sew", "settle"]
+    assert "self_contact" not in r.stages[0].effects and "self_contact" in r.stages[1].effects
+    assert m["self_contact"] is True and m["intersects_self"] is False
+    assert r.converged and m["max_seam_gap_mm"] <= 1.0 and m["min_sdf_mm"] >= 0.0
+    contact = r.model.term("self_contact")
+    assert contact.min_distance(r.x) > 0.0 and not contact.has_intersections(r.x)
+    assert float((r.x - plain.x).norm(dim=1).median()) < 5e-3
+
+
+def test_self_contact_needs_an_intersection_free_start():
+    """Two sheets crossing each other in front of a body: with ``self_contact`` the settle cannot start, one
+    clear error; the plain drape reports the crossing in ``metrics["intersects_self"]``."""
+    from torchgarment.body import Body
+    from torchgarment.errors import MeshError
+    from torchgarment.sim.contact import intersects_itself
+
+    u = torch.linspace(-0.1, 0.1, 5, dtype=torch.float64)
+    gu, gv = torch.meshgrid(u, u, indexing="ij")
+    flat = torch.stack([gu.reshape(-1), gv.reshape(-1), torch.zeros(25, dtype=torch.float64)], 1)
+    i, j = torch.meshgrid(torch.arange(4), torch.arange(4), indexing="ij")
+    a = (5 * i + j).reshape(-1)
+    quads = torch.cat([torch.stack([a, a + 5, a + 6], 1), torch.stack([a, a + 6, a + 1], 1)])
+    second = flat[:, [2, 1, 0]]  # the same sheet turned 90 degrees about y: the two cross along a line
+    x = torch.cat([flat, second]) + torch.tensor([0.0, 1.2, 0.45], dtype=torch.float64)
+    faces = torch.cat([quads, quads + 25])
+    assert intersects_itself(x, faces) and not intersects_itself(flat, quads)
+    rest = torch.cat([flat[:, :2], flat[:, :2] + torch.tensor([0.3, 0.0], dtype=torch.float64)])
+    mesh = GarmentMesh(x, faces, p=rest)
+    body = Body.from_size("6")
+    settings = DrapeSettings(voxel_size=0.02, max_iterations=2, support=False)
+    with pytest.raises(MeshError, match="intersects itself at the start"):
+        drape(mesh, body, settings=replace(settings, self_contact=True))
+    assert drape(mesh, body, settings=settings).metrics["intersects_self"] is True
 
 
 def test_seam_gaps_and_gradcheck():

@@ -477,13 +477,11 @@ def _drop_degenerate(vertices: torch.Tensor, faces: torch.Tensor, name: str) -> 
 
 
 def _check_garment_intersections(vertices: torch.Tensor, faces: torch.Tensor) -> None:
-    import ipctk
+    from torchgarment.sim.contact import intersects_itself
 
-    v = np.asfortranarray(vertices.detach().cpu().numpy(), dtype=np.float64)
-    f = np.asfortranarray(faces.detach().cpu().numpy(), dtype=np.int32)
-    mesh = ipctk.CollisionMesh(v, ipctk.edges(f), f)
-    if ipctk.has_intersections(mesh, v):
-        raise MeshError("the garment intersects itself; retargeting needs an intersection-free garment")
+    if intersects_itself(vertices, faces):
+        raise MeshError("the garment intersects itself; retargeting needs an intersection-free garment "
+                        "(torchgarment drape --self-contact makes one)")
 
 
 def _remap(indices: torch.Tensor, index_map: torch.Tensor | None, what: str) -> torch.Tensor:

@@ -226,6 +226,18 @@ def minimum_distance(
     return math.sqrt(max(float(col.compute_minimum_distance(mesh, xn)), 0.0))
 
 
+def intersects_itself(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | np.ndarray) -> bool:
+    """Whether a triangle mesh intersects itself: an edge crossing a triangle it does not share a vertex with
+    (ipctk's exact test over its broad phase). Touching along a shared edge or vertex is not a crossing.
+
+    Args:
+        vertices: (V, 3) positions (any unit). faces: (F, 3) vertex indices.
+    """
+    v = _np_points(vertices, "vertices")
+    f = _np_faces(faces, "faces")
+    return bool(ipctk.has_intersections(ipctk.CollisionMesh(v, ipctk.edges(f), f), v))
+
+
 def collision_free_step(
     mesh: "ipctk.CollisionMesh",
     x0: np.ndarray,

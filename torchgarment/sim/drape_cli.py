@@ -78,6 +78,9 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                         "garment's; for a pattern file without one, the topmost closed loop of a bottom "
                         "garment, named on stderr)")
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
+    p.add_argument("--self-contact", action="store_true",
+                   help="IPC cloth-cloth contact in the settle stage: the garment cannot pass through itself "
+                        "(slower; needed for retargeting, which takes intersection-free garments only)")
     p.add_argument("--device", default="cpu", metavar="D",
                    help="compute device: cpu, cuda or cuda:N (default cpu; the SDF build and the newton "
                         "solver's factorizations stay on the CPU; --linear-solver jacobi-pcg runs on it)")
@@ -153,7 +156,7 @@ def cmd_drape(args: argparse.Namespace) -> int:
     settings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel, solver=args.solver,
                              max_iterations=args.max_iterations, support=not args.no_support,
                              linear_solver=args.linear_solver, sparse_backend=args.sparse_backend,
-                             exact_curvature_cg=args.exact_curvature_cg)
+                             exact_curvature_cg=args.exact_curvature_cg, self_contact=args.self_contact)
     settings.validate()
     device = resolve_device(args.device)
     t0 = time.perf_counter()
@@ -202,4 +205,7 @@ def cmd_drape(args: argparse.Namespace) -> int:
               file=sys.stderr)
     elif reason is not None:
         print(f"drape: written although unusable (--allow-unconverged): {reason}", file=sys.stderr)
+    if m["intersects_self"]:
+        print("drape: the garment passes through itself somewhere (metrics.json: intersects_self); "
+              "--self-contact keeps it intersection free", file=sys.stderr)
     return 0
