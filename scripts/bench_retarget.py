@@ -332,7 +332,7 @@ def messy(args: argparse.Namespace) -> int:
                "mean_seconds": float(np.mean(secs)) if secs else None,
                "max_seconds": float(np.max(secs)) if secs else None,
                "targets": {"mean_seconds": 20.0, "max_seconds": 60.0}, "threads": args.threads,
-               "profiled": bool(args.profile), "sparse_backend": args.sparse_backend,
+               "profiled": bool(args.profile), "sparse_backend": settings.sparse_backend.value,
                "fit_target": settings.fit_target.value, "w_attach": settings.w_attach,
                "machine": watch.finish()}
     print(MachineWatch.describe(summary["machine"]))
@@ -359,10 +359,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--avatar", nargs="+", default=["anny-6", "anny-20"])
     ap.add_argument("--avatar-vertices", type=int, nargs="+", default=[2000, 10000])
     ap.add_argument("--step-bound", default=RetargetSettings().step_bound.value)
-    ap.add_argument("--sparse-backend", default="superlu",
-                    choices=[k.value for k in SparseBackend],
-                    help="sparse direct solver of the Newton systems (pardiso/cholespy/cholmod: when "
-                         "installed)")
+    ap.add_argument("--sparse-backend", default="auto",
+                    choices=["auto", *(k.value for k in SparseBackend)],
+                    help="sparse direct solver of the Newton systems (default auto: cholmod when cvxopt is "
+                         "installed, else superlu; pardiso/cholespy/cholmod: when installed)")
     ap.add_argument("--json", type=Path, help="write the records and the summary here")
     ap.add_argument("--messy", action="store_true", help="the messy bench (layered garments, dense avatars)")
     ap.add_argument("--messy-garments", nargs="+", default=list(MESSY_GARMENTS), choices=list(MESSY_GARMENTS))
@@ -450,7 +450,7 @@ def main(argv: list[str] | None = None) -> int:
         "mean_seconds": float(np.mean(secs)) if secs else None,
         "max_seconds": float(np.max(secs)) if secs else None,
         "step_bound": args.step_bound,
-        "sparse_backend": args.sparse_backend,
+        "sparse_backend": settings.sparse_backend.value,
         "torch_threads": settings.threads,
         "machine": watch.finish(),
     }

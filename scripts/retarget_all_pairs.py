@@ -168,10 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--source-size", default="12", help="anny chart size of the source body (default 12)")
     ap.add_argument("--avatar", action="append", help="avatar names (default: all of list_avatars())")
     ap.add_argument("--fit-weight", type=float, default=RetargetSettings().w_fit)
-    ap.add_argument("--sparse-backend", default="superlu",
-                    choices=[k.value for k in SparseBackend],
-                    help="sparse direct solver of the Newton systems (pardiso/cholespy/cholmod: when "
-                         "installed)")
+    ap.add_argument("--sparse-backend", default="auto",
+                    choices=["auto", *(k.value for k in SparseBackend)],
+                    help="sparse direct solver of the Newton systems (default auto: cholmod when cvxopt is "
+                         "installed, else superlu; pardiso/cholespy/cholmod: when installed)")
     ap.add_argument("--out", type=Path, default=Path("out/retarget_pairs"))
     ap.add_argument("--columns", type=int, default=5)
     args = ap.parse_args(argv)

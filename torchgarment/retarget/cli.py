@@ -113,11 +113,11 @@ def add_retarget_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
     p.add_argument("--fit-iterations", type=int, default=d.fit_iterations, metavar="N",
                    help=f"Newton iterations of the final fit at most (default {d.fit_iterations}); a result "
                         "stopped by this budget is kept when it is intersection-free, with a line on stderr")
-    p.add_argument("--sparse-backend", default=d.sparse_backend.value,
-                   choices=[k.value for k in SparseBackend],
-                   help="sparse direct solver of the Newton systems: superlu (always installed) or an "
-                        "optional one; cholmod (pip install -e \".[cholmod]\") factorizes 3-5x faster "
-                        f"(default {d.sparse_backend.value})")
+    p.add_argument("--sparse-backend", default="auto",
+                   choices=["auto", *(k.value for k in SparseBackend)],
+                   help="sparse direct solver of the Newton systems: auto (default: cholmod when cvxopt is "
+                        "installed, pip install -e \".[cholmod]\", 3-5x faster factorizations; else superlu, "
+                        f"always installed; here: {d.sparse_backend.value}) or one by name")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--log-dir", metavar="DIR", help="TensorBoard folder (default logs/retarget/<run>)")
     p.add_argument("--no-log", action="store_true", help="no TensorBoard scalars")

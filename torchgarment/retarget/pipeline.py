@@ -158,8 +158,12 @@ class RetargetSettings:
             run is reproducible bit for bit; ipctk's parallel queries (2 threads) made two runs of the same
             pair differ by 0.4 mm, and a hard pair (a layered T-shirt on the 10 m creature) pass in one run
             and fail in the next two.
-        sparse_backend: the sparse direct solver of the Newton systems (``"superlu"``; ``"pardiso"`` when
-            installed).
+        sparse_backend: the sparse direct solver of the Newton systems (SPD: projected Hessians plus the
+            barrier's PSD blocks). ``"auto"`` (default): CHOLMOD when ``cvxopt`` is installed (``pip install
+            -e ".[cholmod]"``), else SuperLU (:meth:`~torchgarment.linalg.SparseBackend.fastest_spd`; the
+            settings then hold the resolved backend, and results record it). Measured on the messy bench
+            (2026-12-02): mean 18.7 s with CHOLMOD against 25.6 s with SuperLU, the same 0 intersections.
+            ``"superlu"``, ``"cholmod"``, ``"pardiso"`` or ``"cholespy"`` choose one.
     """
 
     w_fit: float = 2.0
@@ -187,10 +191,12 @@ class RetargetSettings:
     stiffness_scale: float = 100.0
     cull_radius: float | None = None
     threads: int | None = 1
-    sparse_backend: SparseBackend | str = SparseBackend.SUPERLU
+    sparse_backend: SparseBackend | str = "auto"
 
     def __post_init__(self) -> None:
         self.step_bound = StepBound.resolve(self.step_bound)
+        if isinstance(self.sparse_backend, str) and self.sparse_backend.lower() == "auto":
+            self.sparse_backend = SparseBackend.fastest_spd()
         self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
         self.broad_phase = BroadPhase.resolve(self.broad_phase)
         self.fit_target = FitTarget.resolve(self.fit_target)
