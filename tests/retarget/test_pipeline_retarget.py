@@ -328,3 +328,26 @@ def test_runs_are_reproducible_and_threads_are_restored(toy_result: tuple) -> No
     again = retarget(p, progress=False)
     assert torch.equal(again.garment_vertices, first.garment_vertices)
     assert torch.get_num_threads() == torch_threads and ipctk.get_num_threads() == ipctk_threads
+
+
+def test_sparse_backend_auto_is_cholmod_when_cvxopt_is_installed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """RetargetSettings' default "auto" resolves to the fastest installed SPD backend (CHOLMOD through cvxopt,
+    else SuperLU) and the settings hold the resolved one; a named backend is kept."""
+    import importlib
+    import importlib.util
+
+    from torchgarment.linalg import SparseBackend
+
+    expected = SparseBackend.CHOLMOD if importlib.util.find_spec("cvxopt") else SparseBackend.SUPERLU
+    assert SparseBackend.fastest_spd() is expected and RetargetSettings().sparse_backend is expected
+    assert RetargetSettings(sparse_backend="superlu").sparse_backend is SparseBackend.SUPERLU
+    real = importlib.import_module
+
+    def without_cvxopt(name: str, package: str | None = None) -> object:
+        if name.startswith("cvxopt"):
+            raise ImportError(name)
+        return real(name, package)
+
+    monkeypatch.setattr(importlib, "import_module", without_cvxopt)
+    assert SparseBackend.fastest_spd() is SparseBackend.SUPERLU
+    assert RetargetSettings(sparse_backend="AUTO").sparse_backend is SparseBackend.SUPERLU
