@@ -2,7 +2,7 @@
 bodies.
 
 Prints a table (garment, body, vertices, iterations, seconds, residual, min_sdf_mm, max_seam_gap_mm,
-converged) and optionally writes every case's metrics as JSON.
+converged, intersects_self) and optionally writes every case's metrics as JSON.
 
 Example::
 
@@ -65,14 +65,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", nargs="+", help="garment names to run (default all)")
     ap.add_argument("--data", type=Path, default=DATA, help="GarmentCode data folder")
     ap.add_argument("--json", type=Path, help="write all metrics to this JSON file")
+    ap.add_argument("--self-contact", action="store_true",
+                    help="IPC cloth-cloth contact in the settle stage (DrapeSettings.self_contact)")
     args = ap.parse_args(argv)
 
     settings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel, sew_solver=args.sew_solver,
                              solver=args.solver, sew_max_iterations=args.sew_iterations,
-                             max_iterations=args.max_iterations)
+                             max_iterations=args.max_iterations, self_contact=args.self_contact)
     cols = ["garment", "body", "vertices", "iterations", "seconds", "residual", "min_sdf_mm",
-            "max_seam_gap_mm",
-            "converged"]
+            "max_seam_gap_mm", "converged", "intersects_self"]
     print(" | ".join(cols), flush=True)
     rows = []
     for garment, body_name, make_body, make_pattern in _cases(args.data, args.only):
@@ -84,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
             row = {"garment": garment, "body": body_name, **m}
             print(f"{garment} | {body_name} | {m['vertices']} | {m['iterations']} | {m['seconds']:.1f} | "
                   f"{m['residual']:.3g} | {m['min_sdf_mm']:.2f} | {m['max_seam_gap_mm']:.3f} | "
-                  f"{m['converged']}",
+                  f"{m['converged']} | {m['intersects_self']}",
                   flush=True)
         except Exception as exc:  # report the failure and go on with the next case
             traceback.print_exc(file=sys.stderr)

@@ -327,6 +327,13 @@ def evaluate(model: SolverModel, x: torch.Tensor, iteration: int,
         ``(energy, g, |g|)`` with ``g: (V, 3)``.
     """
     e, g = model.value_and_grad(x)
+    return checked_evaluation(e, g, iteration, what)
+
+
+def checked_evaluation(e: torch.Tensor, g: torch.Tensor, iteration: int,
+                       what: str = "") -> tuple[float, torch.Tensor, float]:
+    """``(energy, g, |g|)`` of an evaluation ``(e, g)`` at solver iteration ``iteration``; raises
+    :class:`NonFiniteError` naming it when either is not finite."""
     ef = float(e)
     gn = float(torch.linalg.vector_norm(g))
     if not (math.isfinite(ef) and math.isfinite(gn)):

@@ -53,6 +53,7 @@ from torchgarment.sim.solvers.common import (
     SolverModel,
     SolveSettings,
     Timer,
+    checked_evaluation,
     checked_max_step,
     energy_float64,
     evaluate,
@@ -191,8 +192,8 @@ class NewtonOptions:
         levenberg: after a failed line search retry with Levenberg-damped directions (module docstring);
             False: stop at once.
         value_only_line_search: the line search evaluates energies only (``model.energy``) and the gradient
-            once after the step is accepted; False: ``model.value_and_grad`` per trial (a non-finite energy
-            raises).
+            once after the step is accepted; False: ``model.value_and_grad`` per trial (+inf, a barrier's
+            infeasible side, rejects the trial; NaN or a non-finite gradient raises).
         armijo_slack: the Armijo test tolerates ``armijo_slack * eps * |E|`` (rounding of large energies;
             ``eps`` of float64: a float32 solve's line search compares float64 energies).
         step_tol: stop (not converged) when the accepted step's displacement is <= this (> 0); 0 disables.
@@ -458,7 +459,11 @@ def solve_newton(
                     state["x"] = xt
                     if o.value_only_line_search:
                         return energy_float64(model, xt) if low_precision else float(model.energy(xt))
-                    state["e_g_gn"] = evaluate(model, xt, k, f"line search, step {a:.3g}")
+                    e_t, g_t = model.value_and_grad(xt)
+                    if float(e_t) == float("inf"):  # a barrier's infeasible side, which the step bound
+                        state.pop("e_g_gn", None)  # should have kept out (a closing contact's round-off)
+                        return float("inf")
+                    state["e_g_gn"] = checked_evaluation(e_t, g_t, k, f"line search, step {a:.3g}")
                     return energy_float64(model, xt) if low_precision else state["e_g_gn"][0]
 
                 if a_max > 0.0:
