@@ -203,20 +203,18 @@ class NaNAfter(SpringNetModel):
         return e, g
 
 
-class InfiniteOnCall(SpringNetModel):
-    """Returns +inf energy (a barrier's infeasible side) on the ``call``-th value_and_grad call only: a line
-    search trial that the step bound should have kept out, as a closing IPC contact's round-off did."""
+class InfiniteOnCall(NaNAfter):
+    """Returns +inf energy (a barrier's infeasible side) on the ``call``-th value_and_grad call only (and no
+    NaN): a line search trial that the step bound should have kept out, as a closing IPC contact's round-off
+    did."""
 
-    def __init__(self, call: int, **kw: object) -> None:
-        super().__init__(**kw)
-        self.calls, self.call = 0, call
+    def __init__(self, call: int) -> None:
+        super().__init__(bad_call=10**9)
+        self.call = call
 
     def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        self.calls += 1
-        e, g = super().value_and_grad(x)
-        if self.calls == self.call:
-            e = torch.full_like(e, math.inf)
-        return e, g
+        e, g = super().value_and_grad(x)  # counts the calls
+        return (torch.full_like(e, math.inf), g) if self.calls == self.call else (e, g)
 
 
 def reference(model: SpringNetModel) -> torch.Tensor:
