@@ -26,6 +26,7 @@ from __future__ import annotations
 import ctypes
 import hashlib
 import importlib
+import importlib.util
 import os
 import threading
 import time
@@ -71,15 +72,13 @@ class SparseBackend(OptionEnum):
 
     @classmethod
     def fastest_spd(cls) -> "SparseBackend":
-        """The fastest installed backend for symmetric positive definite systems: CHOLMOD when ``cvxopt``
-        imports (3-4x faster factorizations than SuperLU on the simulation's projected Newton Hessians), else
-        SuperLU (as ``scipy.sparse.linalg.spsolve`` takes UMFPACK when scikit-umfpack is installed). What a
-        setting of ``"auto"`` resolves to (retargeting's default)."""
-        try:
-            importlib.import_module("cvxopt.cholmod")
-        except ImportError:
-            return cls.SUPERLU
-        return cls.CHOLMOD
+        """The fastest installed backend for symmetric positive definite systems: CHOLMOD when ``cvxopt`` is
+        installed (3-4x faster factorizations than SuperLU on the simulation's projected Newton Hessians),
+        else SuperLU (as ``scipy.sparse.linalg.spsolve`` takes UMFPACK when scikit-umfpack is installed). What
+        a setting of ``"auto"`` resolves to (retargeting's default). Looked up without importing cvxopt
+        (settings are built when the command line starts); a broken install fails at the first factorization,
+        with :class:`~torchgarment.errors.InputError`."""
+        return cls.CHOLMOD if importlib.util.find_spec("cvxopt") is not None else cls.SUPERLU
 
     def for_indefinite(self) -> "SparseBackend":
         """The backend for symmetric matrices that may be indefinite, such as an adjoint's exact Hessian at an
