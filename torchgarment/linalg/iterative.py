@@ -148,11 +148,10 @@ def minres(
 
 def _minres_run(matvec: MatVec, apply: Preconditioner, ops: "_TorchOps | _NumpyOps", x: Array, r1: Array,
                 y: Array, beta1: float, target: float, budget: int) -> int:
-    """One MINRES run from ``x`` (updated in place) with residual ``r1 = b - K x`` and ``y = M^-1 r1``,
-    ``beta1 = |r1|_{M^-1} > 0``, until the estimated preconditioned residual reaches ``target`` or
+    """One MINRES run from ``x`` (updated in place) with residual ``r1 = b - K x`` (read only) and ``y = M^-1
+    r1``, ``beta1 = |r1|_{M^-1} > 0``, until the estimated preconditioned residual reaches ``target`` or
     ``budget`` iterations; returns the iterations taken."""
     k = 0
-    r1 = ops.copy(r1)
     r2 = ops.copy(r1)
     old_b, beta, dbar, epsln, phibar = 0.0, beta1, 0.0, 0.0, beta1
     cs, sn = -1.0, 0.0

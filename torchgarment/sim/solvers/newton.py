@@ -24,6 +24,7 @@ next iterations start from it. The solve stops as stalled only when every damped
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -460,9 +461,9 @@ def solve_newton(
                     if o.value_only_line_search:
                         return energy_float64(model, xt) if low_precision else float(model.energy(xt))
                     e_t, g_t = model.value_and_grad(xt)
-                    if float(e_t) == float("inf"):  # a barrier's infeasible side, which the step bound
+                    if float(e_t) == math.inf:  # a barrier's infeasible side, which the step bound
                         state.pop("e_g_gn", None)  # should have kept out (a closing contact's round-off)
-                        return float("inf")
+                        return math.inf
                     state["e_g_gn"] = checked_evaluation(e_t, g_t, k, f"line search, step {a:.3g}")
                     return energy_float64(model, xt) if low_precision else state["e_g_gn"][0]
 
