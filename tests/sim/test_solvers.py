@@ -387,13 +387,18 @@ def test_non_finite_model_output_raises(solver: str) -> None:
         solve(m, m.x0(), solver=solver)
 
 
-def test_newton_line_search_backtracks_from_an_infinite_energy() -> None:
-    """+inf energy at a trial (the infeasible side of a barrier, past a step bound's round-off) rejects the
-    trial and the line search takes a shorter step; it raised NonFiniteError before (the GarmentCode pencil
-    dress with self-contact stopped at settle iteration 450). NaN still raises (above)."""
-    m = InfiniteOnCall(call=2)  # the first trial of the first iteration
-    x, info = solve(m, m.x0(), SolveSettings(rtol=1e-7, max_iterations=200), solver="newton")
-    assert m.calls > 2 and info.converged, info.message
+@pytest.mark.parametrize("solver", ["newton", "gd-chebyshev"])
+def test_an_infinite_energy_rejects_the_step(solver: str) -> None:
+    """+inf energy after a step (the infeasible side of a barrier, past a step bound's round-off) rejects the
+    step: Newton's line search takes a shorter one, GD-Chebyshev rolls back to its checkpoint at once and
+    restarts. Both raised NonFiniteError before (the GarmentCode pencil dress with self-contact stopped at
+    settle iteration 450). NaN still raises (above)."""
+    m = InfiniteOnCall(call=2 if solver == "newton" else 5)  # Newton: the first trial of the first iteration
+    settings = SolveSettings(rtol=1e-7, max_iterations=200 if solver == "newton" else 20000)
+    x, info = solve(m, m.x0(), settings, solver=solver)
+    assert m.calls > m.call and info.converged, info.message
+    if solver == "gd-chebyshev":
+        assert info.restarts >= 1
     torch.testing.assert_close(x, reference(SpringNetModel()), rtol=0, atol=1e-6)
 
 

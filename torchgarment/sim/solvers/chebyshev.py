@@ -381,19 +381,22 @@ def solve_gd_chebyshev(
             k += 1
             if k % settings.diagonal_interval == 0:
                 reuse = k % elastic_interval != 0
-                e, g, gn, h = evaluate_with_diagonal(model, x, k, reuse_elastic=reuse)
-                rows = getattr(model, "last_volatile_rows", None)
-                if reuse:
-                    pre.update(h, rows)
-                else:
-                    pre.rebuild(h, rows)
+                e, g, gn, h = evaluate_with_diagonal(model, x, k, reuse_elastic=reuse, infeasible_ok=True)
+                if e != math.inf:
+                    rows = getattr(model, "last_volatile_rows", None)
+                    if reuse:
+                        pre.update(h, rows)
+                    else:
+                        pre.rebuild(h, rows)
             else:
-                e, g, gn = evaluate(model, x, k)
+                e, g, gn = evaluate(model, x, k, infeasible_ok=True)
             if gn <= tol:
                 info.converged, info.message = True, "converged"
-            elif k % settings.check_interval == 0:
-                e_now = check_energy(x, e)
-                if e_now > e_ck + slack * max(abs(e_ck), abs(e_now)):
+            elif e == math.inf or k % settings.check_interval == 0:
+                # +inf: a barrier's infeasible side, which the step bound should have kept out (a closing
+                # contact's round-off); rejected at once like an energy increase
+                e_now = e if e == math.inf else check_energy(x, e)
+                if e_now == math.inf or e_now > e_ck + slack * max(abs(e_ck), abs(e_now)):
                     # energy went up since the checkpoint: roll back, shrink the step, restart Chebyshev
                     x, e, g, gn = ckpt
                     x_prev, omega, since_restart = None, 1.0, 0

@@ -319,22 +319,29 @@ def check_x0(model: SolverModel, x0: torch.Tensor) -> None:
         raise InputError("x0 contains NaN or infinite coordinates")
 
 
-def evaluate(model: SolverModel, x: torch.Tensor, iteration: int,
-             what: str = "") -> tuple[float, torch.Tensor, float]:
-    """Energy, gradient and gradient norm at ``x``; raises :class:`NonFiniteError` naming the iteration.
+def evaluate(model: SolverModel, x: torch.Tensor, iteration: int, what: str = "", *,
+             infeasible_ok: bool = False) -> tuple[float, torch.Tensor, float]:
+    """Energy, gradient and gradient norm at ``x``; raises :class:`NonFiniteError` naming the iteration
+    (``infeasible_ok``: see :func:`checked_evaluation`).
 
     Returns:
         ``(energy, g, |g|)`` with ``g: (V, 3)``.
     """
     e, g = model.value_and_grad(x)
-    return checked_evaluation(e, g, iteration, what)
+    return checked_evaluation(e, g, iteration, what, infeasible_ok=infeasible_ok)
 
 
-def checked_evaluation(e: torch.Tensor, g: torch.Tensor, iteration: int,
-                       what: str = "") -> tuple[float, torch.Tensor, float]:
+def checked_evaluation(e: torch.Tensor, g: torch.Tensor, iteration: int, what: str = "", *,
+                       infeasible_ok: bool = False) -> tuple[float, torch.Tensor, float]:
     """``(energy, g, |g|)`` of an evaluation ``(e, g)`` at solver iteration ``iteration``; raises
-    :class:`NonFiniteError` naming it when either is not finite."""
+    :class:`NonFiniteError` naming it when either is not finite.
+
+    ``infeasible_ok``: an energy of +inf (a barrier's infeasible side, which a step bound should have kept out
+    but round-off of a closing contact can reach) is returned as ``(inf, g, inf)`` for the caller to reject
+    the step; NaN still raises."""
     ef = float(e)
+    if infeasible_ok and ef == math.inf:
+        return ef, g, math.inf
     gn = float(torch.linalg.vector_norm(g))
     if not (math.isfinite(ef) and math.isfinite(gn)):
         where = f" ({what})" if what else ""
@@ -355,28 +362,23 @@ def energy_float64(model: SolverModel, x: torch.Tensor) -> float:
 
 
 def evaluate_with_diagonal(
-    model: SolverModel, x: torch.Tensor, iteration: int, what: str = "", *, reuse_elastic: bool = False
+    model: SolverModel, x: torch.Tensor, iteration: int, what: str = "", *, reuse_elastic: bool = False,
+    infeasible_ok: bool = False,
 ) -> tuple[float, torch.Tensor, float, torch.Tensor]:
     """Like :func:`evaluate`, plus the Hessian diagonal blocks (V, 3, 3); uses the model's fused
     ``value_grad_hessian_diagonal`` when it has one (terms share their work), else two calls.
     ``reuse_elastic`` is passed on; only ask for it when :func:`supports_elastic_reuse` holds for the
-    model."""
+    model. With ``infeasible_ok`` and a +inf energy the diagonal is not computed (the blocks returned are
+    then meaningless: the caller rejects the step)."""
     fused = getattr(model, "value_grad_hessian_diagonal", None)
     if fused is None:
-        e, g, gn = evaluate(model, x, iteration, what)
-        return e, g, gn, model.hessian_diagonal(x)
+        e, g, gn = evaluate(model, x, iteration, what, infeasible_ok=infeasible_ok)
+        return e, g, gn, (model.hessian_diagonal(x) if gn != math.inf else g.new_empty(0, 3, 3))
     if reuse_elastic:  # callers check supports_elastic_reuse(model) once per solve
         e, g, h = fused(x, reuse_elastic=True)
     else:
         e, g, h = fused(x)
-    ef = float(e)
-    gn = float(torch.linalg.vector_norm(g))
-    if not (math.isfinite(ef) and math.isfinite(gn)):
-        where = f" ({what})" if what else ""
-        bad = "energy" if not math.isfinite(ef) else "gradient"
-        raise NonFiniteError(f"model returned a non-finite {bad} at solver iteration {iteration}{where}: "
-                             f"E={ef}, |g|={gn}")
-    return ef, g, gn, h
+    return (*checked_evaluation(e, g, iteration, what, infeasible_ok=infeasible_ok), h)
 
 
 def supports_elastic_reuse(model: SolverModel) -> bool:
