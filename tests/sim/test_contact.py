@@ -11,7 +11,7 @@ import torch
 import trimesh
 
 from torchgarment.errors import InputError
-from torchgarment.sim.contact import BodyMeshContact, SelfContact, StepBound, seam_exclusion_pairs
+from torchgarment.sim.contact import BodyMeshContact, SeamWeld, SelfContact, StepBound
 
 if TYPE_CHECKING:
     from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
@@ -221,9 +221,58 @@ def test_seam_pairs_allow_closed_seams() -> None:
     assert not sewn.has_intersections(x)
     e = sewn(x).item()
     assert 0 < e < math.inf  # the third piece still collides with both panels
-    edges = np.array([[0, 1], [1, 2], [0, 2], [3, 4], [4, 5], [3, 5], [6, 7], [7, 8], [6, 8]])
-    pairs = {tuple(p) for p in seam_exclusion_pairs(edges, seams.numpy(), 9).tolist()}
-    assert pairs == {(i, j) for i in range(6) for j in range(i + 1, 6)}
+    weld = SeamWeld.of(seams.numpy(), 9)
+    assert weld.index.tolist() == [0, 1, 2, 0, 1, 3, 4, 5, 6] and weld.num_welded == 7
+    assert weld.faces(f.numpy()).tolist() == [[0, 1, 2], [0, 1, 3], [4, 5, 6]]
+    # the gradient lives on the garment's vertices, and the force of the third piece is shared by the panels
+    _, g = sewn.value_and_grad(x)
+    assert g.shape == (9, 3) and g.sum(0).abs().max() < 1e-9 * g.abs().max()
+
+
+def sewn_fold(tip_z: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Panels A (0-1-2) and B (3-4-5) sewn along 0-3 and 1-4; B goes on past its seam with triangle 5-6-7.
+    Vertex 5 (next to the seam) at height ``tip_z`` under or over A, 6 and 7 1 cm above A."""
+    x = torch.tensor([[0, 0, 0], [0.1, 0, 0], [0.05, 0.1, 0], [0, 0, 0], [0.1, 0, 0], [0.05, 0.04, tip_z],
+                      [0.04, 0.05, 0.01], [0.06, 0.05, 0.01]], dtype=torch.float64)
+    return x, torch.tensor([[0, 1, 2], [3, 4, 5], [5, 6, 7]]), torch.tensor([[0, 3], [1, 4]])
+
+
+def test_a_crossing_next_to_a_seam_is_seen() -> None:
+    """Edges 5-6 and 5-7 pierce panel A right next to the seam. Contact on the welded garment sees it (the
+    old seam filter, which excluded every vertex pair in a seam's closed one-ring, had no barrier against it:
+    the GarmentCode pencil dress settled with self-contact through itself at its seams)."""
+    x, f, seams = sewn_fold(-0.005)
+    t = SelfContact(f, x, dhat=DHAT, stiffness=1.0, seam_pairs=seams)
+    assert t.has_intersections(x) and t(x).item() == math.inf
+    above, _, _ = sewn_fold(0.005)
+    assert not t.has_intersections(above) and t(above).item() == 0.0
+    near, _, _ = sewn_fold(0.001)  # 5 is 1 mm over A: in contact, though both are next to the seam
+    assert 0 < t(near).item() < math.inf
+    down = torch.zeros_like(near)
+    down[5, 2] = -0.01  # 5 moved 1 cm down through A
+    assert t.max_step(near, down, StepBound.TIGHT_INCLUSION) < 0.1  # stops at A (the old filter: 1.0)
+
+
+def test_welded_contact_gradient_and_hessian_match_finite_differences() -> None:
+    x, f, seams = sewn_fold(0.001)
+    x[3:5, 1] -= 2e-4  # the seam a little open, as the sewing springs leave it
+    t = SelfContact(f, x, dhat=DHAT, stiffness=1e3, seam_pairs=seams)
+    e, g = t.value_and_grad(x)
+    assert e.item() > 0 and g.shape == (8, 3)
+    g_fd = fd_grad(t, x, 1e-9)
+    assert torch.linalg.norm(g - g_fd) / torch.linalg.norm(g) < 1e-5
+    h = dense(t.hessian_blocks(x, project_psd=False), 8)
+    cols = []
+    for k in range(24):
+        xp, xm = x.clone(), x.clone()
+        xp.view(-1)[k] += 1e-9
+        xm.view(-1)[k] -= 1e-9
+        cols.append(((t.value_and_grad(xp)[1] - t.value_and_grad(xm)[1]) / 2e-9).reshape(-1))
+    h_fd = torch.stack(cols, 1)
+    assert torch.linalg.norm(h - h_fd) / torch.linalg.norm(h) < 1e-5
+    diag = t.hessian_diagonal(x, project_psd=False)
+    for i in range(8):
+        assert torch.allclose(diag[i], h[3 * i : 3 * i + 3, 3 * i : 3 * i + 3])
 
 
 def test_dtype_device_boundary_and_errors() -> None:

@@ -21,9 +21,14 @@ boundary is device/dtype agnostic: positions go to numpy float64 for ipctk, resu
 on ``x``'s device. Not differentiable twice (``forward`` has a first-order custom backward).
 
 Seams: a pattern mesh keeps one vertex per panel on a seam, and sewing drives the pairs to distance 0, which
-an unfiltered barrier would forbid. Pass ``seam_pairs`` and every vertex pair around a seam in the
-*welded* mesh is excluded from contact (ipctk collision filter, see :func:`seam_exclusion_pairs`), so the
-seams can close.
+a barrier between the panels would forbid. Pass ``seam_pairs`` and contact works on the *welded* garment
+(:class:`SeamWeld`): each group of stitched vertices is one collision vertex at their mean, so the primitives
+that meet at a seam are adjacent, as in the finished garment, and every other pair is in contact; gradients
+and Hessians go back to the garment's vertices through the averaging map. Before 2026-12-02 the seams were
+an ipctk collision filter that excluded every vertex pair in the closed one-ring of a seam; it left folds
+next to a seam free to pass through each other (the GarmentCode pencil dress settled with self-contact to 6
+crossings of its welded mesh, all at seams) and then stalled the solver (ipctk's intersection test still saw
+some of them).
 """
 
 from __future__ import annotations
@@ -35,12 +40,12 @@ import ipctk
 import numpy as np
 import scipy.sparse as sp
 import torch
-from scipy.sparse.csgraph import connected_components
 
 from torchgarment.errors import InputError, MeshError
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 from torchgarment.sim.obstacle_pairs import GarmentObstaclePairs
+from torchgarment.structures import seam_weld_index
 
 #: Additive CCD's steps per pair at most (ipctk's default is 1e7); a pair still closing after them gets the
 #: time reached, a conservative bound (see :attr:`StepBound.ADDITIVE`)
@@ -142,49 +147,43 @@ def _np_seams(seam_pairs: torch.Tensor | np.ndarray, num_vertices: int) -> np.nd
     return a.astype(np.int64)
 
 
-def seam_exclusion_pairs(edges: np.ndarray, seam_pairs: np.ndarray, num_vertices: int) -> np.ndarray:
-    """Vertex pairs that must not collide so that seams can close.
+@dataclass(frozen=True)
+class SeamWeld:
+    """A sewn garment as contact sees it: every group of stitched vertices (chains of seam pairs) is one
+    collision vertex at the group's mean position (:func:`~torchgarment.structures.seam_weld_index`, as
+    :meth:`GarmentMesh.welded <torchgarment.structures.GarmentMesh.welded>`).
 
-    Vertices are welded along ``seam_pairs`` (connected components of the stitch graph). Two primitives that
-    share a welded seam vertex ``w`` touch once the seam is sewn, and IPC must ignore them as it ignores
-    adjacent primitives. ipctk lets two primitives collide when *any* pair of their vertices may collide,
-    and every vertex of such primitives lies in the closed one-ring of ``w`` in the welded mesh, so all pairs
-    (i, j) with weld(i) and weld(j) in the closed one-ring of one seam group are excluded. This also drops
-    a few pairs that are merely near a seam (at most two welded edges apart), never pairs farther away.
-
-    Args:
-        edges: (E, 2) int mesh edges.
-        seam_pairs: (S, 2) int stitched vertex pairs.
-        num_vertices: V.
-
-    Returns:
-        (P, 2) int64 pairs with i < j (empty when there are no seams).
+    Attributes:
+        index: (V,) int64, the collision vertex of every garment vertex.
+        mean: (V', V) CSR averaging map: collision positions ``= mean @ x`` (each row sums to 1).
+        dof_mean: (3V', 3V) CSR, the same map on coordinates (``kron(mean, I3)``); gradients go back as
+            ``dof_mean.T @ g``, Hessians as ``dof_mean.T @ H @ dof_mean``.
     """
-    if seam_pairs.shape[0] == 0:
-        return np.zeros((0, 2), np.int64)
-    n = num_vertices
-    g = sp.coo_matrix((np.ones(seam_pairs.shape[0]), (seam_pairs[:, 0], seam_pairs[:, 1])), shape=(n, n))
-    num_w, weld = connected_components(g, directed=False)
-    seam_w = np.unique(weld[seam_pairs.reshape(-1)])
-    row_of = np.full(num_w, -1)
-    row_of[seam_w] = np.arange(seam_w.shape[0])
-    we = weld[edges]
-    we = we[we[:, 0] != we[:, 1]]
-    # ring[k, m] = 1 when welded vertex m is in the closed one-ring of seam group seam_w[k]
-    r = np.concatenate([row_of[we[:, 0]], row_of[we[:, 1]], np.arange(seam_w.shape[0])])
-    c = np.concatenate([we[:, 1], we[:, 0], seam_w])
-    keep = r >= 0
-    ring = sp.csr_matrix((np.ones(int(keep.sum())), (r[keep], c[keep])), shape=(seam_w.shape[0], num_w))
-    member = sp.csr_matrix((np.ones(n), (np.arange(n), weld)), shape=(n, num_w))
-    vring = ring @ member.T  # (groups, V): vertices in each seam group's closed one-ring
-    vring.data[:] = 1.0
-    pairs = sp.triu(vring.T @ vring, k=1).tocoo()
-    return np.stack([pairs.row.astype(np.int64), pairs.col.astype(np.int64)], axis=1)
 
+    index: np.ndarray
+    mean: sp.csr_matrix
+    dof_mean: sp.csr_matrix
 
-def _sparse_false_filter(pairs: np.ndarray) -> "ipctk.CollisionFilter":
-    keys = [tuple(p) for p in pairs.tolist()]
-    return ipctk.make_sparse_filter(dict.fromkeys(keys, False), True)
+    @classmethod
+    def of(cls, seam_pairs: np.ndarray, num_vertices: int) -> "SeamWeld":
+        """The weld of ``num_vertices`` garment vertices along ``seam_pairs`` (S, 2)."""
+        index, n_welded = seam_weld_index(seam_pairs, num_vertices)
+        counts = np.bincount(index, minlength=n_welded).astype(np.float64)
+        cols = np.arange(num_vertices)
+        mean = sp.csr_matrix((1.0 / counts[index], (index, cols)), shape=(n_welded, num_vertices))
+        return cls(index, mean, sp.kron(mean, sp.identity(3), format="csr"))
+
+    @property
+    def num_welded(self) -> int:
+        """V', the number of collision vertices."""
+        return int(self.mean.shape[0])
+
+    def faces(self, faces: np.ndarray) -> np.ndarray:
+        """(F', 3) int32 Fortran faces over the collision vertices; faces that collapse (two corners of one
+        face sewn together, e.g. at a dart tip) are dropped."""
+        w = self.index[faces]
+        keep = (w[:, 0] != w[:, 1]) & (w[:, 1] != w[:, 2]) & (w[:, 0] != w[:, 2])
+        return np.asfortranarray(w[keep], dtype=np.int32)
 
 
 def _energy_or_inf(e: float) -> float:
@@ -319,9 +318,9 @@ class _IPCEnergy(torch.autograd.Function):
 
 
 class _IPCContact(EnergyTerm):
-    """Shared machinery: a CollisionMesh whose first ``num_dynamic`` vertices are the garment ``x``.
-
-    Static vertices (a body) follow them; they never move and get no gradient.
+    """Shared machinery: a CollisionMesh whose first vertices are the garment ``x`` (``num_dynamic`` of
+    them, or with a :class:`SeamWeld` its ``num_welded`` means), followed by static vertices (a body), which
+    never move and get no gradient. ``faces`` and ``rest_positions`` number the collision vertices.
     """
 
     name = "ipc_contact"
@@ -343,6 +342,7 @@ class _IPCContact(EnergyTerm):
         check_intersections: bool,
         broad_phase: BroadPhase,
         ccd_tolerance: float = 1e-6,
+        weld: SeamWeld | None = None,
     ) -> None:
         super().__init__()
         if not (math.isfinite(dhat) and dhat > 0):
@@ -360,6 +360,8 @@ class _IPCContact(EnergyTerm):
             raise MeshError(f"faces index vertices outside [0, {nv})")
         self.dhat = float(dhat)
         self.num_vertices = int(num_dynamic)
+        self._weld = weld
+        self._num_collision = weld.num_welded if weld is not None else self.num_vertices
         self.step_bound = StepBound.resolve(step_bound)
         self.ccd_tolerance = float(ccd_tolerance)
         self.step_safety = float(step_safety)
@@ -375,7 +377,7 @@ class _IPCContact(EnergyTerm):
         self._cache_x: np.ndarray | None = None
         self._cache_col: ipctk.NormalCollisions | None = None
         # IPC's minimum stiffness for the mean garment vertex mass (area weighting: mass / mean weight)
-        areas = np.asarray(self._mesh.vertex_areas)[: self.num_vertices]
+        areas = np.asarray(self._mesh.vertex_areas)[: self._num_collision]
         mean_area = float(areas[areas > 0].mean()) if np.any(areas > 0) else 1.0
         self._average_mass = areal_density * mean_area
         self._mean_weight = mean_area
@@ -409,6 +411,8 @@ class _IPCContact(EnergyTerm):
         xn = x.detach().to("cpu", torch.float64).numpy()
         if not np.isfinite(xn).all():
             raise InputError("x contains non-finite positions")
+        if self._weld is not None:
+            xn = self._weld.mean @ xn
         if self._static is not None:
             xn = np.concatenate([xn, self._static], axis=0)
         return np.asfortranarray(xn)
@@ -437,7 +441,7 @@ class _IPCContact(EnergyTerm):
     def _value_grad_np(self, x: torch.Tensor) -> tuple[float, np.ndarray]:
         xn = self._positions(x)
         col = self._collisions(xn)
-        g = np.asarray(self._potential.gradient(col, self._mesh, xn))[: 3 * self.num_vertices]
+        g = self._to_garment(np.asarray(self._potential.gradient(col, self._mesh, xn)))
         e = math.inf if self._intersecting(xn) else _energy_or_inf(self._potential(col, self._mesh, xn))
         return e, g
 
@@ -445,10 +449,18 @@ class _IPCContact(EnergyTerm):
         xn = self._positions(x)
         method = ipctk.PSDProjectionMethod.CLAMP if project_psd else ipctk.PSDProjectionMethod.NONE
         h = self._potential.hessian(self._collisions(xn), self._mesh, xn, method)
-        n = 3 * self.num_vertices
+        n = 3 * self._num_collision
         if self._static is not None:
             h = h[:n, :n]
-        return sp.csr_matrix(h).tobsr(blocksize=(3, 3))
+        h = sp.csr_matrix(h)
+        if self._weld is not None:
+            h = self._weld.dof_mean.T @ h @ self._weld.dof_mean
+        return h.tobsr(blocksize=(3, 3))
+
+    def _to_garment(self, g: np.ndarray) -> np.ndarray:
+        """The garment's (3V,) part of a collision-mesh gradient (3 x collision vertices,)."""
+        g = g[: 3 * self._num_collision]
+        return self._weld.dof_mean.T @ g if self._weld is not None else g
 
     # ------------------------------------------------------------------ EnergyTerm contract
 
@@ -519,9 +531,11 @@ class _IPCContact(EnergyTerm):
         dxn = dx.detach().to("cpu", torch.float64).numpy()
         if not np.isfinite(dxn).all():
             raise InputError("dx contains non-finite values")
+        if self._weld is not None:
+            dxn = self._weld.mean @ dxn
         reach = 2.0 * float(np.sqrt((dxn * dxn).sum(1)).max(initial=0.0))
         x1 = x0.copy()
-        x1[: self.num_vertices] += dxn
+        x1[: self._num_collision] += dxn
         col = (
             self._collisions(x0)
             if method is StepBound.CONSERVATIVE and min(self.conservative_radius, reach) <= self.dhat
@@ -567,6 +581,8 @@ class _IPCContact(EnergyTerm):
         xn = self._positions(x)
         unit = ipctk.BarrierPotential(self.dhat, 1.0, True)
         gb = np.asarray(unit.gradient(self._collisions(xn), self._mesh, xn))
+        if self._weld is not None:  # both gradients on the garment's vertices
+            gb = np.concatenate([self._to_garment(gb), gb[3 * self._num_collision:]])
         ge = np.zeros_like(gb)
         ge[: 3 * self.num_vertices] = elastic_grad.detach().to("cpu", torch.float64).numpy().reshape(-1)
         kappa, kmax = ipctk.initial_barrier_stiffness(
@@ -588,7 +604,8 @@ class SelfContact(_IPCContact):
         stiffness: kappa (Pa); None = IPC's minimum adaptive stiffness for the mean vertex mass
             (``areal_density`` x mean barycentric vertex area), refine it with :meth:`calibrate_stiffness`.
         num_vertices: V, checked against ``rest_positions`` (None: take it from ``rest_positions``).
-        seam_pairs: (S, 2) stitched vertex pairs excluded from contact (see the module docstring), or None.
+        seam_pairs: (S, 2) stitched vertex pairs, or None: contact then works on the welded garment (see the
+            module docstring and :class:`SeamWeld`).
         areal_density: kg/m^2, only for the default stiffness.
         step_bound: default :meth:`max_step` method.
         step_safety: fraction of the distance bound used by the conservative step (0 < s < 1).
@@ -621,35 +638,44 @@ class SelfContact(_IPCContact):
         rest = _np_points(rest_positions, "rest_positions")
         if num_vertices is not None and num_vertices != rest.shape[0]:
             raise InputError(f"num_vertices={num_vertices} but rest_positions has {rest.shape[0]} rows")
-        filt = None
-        if seam_pairs is not None:
-            pairs = seam_exclusion_pairs(
-                np.asarray(ipctk.edges(f)), _np_seams(seam_pairs, rest.shape[0]), rest.shape[0]
-            )
-            filt = _sparse_false_filter(pairs) if pairs.shape[0] else None
+        nv = rest.shape[0]
+        weld = _weld(f, seam_pairs, nv)
         super().__init__(
-            f,
-            rest,
-            rest.shape[0],
+            f if weld is None else weld.faces(f),
+            rest if weld is None else np.asfortranarray(weld.mean @ rest),
+            nv,
             None,
             dhat,
             stiffness,
             areal_density,
-            filt,
+            None,
             step_bound,
             step_safety,
             conservative_radius,
             check_intersections,
             broad_phase,
             ccd_tolerance,
+            weld,
         )
+
+
+def _weld(faces: np.ndarray, seam_pairs: torch.Tensor | np.ndarray | None,
+          num_vertices: int) -> SeamWeld | None:
+    """The :class:`SeamWeld` of ``seam_pairs`` (checked), None without seams."""
+    if faces.size and faces.max() >= num_vertices:
+        raise MeshError(f"faces index vertices outside [0, {num_vertices})")
+    if seam_pairs is None:
+        return None
+    pairs = _np_seams(seam_pairs, num_vertices)
+    return SeamWeld.of(pairs, num_vertices) if pairs.shape[0] else None
 
 
 class BodyMeshContact(_IPCContact):
     """IPC contact of a garment against a static body mesh (one ipctk CollisionMesh over garment + body).
 
     The body vertices follow the garment vertices in the collision mesh and never move; body-body pairs are
-    never tested. With ``self_contact=False`` only garment-body pairs are (ipctk vertex-patch filter).
+    never tested. With ``self_contact=False`` only garment-body pairs are (ipctk vertex-patch filter). With
+    ``self_contact`` and ``seam_pairs`` the garment's part is welded (:class:`SeamWeld`).
 
     Args:
         garment_faces: (F, 3) int garment triangles.
@@ -659,7 +685,8 @@ class BodyMeshContact(_IPCContact):
         stiffness: kappa (Pa) or None (IPC minimum stiffness, see :class:`SelfContact`).
         garment_rest_positions: (V, 3) garment reference positions (area weights, adjacency); required.
         self_contact: also include garment-garment pairs.
-        seam_pairs: (S, 2) garment seam pairs excluded from self-contact.
+        seam_pairs: (S, 2) garment seam pairs: with ``self_contact`` contact works on the welded garment (as
+            :class:`SelfContact`); ignored without it (the seams never touch the body across each other).
         Others: as :class:`SelfContact`.
     """
 
@@ -693,16 +720,16 @@ class BodyMeshContact(_IPCContact):
             raise MeshError(f"garment_faces index vertices outside [0, {nv})")
         if bf.max() >= nb or bf.min() < 0:
             raise MeshError(f"body_faces index vertices outside [0, {nb})")
-        faces = np.asfortranarray(np.concatenate([gf, bf + nv]), dtype=np.int32)
+        weld = _weld(gf, seam_pairs, nv) if self_contact else None
+        if weld is not None:
+            gf, grest = weld.faces(gf), weld.mean @ grest
+        nc = grest.shape[0]  # the garment's collision vertices
+        faces = np.asfortranarray(np.concatenate([gf, bf + nc]), dtype=np.int32)
         rest = np.asfortranarray(np.concatenate([grest, bv]))
         if self_contact:
-            filt = ipctk.make_static_obstacle_filter(nv)
-            if seam_pairs is not None:
-                pairs = seam_exclusion_pairs(np.asarray(ipctk.edges(gf)), _np_seams(seam_pairs, nv), nv)
-                if pairs.shape[0]:
-                    filt = filt & _sparse_false_filter(pairs)
+            filt = ipctk.make_static_obstacle_filter(nc)
         else:
-            filt = ipctk.make_vertex_patches_filter(np.r_[np.zeros(nv, np.int32), np.ones(nb, np.int32)])
+            filt = ipctk.make_vertex_patches_filter(np.r_[np.zeros(nc, np.int32), np.ones(nb, np.int32)])
         super().__init__(
             faces,
             rest,
@@ -718,6 +745,7 @@ class BodyMeshContact(_IPCContact):
             check_intersections,
             broad_phase,
             ccd_tolerance,
+            weld,
         )
 
 

@@ -564,20 +564,9 @@ class GarmentMesh:
             mesh: the welded mesh, (V', 3) positions.
             index_map: (V,) long, the new index of every vertex.
         """
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-
         V = self.num_vertices
-        s = self.seam_pairs.detach().cpu().numpy()
-        graph = coo_matrix((np.ones(len(s)), (s[:, 0], s[:, 1])), shape=(V, V))
-        _, labels = connected_components(graph, directed=False)
-        # number groups by their lowest vertex so an unsewn mesh comes back unchanged
-        first = np.full(labels.max() + 1 if V else 0, V, dtype=np.int64)
-        np.minimum.at(first, labels, np.arange(V))
-        rank = np.empty_like(first)
-        rank[np.argsort(first, kind="stable")] = np.arange(first.shape[0])
-        index_map = torch.as_tensor(rank[labels], dtype=torch.long, device=self.device)
-        n_new = int(first.shape[0])
+        index, n_new = seam_weld_index(self.seam_pairs.detach().cpu().numpy(), V)
+        index_map = torch.as_tensor(index, dtype=torch.long, device=self.device)
         sums = torch.zeros(n_new, 3, dtype=self.dtype, device=self.device).index_add(0, index_map, self.x)
         counts = torch.zeros(n_new, dtype=self.dtype, device=self.device).index_add(
             0, index_map, torch.ones(V, dtype=self.dtype, device=self.device))
@@ -587,6 +576,31 @@ class GarmentMesh:
         mesh = GarmentMesh(x, faces[keep], panel_ids=None if self.panel_ids is None else self.panel_ids[keep],
                            panel_names=self.panel_names)
         return mesh, index_map
+
+
+def seam_weld_index(seam_pairs: np.ndarray, num_vertices: int) -> tuple[np.ndarray, int]:
+    """The welded vertex of every vertex when the seams are closed: vertices joined through chains of seam
+    pairs (corners where several seams meet) share one, numbered by their lowest vertex so that an unsewn
+    mesh keeps its numbering (:meth:`GarmentMesh.welded`, the contact terms' welded collision mesh).
+
+    Args:
+        seam_pairs: (S, 2) int vertex pairs. num_vertices: V.
+
+    Returns:
+        ``(index, V')``: (V,) int64 welded indices in ``[0, V')`` and the number of welded vertices.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    V = int(num_vertices)
+    s = np.asarray(seam_pairs, dtype=np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(s)), (s[:, 0], s[:, 1])), shape=(V, V))
+    _, labels = connected_components(graph, directed=False)
+    first = np.full(labels.max() + 1 if V else 0, V, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(V))
+    rank = np.empty_like(first)
+    rank[np.argsort(first, kind="stable")] = np.arange(first.shape[0])
+    return rank[labels], int(first.shape[0])
 
 
 def _face_cross(x: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
