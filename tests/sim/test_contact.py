@@ -355,3 +355,13 @@ def test_body_contact_self_pairs_filter(sphere: tuple[torch.Tensor, torch.Tensor
     assert body_only(x).item() == 0.0
     assert with_self(x).item() == pytest.approx(ref(x).item(), rel=1e-12)
     assert torch.allclose(with_self.value_and_grad(x)[1], ref.value_and_grad(x)[1])
+    # a sewn garment: the body term's self pairs are those of the welded SelfContact
+    y, fy, seams = sewn_fold(0.001)
+    y = y + torch.tensor([0.2, 0.0, 0.0], dtype=torch.float64)
+    sewn = BodyMeshContact(fy, bv, bf, dhat=DHAT, stiffness=1e3, garment_rest_positions=y, self_contact=True,
+                           seam_pairs=seams)
+    ref = SelfContact(fy, y, dhat=DHAT, stiffness=1e3, seam_pairs=seams)
+    e, g = sewn.value_and_grad(y)
+    assert e.item() > 0 and e.item() == pytest.approx(ref(y).item(), rel=1e-12)
+    assert torch.allclose(g, ref.value_and_grad(y)[1])
+    assert torch.allclose(sewn.hessian_diagonal(y), ref.hessian_diagonal(y))
