@@ -193,6 +193,7 @@ PUBLIC = {
         "find_misoriented_edges",
         "find_nonmanifold_edges",
         "find_unreferenced_vertices",
+        "seam_weld_index",
         "weld_vertices",
     ],
     "torchgarment.io": ["atomic_open", "atomic_path"],
