@@ -461,11 +461,13 @@ def solve_newton(
                     if o.value_only_line_search:
                         return energy_float64(model, xt) if low_precision else float(model.energy(xt))
                     e_t, g_t = model.value_and_grad(xt)
-                    if float(e_t) == math.inf:  # a barrier's infeasible side, which the step bound
-                        state.pop("e_g_gn", None)  # should have kept out (a closing contact's round-off)
+                    checked = checked_evaluation(e_t, g_t, k, f"line search, step {a:.3g}",
+                                                 infeasible_ok=True)
+                    if checked[0] == math.inf:  # a barrier's infeasible side, which the step bound should
+                        state.pop("e_g_gn", None)  # have kept out (a closing contact's round-off)
                         return math.inf
-                    state["e_g_gn"] = checked_evaluation(e_t, g_t, k, f"line search, step {a:.3g}")
-                    return energy_float64(model, xt) if low_precision else state["e_g_gn"][0]
+                    state["e_g_gn"] = checked
+                    return energy_float64(model, xt) if low_precision else checked[0]
 
                 if a_max > 0.0:
                     a, et, accepted = armijo_backtracking(
