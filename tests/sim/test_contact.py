@@ -11,7 +11,7 @@ import torch
 import trimesh
 
 from torchgarment.errors import InputError
-from torchgarment.sim.contact import BodyMeshContact, SeamWeld, SelfContact, StepBound
+from torchgarment.sim.contact import BodyMeshContact, SeamWeld, SelfContact, StepBound, ipc_threads
 
 if TYPE_CHECKING:
     from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
@@ -273,6 +273,22 @@ def test_welded_contact_gradient_and_hessian_match_finite_differences() -> None:
     diag = t.hessian_diagonal(x, project_psd=False)
     for i in range(8):
         assert torch.allclose(diag[i], h[3 * i : 3 * i + 3, 3 * i : 3 * i + 3])
+
+
+def test_ipc_threads_sets_and_restores_ipctk_threads() -> None:
+    import ipctk
+
+    before = ipctk.get_num_threads()
+    with ipc_threads(1):
+        assert ipctk.get_num_threads() == 1
+    assert ipctk.get_num_threads() == before
+    with pytest.raises(RuntimeError), ipc_threads(1):
+        raise RuntimeError("restored on the way out")
+    assert ipctk.get_num_threads() == before
+    with ipc_threads(None):
+        assert ipctk.get_num_threads() == before
+    with pytest.raises(InputError, match="positive integer"), ipc_threads(0):
+        pass
 
 
 def test_dtype_device_boundary_and_errors() -> None:

@@ -110,11 +110,21 @@ def pattern_mesh(pattern):
 
 
 def test_self_contact_settle_keeps_the_garment_intersection_free(small_drape):
-    """``self_contact``: the settle stage (only) has IPC cloth-cloth contact with the seams excluded, so the
+    """``self_contact``: the settle stage (only) has IPC cloth-cloth contact on the welded garment, so the
     seams stay closed and the garment cannot pass through itself; the result stays close to the plain
-    drape's where the skirt does not touch itself."""
+    drape's where the skirt does not touch itself. ipctk runs on ``contact_threads`` (1) in the settle
+    only."""
+    import ipctk
+
     body, pattern, plain = small_drape
-    r = drape(pattern, body, settings=replace(SMALL, self_contact=True))
+    before = ipctk.get_num_threads()
+    seen = []
+    r = drape(pattern, body, settings=replace(SMALL, self_contact=True),
+              progress=lambda stage, k, res: seen.append((stage, ipctk.get_num_threads())))
+    assert {t for stage, t in seen if stage == "settle"} == {1} and ipctk.get_num_threads() == before
+    for bad in (0, 1.5):
+        with pytest.raises(InputError, match="contact_threads"):
+            DrapeSettings(contact_threads=bad)
     m = r.metrics
     assert [s.name for s in r.stages] == ["sew", "settle"]
     assert "self_contact" not in r.stages[0].effects and "self_contact" in r.stages[1].effects
