@@ -11,7 +11,14 @@ import torch
 import trimesh
 
 from torchgarment.errors import InputError
-from torchgarment.sim.contact import BodyMeshContact, SeamWeld, SelfContact, StepBound, ipc_threads
+from torchgarment.sim.contact import (
+    BodyMeshContact,
+    SeamWeld,
+    SelfContact,
+    StepBound,
+    ipc_threads,
+    self_crossings,
+)
 
 if TYPE_CHECKING:
     from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
@@ -246,6 +253,11 @@ def test_a_crossing_next_to_a_seam_is_seen() -> None:
     assert t.has_intersections(x) and t(x).item() == math.inf
     above, _, _ = sewn_fold(0.005)
     assert not t.has_intersections(above) and t(above).item() == 0.0
+    welded = SeamWeld.of(seams.numpy(), 8)
+    wf = welded.faces(f.numpy())  # [[0, 1, 2], [0, 1, 3], [3, 4, 5]]: vertex 5 is welded vertex 3
+    rows = self_crossings(torch.as_tensor(welded.mean @ x.numpy()), wf)
+    assert sorted(map(tuple, rows.tolist())) == [(3, 4, 0), (3, 5, 0)]  # edges 5-6 and 5-7 through A
+    assert self_crossings(torch.as_tensor(welded.mean @ above.numpy()), wf).shape == (0, 3)
     near, _, _ = sewn_fold(0.001)  # 5 is 1 mm over A: in contact, though both are next to the seam
     assert 0 < t(near).item() < math.inf
     down = torch.zeros_like(near)

@@ -258,6 +258,31 @@ def intersects_itself(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor |
     return bool(ipctk.has_intersections(ipctk.CollisionMesh(v, ipctk.edges(f), f), v))
 
 
+def self_crossings(vertices: torch.Tensor | np.ndarray, faces: torch.Tensor | np.ndarray) -> np.ndarray:
+    """Every crossing of :func:`intersects_itself`, for a diagnosis: the edges that pass through a triangle
+    they share no vertex with (ipctk's edge-triangle candidates, each tested exactly).
+
+    Args:
+        vertices: (V, 3) positions (any unit). faces: (F, 3) vertex indices.
+
+    Returns:
+        (K, 3) int64 rows ``(edge start, edge end, crossed face)``.
+    """
+    v = _np_points(vertices, "vertices")
+    f = _np_faces(faces, "faces")
+    mesh = ipctk.CollisionMesh(v, ipctk.edges(f), f)
+    broad = BroadPhase.LBVH.make()
+    broad.build(v, mesh.edges, mesh.faces, 0.0)
+    edges = np.asarray(mesh.edges)
+    rows = []
+    for cand in broad.detect_edge_face_candidates():
+        a, b = edges[cand.edge_id]
+        t = f[cand.face_id]
+        if ipctk.is_edge_intersecting_triangle(v[a], v[b], v[t[0]], v[t[1]], v[t[2]]):
+            rows.append((a, b, cand.face_id))
+    return np.asarray(rows, dtype=np.int64).reshape(-1, 3)
+
+
 def collision_free_step(
     mesh: "ipctk.CollisionMesh",
     x0: np.ndarray,

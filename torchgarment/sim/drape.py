@@ -470,7 +470,8 @@ def drape(
         if settings.self_contact and not math.isfinite(energy_start):
             error = NonConvergenceError if has_seams else MeshError
             when = "after sewing" if has_seams else "at the start"
-            raise error(f"the garment intersects itself {when}, so the settle stage cannot keep it "
+            where = _crossing_summary(mesh.with_positions(x_start))
+            raise error(f"the garment intersects itself {when} ({where}), so the settle stage cannot keep it "
                         "intersection free; drape without self_contact")
         stop = _callback("settle", mesh, None, 1, progress, getattr(body, "vertices", None))
         x, info = solve(model, x_start, settle_settings, solver=settings.solver, callback=stop)
@@ -548,6 +549,25 @@ def _contact_threads(settings: DrapeSettings) -> AbstractContextManager[None]:
     from torchgarment.sim.contact import ipc_threads
 
     return ipc_threads(settings.contact_threads)
+
+
+def _crossing_summary(mesh: GarmentMesh) -> str:
+    """Where the welded garment passes through itself, in a few words: how many edges cross a triangle,
+    the panels of the crossed triangles, and where the first crossing is (m)."""
+    from torchgarment.sim.contact import self_crossings
+
+    welded, _ = mesh.welded()
+    rows = self_crossings(welded.x, welded.faces)
+    if rows.shape[0] == 0:
+        return "no edge crosses a triangle: primitives touch"
+    x = welded.x.detach().cpu().double().numpy()
+    first = 0.5 * (x[rows[0, 0]] + x[rows[0, 1]])
+    where = ", ".join(f"{c:.2f}" for c in first)
+    panels = ""
+    if welded.panel_ids is not None and welded.panel_names:
+        ids = sorted({int(i) for i in welded.panel_ids.detach().cpu()[torch.as_tensor(rows[:, 2])]})
+        panels = f", in panel{'s' if len(ids) > 1 else ''} " + ", ".join(welded.panel_names[i] for i in ids)
+    return f"{rows.shape[0]} edge-triangle crossings{panels}, the first at ({where}) m"
 
 
 def _intersects_itself(mesh: GarmentMesh) -> bool:
