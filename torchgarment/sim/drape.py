@@ -475,6 +475,7 @@ def drape(
                         "intersection free; drape without self_contact")
         stop = _callback("settle", mesh, None, 1, progress, getattr(body, "vertices", None))
         x, info = solve(model, x_start, settle_settings, solver=settings.solver, callback=stop)
+        energy_terms = model.term_values(x)  # on the same ipctk threads: metrics.json the same every run
     stages.append(DrapeStage("settle", tuple(e.value for e in model.effects), info, max_seam_gap(mesh, x)))
 
     with torch.no_grad():
@@ -501,7 +502,7 @@ def drape(
         "mean_seam_gap_mm": 1e3 * float(gaps.mean()),
         "energy_start": energy_start,
         "energy": info.energy_history[-1] if info.energy_history else math.nan,
-        "energy_terms": model.term_values(x),
+        "energy_terms": energy_terms,
         "converged": bool(info.converged),
         "message": info.message,
         "voxel_size": float(getattr(sdf, "voxel_size", math.nan)),

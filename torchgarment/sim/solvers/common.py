@@ -373,7 +373,7 @@ def evaluate_with_diagonal(
     fused = getattr(model, "value_grad_hessian_diagonal", None)
     if fused is None:
         e, g, gn = evaluate(model, x, iteration, what, infeasible_ok=infeasible_ok)
-        return e, g, gn, (model.hessian_diagonal(x) if gn != math.inf else g.new_empty(0, 3, 3))
+        return e, g, gn, (model.hessian_diagonal(x) if e != math.inf else g.new_empty(0, 3, 3))
     if reuse_elastic:  # callers check supports_elastic_reuse(model) once per solve
         e, g, h = fused(x, reuse_elastic=True)
     else:
