@@ -155,7 +155,7 @@ def _messy_garment(name: str, source: Body, cache: Path) -> tuple[torch.Tensor, 
     from torchgarment.sim.drape import DrapeSettings, drape
 
     garment, layers = MESSY_GARMENTS[name]
-    path = cache / f"{garment}-size12-e16-scw.obj"  # scw: welded self-contact (2026-12-02, second session)
+    path = cache / f"{garment}-size12-e16-scp.obj"  # scp: + panel contact in sewing
     if not path.is_file():
         r = drape(draft(garment, chart_row("12")), source,
                   settings=DrapeSettings(edge_length=0.016, self_contact=True))

@@ -66,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=DATA, help="GarmentCode data folder")
     ap.add_argument("--json", type=Path, help="write all metrics to this JSON file")
     ap.add_argument("--self-contact", action="store_true",
-                    help="IPC cloth-cloth contact in the settle stage (DrapeSettings.self_contact)")
+                    help="IPC cloth-cloth contact: within panels while sewing, welded in the settle "
+                         "(DrapeSettings.self_contact)")
     args = ap.parse_args(argv)
 
     settings = DrapeSettings(edge_length=args.edge_length, voxel_size=args.voxel, sew_solver=args.sew_solver,

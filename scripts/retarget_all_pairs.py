@@ -40,7 +40,7 @@ def _drape_garment(name: str, size: str, cache: Path) -> Path:
     from torchgarment.pattern.library import draft
     from torchgarment.sim.drape import DrapeSettings, drape
 
-    path = cache / f"{name}-size{size}-scw.obj"  # scw: welded self-contact (2026-12-02, second session)
+    path = cache / f"{name}-size{size}-scp.obj"  # scp: + panel contact in sewing
     if path.is_file():
         return path
     body = Body.from_size(size)

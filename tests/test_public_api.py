@@ -101,6 +101,7 @@ PUBLIC = {
         "BodyBarrier",
         "SelfContact",
         "BodyMeshContact",
+        "PanelContact",
     ],
     "torchgarment.datadriven": [
         "BodyDataset",

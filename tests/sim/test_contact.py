@@ -13,6 +13,7 @@ import trimesh
 from torchgarment.errors import InputError
 from torchgarment.sim.contact import (
     BodyMeshContact,
+    PanelContact,
     SeamWeld,
     SelfContact,
     StepBound,
@@ -285,6 +286,46 @@ def test_welded_contact_gradient_and_hessian_match_finite_differences() -> None:
     diag = t.hessian_diagonal(x, project_psd=False)
     for i in range(8):
         assert torch.allclose(diag[i], h[3 * i : 3 * i + 3, 3 * i : 3 * i + 3])
+
+
+def fold_and_piercing_panel() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The folded sheet (panel 0, layers 5 mm apart) and a triangle (panel 1) standing through both layers,
+    as a sleeve placed through the torso before sewing."""
+    x, f = folded_sheet(length=0.02, width=0.01)
+    n = x.shape[0]
+    tri = torch.tensor([[0.008, 0.002, -0.01], [0.014, 0.002, -0.01], [0.011, 0.008, 0.015]],
+                       dtype=torch.float64)
+    ids = torch.cat([torch.zeros(n, dtype=torch.long), torch.ones(3, dtype=torch.long)])
+    return torch.cat([x, tri]), torch.cat([f, torch.tensor([[n, n + 1, n + 2]])]), ids
+
+
+def test_panel_contact_works_within_panels_only() -> None:
+    """The sewing stage's contact: a panel's fold is in contact and may not pass through itself, while
+    another panel passes through it freely."""
+    x, f, ids = fold_and_piercing_panel()
+    n = x.shape[0] - 3
+    every = SelfContact(f, x, dhat=8e-3, stiffness=1e3, check_intersections=True)
+    assert every.has_intersections(x) and every(x).item() == math.inf
+    t = PanelContact(f, x, ids, dhat=8e-3, stiffness=1e3)
+    assert t.name == "panel_contact" and not t.has_intersections(x)
+    fold_only = SelfContact(f[:-1], x[:n], dhat=8e-3, stiffness=1e3)
+    e, g = t.value_and_grad(x)
+    e0, g0 = fold_only.value_and_grad(x[:n])
+    assert e.item() == pytest.approx(e0.item(), rel=1e-12) and e.item() > 0
+    assert torch.allclose(g[:n], g0, rtol=0, atol=1e-12 * g0.abs().max()) and g[n:].abs().max() == 0
+    g_fd = fd_grad(t, x, 1e-8)
+    assert torch.linalg.norm(g - g_fd) / torch.linalg.norm(g) < 1e-5
+    # the fold's top layer pushed down through the bottom one is seen, and the step bound stops before it
+    down = torch.zeros_like(x)
+    down[:n, 2] = torch.where(x[:n, 2] > 4e-3, -0.01, 0.0)
+    assert t(x + down).item() == math.inf
+    assert t.step_bound is StepBound.ADDITIVE and 0 < t.max_step(x, down) < 0.5
+    # the other panel moving through the fold is not
+    across = torch.zeros_like(x)
+    across[n:, 2] = 0.02
+    assert t.max_step(x, across) == 1.0 and math.isfinite(t(x + across).item())
+    with pytest.raises(InputError, match="vertex_panel_ids"):
+        PanelContact(f, x, ids[:-1], dhat=8e-3)
 
 
 def test_ipc_threads_sets_and_restores_ipctk_threads() -> None:

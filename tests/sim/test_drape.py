@@ -110,10 +110,10 @@ def pattern_mesh(pattern):
 
 
 def test_self_contact_settle_keeps_the_garment_intersection_free(small_drape):
-    """``self_contact``: the settle stage (only) has IPC cloth-cloth contact on the welded garment, so the
-    seams stay closed and the garment cannot pass through itself; the result stays close to the plain
-    drape's where the skirt does not touch itself. ipctk runs on ``contact_threads`` (1) in the settle
-    only."""
+    """``self_contact``: the settle stage has IPC cloth-cloth contact on the welded garment, so the seams
+    stay closed and the garment cannot pass through itself, and the sewing stage contact within each panel;
+    the result stays close to the plain drape's where the skirt does not touch itself. ipctk runs on
+    ``contact_threads`` (1) in both stages."""
     import ipctk
 
     body, pattern, plain = small_drape
@@ -121,13 +121,15 @@ def test_self_contact_settle_keeps_the_garment_intersection_free(small_drape):
     seen = []
     r = drape(pattern, body, settings=replace(SMALL, self_contact=True),
               progress=lambda stage, k, res: seen.append((stage, ipctk.get_num_threads())))
-    assert {t for stage, t in seen if stage == "settle"} == {1} and ipctk.get_num_threads() == before
+    assert {t for stage, t in seen} == {1} and {stage for stage, _ in seen} == {"sew", "settle"}
+    assert ipctk.get_num_threads() == before
     for bad in (0, 1.5):
         with pytest.raises(InputError, match="contact_threads"):
             DrapeSettings(contact_threads=bad)
     m = r.metrics
     assert [s.name for s in r.stages] == ["sew", "settle"]
     assert "self_contact" not in r.stages[0].effects and "self_contact" in r.stages[1].effects
+    assert "panel_contact" in r.stages[0].effects and "panel_contact" not in r.stages[1].effects
     assert m["self_contact"] is True and m["intersects_self"] is False
     assert r.converged and m["max_seam_gap_mm"] <= 1.0 and m["min_sdf_mm"] >= 0.0
     contact = r.model.term("self_contact")
@@ -161,6 +163,12 @@ def test_self_contact_needs_an_intersection_free_start():
     with pytest.raises(MeshError, match=where):
         drape(mesh, body, settings=replace(settings, self_contact=True))
     assert drape(mesh, body, settings=settings).metrics["intersects_self"] is True
+    # the same sheets as one panel with a seam: the sewing stage's contact within panels cannot start
+    panel = GarmentMesh(x, faces, p=rest, seam_pairs=torch.tensor([[24, 45]]),
+                        panel_ids=torch.zeros(faces.shape[0], dtype=torch.long), panel_names=["sheet"])
+    placed = r"a panel intersects itself as placed \(\d+ edge-triangle crossings, in panel sheet, the first"
+    with pytest.raises(MeshError, match=placed):
+        drape(panel, body, settings=replace(settings, self_contact=True))
 
 
 def test_seam_gaps_and_gradcheck():

@@ -163,3 +163,13 @@ def test_self_contact_builds_when_available(skirt):
     assert m.term_names == ("stretch", "self_contact")
     E, g = m.value_and_grad(skirt.x)
     assert torch.isfinite(E) and g.shape == skirt.x.shape
+
+
+def test_panel_contact_builds_within_panels(skirt):
+    pytest.importorskip("ipctk")
+    pytest.importorskip("torchgarment.sim.contact")
+    m = Scene(skirt, effects={Effect.PANEL_CONTACT}).build()
+    assert m.term_names == ("panel_contact",) and torch.isfinite(m.value_and_grad(skirt.x)[0])
+    bare = GarmentMesh(skirt.x, skirt.faces, p=skirt.p, seam_pairs=skirt.seam_pairs)
+    with pytest.raises(InputError, match="panel_contact.*no panel_ids"):
+        Scene(bare, effects={Effect.PANEL_CONTACT}).build()

@@ -1,9 +1,10 @@
 """IPC contact energies (Li et al. 2020, Incremental Potential Contact) computed by ``ipctk``.
 
-Two :class:`~torchgarment.sim.energies.base.EnergyTerm` subclasses:
+Three :class:`~torchgarment.sim.energies.base.EnergyTerm` subclasses:
 
 * :class:`SelfContact`: cloth-cloth contact of a garment with itself (multi-layer garments).
 * :class:`BodyMeshContact`: garment against a static body triangle mesh (optionally plus self-contact).
+* :class:`PanelContact`: contact within each panel of an unsewn garment (the sewing stage's).
 
 The energy is ipctk's area-weighted "physical" log barrier (the convergent IPC formulation)::
 
@@ -703,6 +704,60 @@ class SelfContact(_IPCContact):
             ccd_tolerance,
             weld,
         )
+
+
+class PanelContact(_IPCContact):
+    """IPC contact of an unsewn garment within each of its panels: a panel cannot fold through itself, while
+    two panels may pass through each other (ipctk's vertex-patch filter, negated). This is the contact of the
+    sewing stage, whose seams draw placed panels together across each other by design (a sleeve placed
+    through the torso); without it a shirt's front sleeve at 3 cm folded through itself at the cuff while
+    sewing, 10 crossings that the welded self-contact of the settle stage (:class:`SelfContact`) cannot undo.
+
+    Seams are not welded here: the two sides of a seam within one panel (a dart) are in contact like any other
+    pair, so the barrier holds them a fraction of ``dhat`` apart until the settle stage welds them.
+
+    Args:
+        faces: (F, 3) int triangles.
+        rest_positions: (V, 3) reference positions (m) for adjacency and the area weights (a (V, 2) flat
+            pattern is padded with z = 0).
+        vertex_panel_ids: (V,) int panel of every vertex (:attr:`GarmentMesh.vertex_panel_ids
+            <torchgarment.structures.GarmentMesh.vertex_panel_ids>`).
+        step_bound: default :meth:`max_step` method; ADDITIVE (ipctk's additive CCD) by default, because the
+            sewing stage moves panels by up to a centimetre per iteration, which the conservative bound would
+            cap at ``0.4 dhat``.
+        Others: as :class:`SelfContact`.
+    """
+
+    name = "panel_contact"
+
+    def __init__(
+        self,
+        faces: torch.Tensor | np.ndarray,
+        rest_positions: torch.Tensor | np.ndarray,
+        vertex_panel_ids: torch.Tensor | np.ndarray,
+        dhat: float = 2e-3,
+        stiffness: float | None = None,
+        *,
+        areal_density: float = DEFAULT_AREAL_DENSITY,
+        step_bound: StepBound = StepBound.ADDITIVE,
+        step_safety: float = 0.8,
+        check_intersections: bool = True,
+        broad_phase: BroadPhase = BroadPhase.LBVH,
+        ccd_tolerance: float = 1e-6,
+    ) -> None:
+        f = _np_faces(faces, "faces")
+        rest = _np_points(rest_positions, "rest_positions")
+        nv = rest.shape[0]
+        if f.size and f.max() >= nv:
+            raise MeshError(f"faces index vertices outside [0, {nv})")
+        ids = np.asarray(vertex_panel_ids.cpu() if isinstance(vertex_panel_ids, torch.Tensor)
+                         else vertex_panel_ids)
+        if ids.shape != (nv,) or not np.issubdtype(ids.dtype, np.integer):
+            raise InputError(f"vertex_panel_ids must be an integer ({nv},) array, got {ids.dtype} "
+                             f"{ids.shape}")
+        within = ~ipctk.make_vertex_patches_filter(ids.astype(np.int32).reshape(-1, 1))
+        super().__init__(f, rest, nv, None, dhat, stiffness, areal_density, within, step_bound, step_safety,
+                         None, check_intersections, broad_phase, ccd_tolerance)
 
 
 def _weld(faces: np.ndarray, seam_pairs: torch.Tensor | np.ndarray | None,

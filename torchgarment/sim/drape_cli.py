@@ -79,8 +79,9 @@ def add_drape_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                         "garment, named on stderr)")
     p.add_argument("--no-support", action="store_true", help="no support (the garment hangs by its tension)")
     p.add_argument("--self-contact", action="store_true",
-                   help="IPC cloth-cloth contact in the settle stage: the garment cannot pass through itself "
-                        "(slower; needed for retargeting, which takes intersection-free garments only)")
+                   help="IPC cloth-cloth contact (within each panel while sewing, on the welded garment in "
+                        "the settle): the garment cannot pass through itself (slower; needed for "
+                        "retargeting, which takes intersection-free garments only)")
     p.add_argument("--device", default="cpu", metavar="D",
                    help="compute device: cpu, cuda or cuda:N (default cpu; the SDF build and the newton "
                         "solver's factorizations stay on the CPU; --linear-solver jacobi-pcg runs on it)")

@@ -7,7 +7,7 @@ detected from what the scene holds:
 * ``STRETCH`` when the garment has 2D rest positions ``p``; ``SEW`` when it has seam pairs;
 * ``BEND`` and ``GRAVITY`` always;
 * ``PINS`` when pin indices are given; ``BODY_BARRIER`` when a body SDF is given;
-* never ``SELF_CONTACT`` nor ``BODY_CONTACT`` (the IPC terms are slower; ask for them).
+* never ``SELF_CONTACT``, ``BODY_CONTACT`` nor ``PANEL_CONTACT`` (the IPC terms are slower; ask for them).
 
 An effect asked for explicitly without what it needs (``SEW`` without seam pairs, ``BODY_BARRIER`` without an
 SDF, ...) raises :class:`~torchgarment.errors.InputError`.
@@ -86,6 +86,9 @@ class Effect(OptionEnum):
     """IPC cloth-cloth contact (``torchgarment.sim.contact.SelfContact``)."""
     BODY_CONTACT = "body_contact"
     """IPC contact against the body triangle mesh (``torchgarment.sim.contact.BodyMeshContact``)."""
+    PANEL_CONTACT = "panel_contact"
+    """IPC contact within each panel, panels free to cross each other
+    (``torchgarment.sim.contact.PanelContact``; the sewing stage's self-contact)."""
 
 
 @dataclass
@@ -175,6 +178,7 @@ class Scene:
             Effect.BODY_BARRIER: (self.body_sdf is None, "no body_sdf was given"),
             Effect.BODY_CONTACT: (self.body_vertices is None or self.body_faces is None,
                                   "body_vertices and body_faces were not given"),
+            Effect.PANEL_CONTACT: (g.panel_ids is None, "the garment has no panel_ids"),
         }
         for eff in wanted:
             bad, why = missing.get(eff, (False, ""))
@@ -225,6 +229,11 @@ class Scene:
                 terms.append(contact.BodyMeshContact(
                     g.faces, self.body_vertices, self.body_faces, m.contact_dhat, m.contact_stiffness,
                     garment_rest_positions=_rest_positions(g), self_contact=False, seam_pairs=g.seam_pairs,
+                    areal_density=m.density))
+            elif eff is Effect.PANEL_CONTACT:
+                contact = _contact_module(eff)
+                terms.append(contact.PanelContact(
+                    g.faces, _rest_positions(g), g.vertex_panel_ids, m.contact_dhat, m.contact_stiffness,
                     areal_density=m.density))
         return SimModel(terms, V, device=g.device, dtype=g.dtype, effects=effects)
 
