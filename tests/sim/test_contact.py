@@ -340,6 +340,13 @@ def test_ipc_threads_sets_and_restores_ipctk_threads() -> None:
     assert ipctk.get_num_threads() == before
     with ipc_threads(None):
         assert ipctk.get_num_threads() == before
+    torch_before = torch.get_num_threads()
+    other = 2 if torch_before == 1 else 1
+    with ipc_threads(other, include_torch=True):  # retargeting's block: both libraries
+        assert torch.get_num_threads() == other and ipctk.get_num_threads() == other
+    assert torch.get_num_threads() == torch_before and ipctk.get_num_threads() == before
+    with ipc_threads(other):
+        assert torch.get_num_threads() == torch_before
     with pytest.raises(InputError, match="positive integer"), ipc_threads(0):
         pass
 

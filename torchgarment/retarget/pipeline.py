@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import closing
 from dataclasses import asdict, dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -61,7 +62,7 @@ from torchgarment.retarget.solver import (
     retarget_model,
     term_values,
 )
-from torchgarment.sim.contact import BroadPhase, MovingObstacleContact, StepBound
+from torchgarment.sim.contact import BroadPhase, MovingObstacleContact, StepBound, ipc_threads
 
 
 class RetargetError(TorchGarmentError):
@@ -369,11 +370,7 @@ def retarget(
     x_src = problem.garment_vertices * k
     log = _Progress(log_dir, progress)
     steps: list[dict] = []
-    saved_threads = torch.get_num_threads(), ipctk.get_num_threads()
-    if s.threads is not None:
-        torch.set_num_threads(int(s.threads))
-        ipctk.set_num_threads(int(s.threads))
-    try:
+    with ipc_threads(None if s.threads is None else int(s.threads), include_torch=True), closing(log):
         # ---------------------------------------------------------------- Step 1
         t0 = time.perf_counter()
         shrunk = shrink_avatar(problem, check=s.check_shrink)
@@ -617,10 +614,6 @@ def retarget(
             "steps": steps,
             "settings": {kk: (v.value if isinstance(v, Enum) else v) for kk, v in asdict(s).items()},
         }
-    finally:
-        log.close()
-        torch.set_num_threads(saved_threads[0])
-        ipctk.set_num_threads(saved_threads[1])
     work = x / k
     return RetargetResult(
         garment_vertices=problem.to_work.inverse(work),

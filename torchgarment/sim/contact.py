@@ -190,22 +190,27 @@ class SeamWeld:
 
 
 @contextmanager
-def ipc_threads(threads: int | None) -> Iterator[None]:
-    """ipctk's thread count inside the block, restored at its end (None: left as it is). ipctk sums energies,
-    gradients and Hessians over its threads in no fixed order, so only one thread gives the same bits on every
-    run (a folded sheet with 696,572 pairs: 8 different energies in 8 evaluations at 2 threads). ipctk keeps
-    the count for the whole process and takes no per-call argument, hence a block."""
+def ipc_threads(threads: int | None, *, include_torch: bool = False) -> Iterator[None]:
+    """ipctk's thread count (with ``include_torch`` also torch's intra-op one) inside the block, restored at
+    its end (None: left as it is). ipctk sums energies, gradients and Hessians over its threads in no fixed
+    order, so only one thread gives the same bits on every run (a folded sheet with 696,572 pairs: 8 different
+    energies in 8 evaluations at 2 threads). Both libraries keep the count for the whole process and take no
+    per-call argument, hence a block."""
     if threads is None:
         yield
         return
     if not (isinstance(threads, int) and threads >= 1):
         raise InputError(f"ipctk threads must be a positive integer or None, got {threads!r}")
-    saved = ipctk.get_num_threads()
+    saved = ipctk.get_num_threads(), torch.get_num_threads()
     ipctk.set_num_threads(threads)
+    if include_torch:
+        torch.set_num_threads(threads)
     try:
         yield
     finally:
-        ipctk.set_num_threads(saved)
+        ipctk.set_num_threads(saved[0])
+        if include_torch:
+            torch.set_num_threads(saved[1])
 
 
 def _energy_or_inf(e: float) -> float:
