@@ -101,7 +101,6 @@ PUBLIC = {
         "BodyBarrier",
         "SelfContact",
         "BodyMeshContact",
-        "PanelContact",
     ],
     "torchgarment.datadriven": [
         "BodyDataset",

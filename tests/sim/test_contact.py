@@ -13,7 +13,6 @@ import trimesh
 from torchgarment.errors import InputError
 from torchgarment.sim.contact import (
     BodyMeshContact,
-    PanelContact,
     SeamWeld,
     SelfContact,
     StepBound,
@@ -306,7 +305,7 @@ def test_panel_contact_works_within_panels_only() -> None:
     n = x.shape[0] - 3
     every = SelfContact(f, x, dhat=8e-3, stiffness=1e3, check_intersections=True)
     assert every.has_intersections(x) and every(x).item() == math.inf
-    t = PanelContact(f, x, ids, dhat=8e-3, stiffness=1e3)
+    t = SelfContact(f, x, dhat=8e-3, stiffness=1e3, vertex_panel_ids=ids, step_bound="additive")
     assert t.name == "panel_contact" and not t.has_intersections(x)
     fold_only = SelfContact(f[:-1], x[:n], dhat=8e-3, stiffness=1e3)
     e, g = t.value_and_grad(x)
@@ -319,13 +318,15 @@ def test_panel_contact_works_within_panels_only() -> None:
     down = torch.zeros_like(x)
     down[:n, 2] = torch.where(x[:n, 2] > 4e-3, -0.01, 0.0)
     assert t(x + down).item() == math.inf
-    assert t.step_bound is StepBound.ADDITIVE and 0 < t.max_step(x, down) < 0.5
+    assert 0 < t.max_step(x, down) < 0.5
     # the other panel moving through the fold is not
     across = torch.zeros_like(x)
     across[n:, 2] = 0.02
     assert t.max_step(x, across) == 1.0 and math.isfinite(t(x + across).item())
     with pytest.raises(InputError, match="vertex_panel_ids"):
-        PanelContact(f, x, ids[:-1], dhat=8e-3)
+        SelfContact(f, x, dhat=8e-3, vertex_panel_ids=ids[:-1])
+    with pytest.raises(InputError, match="not both"):
+        SelfContact(f, x, dhat=8e-3, vertex_panel_ids=ids, seam_pairs=torch.tensor([[0, 1]]))
 
 
 def test_ipc_threads_sets_and_restores_ipctk_threads() -> None:

@@ -16,8 +16,8 @@ Re-exported here:
 * energy terms (:mod:`torchgarment.sim.energies`): :class:`EnergyTerm`, :class:`HessianBlocks`,
   :class:`PlanarSprings`, :class:`SewingSprings`, :class:`QuadraticBending`, :class:`Gravity`, :class:`Pins`,
   :class:`BodyBarrier`;
-* IPC contact (:mod:`torchgarment.sim.contact`, needs ipctk): :class:`SelfContact`, :class:`BodyMeshContact`
-  and :class:`PanelContact`, imported on first use of these names.
+* IPC contact (:mod:`torchgarment.sim.contact`, needs ipctk): :class:`SelfContact` and
+  :class:`BodyMeshContact`, imported on first use of these names.
 
 ``torchgarment.sim.drape`` is the function :func:`drape`; import the module's other names from it
 (``from torchgarment.sim.drape import DrapeSettings``) or from here. The command line is
@@ -58,9 +58,9 @@ from torchgarment.sim.solvers import Preconditioner, SolveInfo, SolverKind, Solv
 from torchgarment.sim.support import SupportLoop
 
 if TYPE_CHECKING:
-    from torchgarment.sim.contact import BodyMeshContact, PanelContact, SelfContact
+    from torchgarment.sim.contact import BodyMeshContact, SelfContact
 
-_CONTACT = ("BodyMeshContact", "PanelContact", "SelfContact")
+_CONTACT = ("BodyMeshContact", "SelfContact")
 
 
 def __getattr__(name: str) -> type:
@@ -88,7 +88,6 @@ __all__ = [
     "Material",
     "NonConvergenceError",
     "NonConvergenceWarning",
-    "PanelContact",
     "Pins",
     "PlanarSprings",
     "Preconditioner",

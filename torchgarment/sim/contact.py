@@ -1,10 +1,10 @@
 """IPC contact energies (Li et al. 2020, Incremental Potential Contact) computed by ``ipctk``.
 
-Three :class:`~torchgarment.sim.energies.base.EnergyTerm` subclasses:
+Two :class:`~torchgarment.sim.energies.base.EnergyTerm` subclasses:
 
-* :class:`SelfContact`: cloth-cloth contact of a garment with itself (multi-layer garments).
+* :class:`SelfContact`: cloth-cloth contact of a garment with itself (multi-layer garments), or only within
+  each panel of an unsewn garment (the sewing stage's, ``vertex_panel_ids``).
 * :class:`BodyMeshContact`: garment against a static body triangle mesh (optionally plus self-contact).
-* :class:`PanelContact`: contact within each panel of an unsewn garment (the sewing stage's).
 
 The energy is ipctk's area-weighted "physical" log barrier (the convergent IPC formulation)::
 
@@ -658,6 +658,16 @@ class SelfContact(_IPCContact):
         num_vertices: V, checked against ``rest_positions`` (None: take it from ``rest_positions``).
         seam_pairs: (S, 2) stitched vertex pairs, or None: contact then works on the welded garment (see the
             module docstring and :class:`SeamWeld`).
+        vertex_panel_ids: (V,) int panel of every vertex (:attr:`GarmentMesh.vertex_panel_ids
+            <torchgarment.structures.GarmentMesh.vertex_panel_ids>`), or None: contact only *within* each
+            panel of an unsewn garment (ipctk's vertex-patch filter, negated), the term then named
+            ``"panel_contact"``. No panel can fold through itself while two panels may pass through each
+            other: the sewing stage's contact, whose seams draw placed panels together across each other by
+            design (without it a GarmentCode shirt's front sleeves at 3 cm folded through themselves at the
+            cuffs while sewing, 10 crossings that the welded contact of the settle cannot undo). Not with
+            ``seam_pairs``: the two sides of a seam within one panel (a dart) are in contact like any other
+            pair. Use an ADDITIVE or TIGHT_INCLUSION ``step_bound`` there: sewing moves panels by up to a
+            centimetre per iteration, which the conservative bound caps at ``0.4 dhat``.
         areal_density: kg/m^2, only for the default stiffness.
         step_bound: default :meth:`max_step` method.
         step_safety: fraction of the distance bound used by the conservative step (0 < s < 1).
@@ -678,6 +688,7 @@ class SelfContact(_IPCContact):
         num_vertices: int | None = None,
         *,
         seam_pairs: torch.Tensor | np.ndarray | None = None,
+        vertex_panel_ids: torch.Tensor | np.ndarray | None = None,
         areal_density: float = DEFAULT_AREAL_DENSITY,
         step_bound: StepBound = StepBound.CONSERVATIVE,
         step_safety: float = 0.8,
@@ -692,6 +703,17 @@ class SelfContact(_IPCContact):
             raise InputError(f"num_vertices={num_vertices} but rest_positions has {rest.shape[0]} rows")
         nv = rest.shape[0]
         weld = _weld(f, seam_pairs, nv)
+        within = None
+        if vertex_panel_ids is not None:
+            if weld is not None:
+                raise InputError("SelfContact takes seam_pairs (the sewn garment) or vertex_panel_ids "
+                                 "(contact within the panels of the unsewn one), not both")
+            ids = np.asarray(vertex_panel_ids.cpu() if isinstance(vertex_panel_ids, torch.Tensor)
+                             else vertex_panel_ids)
+            if ids.shape != (nv,) or not np.issubdtype(ids.dtype, np.integer):
+                raise InputError(f"vertex_panel_ids must be an integer ({nv},) array, got {ids.dtype} "
+                                 f"{ids.shape}")
+            within = ~ipctk.make_vertex_patches_filter(ids.astype(np.int32).reshape(-1, 1))
         super().__init__(
             f if weld is None else weld.faces(f),
             rest if weld is None else np.asfortranarray(weld.mean @ rest),
@@ -700,7 +722,7 @@ class SelfContact(_IPCContact):
             dhat,
             stiffness,
             areal_density,
-            None,
+            within,
             step_bound,
             step_safety,
             conservative_radius,
@@ -709,60 +731,8 @@ class SelfContact(_IPCContact):
             ccd_tolerance,
             weld,
         )
-
-
-class PanelContact(_IPCContact):
-    """IPC contact of an unsewn garment within each of its panels: a panel cannot fold through itself, while
-    two panels may pass through each other (ipctk's vertex-patch filter, negated). This is the contact of the
-    sewing stage, whose seams draw placed panels together across each other by design (a sleeve placed
-    through the torso); without it a shirt's front sleeve at 3 cm folded through itself at the cuff while
-    sewing, 10 crossings that the welded self-contact of the settle stage (:class:`SelfContact`) cannot undo.
-
-    Seams are not welded here: the two sides of a seam within one panel (a dart) are in contact like any other
-    pair, so the barrier holds them a fraction of ``dhat`` apart until the settle stage welds them.
-
-    Args:
-        faces: (F, 3) int triangles.
-        rest_positions: (V, 3) reference positions (m) for adjacency and the area weights (a (V, 2) flat
-            pattern is padded with z = 0).
-        vertex_panel_ids: (V,) int panel of every vertex (:attr:`GarmentMesh.vertex_panel_ids
-            <torchgarment.structures.GarmentMesh.vertex_panel_ids>`).
-        step_bound: default :meth:`max_step` method; ADDITIVE (ipctk's additive CCD) by default, because the
-            sewing stage moves panels by up to a centimetre per iteration, which the conservative bound would
-            cap at ``0.4 dhat``.
-        Others: as :class:`SelfContact`.
-    """
-
-    name = "panel_contact"
-
-    def __init__(
-        self,
-        faces: torch.Tensor | np.ndarray,
-        rest_positions: torch.Tensor | np.ndarray,
-        vertex_panel_ids: torch.Tensor | np.ndarray,
-        dhat: float = 2e-3,
-        stiffness: float | None = None,
-        *,
-        areal_density: float = DEFAULT_AREAL_DENSITY,
-        step_bound: StepBound = StepBound.ADDITIVE,
-        step_safety: float = 0.8,
-        check_intersections: bool = True,
-        broad_phase: BroadPhase = BroadPhase.LBVH,
-        ccd_tolerance: float = 1e-6,
-    ) -> None:
-        f = _np_faces(faces, "faces")
-        rest = _np_points(rest_positions, "rest_positions")
-        nv = rest.shape[0]
-        if f.size and f.max() >= nv:
-            raise MeshError(f"faces index vertices outside [0, {nv})")
-        ids = np.asarray(vertex_panel_ids.cpu() if isinstance(vertex_panel_ids, torch.Tensor)
-                         else vertex_panel_ids)
-        if ids.shape != (nv,) or not np.issubdtype(ids.dtype, np.integer):
-            raise InputError(f"vertex_panel_ids must be an integer ({nv},) array, got {ids.dtype} "
-                             f"{ids.shape}")
-        within = ~ipctk.make_vertex_patches_filter(ids.astype(np.int32).reshape(-1, 1))
-        super().__init__(f, rest, nv, None, dhat, stiffness, areal_density, within, step_bound, step_safety,
-                         None, check_intersections, broad_phase, ccd_tolerance)
+        if within is not None:
+            self.name = "panel_contact"
 
 
 def _weld(faces: np.ndarray, seam_pairs: torch.Tensor | np.ndarray | None,

@@ -88,7 +88,8 @@ class Effect(OptionEnum):
     """IPC contact against the body triangle mesh (``torchgarment.sim.contact.BodyMeshContact``)."""
     PANEL_CONTACT = "panel_contact"
     """IPC contact within each panel, panels free to cross each other
-    (``torchgarment.sim.contact.PanelContact``; the sewing stage's self-contact)."""
+    (``torchgarment.sim.contact.SelfContact`` with ``vertex_panel_ids``; the sewing stage's self-contact,
+    term ``"panel_contact"``)."""
 
 
 @dataclass
@@ -232,9 +233,10 @@ class Scene:
                     areal_density=m.density))
             elif eff is Effect.PANEL_CONTACT:
                 contact = _contact_module(eff)
-                terms.append(contact.PanelContact(
-                    g.faces, _rest_positions(g), g.vertex_panel_ids, m.contact_dhat, m.contact_stiffness,
-                    areal_density=m.density))
+                terms.append(contact.SelfContact(
+                    g.faces, _rest_positions(g), m.contact_dhat, m.contact_stiffness, V,
+                    vertex_panel_ids=g.vertex_panel_ids, areal_density=m.density,
+                    step_bound=contact.StepBound.ADDITIVE))
         return SimModel(terms, V, device=g.device, dtype=g.dtype, effects=effects)
 
     def _pins(self) -> Pins:
