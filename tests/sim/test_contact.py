@@ -329,6 +329,37 @@ def test_panel_contact_works_within_panels_only() -> None:
         SelfContact(f, x, dhat=8e-3, vertex_panel_ids=ids, seam_pairs=torch.tensor([[0, 1]]))
 
 
+def test_the_intersection_test_is_skipped_only_along_a_cleared_step(monkeypatch) -> None:
+    """ipctk's intersection test runs once per solve: not again at free positions, nor along the step that
+    max_step cleared from them (any point of it, up to the bound), but wherever else the energy is asked,
+    where a crossing is +inf as before."""
+    from torchgarment.sim import contact as C
+
+    calls = []
+    real = C.ipctk.has_intersections
+    monkeypatch.setattr(C.ipctk, "has_intersections", lambda *a: calls.append(1) or real(*a))
+    x = two_triangles(3e-3)
+    for method in (StepBound.ADDITIVE, StepBound.CONSERVATIVE):
+        t = SelfContact(FACES2, x, dhat=DHAT, stiffness=1e3, step_bound=method)
+        down = torch.zeros_like(x)
+        down[3, 2] = -4e-3  # a corner of the upper triangle moved 1 mm under the lower one
+        assert t.max_step(x, down) < 1.0 and calls == []  # x never tested: nothing cleared
+        calls.clear()
+        assert t(x).item() == 0.0 and len(calls) == 1
+        assert t(x).item() == 0.0 and len(calls) == 1  # the same positions: known free
+        alpha = t.max_step(x, down)
+        assert 0.0 < alpha < 0.75
+        for a in (0.9 * alpha, 0.5 * alpha, alpha):
+            assert math.isfinite(t(x + a * down).item())
+        assert len(calls) == 1  # along the cleared step: not tested
+        through = x + down
+        assert t(through).item() == math.inf and len(calls) == 2  # beyond the bound: tested, crossing
+        aside = x.clone()
+        aside[3] = torch.tensor([0.021, 0.02, -1e-3])  # off the step (it moves in x too): tested, crosses
+        assert t(aside).item() == math.inf and len(calls) == 3
+        calls.clear()
+
+
 def test_ipc_threads_sets_and_restores_ipctk_threads() -> None:
     import ipctk
 

@@ -213,6 +213,19 @@ def ipc_threads(threads: int | None, *, include_torch: bool = False) -> Iterator
             torch.set_num_threads(saved[1])
 
 
+def _on_segment(xn: np.ndarray, x0: np.ndarray, dx: np.ndarray, alpha: float) -> bool:
+    """Whether ``xn`` is ``x0 + a dx`` for some ``0 <= a <= alpha``, up to the round-off of forming it (all
+    (N, 3) arrays)."""
+    dd = float(np.vdot(dx, dx))
+    if not dd > 0:
+        return False
+    a = float(np.vdot(xn - x0, dx)) / dd
+    if not -1e-12 <= a <= alpha * (1.0 + 1e-12):
+        return False
+    tol = 64 * np.finfo(np.float64).eps * (float(np.abs(x0).max()) + float(np.abs(dx).max()))
+    return float(np.abs(xn - x0 - a * dx).max()) <= tol
+
+
 def _energy_or_inf(e: float) -> float:
     # ipctk returns NaN (0 * inf in the area-weighted barrier) when two primitives touch exactly (d = 0),
     # where the barrier is +inf; no other input gives NaN (positions are checked finite).
@@ -428,6 +441,10 @@ class _IPCContact(EnergyTerm):
             self._mesh.can_collide = collision_filter
         self._cache_x: np.ndarray | None = None
         self._cache_col: ipctk.NormalCollisions | None = None
+        # intersection-free collision positions (tested, or reached along a step the step bound cleared) and
+        # the step :meth:`max_step` last cleared from them: (x0, dx, alpha), see _intersecting
+        self._free_x: np.ndarray | None = None
+        self._cleared: tuple[np.ndarray, np.ndarray, float] | None = None
         # IPC's minimum stiffness for the mean garment vertex mass (area weighting: mass / mean weight)
         areas = np.asarray(self._mesh.vertex_areas)[: self._num_collision]
         mean_area = float(areas[areas > 0].mean()) if np.any(areas > 0) else 1.0
@@ -482,7 +499,22 @@ class _IPCContact(EnergyTerm):
         return col
 
     def _intersecting(self, xn: np.ndarray) -> bool:
-        return self.check_intersections and bool(ipctk.has_intersections(self._mesh, xn, self._bp()))
+        """ipctk's intersection test at collision positions ``xn``, skipped where its answer is known: at the
+        last positions found free, and along the step :meth:`max_step` last cleared from them (``x0 + a dx``,
+        ``0 <= a <= alpha``, up to round-off): every step bound here (CCD or the conservative distance bound)
+        proves that the linear motion from a free state crosses nothing. The solvers take every step that
+        way, so a solve pays the test once, at its start and after a rollback."""
+        if not self.check_intersections:
+            return False
+        if self._free_x is not None and np.array_equal(self._free_x, xn):
+            return False
+        if self._cleared is not None and _on_segment(xn, *self._cleared):
+            self._free_x = xn.copy()
+            return False
+        if ipctk.has_intersections(self._mesh, xn, self._bp()):
+            return True
+        self._free_x = xn.copy()
+        return False
 
     def _value_np(self, x: torch.Tensor) -> float:
         xn = self._positions(x)
@@ -588,12 +620,13 @@ class _IPCContact(EnergyTerm):
         reach = 2.0 * float(np.sqrt((dxn * dxn).sum(1)).max(initial=0.0))
         x1 = x0.copy()
         x1[: self._num_collision] += dxn
+        from_free = self._free_x is not None and np.array_equal(self._free_x, x0)
         col = (
             self._collisions(x0)
             if method is StepBound.CONSERVATIVE and min(self.conservative_radius, reach) <= self.dhat
             else None
         )
-        return collision_free_step(
+        alpha = collision_free_step(
             self._mesh,
             x0,
             np.asfortranarray(x1),
@@ -606,6 +639,8 @@ class _IPCContact(EnergyTerm):
             ccd_tolerance=self.ccd_tolerance,
             dhat_collisions=col,
         )
+        self._cleared = (x0, x1 - x0, alpha) if from_free else None
+        return alpha
 
     def min_distance(self, x: torch.Tensor, max_distance: float | None = None) -> float:
         """Smallest distance (m) between non-adjacent (and non-filtered) primitives, searched within

@@ -144,9 +144,8 @@ class DrapeSettings:
             Needs panels placed without crossing themselves (else :class:`~torchgarment.errors.MeshError`) and
             an intersection-free sewn garment (else :class:`~torchgarment.errors.NonConvergenceError`: panels
             may still cross each other after sewing). Costs ipctk's broad phase and continuous collision
-            checks every iteration: the library's 11 drapes that converge at 3 cm took 174 s, 121 s with
-            contact in the settle only (a sewing iteration about 13-18 ms instead of 4 ms at 1,100-1,500
-            vertices).
+            checks every iteration: the library's 11 drapes that converge at 3 cm took 141 s, 121 s with
+            contact in the settle only (README, "Contact within each panel while sewing").
         contact_threads: ipctk's threads in the self-contact stages
             (:func:`~torchgarment.sim.contact.ipc_threads`; None: ipctk's default, every core). 1, the
             default, makes the drape the same bit for bit on every run: with 2 threads two drapes of the
