@@ -195,6 +195,7 @@ PUBLIC = {
         "find_unreferenced_vertices",
         "seam_weld_index",
         "weld_vertices",
+        "welded_faces",
     ],
     "torchgarment.io": ["atomic_open", "atomic_path"],
     "torchgarment": ["InputError", "MeshError", "PatternError", "TorchGarmentError"],

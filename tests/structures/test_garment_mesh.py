@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchgarment.errors import MeshError
-from torchgarment.structures import GarmentMesh
+from torchgarment.structures import GarmentMesh, seam_weld_index, welded_faces
 
 
 def fan_square() -> GarmentMesh:
@@ -194,3 +194,13 @@ def test_gradients():
     s = two_triangles_sewn()
     xs = s.x.detach().clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda x: s.with_positions(x).welded()[0].x, (xs,))
+
+
+def test_welded_faces_drop_the_faces_a_seam_collapses():
+    """A dart: vertices 1 and 2 of face 0 are sewn together, so face 0 collapses; face 1 survives, renumbered
+    (as GarmentMesh.welded and the contact terms' welded collision mesh see it)."""
+    faces = np.array([[0, 1, 2], [1, 3, 2], [3, 4, 2]])
+    index, n = seam_weld_index(np.array([[1, 2]]), 5)
+    assert index.tolist() == [0, 1, 1, 2, 3] and n == 4
+    wf, kept = welded_faces(index, faces)
+    assert kept.tolist() == [False, False, True] and wf.tolist() == [[2, 3, 1]]

@@ -48,7 +48,7 @@ from torchgarment.errors import InputError, MeshError
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.base import EnergyTerm, HessianBlocks
 from torchgarment.sim.obstacle_pairs import GarmentObstaclePairs
-from torchgarment.structures import seam_weld_index
+from torchgarment.structures import seam_weld_index, welded_faces
 
 #: Additive CCD's steps per pair at most (ipctk's default is 1e7); a pair still closing after them gets the
 #: time reached, a conservative bound (see :attr:`StepBound.ADDITIVE`)
@@ -184,9 +184,7 @@ class SeamWeld:
     def faces(self, faces: np.ndarray) -> np.ndarray:
         """(F', 3) int32 Fortran faces over the collision vertices; faces that collapse (two corners of one
         face sewn together, e.g. at a dart tip) are dropped."""
-        w = self.index[faces]
-        keep = (w[:, 0] != w[:, 1]) & (w[:, 1] != w[:, 2]) & (w[:, 0] != w[:, 2])
-        return np.asfortranarray(w[keep], dtype=np.int32)
+        return np.asfortranarray(welded_faces(self.index, faces)[0], dtype=np.int32)
 
 
 @contextmanager

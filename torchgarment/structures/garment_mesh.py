@@ -571,9 +571,10 @@ class GarmentMesh:
         counts = torch.zeros(n_new, dtype=self.dtype, device=self.device).index_add(
             0, index_map, torch.ones(V, dtype=self.dtype, device=self.device))
         x = sums / counts[:, None]
-        faces = index_map[self.faces]
-        keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
-        mesh = GarmentMesh(x, faces[keep], panel_ids=None if self.panel_ids is None else self.panel_ids[keep],
+        faces, kept = welded_faces(index, self.faces.detach().cpu().numpy())
+        keep = torch.as_tensor(kept, device=self.device)
+        mesh = GarmentMesh(x, torch.as_tensor(faces, dtype=torch.long, device=self.device),
+                           panel_ids=None if self.panel_ids is None else self.panel_ids[keep],
                            panel_names=self.panel_names)
         return mesh, index_map
 
@@ -601,6 +602,22 @@ def seam_weld_index(seam_pairs: np.ndarray, num_vertices: int) -> tuple[np.ndarr
     rank = np.empty_like(first)
     rank[np.argsort(first, kind="stable")] = np.arange(first.shape[0])
     return rank[labels], int(first.shape[0])
+
+
+def welded_faces(index: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The faces of a welded mesh (:func:`seam_weld_index`): faces that collapse (two corners sewn together,
+    e.g. at a dart tip) are dropped (:meth:`GarmentMesh.welded`, the contact terms' welded collision mesh).
+
+    Args:
+        index: (V,) int welded vertex of every vertex. faces: (F, 3) int triangles over the V vertices.
+
+    Returns:
+        ``(faces, kept)``: (F', 3) int64 triangles over the welded vertices and the (F,) bool mask of the
+        faces kept.
+    """
+    w = np.asarray(index, dtype=np.int64)[np.asarray(faces, dtype=np.int64)]
+    kept = (w[:, 0] != w[:, 1]) & (w[:, 1] != w[:, 2]) & (w[:, 0] != w[:, 2])
+    return w[kept], kept
 
 
 def _face_cross(x: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
