@@ -197,8 +197,8 @@ def test_gradients():
 
 
 def test_welded_faces_drop_the_faces_a_seam_collapses():
-    """A dart: vertices 1 and 2 of face 0 are sewn together, so face 0 collapses; face 1 survives, renumbered
-    (as GarmentMesh.welded and the contact terms' welded collision mesh see it)."""
+    """A dart: vertices 1 and 2 are sewn together, so faces 0 and 1 (each holding both) collapse; face 2
+    survives, renumbered (as GarmentMesh.welded and the contact terms' welded collision mesh see it)."""
     faces = np.array([[0, 1, 2], [1, 3, 2], [3, 4, 2]])
     index, n = seam_weld_index(np.array([[1, 2]]), 5)
     assert index.tolist() == [0, 1, 1, 2, 3] and n == 4

@@ -689,10 +689,10 @@ class SelfContact(_IPCContact):
         stiffness: kappa (Pa); None = IPC's minimum adaptive stiffness for the mean vertex mass
             (``areal_density`` x mean barycentric vertex area), refine it with :meth:`calibrate_stiffness`.
         num_vertices: V, checked against ``rest_positions`` (None: take it from ``rest_positions``).
-        seam_pairs: (S, 2) stitched vertex pairs, or None: contact then works on the welded garment (see the
-            module docstring and :class:`SeamWeld`).
+        seam_pairs: (S, 2) stitched vertex pairs: contact then works on the welded garment (see the module
+            docstring and :class:`SeamWeld`); None: on the mesh as given.
         vertex_panel_ids: (V,) int panel of every vertex (:attr:`GarmentMesh.vertex_panel_ids
-            <torchgarment.structures.GarmentMesh.vertex_panel_ids>`), or None: contact only *within* each
+            <torchgarment.structures.GarmentMesh.vertex_panel_ids>`): contact then works only *within* each
             panel of an unsewn garment (ipctk's vertex-patch filter, negated), the term then named
             ``"panel_contact"``. No panel can fold through itself while two panels may pass through each
             other: the sewing stage's contact, whose seams draw placed panels together across each other by
@@ -700,7 +700,7 @@ class SelfContact(_IPCContact):
             cuffs while sewing, 10 crossings that the welded contact of the settle cannot undo). Not with
             ``seam_pairs``: the two sides of a seam within one panel (a dart) are in contact like any other
             pair. Use an ADDITIVE or TIGHT_INCLUSION ``step_bound`` there: sewing moves panels by up to a
-            centimetre per iteration, which the conservative bound caps at ``0.4 dhat``.
+            centimetre per iteration, which the conservative bound caps at ``0.4 dhat``. None: every pair.
         areal_density: kg/m^2, only for the default stiffness.
         step_bound: default :meth:`max_step` method.
         step_safety: fraction of the distance bound used by the conservative step (0 < s < 1).

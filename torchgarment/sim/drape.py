@@ -559,8 +559,9 @@ def _support_pins(loop: SupportLoop | None, mesh: GarmentMesh, body: Body | Body
 
 
 def _contact_threads(settings: DrapeSettings) -> AbstractContextManager[None]:
-    """:func:`~torchgarment.sim.contact.ipc_threads` of ``settings.contact_threads`` when the settle has
-    self-contact (ipctk is imported only then)."""
+    """:func:`~torchgarment.sim.contact.ipc_threads` of ``settings.contact_threads`` when the drape has
+    self-contact (the sewing stage's within panels, the settle's on the welded garment; ipctk is imported
+    only then)."""
     if not settings.self_contact:
         return nullcontext()
     from torchgarment.sim.contact import ipc_threads
