@@ -177,6 +177,38 @@ def test_cholmod_reuses_an_analysis_only_once_its_factorization_is_gone() -> Non
     np.testing.assert_allclose(fresh[0], np.linalg.solve(a.toarray(), b), rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("backend", ["superlu", "cholmod"])
+def test_factorize_in_a_given_ordering(backend: str) -> None:
+    """``ordering`` replaces METIS' ordering of the matrix's own pattern: the answers are those of a dense
+    solve in any permutation (here the ordering of a sub-pattern, the case it is for, and a random one), and
+    CHOLMOD keeps its analysis per pattern and ordering (a kept analysis is never used in another order)."""
+    import gc
+
+    if backend == "cholmod":
+        pytest.importorskip("cvxopt")
+    from torchgarment.linalg import sparse as sparse_mod
+
+    n = 90
+    a = _spd(n, seed=31)
+    lap = scipy.sparse.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")
+    b = np.random.default_rng(32).standard_normal(n)
+    dense = np.linalg.solve(a.toarray(), b)
+    orders = [fill_reducing_permutation(lap), np.random.default_rng(33).permutation(n)]
+    sparse_mod._CHOLMOD_ANALYSES.clear()
+    for p in orders:
+        np.testing.assert_allclose(factorize(a, backend=backend, ordering=p).solve(b), dense, rtol=1e-10,
+                                   atol=1e-12)
+    gc.collect()
+    assert len(sparse_mod._CHOLMOD_ANALYSES) == (2 if backend == "cholmod" else 0)  # one per ordering
+    for p in orders:  # each takes the analysis of its own ordering
+        np.testing.assert_allclose(factorize(a, backend=backend, ordering=p).solve(b), dense, rtol=1e-10,
+                                   atol=1e-12)
+    np.testing.assert_allclose(factorize(a, backend=backend).solve(b), dense, rtol=1e-10, atol=1e-12)
+    for bad in (orders[1][:-1], np.zeros(n, dtype=np.int64), orders[1] + 1, orders[1].astype(float)):
+        with pytest.raises(InputError, match="ordering must be a permutation"):
+            factorize(a, backend=backend, ordering=bad)
+
+
 def test_cholmod_reuses_its_input_matrix_per_pattern() -> None:
     """CHOLMOD's input (cvxopt's sparse lower triangle, sorted from triplets) is built once per sparsity
     pattern; later matrices of the pattern (another format, an explicit zero, after a failed factorization)

@@ -219,3 +219,51 @@ def test_newton_solve_reuses_its_factorization_through_pcg() -> None:
     p5, _ = _solve(h4, g, 1e-8, cache, rtol=1e-10, maxiter=3, accept=0.1)
     assert cache.factorizations == 3 and cache.pcg_solves == 2
     np.testing.assert_allclose(h4 @ p5, -g, rtol=1e-5, atol=1e-5)
+
+
+def test_newton_factorizes_in_the_fixed_terms_ordering(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the Hessian in block groups (the retargeting model: the terms of fixed sparsity, then the
+    contact), every factorization of a solve uses the fill-reducing ordering of the first group's pattern,
+    computed once, while the contacts change the whole pattern; and a Cholesky backend solves each Newton
+    system afresh by default, where SuperLU reuses its factorization."""
+    import torchgarment.sim.solvers.newton as newton_mod
+    from torchgarment.linalg import CSRAssembler, fill_reducing_permutation
+
+    g, gf = _square(0.01, n=5)
+    a, af = _square(0.0, n=3, size=0.4)
+    c = Contact(g, gf, a, af, None, dhat=2e-3)
+
+    class Pull(RetargetEnergy):  # every vertex wants z = -0.02, below the obstacle
+        name = "pull"
+
+        def energy(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            return 10.0 * ((x[:, 2] + 0.02) ** 2).sum()
+
+        def unweighted_blocks(self, x: torch.Tensor, t: torch.Tensor, project_psd: bool = True
+                              ) -> HessianBlocks:
+            h = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype)
+            h[:, 2, 2] = 20.0
+            return element_blocks(h, torch.arange(x.shape[0])[:, None])
+
+    obj = retarget_model([SurfaceShape(g, gf), Pull(), c], g)
+    initial_stiffness(obj, g, 1.0, float(vertex_areas(g, gf).mean()) * 100)
+    seen: list[np.ndarray | None] = []
+    original = newton_mod.factorize
+
+    def spy(matrix: scipy.sparse.spmatrix, **kwargs: object) -> object:
+        seen.append(kwargs.get("ordering"))
+        return original(matrix, **kwargs)
+
+    monkeypatch.setattr(newton_mod, "factorize", spy)
+    settings = NewtonSettings(max_iterations=8, rtol=0.0, sparse_backend="superlu", reuse_factorization=False)
+    r = projected_newton(obj, g, 1.0, free_t=False, settings=settings)
+    assert r.iterations >= 3 and len(seen) >= r.iterations  # a factorization per iteration
+    fixed = CSRAssembler(obj.num_vertices).assemble(obj.hessian_block_parts(make_state(g, 1.0))[0])
+    n = 3 * g.shape[0]  # free_t=False: the inflation's row of the state is not an unknown
+    expected = fill_reducing_permutation(fixed[:n, :n])
+    assert all(p is seen[0] for p in seen) and np.array_equal(seen[0], expected)
+    assert not c.ipc.has_intersections(r.x, 1.0)
+    # the reuse's default follows the backend; an explicit choice stays
+    assert NewtonSettings(sparse_backend="cholmod").reuse_factorization is False
+    assert NewtonSettings(sparse_backend="superlu").reuse_factorization is True
+    assert NewtonSettings(sparse_backend="cholmod", reuse_factorization=True).reuse_factorization is True

@@ -301,10 +301,10 @@ def _nested_dissection(a: scipy.sparse.csr_matrix, key: tuple) -> np.ndarray:
     return perm
 
 
-def _superlu(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
-    # symmetric: nested dissection, then SuperLU's symmetric mode in that order (no pivoting); else scipy's
-    # defaults (COLAMD, partial pivoting)
-    p = fill_reducing_permutation(a) if symmetric else None
+def _superlu(a: scipy.sparse.spmatrix, symmetric: bool, ordering: np.ndarray | None) -> Solve:
+    # symmetric: nested dissection (or the given ordering), then SuperLU's symmetric mode in that order (no
+    # pivoting); else scipy's defaults (COLAMD, partial pivoting)
+    p = (fill_reducing_permutation(a) if ordering is None else ordering) if symmetric else None
     m = a.tocsr()[p][:, p].tocsc() if p is not None else a.tocsc()
     mode: dict = (dict(permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
                   if symmetric else {})
@@ -353,7 +353,8 @@ def mkl_reproducible(lib: ctypes.CDLL) -> int:
     return get(_MKL_CBWR_BRANCH)
 
 
-def _pardiso(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
+def _pardiso(a: scipy.sparse.spmatrix, symmetric: bool, ordering: np.ndarray | None) -> Solve:
+    del ordering  # pardiso orders by itself (METIS inside MKL)
     pypardiso = _import_backend("pypardiso", SparseBackend.PARDISO)
     solver = pypardiso.PyPardisoSolver(mtype=-2 if symmetric else 11)
     mkl_reproducible(solver.libmkl)  # before the solver's first MKL call
@@ -374,7 +375,8 @@ def _pardiso(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
     return solve
 
 
-def _cholespy(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
+def _cholespy(a: scipy.sparse.spmatrix, symmetric: bool, ordering: np.ndarray | None) -> Solve:
+    del ordering  # cholespy orders by itself (CHOLMOD's AMD)
     cholespy = _import_backend("cholespy", SparseBackend.CHOLESPY)
     if not symmetric:
         raise InputError("the cholespy backend factorizes symmetric positive definite matrices only")
@@ -430,7 +432,7 @@ def _cholmod_input(cvxopt: ModuleType, pattern: scipy.sparse.csr_matrix,
     return m, gather
 
 
-def _cholmod(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
+def _cholmod(a: scipy.sparse.spmatrix, symmetric: bool, ordering: np.ndarray | None) -> Solve:
     _import_backend("cvxopt", SparseBackend.CHOLMOD)
     cvxopt = importlib.import_module("cvxopt")
     cholmod = importlib.import_module("cvxopt.cholmod")
@@ -443,13 +445,15 @@ def _cholmod(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
     m, gather = entry = _cholmod_input(cvxopt, pattern, key)
     m.V = cvxopt.matrix(np.ascontiguousarray(pattern.data[gather], dtype=np.float64))
     # the analysis (symbolic factorization, in the nested-dissection order of the SuperLU path: 1.4x faster
-    # than CHOLMOD's own AMD order at 30K vertices) depends on the sparsity pattern only. numeric() overwrites
-    # its factor in place, so a factor is reused only once the factorization that held it is gone (then the
-    # result is the same to the bit as a fresh analysis; about a fifth of a factorization at 30K vertices)
-    factor = _CHOLMOD_ANALYSES.pop(key)
+    # than CHOLMOD's own AMD order at 30K vertices) depends on the sparsity pattern and the ordering only.
+    # numeric() overwrites its factor in place, so a factor is reused only once the factorization that held it
+    # is gone (then the result is the same to the bit as a fresh analysis; about a fifth of a factorization at
+    # 30K vertices)
+    akey = key if ordering is None else key + (_digest(ordering),)
+    factor = _CHOLMOD_ANALYSES.pop(akey)
     try:
         if factor is None:
-            order = _nested_dissection(pattern, key)
+            order = _nested_dissection(pattern, key) if ordering is None else ordering
             factor = cholmod.symbolic(m, p=cvxopt.matrix(order.tolist(), tc="i"))
         cholmod.numeric(m, factor)
     except ArithmeticError as exc:  # "not positive definite"
@@ -462,7 +466,7 @@ def _cholmod(a: scipy.sparse.spmatrix, symmetric: bool) -> Solve:
         cholmod.solve(factor, out)
         return np.asarray(out).reshape(b.shape)
 
-    weakref.finalize(solve, _release_analysis, key, factor).atexit = False  # nothing to keep at exit
+    weakref.finalize(solve, _release_analysis, akey, factor).atexit = False  # nothing to keep at exit
     return solve
 
 
@@ -478,8 +482,21 @@ _BACKENDS = {SparseBackend.SUPERLU: _superlu, SparseBackend.PARDISO: _pardiso,
              SparseBackend.CHOLESPY: _cholespy, SparseBackend.CHOLMOD: _cholmod}
 
 
+def _checked_ordering(ordering: np.ndarray, n: int) -> np.ndarray:
+    """``ordering`` as int64 after checking that it is a permutation of ``0 .. n-1`` (InputError if not)."""
+    p = np.asarray(ordering)
+    ok = p.shape == (n,) and p.dtype.kind in "iu"
+    if ok and n > 0:
+        ok = 0 <= int(p.min()) and int(p.max()) < n and int(np.bincount(p, minlength=n).max()) == 1
+    if not ok:
+        raise InputError(f"factorize: ordering must be a permutation of 0..{n - 1} (integers, shape ({n},)), "
+                         f"got shape {p.shape} and dtype {p.dtype}")
+    return p.astype(np.int64, copy=False)
+
+
 def factorize(matrix: scipy.sparse.spmatrix, *, backend: "str | SparseBackend" = SparseBackend.SUPERLU,
-              symmetric: bool = True, shift: float = 0.0, what: str = "matrix") -> Factorization:
+              symmetric: bool = True, shift: float = 0.0, what: str = "matrix",
+              ordering: np.ndarray | None = None) -> Factorization:
     """Factorize the sparse square matrix ``matrix + shift I`` (n, n).
 
     Args:
@@ -490,18 +507,27 @@ def factorize(matrix: scipy.sparse.spmatrix, *, backend: "str | SparseBackend" =
             ``splu(A)`` (COLAMD, pivoting).
         shift: diagonal shift ``s`` added as ``A + s I`` (in ``A``'s units) when nonzero.
         what: the matrix's name in error messages (e.g. ``"simulation Hessian"``).
+        ordering: (n,) int64 fill-reducing permutation of a symmetric factorization by SuperLU or CHOLMOD,
+            in place of METIS' nested dissection of this matrix's pattern (:func:`fill_reducing_permutation`).
+            For a sequence of matrices whose patterns differ by a few entries (a fixed mesh plus contacts
+            that come and go), the ordering of the fixed part serves them all and is computed once; CHOLMOD's
+            analysis is then kept per pattern and ordering. pardiso and cholespy order by themselves and
+            ignore it.
 
     Returns:
         A :class:`Factorization`; its ``shift`` records ``shift``.
 
     Raises:
         SingularMatrixError: the factorization failed (an exactly singular pivot).
-        InputError: an unknown or missing backend, or a non-square matrix.
+        InputError: an unknown or missing backend, a non-square matrix, or an ``ordering`` that is not a
+            permutation of ``0 .. n-1``.
     """
     kind = SparseBackend.resolve(backend)
     if matrix.shape[0] != matrix.shape[1]:
         raise InputError(f"factorize needs a square matrix, got shape {matrix.shape}")
     n = int(matrix.shape[0])
+    if ordering is not None:
+        ordering = _checked_ordering(ordering, n)
     a = matrix if matrix.dtype == np.float64 else matrix.astype(np.float64)
     if shift != 0.0:
         # in CSR, the assembler's format and the backends' input (SuperLU permutes rows first, CHOLMOD reads
@@ -509,7 +535,7 @@ def factorize(matrix: scipy.sparse.spmatrix, *, backend: "str | SparseBackend" =
         a = a.tocsr() + float(shift) * scipy.sparse.identity(n, format="csr", dtype=np.float64)
     t0 = time.perf_counter()
     try:
-        solve = _BACKENDS[kind](a, symmetric)
+        solve = _BACKENDS[kind](a, symmetric, ordering)
     except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"; a Cholesky: not positive definite
         _record(1, 0, time.perf_counter() - t0)
         kind_of = ("singular" if kind in (SparseBackend.SUPERLU, SparseBackend.PARDISO)

@@ -139,7 +139,14 @@ class NewtonSettings:
             sparse LU factorization (an inexact Newton step, to relative residual ``pcg_rtol``), and factorize
             afresh only when that takes more than ``pcg_max_iterations`` iterations or does not give a descent
             direction. The Hessian changes little from one iteration to the next, so most iterations cost a
-            few triangular solves instead of a factorization (0.36 s at 6K garment vertices).
+            few triangular solves instead of a factorization (0.36 s at 6K garment vertices). None (the
+            default): reuse with SuperLU and pardiso, not with a Cholesky backend (``"cholmod"``,
+            ``"cholespy"``), whose fresh factorization in the garment mesh's ordering (see
+            :func:`~torchgarment.sim.solvers.newton.solve_newton`) costs about as much as the 15-20 CG
+            iterations (triangular solves of 5-6 ms at 5K garment vertices) that the reuse spent per Newton
+            iteration: the messy bench's mean pair 4-7 % shorter without the reuse, in two rounds of pairs
+            run alternately, the clean bench's mean unchanged (README, "Retargeting", "Each Newton system
+            factorized afresh in the garment's ordering").
         pcg_rtol: relative residual of the preconditioned CG solve.
         pcg_max_iterations: CG iterations before a fresh factorization.
         pcg_accept_rtol: a CG solve that used up ``pcg_max_iterations`` short of ``pcg_rtol`` is still
@@ -165,7 +172,7 @@ class NewtonSettings:
     stiffness_distance: float = 0.1
     energy_tol: float = 0.0
     energy_window: int = 3
-    reuse_factorization: bool = True
+    reuse_factorization: bool | None = None
     pcg_rtol: float = 1e-2
     pcg_max_iterations: int = 25
     pcg_accept_rtol: float | None = 0.1
@@ -174,6 +181,8 @@ class NewtonSettings:
     def __post_init__(self) -> None:
         self.step_bound = StepBound.resolve(self.step_bound)
         self.sparse_backend = SparseBackend.resolve(self.sparse_backend)
+        if self.reuse_factorization is None:
+            self.reuse_factorization = not self.sparse_backend.positive_definite_only
         if self.max_iterations < 0 or not self.rtol >= 0 or not self.atol >= 0 or not self.step_tol >= 0:
             raise InputError("NewtonSettings: max_iterations, rtol, atol and step_tol must be non-negative")
         if not (0 < self.pcg_rtol < 1) or self.pcg_max_iterations < 1:
