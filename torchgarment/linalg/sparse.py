@@ -10,7 +10,9 @@ then factorized in that order with no partial pivoting in SuperLU's symmetric mo
     splu(A[p][:, p].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 (nested dissection suits the meshes' planar graphs: factorizations of draped Newton systems 2.1x faster than
-in SuperLU's own minimum-degree order at 30K vertices, 2.0x at 15K, 1.3x at 3K), and with scipy's defaults
+in SuperLU's own minimum-degree order at 30K vertices, 2.0x at 15K, 1.3x at 3K; a caller whose matrices share
+most of their pattern, a mesh plus contacts that come and go, passes one ordering for all of them,
+``factorize(..., ordering=p)``), and with scipy's defaults
 (COLAMD ordering, partial pivoting) for ``symmetric=False``. The optional backends ``"pardiso"`` (Intel MKL
 Pardiso through PyPI's ``pypardiso``, in MKL's COMPATIBLE reproducibility branch set by
 :func:`mkl_reproducible`, so that results are reproducible on several threads), ``"cholespy"`` (a supernodal
