@@ -150,6 +150,15 @@ def _np_seams(seam_pairs: torch.Tensor | np.ndarray, num_vertices: int) -> np.nd
     return a.astype(np.int64)
 
 
+def _np_panel_ids(vertex_panel_ids: torch.Tensor | np.ndarray, num_vertices: int) -> np.ndarray:
+    """(V, 1) int32 panel ids, as ipctk's vertex-patch filter takes them."""
+    a = np.asarray(vertex_panel_ids.cpu() if isinstance(vertex_panel_ids, torch.Tensor) else vertex_panel_ids)
+    if a.shape != (num_vertices,) or not np.issubdtype(a.dtype, np.integer):
+        raise InputError(f"vertex_panel_ids must be an integer ({num_vertices},) array, got {a.dtype} "
+                         f"{a.shape}")
+    return a.astype(np.int32).reshape(-1, 1)
+
+
 @dataclass(frozen=True)
 class SeamWeld:
     """A sewn garment as contact sees it: every group of stitched vertices (chains of seam pairs) is one
@@ -741,12 +750,7 @@ class SelfContact(_IPCContact):
             if weld is not None:
                 raise InputError("SelfContact takes seam_pairs (the sewn garment) or vertex_panel_ids "
                                  "(contact within the panels of the unsewn one), not both")
-            ids = np.asarray(vertex_panel_ids.cpu() if isinstance(vertex_panel_ids, torch.Tensor)
-                             else vertex_panel_ids)
-            if ids.shape != (nv,) or not np.issubdtype(ids.dtype, np.integer):
-                raise InputError(f"vertex_panel_ids must be an integer ({nv},) array, got {ids.dtype} "
-                                 f"{ids.shape}")
-            within = ~ipctk.make_vertex_patches_filter(ids.astype(np.int32).reshape(-1, 1))
+            within = ~ipctk.make_vertex_patches_filter(_np_panel_ids(vertex_panel_ids, nv))
         super().__init__(
             f if weld is None else weld.faces(f),
             rest if weld is None else np.asfortranarray(weld.mean @ rest),

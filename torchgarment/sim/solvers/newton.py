@@ -384,7 +384,7 @@ def solve_newton(
     block_parts = getattr(model, "hessian_block_parts", None)
     # with block groups: the first group's ordering (METIS, 30 ms of a 5K-vertex garment's 125 ms CHOLMOD
     # factorization when computed for every new contact pattern)
-    fixed_ordering: list[np.ndarray] = []
+    fixed_ordering: np.ndarray | None = None
 
     def assemble_hessian(x: torch.Tensor, project: bool = True) -> scipy.sparse.csr_matrix:
         """The Hessian as CSR (projected per ``settings.project_psd`` unless ``project`` is False); a model
@@ -396,10 +396,10 @@ def solve_newton(
         cached = assemblers[project]
         while len(cached) < len(parts):
             cached.append(CSRAssembler(model.num_vertices))
+        nonlocal fixed_ordering
         mats = [asm.assemble(b) for asm, b in zip(cached, parts)]
-        if len(mats) > 1 and project and not fixed_ordering:
-            first = mats[0] if free is None else mats[0][free][:, free]
-            fixed_ordering.append(fill_reducing_permutation(first))
+        if len(mats) > 1 and project and fixed_ordering is None:
+            fixed_ordering = fill_reducing_permutation(mats[0] if free is None else mats[0][free][:, free])
         h = mats[0]
         for m in mats[1:]:
             h = h + m
@@ -453,7 +453,7 @@ def solve_newton(
                 dxf, retries = newton_direction(hk, g64, settings, k, cache if damping == 0.0 else None, o,
                                                 device=x.device, blocks=free is None, seams=seams,
                                                 exact=exact_hessian if damping == 0.0 else None,
-                                                ordering=fixed_ordering[0] if fixed_ordering else None)
+                                                ordering=fixed_ordering)
                 info.restarts += retries
                 slope = float(g64 @ dxf)  # < 0
                 if free is None:
