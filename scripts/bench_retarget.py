@@ -28,7 +28,9 @@ each layered part's median height above the garment under it on the source and i
 how far each part's vertices are from their place on the cloth under them (``layer_slide_mm``, median; the
 attachment term holds them there, ``--w-attach 0`` lets them slide).
 Each pair also reports its sparse direct work (``linalg``: factorizations and substitutions, counts and
-seconds, by :func:`torchgarment.linalg.count_linalg`, without cProfile's overhead).
+seconds, by :func:`torchgarment.linalg.count_linalg`, without cProfile's overhead), and the seconds of the
+fit's avatar SDF (``sdf_seconds``; the summary's total): part of the pair's time, built on the first run on a
+machine (7 s for ``creature-50k``) and read from the disk cache (``~/.cache/torchgarment/sdf``) on the next.
 ``--profile`` adds, per pair, the self seconds by stage (cProfile, so with its overhead; :data:`STAGES`): CCD
 (the collision-free step), broad phase and the avatar's culling (with the garment-avatar BVH queries and
 every Warp launch), sparse factorization, linear solves (the
@@ -298,7 +300,7 @@ def messy(args: argparse.Namespace) -> int:
                            step_iterations={s["step"]: s["newton_iterations"] for s in r.steps
                                             if "newton_iterations" in s}, linalg=work.as_dict(),
                            fit_stop={k: fit[k] for k in ("newton_iterations", "reason", "final_motion_mm")},
-                           ok=True)
+                           sdf_seconds=float(fit.get("sdf_seconds", 0.0)), ok=True)
                 if prof is not None:
                     rec["stages_seconds"], rec["top_functions"] = _stage_seconds(prof)
             except Exception as e:  # noqa: BLE001 - reported per pair
@@ -314,7 +316,8 @@ def messy(args: argparse.Namespace) -> int:
                           f"{kk} {vv:.1f}" for kk, vv in rec["layer_slide_mm"].items()), flush=True)
                 print(f"      fit: {rec['fit_stop']['newton_iterations']} iterations, stopped on "
                       f"{rec['fit_stop']['reason']}, its last 3 steps moved a vertex up to "
-                      f"{rec['fit_stop']['final_motion_mm']:.2f} mm", flush=True)
+                      f"{rec['fit_stop']['final_motion_mm']:.2f} mm; the avatar's SDF "
+                      f"{rec['sdf_seconds']:.1f} s (built, or read from the disk cache)", flush=True)
                 la = rec["linalg"]
                 print(f"      sparse direct: {la['factorizations']} factorizations "
                       f"{la['factorization_seconds']:.1f} s, {la['solves']} solves "
@@ -331,6 +334,9 @@ def messy(args: argparse.Namespace) -> int:
                "intersecting": sum(r.get("intersections", 0) > 0 for r in records),
                "mean_seconds": float(np.mean(secs)) if secs else None,
                "max_seconds": float(np.max(secs)) if secs else None,
+               # the fit's avatar SDF, part of every pair's seconds: built on a cold disk cache (seconds on a
+               # dense avatar), read on a warm one, so a first run is slower than the next
+               "sdf_seconds": float(sum(r["sdf_seconds"] for r in records if r["ok"])),
                "targets": {"mean_seconds": 20.0, "max_seconds": 60.0}, "threads": args.threads,
                "profiled": bool(args.profile), "sparse_backend": settings.sparse_backend.value,
                "fit_target": settings.fit_target.value, "w_attach": settings.w_attach,
