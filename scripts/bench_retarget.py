@@ -30,7 +30,7 @@ attachment term holds them there, ``--w-attach 0`` lets them slide).
 Each pair also reports its sparse direct work (``linalg``: factorizations and substitutions, counts and
 seconds, by :func:`torchgarment.linalg.count_linalg`, without cProfile's overhead), and the seconds of the
 fit's avatar SDF (``sdf_seconds``; the summary's total): part of the pair's time, built on the first run on a
-machine (7 s for ``creature-50k``) and read from the disk cache (``~/.cache/torchgarment/sdf``) on the next.
+machine (4-7 s for ``creature-50k``) and read from the disk cache (``~/.cache/torchgarment/sdf``) on the next.
 ``--profile`` adds, per pair, the self seconds by stage (cProfile, so with its overhead; :data:`STAGES`): CCD
 (the collision-free step), broad phase and the avatar's culling (with the garment-avatar BVH queries and
 every Warp launch), sparse factorization, linear solves (the
