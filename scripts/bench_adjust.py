@@ -6,6 +6,7 @@ Usage:
     python scripts/bench_adjust.py --json FILE [--vertices 30000] [--iterations 256] [--garment sheath_dress]
         [--base-size 12] [--target-size 20] [--voxel 0.005] [--threads 2] [--inner-iterations 2]
         [--inner-solver newton|gd-chebyshev] [--adjoint direct|iterative] [--adjoint-max-iterations 50]
+        [--inexact-adjoint projected|exact]
         [--reuse-factorization [--pcg-accept-rtol R]] [--linear-solver direct|jacobi-pcg] [--setup FILE]
         [--device cpu|cuda]
         [--sparse-backend superlu|cholmod|...] [--exact-curvature-cg N] [--min-model-ratio R]
@@ -88,6 +89,9 @@ def main() -> None:
                     help="solver of the S-iteration simulations")
     ap.add_argument("--adjoint", default="direct", choices=["direct", "iterative"], help="adjoint solve")
     ap.add_argument("--adjoint-max-iterations", type=int, default=50)
+    ap.add_argument("--inexact-adjoint", default=None, choices=["projected", "exact"],
+                    help="the Hessian of the adjoint at inexact states (AdjustSettings.inexact_adjoint; "
+                         "default: the library's)")
     ap.add_argument("--reuse-factorization", action="store_true",
                     help="Newton solves reuse their LU factorization through PCG "
                          "(AdjustSettings.reuse_factorization)")
@@ -140,11 +144,14 @@ def main() -> None:
         args.pcg_accept_rtol = None
     adapt = AdjustSettings.adapt_step if args.adapt_step is None else args.adapt_step
     window = AdjustSettings.step_window if args.step_window is None else args.step_window
+    inexact_adjoint = (AdjustSettings.inexact_adjoint if args.inexact_adjoint is None
+                       else args.inexact_adjoint)
     settings = AdjustSettings(edge_length=edge, voxel_size=args.voxel, iterations=args.iterations,
                               inner_iterations=args.inner_iterations, exact_interval=args.exact_interval,
                               min_model_ratio=ratio, adapt_step=adapt, step_window=window,
                               inner_solver=args.inner_solver, adjoint=args.adjoint,
                               adjoint_max_iterations=args.adjoint_max_iterations,
+                              inexact_adjoint=inexact_adjoint,
                               reuse_factorization=args.reuse_factorization,
                               pcg_accept_rtol=args.pcg_accept_rtol,
                               sparse_backend=args.sparse_backend, linear_solver=args.linear_solver,
@@ -173,6 +180,7 @@ def main() -> None:
                            adapt_step=adapt, step_window=window,
                            inner_solver=args.inner_solver, adjoint=args.adjoint,
                            adjoint_max_iterations=args.adjoint_max_iterations,
+                           inexact_adjoint=inexact_adjoint,
                            reuse_factorization=args.reuse_factorization,
                            pcg_accept_rtol=args.pcg_accept_rtol, sparse_backend=args.sparse_backend,
                            linear_solver=args.linear_solver, exact_curvature_cg=args.exact_curvature_cg)
@@ -187,6 +195,7 @@ def main() -> None:
         "adapt_step": adapt, "step_window": window,
         "poor_model_checks": m["poor_model_checks"],
         "inner_solver": args.inner_solver, "adjoint": args.adjoint, "sparse_backend": args.sparse_backend,
+        "inexact_adjoint": m["inexact_adjoint"],
         "reuse_factorization": args.reuse_factorization, "pcg_accept_rtol": args.pcg_accept_rtol,
         "linear_solver": args.linear_solver,
         "exact_curvature_cg": exact_curvature_iterations(args.exact_curvature_cg,

@@ -113,6 +113,19 @@ def test_min_model_ratio_option():
     assert settings_from_args(_parse(base + ["--step-window", "1"])).step_window == 1
 
 
+def test_inexact_adjoint_option():
+    """``--inexact-adjoint``: the library's default (``exact``) unless ``projected`` is asked for."""
+    from torchgarment.adjust.cli import settings_from_args
+    from torchgarment.sim.diff import AdjointHessian
+
+    base = ["--garment", "straight_skirt", "--base-size", "12", "--target-size", "20", "--out", "o"]
+    assert settings_from_args(_parse(base)).inexact_adjoint is AdjointHessian.EXACT
+    projected = settings_from_args(_parse(base + ["--inexact-adjoint", "projected"]))
+    assert projected.inexact_adjoint is AdjointHessian.PROJECTED
+    with pytest.raises(SystemExit):
+        _parse(base + ["--inexact-adjoint", "psd"])
+
+
 def test_fit_scale_option(tmp_path):
     """``--fit-scale``: ``none`` by default, ``stature`` on request; another name is refused by argparse
     before anything is written."""

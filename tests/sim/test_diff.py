@@ -406,3 +406,74 @@ def test_cholmod_newton_and_the_adjoint_at_an_indefinite_hessian():
     torch.testing.assert_close(layer.adjoint(compressed, rhs), ref.adjoint(compressed, rhs), rtol=1e-9,
                                atol=0.0)
     assert layer.last_adjoint_info.solver == "sparse"
+
+
+def test_projected_adjoint_at_inexact_states():
+    """``inexact_hessian="projected"``: the backward of an inexact solve (``iterations=S``) solves the adjoint
+    with the PSD-projected Hessian, which factorizes by a Cholesky backend at a compressed state where the
+    exact one is indefinite; an exact solve's backward keeps the exact Hessian (its gradient still matches
+    finite differences of the whole solve); a singular projected Hessian falls back to the exact one."""
+    from dataclasses import replace
+
+    import numpy as np
+    import scipy.sparse.linalg
+
+    from torchgarment.errors import SingularMatrixError
+    from torchgarment.linalg import CSRAssembler
+    from torchgarment.sim.diff import AdjointHessian
+
+    assert AdjointHessian.resolve("projected") is AdjointHessian.PROJECTED
+    with pytest.raises(InputError):
+        AdjointHessian.resolve("psd")
+    model, x0 = build("stretch")
+    backends = ["superlu"] + (["cholmod"] if _has_cvxopt() else [])
+    for backend in backends:
+        layer = DifferentiableSolver(model, x0, replace(TIGHT, sparse_backend=backend),
+                                     inexact_hessian="projected")
+        x = layer().detach()
+        compressed = x.mean(0) + 0.8 * (x - x.mean(0))
+        rhs = torch.randn(x.shape, generator=torch.Generator().manual_seed(3), dtype=x.dtype)
+        k_proj = CSRAssembler(model.num_vertices).assemble(model.hessian_blocks(compressed, project_psd=True))
+        k_exact = CSRAssembler(model.num_vertices).assemble(exact_hessian_blocks(model, compressed))
+        lowest = float(scipy.sparse.linalg.eigsh(k_exact, k=1, sigma=-1e3, which="LM")[0][0])
+        assert lowest < 0.0  # the exact Hessian is indefinite there
+        want = scipy.sparse.linalg.spsolve(k_proj.tocsc(), rhs.numpy().reshape(-1)).reshape(-1, 3)
+        lam = layer.adjoint(compressed, rhs, hessian="projected")
+        info = layer.last_adjoint_info
+        assert info.hessian == "projected" and info.solver == "sparse" and info.relative_residual <= 1e-9
+        np.testing.assert_allclose(lam.numpy(), want, rtol=1e-7, atol=1e-9 * float(np.abs(want).max()))
+        lam_exact = layer.adjoint(compressed, rhs)  # the default: the exact Hessian, by SuperLU
+        assert layer.last_adjoint_info.hessian == "exact"
+        assert float((lam_exact - lam).abs().max()) > 1e-3 * float(lam.abs().max())  # a different matrix
+        # through the autograd Function: an inexact call's backward uses the projected Hessian, an exact one's
+        # the exact Hessian
+        p = model.term("stretch").p.detach().clone()
+        layer.set_state(compressed)
+        q = p.clone().requires_grad_(True)
+        layer(p=q, iterations=1).sum().backward()
+        assert layer.last_adjoint_info.hessian == "projected"
+        layer.reset()
+        q = p.clone().requires_grad_(True)
+        layer(p=q).sum().backward()
+        assert layer.last_adjoint_info.hessian == "exact"
+    err, _ = fd_check(layer, "p", model.term("stretch").p.detach().clone())
+    assert err < GRAD_RTOL
+    # a projected Hessian that does not factorize: the exact one, counted as a fallback
+    layer = DifferentiableSolver(model, x0, TIGHT, inexact_hessian="projected")
+
+    def fail(key, build):
+        raise SingularMatrixError("the projected simulation Hessian is singular")
+
+    layer._projected_factorizations.factorize = fail
+    lam = layer.adjoint(compressed, rhs, hessian="projected")
+    assert layer.adjoint_fallbacks == 1 and layer.last_adjoint_info.hessian == "exact"
+    torch.testing.assert_close(lam, solve_adjoint(model, compressed, rhs, "sparse")[0])
+    with pytest.raises(InputError, match="assembled"):
+        DifferentiableSolver(model, x0, TIGHT, linear_solver="cg", hessian_product="autograd",
+                             inexact_hessian="projected")
+
+
+def _has_cvxopt() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("cvxopt") is not None

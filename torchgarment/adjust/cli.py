@@ -52,6 +52,7 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     )
     from torchgarment.adjust.optimizers import OptimizerKind
     from torchgarment.adjust.pipeline import AdjustSettings
+    from torchgarment.sim.diff import AdjointHessian
     from torchgarment.sim.drape_cli import add_newton_system_arguments
     from torchgarment.sim.solvers import LinearSolver, SolverKind
 
@@ -90,6 +91,11 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--adjoint", default="direct", choices=["direct", "iterative", "sparse", "cg"],
                    help="adjoint solve of the gradients: direct (= sparse, the default) or iterative "
                         "(= cg, for large meshes)")
+    p.add_argument("--inexact-adjoint", default=d.inexact_adjoint.value,
+                   choices=[k.value for k in AdjointHessian],
+                   help="the Hessian of the adjoint at an inexact iteration's state (not an equilibrium): "
+                        "projected (PSD, by --sparse-backend) or exact (default "
+                        f"{d.inexact_adjoint.value})")
     p.add_argument("--reference-edge-length", type=_length_or_none, default=DEFAULT_REFERENCE_EDGE_LENGTH,
                    metavar="M",
                    help="rescale the regularizers to the balance of a mesh of this edge length in metres "
@@ -145,6 +151,7 @@ def settings_from_args(args: argparse.Namespace) -> AdjustSettings:
                           min_model_ratio=args.min_model_ratio, adapt_step=args.adapt_step,
                           step_window=args.step_window,
                           inner_solver=args.inner_solver, adjoint=args.adjoint,
+                          inexact_adjoint=args.inexact_adjoint,
                           init_iterations=args.init_iterations, initialize=not args.no_init, weights=weights,
                           support=not args.no_support, init_trial_iterations=args.init_trial_iterations,
                           fit_scale=args.fit_scale, linear_solver=args.linear_solver,

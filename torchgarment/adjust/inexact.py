@@ -11,7 +11,8 @@ vertices of the pattern (section 5)::
 and its gradient by the adjoint method (Eq. 18-19) through the autograd Function of the simulator
 (:class:`~torchgarment.sim.diff.DifferentiableSolver`): ``f.backward()`` solves ``K lambda = df/dx`` with
 ``K`` the exact unprojected Hessian of the simulation energy at ``x`` (a cached sparse factorization, or with
-``adjoint="iterative"`` block-Jacobi conjugate gradients warm-started from the previous adjoint), adds
+``adjoint="iterative"`` block-Jacobi conjugate gradients warm-started from the previous adjoint; at an inexact
+state, with ``inexact_adjoint="projected"``, its PSD-projected Hessian), adds
 ``-lambda^T d(grad_x E)/dp`` (matrix-free, :func:`~torchgarment.sim.diff.parameter_vjp`) to ``df/dp`` and goes
 on through the parametrization to ``df/dq``. Simulations are warm-started from the previous state. An *exact*
 evaluation solves to the force tolerance; an *inexact* one runs ``S`` solver iterations only, and its gradient
@@ -53,7 +54,12 @@ import torch
 
 from torchgarment.errors import InputError
 from torchgarment.linalg import LinalgCounters, count_linalg
-from torchgarment.sim.diff import AdjointLinearSolver, DifferentiableSolver, NonConvergenceError
+from torchgarment.sim.diff import (
+    AdjointHessian,
+    AdjointLinearSolver,
+    DifferentiableSolver,
+    NonConvergenceError,
+)
 from torchgarment.sim.solvers import NonFiniteError, SolveInfo, SolverKind, SolveSettings
 
 
@@ -107,6 +113,10 @@ class AdjustProblem:
             and backtracking keep safe). Gauss-Newton's tangent solves are always direct.
         adjoint_rtol: relative residual at which the iterative adjoint stops.
         adjoint_max_iterations: CG iterations of an iterative adjoint.
+        inexact_adjoint: the :class:`~torchgarment.sim.diff.AdjointHessian` of an inexact evaluation's
+            adjoint: ``"exact"`` (default here) or ``"projected"`` (the PSD-projected Hessian, by the exact
+            settings' sparse backend: the inexact gradient as an estimate of the equilibrium's; see
+            :class:`~torchgarment.adjust.pipeline.AdjustSettings`). Exact evaluations use the exact one.
         retain_graph: keep the autograd graph of the last evaluation until the next one (Gauss-Newton's
             ``J^T`` products go back through it); False saves its memory for optimizers that make no such
             products.
@@ -117,7 +127,9 @@ class AdjustProblem:
                  solver: str | SolverKind = SolverKind.NEWTON, inexact_solver: str | SolverKind | None = None,
                  parameter: str = "stretch.p", strict: bool = True,
                  adjoint: str | AdjointLinearSolver = AdjointLinearSolver.SPARSE, adjoint_rtol: float = 1e-3,
-                 adjoint_max_iterations: int = 50, retain_graph: bool = True) -> None:
+                 adjoint_max_iterations: int = 50,
+                 inexact_adjoint: str | AdjointHessian = AdjointHessian.EXACT,
+                 retain_graph: bool = True) -> None:
         self.model = model
         self.param = parametrization
         self.objective = objective
@@ -141,7 +153,8 @@ class AdjustProblem:
             model, x0, settings, solver=solver, inexact_solver=inexact_solver, linear_solver=self.adjoint,
             cg_rtol=float(adjoint_rtol) if iterative else 1e-10,
             cg_max_iterations=int(adjoint_max_iterations) if iterative else None,
-            cg_warm_start=iterative, cg_require_convergence=not iterative, strict=strict)
+            cg_warm_start=iterative, cg_require_convergence=not iterative, inexact_hessian=inexact_adjoint,
+            strict=strict)
         self.retain_graph = bool(retain_graph)
         self.closure_evaluations = 0
         self.exact_evaluations = 0

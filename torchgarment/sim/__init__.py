@@ -12,7 +12,7 @@ Re-exported here:
   :class:`Preconditioner` and the returned :class:`SolveInfo`;
 * the differentiable solve (:mod:`torchgarment.sim.diff`): :class:`DifferentiableSolver` (an ``nn.Module``),
   the autograd Function :class:`QuasistaticSolve`, :class:`BackwardMode`, :class:`AdjointLinearSolver`,
-  :class:`NonConvergenceError` and :class:`NonConvergenceWarning`;
+  :class:`AdjointHessian`, :class:`NonConvergenceError` and :class:`NonConvergenceWarning`;
 * energy terms (:mod:`torchgarment.sim.energies`): :class:`EnergyTerm`, :class:`HessianBlocks`,
   :class:`PlanarSprings`, :class:`SewingSprings`, :class:`QuadraticBending`, :class:`Gravity`, :class:`Pins`,
   :class:`BodyBarrier`;
@@ -27,6 +27,7 @@ Re-exported here:
 from typing import TYPE_CHECKING
 
 from torchgarment.sim.diff import (
+    AdjointHessian,
     AdjointLinearSolver,
     BackwardMode,
     DifferentiableSolver,
@@ -73,6 +74,7 @@ def __getattr__(name: str) -> type:
 
 
 __all__ = [
+    "AdjointHessian",
     "AdjointLinearSolver",
     "BackwardMode",
     "BodyBarrier",

@@ -53,6 +53,13 @@ tolerance; otherwise :class:`NonConvergenceError` is raised (or, with ``strict=F
 :class:`NonConvergenceWarning` is issued and the gradient is that of the unconverged state, i.e. inexact).
 A non-converged CG, or negative curvature met by CG (``K`` not positive definite, e.g. a saddle), also raises.
 
+Inexact states (Wang 2018, Algorithm 1: ``S`` solver iterations, not an equilibrium): the formula is then an
+estimate of the gradient at the equilibrium the pattern would settle to, and the exact ``K`` at a state out of
+balance can be indefinite and nearly singular (compressed springs, the barrier's curvature), which makes that
+estimate erratic. ``DifferentiableSolver(inexact_hessian="projected")`` solves the adjoint of such states with
+the Newton solver's PSD-projected Hessian instead (:class:`AdjointHessian`), by the Newton systems' sparse
+backend (CHOLMOD's Cholesky where chosen); exact solves keep the exact ``K``.
+
 Example::
 
     model = Scene(mesh, pin_indices=top).build()
@@ -78,7 +85,7 @@ from torch.func import functional_call
 from torch.func import grad as func_grad
 from torch.func import jvp as func_jvp
 
-from torchgarment.errors import InputError, NonConvergenceError
+from torchgarment.errors import InputError, NonConvergenceError, SingularMatrixError
 from torchgarment.linalg import CSRAssembler, FactorizationCache, armijo_backtracking, csr_matvec, minres, pcg
 from torchgarment.options import OptionEnum
 from torchgarment.sim.energies.barrier import BodyBarrier
@@ -122,6 +129,19 @@ class AdjointLinearSolver(OptionEnum):
         return {"direct": "sparse", "iterative": "cg"}
 
 
+class AdjointHessian(OptionEnum):
+    """The matrix ``K`` of the adjoint system at a state that is not an equilibrium (an inexact solve's)."""
+
+    EXACT = "exact"
+    """The unprojected Hessian ``d^2E/dx^2``: the implicit function theorem's matrix, exact at an equilibrium;
+    at a state out of balance it may be indefinite and nearly singular (a factorization by SuperLU)."""
+    PROJECTED = "projected"
+    """The per-element PSD-projected Hessian that Newton factorizes (positive definite where the garment is
+    held: a Cholesky backend serves it). Away from equilibrium it estimated the equilibrium's gradient better
+    than EXACT on the 3K and 10K dresses, but the adjustments of the 3K and 30K dresses ended higher with it
+    (README, "The adjoint at inexact states"), so EXACT is the default."""
+
+
 class HessianProduct(OptionEnum):
     """Where CG's Hessian-vector products come from."""
 
@@ -142,6 +162,7 @@ class AdjointInfo:
         seconds: wall time of the linear solve, assembly included.
         negative_curvature: CG stopped at a direction of non-positive curvature (``K`` is not positive
             definite there; only with ``require_convergence=False``, which returns the iterate reached).
+        hessian: the :class:`AdjointHessian` ``K`` was (``"exact"`` or ``"projected"``).
     """
 
     solver: str
@@ -149,6 +170,7 @@ class AdjointInfo:
     relative_residual: float
     seconds: float
     negative_curvature: bool = False
+    hessian: str = AdjointHessian.EXACT.value
 
 
 # ---------------------------------------------------------------------------------------------- Hessian
@@ -222,8 +244,10 @@ def solve_adjoint(
     require_convergence: bool = True,
     assembler: CSRAssembler | None = None,
     cache: FactorizationCache | None = None,
+    hessian: "str | AdjointHessian" = AdjointHessian.EXACT,
 ) -> tuple[torch.Tensor, AdjointInfo]:
-    """Solve ``K lambda = rhs`` with ``K`` the exact unprojected Hessian of ``model`` at ``x``.
+    """Solve ``K lambda = rhs`` with ``K`` the exact unprojected Hessian of ``model`` at ``x`` (or, with
+    ``hessian="projected"``, its PSD-projected one).
 
     Args:
         model: a SimModel.
@@ -240,7 +264,11 @@ def solve_adjoint(
             budget (``info.solver == "minres"``).
         assembler: a :class:`CSRAssembler` reused across calls (it caches the COO -> CSR permutation).
         cache: a :class:`FactorizationCache` keyed on ``x``: SPARSE solves at the same ``x`` (an adjoint and
-            the tangent solves of Gauss-Newton products) share one factorization.
+            the tangent solves of Gauss-Newton products) share one factorization. It must hold factorizations
+            of the Hessian ``hessian`` names (a Cholesky backend only for PROJECTED).
+        hessian: :class:`AdjointHessian`: ``"exact"`` (default; the implicit function theorem's ``K``) or
+            ``"projected"`` (``model.hessian_blocks(x, project_psd=True)``, symmetric positive semi-definite:
+            an approximate adjoint for states that are not equilibria).
 
     CG is preconditioned with the simulator's block Jacobi, each seam pair of a ``sew`` term as one 6x6 block
     (:class:`~torchgarment.sim.solvers.chebyshev.JacobiState`): stiff seams otherwise slow CG down.
@@ -256,6 +284,11 @@ def solve_adjoint(
     """
     kind = AdjointLinearSolver.resolve(linear_solver)
     product = HessianProduct.resolve(hessian_product)
+    which = AdjointHessian.resolve(hessian)
+    projected = which == AdjointHessian.PROJECTED
+    if projected and kind == AdjointLinearSolver.CG and product == HessianProduct.AUTOGRAD:
+        raise InputError("the projected adjoint Hessian has no autograd products: use hessian_product="
+                         "'assembled'")
     t0 = time.perf_counter()
     V = model.num_vertices
     x = x.detach()
@@ -264,7 +297,8 @@ def solve_adjoint(
     assembler = CSRAssembler(V) if assembler is None else assembler
     if kind == AdjointLinearSolver.SPARSE:
         cache = FactorizationCache(what="simulation Hessian") if cache is None else cache
-        fact = cache.factorize(x, lambda: assembler.assemble(exact_hessian_blocks(model, x)))
+        fact = cache.factorize(x, lambda: assembler.assemble(model.hessian_blocks(x,
+                                                                                  project_psd=projected)))
         b64 = rhs.to(device="cpu", dtype=torch.float64).numpy().reshape(-1)
         y = fact.solve(b64)
         res = float(np.linalg.norm(fact.matrix @ y - b64)) / bn if bn > 0 else 0.0
@@ -272,10 +306,10 @@ def solve_adjoint(
         if res > max(1e3 * rtol, 1e-6):
             raise NonConvergenceError(f"adjoint sparse solve is inaccurate: relative residual {res:.3g} "
                                       f"(ill-conditioned Hessian at the solution)")
-        return lam, AdjointInfo(kind.value, 0, res, time.perf_counter() - t0)
+        return lam, AdjointInfo(kind.value, 0, res, time.perf_counter() - t0, hessian=which.value)
 
     if product == HessianProduct.ASSEMBLED:
-        blocks = exact_hessian_blocks(model, x)
+        blocks = model.hessian_blocks(x, project_psd=projected)
         diag = _diagonal_blocks(blocks, V)
         if x.device.type == "cpu":  # scipy's CSR product is ~25x faster than torch's on the CPU (measured)
             kc = csr_matvec(assembler.assemble(blocks), x.device)
@@ -308,8 +342,9 @@ def solve_adjoint(
         lam, k2, res = minres(matvec, rhs, lambda r: apply_inverse(pre.inverse, r), rtol, n_max, x0=x0)
         if not bool(torch.isfinite(lam).all()):
             raise NonConvergenceError("adjoint MINRES returned non-finite values")
-        return lam, AdjointInfo("minres", k + k2, res, time.perf_counter() - t0, negative_curvature=True)
-    return lam, AdjointInfo(kind.value, k, res, time.perf_counter() - t0)
+        return lam, AdjointInfo("minres", k + k2, res, time.perf_counter() - t0, negative_curvature=True,
+                                hessian=which.value)
+    return lam, AdjointInfo(kind.value, k, res, time.perf_counter() - t0, hessian=which.value)
 
 
 def _autograd_hvp(model: torch.nn.Module, x: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -395,6 +430,8 @@ class QuasistaticSolve(torch.autograd.Function):
                 request: SolveRequest, *values: torch.Tensor) -> torch.Tensor:
         x = layer._solve_no_grad(dict(zip(names, values)), request)
         ctx.layer, ctx.names = layer, names
+        # an inexact solve's state is not an equilibrium: its adjoint uses the layer's inexact_hessian
+        ctx.hessian = AdjointHessian.EXACT if request.iterations is None else layer.inexact_hessian
         ctx.save_for_backward(x, *values)
         return x.clone()
 
@@ -406,7 +443,7 @@ class QuasistaticSolve(torch.autograd.Function):
         want = {n: v for n, v, need in zip(ctx.names, values, ctx.needs_input_grad[3:]) if need}
         if not want:
             return (None, None, None) + (None,) * len(values)
-        lam = layer.adjoint(x, grad_x)
+        lam = layer.adjoint(x, grad_x, hessian=ctx.hessian)
         grads = parameter_vjp(layer.model, x, lam, want)
         return (None, None, None) + tuple(grads.get(n) for n in ctx.names)
 
@@ -461,6 +498,11 @@ class DifferentiableSolver(torch.nn.Module):
             measured 5.3x off the exact gradient with a relative residual of 15.9 on the real skirt) MINRES
             solves instead (:func:`solve_adjoint`); a MINRES answer no better than zero (relative residual
             >= 1) is replaced by the sparse direct adjoint at that state, counted in ``adjoint_fallbacks``.
+        inexact_hessian: the :class:`AdjointHessian` of the adjoint at an inexact solve's state (``S``
+            iterations, not an equilibrium): ``"exact"`` (default) or ``"projected"`` (factorized by
+            ``settings.sparse_backend``, a Cholesky one included; a singular projected Hessian falls back to
+            the exact one, counted in ``adjoint_fallbacks``). An exact solve's adjoint always uses the exact
+            Hessian, so the gradients at equilibria are the implicit function theorem's.
         truncated_steps: Newton steps unrolled in TRUNCATED mode (>= 1).
         unroll_iterations: Newton iteration budget of UNROLL mode.
         warm_start: start each solve from the last solution.
@@ -485,6 +527,7 @@ class DifferentiableSolver(torch.nn.Module):
         cg_max_iterations: int | None = None,
         cg_warm_start: bool = False,
         cg_require_convergence: bool = True,
+        inexact_hessian: "str | AdjointHessian" = AdjointHessian.EXACT,
         truncated_steps: int = 1,
         unroll_iterations: int = 100,
         warm_start: bool = True,
@@ -503,6 +546,11 @@ class DifferentiableSolver(torch.nn.Module):
         self.backward_mode = BackwardMode.resolve(backward)
         self.linear_solver = AdjointLinearSolver.resolve(linear_solver)
         self.hessian_product = HessianProduct.resolve(hessian_product)
+        self.inexact_hessian = AdjointHessian.resolve(inexact_hessian)
+        if (self.inexact_hessian == AdjointHessian.PROJECTED and self.linear_solver == AdjointLinearSolver.CG
+                and self.hessian_product == HessianProduct.AUTOGRAD):
+            raise InputError("inexact_hessian='projected' needs hessian_product='assembled' (autograd "
+                             "products are of the exact Hessian)")
         if not (cg_rtol > 0 and truncated_steps >= 1 and unroll_iterations >= 1):
             raise InputError("cg_rtol must be > 0, truncated_steps and unroll_iterations >= 1")
         self.cg_rtol = float(cg_rtol)
@@ -522,6 +570,9 @@ class DifferentiableSolver(torch.nn.Module):
         # the exact Hessian may be indefinite: a Cholesky backend serves the Newton systems only
         self._factorizations = FactorizationCache(self.settings.sparse_backend.for_indefinite(),
                                                   what="simulation Hessian")
+        # the projected Hessian is positive semi-definite: the Newton systems' backend, Cholesky included
+        self._projected_factorizations = FactorizationCache(self.settings.sparse_backend,
+                                                            what="projected simulation Hessian")
         self.last_info: SolveInfo | None = None
         self.last_adjoint_info: AdjointInfo | None = None
         self.sim_iterations = 0
@@ -555,8 +606,8 @@ class DifferentiableSolver(torch.nn.Module):
     @property
     def factorizations(self) -> int:
         """Sparse factorizations of ``K`` done so far (one per new state a SPARSE adjoint or tangent
-        needs)."""
-        return self._factorizations.factorizations
+        needs; projected ones included)."""
+        return self._factorizations.factorizations + self._projected_factorizations.factorizations
 
     # ------------------------------------------------------------------ call
     def forward(self, params: Mapping[str, torch.Tensor] | None = None, *, iterations: int | None = None,
@@ -682,29 +733,41 @@ class DifferentiableSolver(torch.nn.Module):
         return x.detach()
 
     # ------------------------------------------------------------------ linear solves at a state
-    def adjoint(self, x: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+    def adjoint(self, x: torch.Tensor, rhs: torch.Tensor, *,
+                hessian: "str | AdjointHessian" = AdjointHessian.EXACT) -> torch.Tensor:
         """``lambda = K^-1 rhs`` (V, 3) at ``x`` with the layer's adjoint solver: the backward of
-        :class:`QuasistaticSolve`. SPARSE factorizations are cached on ``x`` (shared with :meth:`tangent`); CG
-        starts from the previous adjoint with ``cg_warm_start`` and accepts an unconverged iterate unless
-        ``cg_require_convergence`` (MINRES where ``K`` is indefinite); a MINRES answer no better than zero
-        is replaced by the SPARSE solve (``adjoint_fallbacks`` counts them).
+        :class:`QuasistaticSolve`. SPARSE factorizations are cached on ``x`` (the exact Hessian's shared with
+        :meth:`tangent`); CG starts from the previous adjoint with ``cg_warm_start`` and accepts an
+        unconverged iterate unless ``cg_require_convergence`` (MINRES where ``K`` is indefinite); a MINRES
+        answer no better than zero is replaced by the SPARSE solve (``adjoint_fallbacks`` counts them).
 
         Args:
             x: (V, 3) state in metres (an equilibrium for an exact gradient).
             rhs: (V, 3) ``dL/dx`` in loss units per metre.
+            hessian: the :class:`AdjointHessian` ``K`` (``"exact"``, or ``"projected"``: falls back to the
+                exact one, counted in ``adjoint_fallbacks``, where the projected one is singular).
         """
+        which = AdjointHessian.resolve(hessian)
         warm = self._adjoint_last if (self.cg_warm_start and self._adjoint_last is not None
                                       and self._adjoint_last.shape == x.shape) else None
-        lam, info = solve_adjoint(self.model, x, rhs, self.linear_solver,
-                                  hessian_product=self.hessian_product,
-                                  rtol=self.cg_rtol, max_iterations=self.cg_max_iterations, x0=warm,
-                                  require_convergence=self.cg_require_convergence, assembler=self._assembler,
-                                  cache=self._factorizations)
+        solve_kw = dict(hessian_product=self.hessian_product, rtol=self.cg_rtol,
+                        max_iterations=self.cg_max_iterations, x0=warm,
+                        require_convergence=self.cg_require_convergence, assembler=self._assembler)
+        info = None
+        if which == AdjointHessian.PROJECTED:
+            try:
+                lam, info = solve_adjoint(self.model, x, rhs, self.linear_solver, **solve_kw,
+                                          cache=self._projected_factorizations, hessian=which)
+            except SingularMatrixError:  # a part that nothing holds: the exact Hessian, as by default
+                self.adjoint_fallbacks += 1
+        if info is None:
+            lam, info = solve_adjoint(self.model, x, rhs, self.linear_solver, **solve_kw,
+                                      cache=self._factorizations)
+            if info.negative_curvature and not info.relative_residual < 1.0:
+                lam, info = solve_adjoint(self.model, x, rhs, AdjointLinearSolver.SPARSE,
+                                          assembler=self._assembler, cache=self._factorizations)
+                self.adjoint_fallbacks += 1
         self.adjoint_iterations += info.iterations
-        if info.negative_curvature and not info.relative_residual < 1.0:
-            lam, info = solve_adjoint(self.model, x, rhs, AdjointLinearSolver.SPARSE,
-                                      assembler=self._assembler, cache=self._factorizations)
-            self.adjoint_fallbacks += 1
         self.last_adjoint_info = info
         if self.cg_warm_start:
             self._adjoint_last = lam.detach().clone()
