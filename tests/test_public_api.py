@@ -88,6 +88,7 @@ PUBLIC = {
         "DifferentiableSolver",
         "QuasistaticSolve",
         "BackwardMode",
+        "AdjointHessian",
         "AdjointLinearSolver",
         "NonConvergenceError",
         "NonConvergenceWarning",
