@@ -763,11 +763,11 @@ class DifferentiableSolver(torch.nn.Module):
         if info is None:
             lam, info = solve_adjoint(self.model, x, rhs, self.linear_solver, **solve_kw,
                                       cache=self._factorizations)
-            if info.negative_curvature and not info.relative_residual < 1.0:
-                lam, info = solve_adjoint(self.model, x, rhs, AdjointLinearSolver.SPARSE,
-                                          assembler=self._assembler, cache=self._factorizations)
-                self.adjoint_fallbacks += 1
-        self.adjoint_iterations += info.iterations
+        self.adjoint_iterations += info.iterations  # a replaced MINRES answer's iterations count too
+        if info.negative_curvature and not info.relative_residual < 1.0:
+            lam, info = solve_adjoint(self.model, x, rhs, AdjointLinearSolver.SPARSE,
+                                      assembler=self._assembler, cache=self._factorizations)
+            self.adjoint_fallbacks += 1
         self.last_adjoint_info = info
         if self.cg_warm_start:
             self._adjoint_last = lam.detach().clone()
