@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_adjust import edge_length_for  # noqa: E402
+from bench_adjust import edge_length_for, load_or_prepare  # noqa: E402
 
 WITHIN = 0.02
 """The issue's guard: the configuration's final objective at most 2 % above the exact method's."""
@@ -56,12 +56,12 @@ def summarize(rows: list[dict]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
+    from torchgarment.adjust.pipeline import AdjustSettings, optimize
     from torchgarment.benchmarking import MachineWatch
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
     from torchgarment.errors import InputError
-    from torchgarment.io.atomic import atomic_open, atomic_path
+    from torchgarment.io.atomic import atomic_open
     from torchgarment.linalg import SparseBackend
     from torchgarment.pattern.library import draft
     from torchgarment.sim import AdjointHessian
@@ -94,7 +94,6 @@ def main(argv: list[str] | None = None) -> int:
         settings = AdjustSettings(edge_length=edge, voxel_size=args.voxel, iterations=args.iterations,
                                   inner_iterations=args.inner_iterations, exact_interval=args.exact_interval,
                                   inexact_adjoint=args.inexact_adjoint, sparse_backend=args.sparse_backend)
-        settings.validate()
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -106,23 +105,11 @@ def main(argv: list[str] | None = None) -> int:
         try:
             path = (None if args.setup_dir is None else
                     Path(args.setup_dir) / f"setup_{args.garment}_{args.base_size}_{size}_{args.vertices}.pt")
-            setup = None
-            if path is not None and path.is_file():
-                try:
-                    setup = torch.load(path, weights_only=False)
-                except Exception as exc:  # noqa: BLE001 - a cache: any unreadable file is made again
-                    print(f"{path} is unreadable ({type(exc).__name__}); making the precomputation again")
-                if setup is not None and (setup.mesh_base.num_vertices != n
-                                          or not math.isclose(setup.settings.edge_length, edge)):
-                    setup = None
-            if setup is None:
-                t0 = time.perf_counter()
-                setup = prepare(pattern, base, target, settings)
+            made = path is None or not path.is_file()
+            t0 = time.perf_counter()
+            setup = load_or_prepare(path, pattern, base, target, settings, n)
+            if made:
                 row["precomputation_seconds"] = time.perf_counter() - t0
-                if path is not None:
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    with atomic_path(path) as tmp:
-                        torch.save(setup, tmp)
             run = replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
                           exact_interval=args.exact_interval, inexact_adjoint=args.inexact_adjoint,
                           sparse_backend=args.sparse_backend)

@@ -45,6 +45,8 @@ from typing import TYPE_CHECKING
 import torch
 
 if TYPE_CHECKING:
+    from torchgarment.adjust.pipeline import AdjustSettings, AdjustSetup
+    from torchgarment.body import Body
     from torchgarment.pattern.spec import SewingPattern
 
 
@@ -56,6 +58,42 @@ def edge_length_for(pattern: SewingPattern, vertices: int) -> tuple[float, int]:
         n = mesh_pattern(pattern, e).num_vertices
         e = e * math.sqrt(n / vertices)
     return e, mesh_pattern(pattern, e).num_vertices
+
+
+def load_or_prepare(path: str | Path | None, pattern: SewingPattern, base: Body, target: Body,
+                    settings: AdjustSettings, vertices: int,
+                    device: torch.device | None = None) -> AdjustSetup:
+    """The precomputation of ``pattern`` on ``base`` -> ``target``: loaded from ``path`` when it exists and is
+    readable, else computed by :func:`~torchgarment.adjust.pipeline.prepare` and saved there atomically (a
+    cache: an unreadable file is made again; None: no file).
+
+    Raises:
+        InputError: ``path`` holds a setup of another mesh (not ``vertices`` vertices at
+            ``settings.edge_length``).
+    """
+    from torchgarment.adjust.pipeline import prepare
+    from torchgarment.errors import InputError
+    from torchgarment.io.atomic import atomic_path
+
+    setup = None
+    if path is not None and Path(path).is_file():
+        try:
+            setup = torch.load(path, weights_only=False, map_location=device)
+        except Exception as exc:  # noqa: BLE001 - a cache: any unreadable file is made again
+            print(f"{path} is unreadable ({type(exc).__name__}); making the precomputation again")
+    if setup is not None:
+        if (setup.mesh_base.num_vertices != vertices
+                or not math.isclose(setup.settings.edge_length, settings.edge_length)):
+            raise InputError(f"{path} holds a {setup.mesh_base.num_vertices}-vertex setup, not this "
+                             f"{vertices}-vertex garment; pass another setup file")
+        print(f"precomputation loaded from {path}")
+        return setup
+    setup = prepare(pattern, base, target, settings, device=device)
+    if path is not None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            torch.save(setup, tmp)
+    return setup
 
 
 def main() -> None:
@@ -119,11 +157,12 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    from torchgarment.adjust.pipeline import AdjustSettings, optimize, prepare
+    from torchgarment.adjust.pipeline import AdjustSettings, optimize
     from torchgarment.benchmarking import MachineWatch
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
-    from torchgarment.io.atomic import atomic_open, atomic_path
+    from torchgarment.errors import InputError
+    from torchgarment.io.atomic import atomic_open
     from torchgarment.options import resolve_device
     from torchgarment.pattern.library import draft
     from torchgarment.sim.solvers import LinearSolver, exact_curvature_iterations
@@ -157,22 +196,10 @@ def main() -> None:
                               sparse_backend=args.sparse_backend, linear_solver=args.linear_solver,
                               exact_curvature_cg=args.exact_curvature_cg)
     t0 = time.perf_counter()
-    setup = None
-    if args.setup and Path(args.setup).is_file():
-        try:
-            setup = torch.load(args.setup, weights_only=False, map_location=device)
-        except Exception as exc:  # noqa: BLE001 - a cache: any unreadable file is made again
-            print(f"{args.setup} is unreadable ({type(exc).__name__}); making the precomputation again")
-    if setup is not None:
-        if setup.mesh_base.num_vertices != n or not math.isclose(setup.settings.edge_length, edge):
-            raise SystemExit(f"error: {args.setup} holds a {setup.mesh_base.num_vertices}-vertex setup, not "
-                             f"this {n}-vertex {args.garment}; pass another --setup file")
-        print(f"precomputation loaded from {args.setup}")
-    else:
-        setup = prepare(pattern, base, target, settings, device=device)
-        if args.setup:
-            with atomic_path(args.setup) as tmp:
-                torch.save(setup, tmp)
+    try:
+        setup = load_or_prepare(args.setup, pattern, base, target, settings, n, device)
+    except InputError as exc:
+        raise SystemExit(f"error: {exc}") from None
     t_prep = time.perf_counter() - t0
     print(f"precomputation {t_prep:.1f} s ({setup.timings})")
     run_settings = replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
