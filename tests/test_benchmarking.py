@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 
 import pytest
 import torch
@@ -67,12 +68,18 @@ def test_machine_watch_block_is_json_and_described() -> None:
     assert len(a) == 3 and all(isinstance(v, float) for v in a)
     rec = machine_record()
     assert rec["cpus"] >= 1 and rec["torch"] == torch.__version__ and len(rec["load_average"]) == 3
-    block = MachineWatch(reference=False).finish()
+    watch = MachineWatch(reference=False)
+    t = time.perf_counter()
+    while time.perf_counter() - t < 0.2:  # busy on one thread: about one core
+        pass
+    block = watch.finish()
     assert block["speed_reference"] == {"start": None, "end": None}
+    assert block["wall_seconds"] >= 0.2 and 0.0 < block["cpu_seconds"] <= block["wall_seconds"] * 1.05 + 0.01
+    assert 0.5 < block["cores_used"] < 1.5
     assert len(block["load_average_end"]) == 3
     json.dumps(block)
     line = MachineWatch.describe(block)
-    assert "load average" in line and "speed reference" not in line
+    assert "load average" in line and "speed reference" not in line and "cores)" in line
     block = MachineWatch().finish()  # the default sizes: about half a second at each end
     json.dumps(block)
     for end in ("start", "end"):

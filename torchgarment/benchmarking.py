@@ -25,9 +25,11 @@ benches record it at their start and end:
   reference stays the same workload when the library gets faster.
 
 Both are medians over repeats (``*_min_ms``: the minima). :class:`MachineWatch` takes both at a bench's
-start and end and gives the JSON block and a printed line. Two runs on different machines or hours compare
-through the ratio of their references (the messy bench's seconds per pair against the factorization and
-spring pass of the same run). The grids are generated; nothing is read from disk.
+start and end and gives the JSON block and a printed line, with the process's CPU time over the bench's wall
+time: the cores it really used (a retargeting run at ``threads=1`` once used 1.47, numpy's BLAS pool spinning
+on the second core; ``README.md``, "One thread means one core"). Two runs on different machines or hours
+compare through the ratio of their references (the messy bench's seconds per pair against the factorization
+and spring pass of the same run). The grids are generated; nothing is read from disk.
 """
 
 from __future__ import annotations
@@ -198,19 +200,28 @@ class MachineWatch:
     def __init__(self, reference: bool = True) -> None:
         self.start = machine_record()
         self.reference_start = speed_reference() if reference else None
+        self._clock = time.perf_counter(), time.process_time()
 
     def finish(self) -> dict:
-        """The JSON-ready block: the start's machine record, ``load_average_end`` and ``speed_reference``
-        (``{"start": ..., "end": ...}``, None without ``reference``)."""
+        """The JSON-ready block: the start's machine record, ``load_average_end``, ``speed_reference``
+        (``{"start": ..., "end": ...}``, None without ``reference``), and ``wall_seconds`` and
+        ``cpu_seconds`` (the process's user and system time, all its threads) between the end of the start's
+        reference and this call, with ``cores_used`` their ratio."""
+        wall, cpu = time.perf_counter() - self._clock[0], time.process_time() - self._clock[1]
         end = speed_reference() if self.reference_start is not None else None
         return self.start | {"load_average_end": list(load_average()),
-                             "speed_reference": {"start": self.reference_start, "end": end}}
+                             "speed_reference": {"start": self.reference_start, "end": end},
+                             "wall_seconds": wall, "cpu_seconds": cpu,
+                             "cores_used": cpu / wall if wall > 0 else math.nan}
 
     @staticmethod
     def describe(block: dict) -> str:
         """One line of a :meth:`finish` block: the load averages and the speed references, start -> end."""
         a, b = block["load_average"][0], block["load_average_end"][0]
         line = f"machine: {block['cpus']} CPUs, load average {a:.2f} -> {b:.2f}"
+        if "cores_used" in block:  # blocks written before 2026-12-02 have no CPU time
+            line += (f"; this process {block['cpu_seconds']:.1f} s of CPU in {block['wall_seconds']:.1f} s "
+                     f"({block['cores_used']:.2f} cores)")
         ref = block["speed_reference"]
         if ref["start"] is None:
             return line

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
+import textwrap
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -374,13 +379,44 @@ def test_ipc_threads_sets_and_restores_ipctk_threads() -> None:
         assert ipctk.get_num_threads() == before
     torch_before = torch.get_num_threads()
     other = 2 if torch_before == 1 else 1
-    with ipc_threads(other, include_torch=True):  # retargeting's block: both libraries
+    with ipc_threads(other, whole_process=True):  # retargeting's block: ipctk, torch and the BLAS pools
         assert torch.get_num_threads() == other and ipctk.get_num_threads() == other
     assert torch.get_num_threads() == torch_before and ipctk.get_num_threads() == before
     with ipc_threads(other):
         assert torch.get_num_threads() == torch_before
     with pytest.raises(InputError, match="positive integer"), ipc_threads(0):
         pass
+
+
+def test_ipc_threads_of_the_whole_process_limit_the_blas_pools() -> None:
+    """numpy's OpenBLAS kept a second core busy through a retargeting run at ``threads=1`` until the block
+    limited it (``README.md``, "One thread means one core"). Run in a fresh process without the thread
+    variables that the test workers set, so that the BLAS pool starts at its default (one thread per core)."""
+    probe = textwrap.dedent("""
+        import json
+        from threadpoolctl import threadpool_info
+        from torchgarment.sim.contact import ipc_threads
+
+        def pools():
+            return sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+        out = {"before": pools()}
+        with ipc_threads(1, whole_process=True):
+            out["inside"] = pools()
+        out["after"] = pools()
+        with ipc_threads(1):
+            out["ipctk_only"] = pools()
+        print(json.dumps(out))
+    """)
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+    run = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    out = json.loads(run.stdout.strip().splitlines()[-1])
+    assert out["before"], "numpy's BLAS is loaded, so threadpoolctl must find its pool"
+    if max(out["before"]) == 1:
+        pytest.skip("every BLAS pool runs on one thread by default here (a one-core machine)")
+    assert out["inside"] == [1] * len(out["before"])
+    assert out["after"] == out["before"] and out["ipctk_only"] == out["before"]
 
 
 def test_dtype_device_boundary_and_errors() -> None:

@@ -153,12 +153,13 @@ class RetargetSettings:
             MovingObstacleContact`); None (default) keeps the whole avatar. Culling paid off when ipctk's
             broad phase traversed the avatar's own overlaps; the garment-avatar BVH queries never do, and
             re-culling then costs more than it saves (``README.md``, retargeting).
-        threads: torch's intra-op threads and ipctk's threads during the run (both restored afterwards); None
-            keeps the current numbers. The per-element work is many small tensor ops, for which one thread is
-            fastest (measured: 2 threads were 2-3x slower on a loaded 2-core machine). With one ipctk thread a
-            run is reproducible bit for bit; ipctk's parallel queries (2 threads) made two runs of the same
-            pair differ by 0.4 mm, and a hard pair (a layered T-shirt on the 10 m creature) pass in one run
-            and fail in the next two.
+        threads: torch's intra-op threads, ipctk's threads and the BLAS libraries' threads during the run (all
+            restored afterwards; :func:`~torchgarment.sim.contact.ipc_threads`); None keeps the current
+            numbers. The per-element work is many small tensor ops, for which one thread is fastest
+            (measured: 2 threads were 2-3x slower on a loaded 2-core machine). With one ipctk thread a run is
+            reproducible bit for bit; ipctk's parallel queries (2 threads) made two runs of the same pair
+            differ by 0.4 mm, and a hard pair (a layered T-shirt on the 10 m creature) pass in one run and
+            fail in the next two.
         sparse_backend: the sparse direct solver of the Newton systems (SPD: projected Hessians plus the
             barrier's PSD blocks). ``"auto"`` (default): CHOLMOD when ``cvxopt`` is installed (``pip install
             -e ".[cholmod]"``), else SuperLU (:meth:`~torchgarment.linalg.SparseBackend.fastest_spd`; the
@@ -370,7 +371,7 @@ def retarget(
     x_src = problem.garment_vertices * k
     log = _Progress(log_dir, progress)
     steps: list[dict] = []
-    with ipc_threads(None if s.threads is None else int(s.threads), include_torch=True), closing(log):
+    with ipc_threads(None if s.threads is None else int(s.threads), whole_process=True), closing(log):
         # ---------------------------------------------------------------- Step 1
         t0 = time.perf_counter()
         shrunk = shrink_avatar(problem, check=s.check_shrink)
