@@ -121,7 +121,8 @@ def main(argv: list[str] | None = None) -> int:
                        exact_objective_final=exact["objective_final"], exact_seconds=exact["seconds"],
                        ratio=timed["objective_final"] / exact["objective_final"])
         except Exception as exc:  # noqa: BLE001 - one failed target must not stop the others
-            traceback.print_exc()
+            if not isinstance(exc, InputError):  # bad input (a setup file of another mesh) is its one line
+                traceback.print_exc()
             row.update(ok=False, error=f"{type(exc).__name__}: {exc}".splitlines()[0])
         rows.append(row)
         if row["ok"]:

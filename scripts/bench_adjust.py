@@ -161,7 +161,6 @@ def main() -> None:
     from torchgarment.benchmarking import MachineWatch
     from torchgarment.body import Body
     from torchgarment.body.size_chart import chart_row
-    from torchgarment.errors import InputError
     from torchgarment.io.atomic import atomic_open
     from torchgarment.options import resolve_device
     from torchgarment.pattern.library import draft
@@ -196,10 +195,7 @@ def main() -> None:
                               sparse_backend=args.sparse_backend, linear_solver=args.linear_solver,
                               exact_curvature_cg=args.exact_curvature_cg)
     t0 = time.perf_counter()
-    try:
-        setup = load_or_prepare(args.setup, pattern, base, target, settings, n, device)
-    except InputError as exc:
-        raise SystemExit(f"error: {exc}") from None
+    setup = load_or_prepare(args.setup, pattern, base, target, settings, n, device)
     t_prep = time.perf_counter() - t0
     print(f"precomputation {t_prep:.1f} s ({setup.timings})")
     run_settings = replace(setup.settings, iterations=args.iterations, inner_iterations=args.inner_iterations,
